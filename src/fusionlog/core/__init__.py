@@ -1,0 +1,1 @@
+"""Pure numpy/scipy math: no file or network I/O in this package."""

@@ -1,0 +1,155 @@
+"""The linear Gaussian system of eqs. (12)-(13) and its sensors, as plain immutable data.
+
+x_{k+1} = F x_k + G w_k,   w_k ~ N(0, Q)
+z_k^(j) = H^(j) x_k + v_k^(j),   v_k ~ N(0, R) with R the block matrix of eq. (31), whose
+off-diagonal blocks hold the cross-covariances between sensors (the paper allows dependent v^(j)).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """One sensor of eq. (13): z = H x + v, v ~ N(0, R)."""
+
+    name: str
+    H: np.ndarray  # (m, n)
+    R: np.ndarray  # (m, m)
+
+    @property
+    def dim(self) -> int:
+        return self.H.shape[0]
+
+
+@dataclass(frozen=True)
+class Prior:
+    """Gaussian p(x_0 | z_{-1}) = N(mean, cov)."""
+
+    mean: np.ndarray  # (n,)
+    cov: np.ndarray  # (n, n)
+
+
+@dataclass(frozen=True)
+class System:
+    """Model and sensors shared by the simulator (truth) and the estimators (filter model).
+
+    `prior` is what the filters start from; None means "no prior information" and the filters
+    start exactly in information form with zero information. `initial` is the distribution the
+    truth x_0 is drawn from; it defaults to the prior (the paper uses one for both).
+    `cross_R[(i, j)]` (i < j) is E[v^(i) v^(j)^T].
+    """
+
+    F: np.ndarray
+    Q: np.ndarray
+    sensors: tuple[Sensor, ...]
+    prior: Prior | None = None
+    G: np.ndarray | None = None
+    cross_R: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
+    initial: Prior | None = None
+    dt: float = 1.0
+    state_names: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.state_names:
+            object.__setattr__(self, "state_names", tuple(f"x{i + 1}" for i in range(self.n)))
+
+    @property
+    def n(self) -> int:
+        return self.F.shape[0]
+
+    @property
+    def GQG(self) -> np.ndarray:
+        """Process noise covariance in state space, G Q G^T."""
+        if self.G is None:
+            return self.Q
+        return self.G @ self.Q @ self.G.T
+
+    @property
+    def truth_initial(self) -> Prior:
+        init = self.initial if self.initial is not None else self.prior
+        if init is None:
+            raise ValueError("the truth needs an initial distribution when there is no prior")
+        return init
+
+    @property
+    def sensor_slices(self) -> tuple[slice, ...]:
+        """Rows of each sensor in the stacked measurement vector of eq. (30)."""
+        out, start = [], 0
+        for s in self.sensors:
+            out.append(slice(start, start + s.dim))
+            start += s.dim
+        return tuple(out)
+
+    @property
+    def m(self) -> int:
+        """Length of the stacked measurement vector."""
+        return sum(s.dim for s in self.sensors)
+
+    @property
+    def H(self) -> np.ndarray:
+        """Stacked measurement matrix of eq. (30)."""
+        return np.vstack([s.H for s in self.sensors])
+
+    @property
+    def R(self) -> np.ndarray:
+        """Block measurement noise covariance, eq. (31) with cross-covariance blocks."""
+        sl = self.sensor_slices
+        R = np.zeros((self.m, self.m))
+        for i, s in enumerate(self.sensors):
+            R[sl[i], sl[i]] = s.R
+        for (i, j), Rij in self.cross_R.items():
+            R[sl[i], sl[j]] = Rij
+            R[sl[j], sl[i]] = Rij.T
+        return R
+
+    def subset(self, indices: list[int]) -> System:
+        """The same system seen by a subset of the sensors (e.g. one sensor for SKF)."""
+        pos = {j: p for p, j in enumerate(indices)}
+        cross = {
+            (pos[i], pos[j]): Rij
+            for (i, j), Rij in self.cross_R.items()
+            if i in pos and j in pos
+        }
+        return System(
+            F=self.F,
+            Q=self.Q,
+            G=self.G,
+            sensors=tuple(self.sensors[j] for j in indices),
+            prior=self.prior,
+            cross_R=cross,
+            initial=self.initial,
+            dt=self.dt,
+            state_names=self.state_names,
+        )
+
+    def sensor_index(self, name: str) -> int:
+        for j, s in enumerate(self.sensors):
+            if s.name == name:
+                return j
+        raise KeyError(name)
+
+
+def constant_velocity(dt: float, n0: float) -> tuple[np.ndarray, np.ndarray]:
+    """F and Q of eqs. (41)-(42): x = [position, velocity], Q = [[dt^3/3, dt^2/2],[dt^2/2, dt]] N0."""
+    F = np.array([[1.0, dt], [0.0, 1.0]])
+    Q = np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]) * n0
+    return F, Q
+
+
+def ajgl2009(ts: float = 1.0, n_sensors: int = 3) -> System:
+    """The paper's numerical example (Section VI): N0 = 0.16 Ts, R = 1, prior N([100, -1], I)."""
+    F, Q = constant_velocity(ts, 0.16 * ts)
+    H = np.array([[1.0, 0.0]])
+    sensors = tuple(Sensor(f"s{j + 1}", H, np.array([[1.0]])) for j in range(n_sensors))
+    return System(
+        F=F,
+        Q=Q,
+        sensors=sensors,
+        prior=Prior(np.array([100.0, -1.0]), np.eye(2)),
+        dt=ts,
+        state_names=("position", "velocity"),
+    )

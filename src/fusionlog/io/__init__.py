@@ -1,0 +1,1 @@
+"""Reading and writing MCAP logs and Rerun recordings."""
