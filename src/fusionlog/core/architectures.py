@@ -1,0 +1,460 @@
+"""The fusion architectures of Ajgl-Simandl-Dunik (Sec. V) as per-step linear maps.
+
+Every architecture here is linear in the data once its gains are fixed, and its gains depend only
+on the model and on which measurements are present, not on the measured values. So each one is
+compiled into a *plan*: for every step k an affine map on the estimator's internal state s,
+
+    s_k = T_k s_{k-1} + U_k z_k,        x_hat_k = O_k s_k,        P_k (the covariance it reports)
+
+where z_k is the stacked measurement of eq. (30). Applying a plan to M runs is one matrix product
+per step (the shared-gain fast path). When runs differ in which measurements are present (NaN =
+missing), the same code builds the maps with a leading run dimension (the per-run path). And because
+the maps are explicit, `core.exact` propagates the true error covariance through them exactly.
+
+The internal state s is the mean of each filter, or, while a filter started without a prior has not
+yet gathered enough information for a covariance to exist, its information vector y = P^-1 x.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .fusion import ci_omega, ci_weights, gmf_weights, millman_weights
+from .kalman import gain, joseph
+from .linalg import apply, is_invertible, mT, spd_inv, sym
+from .model import System
+from .names import parse_arch
+
+
+@dataclass
+class StepMap:
+    """Affine map of one step: s_k = T s_{k-1} + U z_k, x_hat = O s_k, reported covariance P."""
+
+    T: np.ndarray  # (..., d, d_prev)
+    U: np.ndarray  # (..., d, m)
+    O: np.ndarray  # (..., n, d)
+    P: np.ndarray  # (..., n, n)
+
+
+@dataclass
+class SmootherMaps:
+    """Backward information filter and forward/backward fusion of FBS, eqs. (25)-(28).
+
+    y_b[K] = 0;  y_b[k] = L[k] (y_b[k+1] + V[k+1] z[k+1]);  x_hat[k] = A[k] s_f[k] + B[k] y_b[k].
+    """
+
+    L: list[np.ndarray]  # k = 0..K-1
+    V: list[np.ndarray]  # k = 0..K (V[0] unused)
+    A: list[np.ndarray]
+    B: list[np.ndarray]
+    P: list[np.ndarray]
+
+
+@dataclass
+class Plan:
+    """A compiled architecture: initial internal state and the per-step maps."""
+
+    name: str
+    s0: np.ndarray  # (d0,)
+    steps: list[StepMap]
+    smoother: SmootherMaps | None = None
+    per_run: bool = False
+    info: dict = field(default_factory=dict)
+
+    @property
+    def reported_cov(self) -> np.ndarray:
+        """(K+1, n, n) shared or (M, K+1, n, n) per run; NaN where the estimate is undefined."""
+        Ps = self.smoother.P if self.smoother is not None else [st.P for st in self.steps]
+        return np.stack(Ps, axis=-3)
+
+
+@dataclass
+class Estimate:
+    """An architecture's output for M runs: mean (M, K+1, n); cov (K+1, n, n) or (M, K+1, n, n)."""
+
+    mean: np.ndarray
+    cov: np.ndarray
+
+    @property
+    def shared_cov(self) -> bool:
+        return self.cov.ndim == 3
+
+
+# --------------------------------------------------------------------------------------------
+# Building blocks
+
+
+def _masked(H: np.ndarray, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """H and R with absent rows made information-free: the row of H is zeroed and the absent
+    component decoupled with unit variance, so its gain column is exactly zero."""
+    pf = p.astype(float)
+    Hm = H * pf[..., :, None]
+    Rm = R * (pf[..., :, None] * pf[..., None, :]) + np.eye(R.shape[-1]) * (1.0 - pf)[..., None, :]
+    return Hm, Rm
+
+
+def _embed(block: np.ndarray, rows: np.ndarray, m: int) -> np.ndarray:
+    """Place the columns of `block` (..., r, len(rows)) into a (..., r, m) matrix at `rows`."""
+    out = np.zeros(block.shape[:-1] + (m,))
+    out[..., rows] = block
+    return out
+
+
+def _nan_where(A: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    return np.where(ok[..., None, None], A, np.nan)
+
+
+@dataclass
+class _Step:
+    T: np.ndarray
+    U: np.ndarray  # (..., n, m), embedded
+    O: np.ndarray
+    P: np.ndarray
+    # Error propagation of this filter's generalised error g (error x - x_hat in mean form,
+    # information error y - Y x in information form): g^- = Phi g + Gam w ; g = Psi g^- + Lam v.
+    Phi: np.ndarray
+    Gam: np.ndarray
+    Psi: np.ndarray
+    Lam: np.ndarray  # (..., n, m), embedded
+
+
+class _KF:
+    """A Kalman filter on a subset `rows` of the stacked measurement, eqs. (14)-(18), Joseph form.
+
+    Without a prior it runs in information form from zero information, exactly, and switches to
+    covariance form at the first step where the information matrix is invertible for every run.
+    """
+
+    def __init__(self, sys: System, rows: np.ndarray, R: np.ndarray, batch: tuple[int, ...]):
+        n = sys.n
+        self.F, self.GQG, self.m = sys.F, sys.GQG, sys.m
+        self.rows = rows
+        self.H = sys.H[rows]
+        self.R = R
+        self.eye = np.eye(n)
+        if sys.prior is not None:
+            self.info = False
+            self.mat = np.broadcast_to(sys.prior.cov, batch + (n, n)).copy()
+            self.s0 = np.asarray(sys.prior.mean, float)
+        else:
+            self.info = True
+            self.mat = np.zeros(batch + (n, n))
+            self.s0 = np.zeros(n)
+            if abs(np.linalg.det(sys.F)) < 1e-300:
+                raise ValueError("without a prior, F must be invertible (information-form start)")
+            self.Finv = np.linalg.inv(sys.F)
+
+    def step(self, present: np.ndarray, first: bool) -> _Step:
+        Hk, Rk = _masked(self.H, self.R, present)
+        return self._step_info(Hk, Rk, first) if self.info else self._step_cov(Hk, Rk, first)
+
+    def _step_cov(self, Hk: np.ndarray, Rk: np.ndarray, first: bool) -> _Step:
+        if first:
+            Pp, Tp, Gam = self.mat, self.eye, np.zeros_like(self.eye)
+        else:
+            Pp, Tp, Gam = sym(self.F @ self.mat @ self.F.T + self.GQG), self.F, self.eye
+        K = gain(Pp, Hk, Rk)
+        P = joseph(Pp, K, Hk, Rk)
+        IKH = self.eye - K @ Hk
+        self.mat = P
+        Ke = _embed(K, self.rows, self.m)
+        return _Step(IKH @ Tp, Ke, self.eye, P, Tp, Gam, IKH, -Ke)
+
+    def _step_info(self, Hk: np.ndarray, Rk: np.ndarray, first: bool) -> _Step:
+        Y = self.mat
+        if first:
+            A, Yp, Gam = self.eye, Y, np.zeros_like(self.eye)
+        else:
+            # Prediction in information form valid for singular Y (and singular Q):
+            # with M = F^-T Y F^-1, Y^- = (I + M GQG)^-1 M and y^- = (I + M GQG)^-1 F^-T y.
+            Mi = self.Finv.T @ Y @ self.Finv
+            Bm = self.eye + Mi @ self.GQG
+            A = np.linalg.solve(Bm, np.broadcast_to(self.Finv.T, Bm.shape))
+            Yp = sym(np.linalg.solve(Bm, Mi))
+            Gam = -(A @ Y @ self.Finv)
+        RiH = np.linalg.solve(Rk, Hk)
+        Y = sym(Yp + mT(Hk) @ RiH)
+        Ue = _embed(mT(RiH), self.rows, self.m)
+        self.mat = Y
+        ok = is_invertible(Y)
+        if np.all(ok):
+            P = spd_inv(Y)
+            self.info, self.mat = False, P
+            return _Step(P @ A, P @ Ue, self.eye, P, A, Gam, -P, -(P @ Ue))
+        Pinv = _nan_where(np.linalg.pinv(Y, hermitian=True), ok)
+        return _Step(A, Ue, Pinv, Pinv, A, Gam, np.broadcast_to(self.eye, Y.shape), Ue)
+
+
+def _block_diag(mats: list[np.ndarray]) -> np.ndarray:
+    batch = np.broadcast_shapes(*(m.shape[:-2] for m in mats))
+    rows = sum(m.shape[-2] for m in mats)
+    cols = sum(m.shape[-1] for m in mats)
+    out = np.zeros(batch + (rows, cols))
+    r = c = 0
+    for m in mats:
+        out[..., r : r + m.shape[-2], c : c + m.shape[-1]] = m
+        r, c = r + m.shape[-2], c + m.shape[-1]
+    return out
+
+
+def _blockdiag_R(sys: System) -> np.ndarray:
+    """R of eq. (31) without cross-covariances: what architectures that assume independent
+    sensor noise (HKF's equivalent measurements) believe."""
+    return _block_diag([s.R for s in sys.sensors])
+
+
+# --------------------------------------------------------------------------------------------
+# Architectures
+
+
+def _single_filter_plan(name: str, sys: System, rows: np.ndarray, present: np.ndarray) -> Plan:
+    batch = present.shape[:-2]
+    kf = _KF(sys, rows, sys.R[np.ix_(rows, rows)], batch)
+    s0 = kf.s0
+    steps = []
+    infos: list[np.ndarray | None] = []
+    for k in range(present.shape[-2]):
+        st = kf.step(present[..., k, rows], first=(k == 0))
+        steps.append(StepMap(st.T, st.U, st.O, st.P))
+        infos.append(kf.mat if kf.info else None)
+    return Plan(name, s0, steps, per_run=bool(batch), info={"Y": infos})
+
+
+def _hkf_plan(sys: System, present: np.ndarray) -> Plan:
+    """Hierarchical KF with feedback, eqs. (36)-(40).
+
+    Each local KF j restarts from the fused prediction (38), updates with its own sensor, and the
+    fusion centre adds the equivalent measurements P_j^-1 x_j - P^-1_pred x_pred (36)-(37).
+    """
+    batch = present.shape[:-2]
+    n, m = sys.n, sys.m
+    eye = np.eye(n)
+    allrows = np.arange(m)
+    # Before a covariance exists (no prior), local equivalent measurements are just
+    # H_j^T R_j^-1 H_j: the fused information filter on block-diagonal R is exactly that.
+    front = _KF(sys, allrows, _blockdiag_R(sys), batch)
+    s0 = front.s0
+    steps = []
+    P = None
+    for k in range(present.shape[-2]):
+        first = k == 0
+        if front.info:
+            st = front.step(present[..., k, :], first)
+            steps.append(StepMap(st.T, st.U, st.O, st.P))
+            P = front.mat
+            continue
+        if first:
+            Pp, Tp = front.mat, eye
+        else:
+            Pp, Tp = sym(sys.F @ P @ sys.F.T + sys.GQG), sys.F
+        Yp = spd_inv(Pp)
+        S = len(sys.sensors)
+        Yf = (1 - S) * Yp
+        Tacc = (1 - S) * Yp
+        U = np.zeros(batch + (n, m))
+        for j, sl in enumerate(sys.sensor_slices):
+            rows = allrows[sl]
+            Hj, Rj = _masked(sys.sensors[j].H, sys.sensors[j].R, present[..., k, rows])
+            Kj = gain(Pp, Hj, Rj)
+            Yj = spd_inv(joseph(Pp, Kj, Hj, Rj))
+            Yf = Yf + Yj
+            Tacc = Tacc + Yj @ (eye - Kj @ Hj)
+            U = U + _embed(Yj @ Kj, rows, m)
+        P = spd_inv(Yf)
+        steps.append(StepMap(P @ Tacc @ Tp, P @ U, np.broadcast_to(eye, P.shape), P))
+    return Plan("HKF", s0, steps, per_run=bool(batch))
+
+
+def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion: str) -> Plan:
+    """Local KFs without feedback fused by Millman (MSC, eqs. 32-34), by the generalised Millman
+    formula with exact cross-covariances (MSC-GMF, eqs. 6-7 and 35) or by covariance intersection.
+
+    The local filters' joint error covariance follows eq. (35), extended by K_i R_ij K_j^T for
+    correlated sensor noise and by information-form errors for filters started without a prior.
+    """
+    batch = present.shape[:-2]
+    n, m = sys.n, sys.m
+    S = len(sys.sensors)
+    allrows = np.arange(m)
+    locs = [_KF(sys, allrows[sl], s.R, batch) for s, sl in zip(sys.sensors, sys.sensor_slices)]
+    s0 = np.concatenate([lk.s0 for lk in locs])
+    if sys.prior is not None:
+        J = np.broadcast_to(np.kron(np.ones((S, S)), sys.prior.cov), batch + (S * n, S * n)).copy()
+    else:
+        J = np.zeros(batch + (S * n, S * n))
+    steps = []
+    omegas = []
+    for k in range(present.shape[-2]):
+        first = k == 0
+        sts = [lk.step(present[..., k, lk.rows], first) for lk in locs]
+        if not first:
+            Phi = _block_diag([st.Phi for st in sts])
+            Gam = np.concatenate([np.broadcast_to(st.Gam, batch + (n, n)) for st in sts], axis=-2)
+            J = Phi @ J @ mT(Phi) + Gam @ sys.GQG @ mT(Gam)
+        Psi = _block_diag([st.Psi for st in sts])
+        Lam = np.concatenate([np.broadcast_to(st.Lam, batch + (n, m)) for st in sts], axis=-2)
+        _, Rk = _masked(sys.H, sys.R, present[..., k, :])
+        J = sym(Psi @ J @ mT(Psi) + Lam @ Rk @ mT(Lam))
+        T = _block_diag([st.T for st in sts])
+        U = np.concatenate([np.broadcast_to(st.U, batch + (n, m)) for st in sts], axis=-2)
+        all_cov = not any(lk.info for lk in locs)
+        if name == "MSC":
+            O, P = _msc_readout(locs, sts, batch, n)
+        elif not all_cov:
+            O, P = np.full(batch + (n, S * n), np.nan), np.full(batch + (n, n), np.nan)
+        elif name == "MSC-GMF":
+            ws, P = gmf_weights(J, n)
+            O = np.concatenate(ws, axis=-1)
+        else:  # CI
+            covs = [st.P for st in sts]
+            if batch:
+                flat = [c.reshape((-1, n, n)) for c in covs]
+                om = np.stack([ci_omega([c[i] for c in flat], criterion) for i in range(len(flat[0]))])
+                om = om.reshape(batch + (S,))
+                ws, P = ci_weights(covs, [om[..., j, None, None] for j in range(S)])
+            else:
+                om = ci_omega(covs, criterion)
+                ws, P = ci_weights(covs, om)
+            omegas.append(om)
+            O = np.concatenate([np.broadcast_to(w, batch + (n, n)) for w in ws], axis=-1)
+        steps.append(StepMap(T, U, O, P))
+    info = {"omega": np.stack(omegas, axis=-2)} if omegas else {}
+    return Plan(name, s0, steps, per_run=bool(batch), info=info)
+
+
+def _msc_readout(
+    locs: list[_KF], sts: list[_Step], batch: tuple[int, ...], n: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Millman fusion (33)-(34) in information form: P^-1 = sum Y_j, x = P sum Y_j x_j, where
+    Y_j x_j is the information vector itself for a local still in information form."""
+    if not any(lk.info for lk in locs):
+        ws, P = millman_weights([st.P for st in sts])
+        return np.concatenate([np.broadcast_to(w, batch + (n, n)) for w in ws], axis=-1), P
+    Ys, Ws = [], []
+    for lk, st in zip(locs, sts, strict=True):
+        if lk.info:
+            Ys.append(lk.mat)
+            Ws.append(np.broadcast_to(np.eye(n), batch + (n, n)))
+        else:
+            Y = spd_inv(st.P)
+            Ys.append(Y)
+            Ws.append(Y)
+    Ysum = sum(Ys)
+    ok = is_invertible(Ysum)
+    P = _nan_where(np.linalg.pinv(Ysum, hermitian=True), ok)
+    return np.concatenate([P @ W for W in Ws], axis=-1), P
+
+
+def _fbs_plan(sys: System, present: np.ndarray) -> Plan:
+    """Fixed-interval smoother, eqs. (25)-(28): the forward KF on all sensors fused by Millman's
+    formula with a backward information filter started from zero information.
+
+    Backward filter: S^+ = S_{k+1} + H^T R^-1 H, y^+ = y_{k+1} + H^T R^-1 z_{k+1} (data at k+1), then
+    back through the dynamics, S_k = F^T (I + S^+ GQG)^-1 S^+ F and y_k = F^T (I + S^+ GQG)^-1 y^+.
+    """
+    fwd = _single_filter_plan("FBS", sys, np.arange(sys.m), present)
+    batch = present.shape[:-2]
+    n = sys.n
+    eye = np.eye(n)
+    K1 = present.shape[-2]
+    V: list[np.ndarray] = [np.zeros(0)] * K1
+    L: list[np.ndarray] = [np.zeros(0)] * (K1 - 1)
+    Smat = [np.zeros(batch + (n, n)) for _ in range(K1)]
+    for k in range(K1 - 1, -1, -1):
+        Hk, Rk = _masked(sys.H, sys.R, present[..., k, :])
+        RiH = np.linalg.solve(Rk, Hk)
+        V[k] = mT(RiH)
+        if k < K1 - 1:
+            Hn = _masked(sys.H, sys.R, present[..., k + 1, :])[0]
+            Splus = sym(Smat[k + 1] + mT(Hn) @ mT(V[k + 1]))
+            Bm = eye + Splus @ sys.GQG
+            # L = F^T (I + S^+ GQG)^-1, computed as a solve with the transpose.
+            L[k] = mT(np.linalg.solve(mT(Bm), np.broadcast_to(sys.F, Bm.shape)))
+            Smat[k] = sym(L[k] @ Splus @ sys.F)
+    A, B, Ps = [], [], []
+    for k, st in enumerate(fwd.steps):
+        Sk = Smat[k]
+        Yf = fwd.info["Y"][k]
+        if Yf is None:
+            PS = st.P @ Sk
+            Ks = mT(np.linalg.solve(mT(eye + PS), mT(PS)))  # eq. (26)
+            Pk = sym((eye - Ks) @ st.P)  # eq. (27)
+            A.append(eye - Ks)  # eq. (28)
+            B.append(Pk)
+        else:
+            # Forward filter still in information form: Millman's formula in information form.
+            Ysum = Yf + Sk
+            ok = is_invertible(Ysum)
+            Pk = _nan_where(np.linalg.pinv(Ysum, hermitian=True), ok)
+            A.append(Pk)
+            B.append(Pk)
+        Ps.append(Pk)
+    fwd.smoother = SmootherMaps(L, V, A, B, Ps)
+    return fwd
+
+
+def build_plan(
+    sys: System, arch: str, steps: int, present: np.ndarray | None = None, criterion: str = "trace"
+) -> Plan:
+    """Compile architecture `arch` for instants k = 0..steps.
+
+    `present` is a boolean mask of measurement components, (K+1, m) shared by all runs or
+    (M, K+1, m) per run; None means every measurement is present.
+    """
+    base, sensor = parse_arch(arch, [s.name for s in sys.sensors])
+    if present is None:
+        present = np.ones((steps + 1, sys.m), dtype=bool)
+    if base == "CKF":
+        return _single_filter_plan("CKF", sys, np.arange(sys.m), present)
+    if base == "SKF":
+        j = sys.sensor_index(sensor)
+        plan = _single_filter_plan(arch, sys, np.arange(sys.m)[sys.sensor_slices[j]], present)
+        return plan
+    if base == "HKF":
+        return _hkf_plan(sys, present)
+    if base in ("MSC", "MSC-GMF", "CI"):
+        return _track_to_track_plan(base, sys, present, criterion)
+    if base == "FBS":
+        return _fbs_plan(sys, present)
+    raise AssertionError(base)
+
+
+def run_plan(plan: Plan, z: np.ndarray) -> Estimate:
+    """Apply a plan to measurements z (M, K+1, m); NaN entries must be absent in the plan's mask."""
+    M, K1, _ = z.shape
+    z = np.where(np.isnan(z), 0.0, z)
+    s = np.broadcast_to(plan.s0, (M, plan.s0.shape[0]))
+    n = plan.steps[0].O.shape[-2]
+    mean = np.empty((M, K1, n))
+    states = [] if plan.smoother is not None else None
+    for k, st in enumerate(plan.steps):
+        s = apply(st.T, s) + apply(st.U, z[:, k])
+        if states is not None:
+            states.append(s)
+        else:
+            mean[:, k] = apply(st.O, s)
+    if plan.smoother is not None:
+        sm = plan.smoother
+        yb = np.zeros((M, n))
+        for k in range(K1 - 1, -1, -1):
+            if k < K1 - 1:
+                yb = apply(sm.L[k], yb + apply(sm.V[k + 1], z[:, k + 1]))
+            mean[:, k] = apply(sm.A[k], states[k]) + apply(sm.B[k], yb)
+    return Estimate(mean, plan.reported_cov)
+
+
+def estimate(sys: System, z: np.ndarray, arch: str, criterion: str = "trace") -> Estimate:
+    """Run architecture `arch` on measurements z (M, K+1, m).
+
+    Without NaN every run shares gains and covariances (one plan, applied to all runs at once);
+    with NaN (missing measurements) the plan is built per run.
+    """
+    present = ~np.isnan(z)
+    K = z.shape[1] - 1
+    if present.all():
+        plan = build_plan(sys, arch, K, None, criterion)
+    else:
+        plan = build_plan(sys, arch, K, present, criterion)
+    return run_plan(plan, z)

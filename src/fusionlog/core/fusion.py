@@ -1,0 +1,135 @@
+"""Static fusion rules for N estimates of the same state (Ajgl-Simandl-Dunik, Sec. II; Gustafsson-
+Hendeby, "The Sensor Fusion Formula").
+
+Each rule returns the weighting matrices c_i of eq. (2) (so a caller can apply one set of weights to
+many runs at once) and the covariance the rule claims for the fused estimate. `fuse` applies weights.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Literal
+
+import numpy as np
+from scipy import optimize
+
+from .linalg import mT, spd_inv, sym
+
+
+def fuse(weights: Sequence[np.ndarray], estimates: Sequence[np.ndarray]) -> np.ndarray:
+    """x = sum_i c_i x_i, eq. (2); estimates may carry leading run dimensions (..., n)."""
+    return sum(np.einsum("...ij,...j->...i", c, x) for c, x in zip(weights, estimates, strict=True))
+
+
+def millman_weights(covs: Sequence[np.ndarray]) -> tuple[list[np.ndarray], np.ndarray]:
+    """Millman's formula for independent estimates, eqs. (10)-(11) and (32)-(34).
+
+    P = (sum_j P_jj^-1)^-1, c_i = P P_ii^-1.
+    """
+    infos = [spd_inv(P) for P in covs]
+    P = spd_inv(sum(infos))
+    return [P @ Y for Y in infos], P
+
+
+def bar_shalom_campo(
+    P11: np.ndarray, P22: np.ndarray, P12: np.ndarray
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """Bar-Shalom-Campo combination of two correlated estimates, eqs. (8)-(9)."""
+    P21 = mT(P12)
+    D = P11 + P22 - P12 - P21
+    # c2 = (P11 - P12) D^-1, computed as a solve with D^T = D.
+    c2 = mT(np.linalg.solve(D, mT(P11 - P12)))
+    c1 = np.eye(P11.shape[-1]) - c2
+    P = P11 - c2 @ (P11 - P21)
+    return [c1, c2], sym(P)
+
+
+def gmf_weights(joint: np.ndarray, n: int) -> tuple[list[np.ndarray], np.ndarray]:
+    """Generalised Millman formula, eqs. (2)-(7), in constrained least-squares form.
+
+    Minimises J of eq. (5), tr(C Sigma C^T), subject to sum_i c_i = I (eq. 7), where Sigma is the
+    (N n x N n) joint error covariance with blocks P_ij of eq. (1). The stationarity conditions are
+    the KKT system  [Sigma E; E^T 0] [C^T; L] = [0; I]  with E = [I; ...; I]. Eq. (6) is this system
+    with the multiplier eliminated; it needs Sigma - blocks to be invertible, which fails in the
+    paper's own example (identical local filters sharing the prior). The KKT system is solved by
+    least squares (pseudo-inverse), whose minimum-norm solution is optimal even when Sigma is
+    singular: weights that differ by a null direction of Sigma give the same estimate almost surely.
+    Returns the weights c_i and P of eq. (4).
+    """
+    N = joint.shape[-1] // n
+    # Scale so that the KKT matrix mixes blocks of comparable size (R may span 1e-8 .. 1e8).
+    scale = np.max(np.abs(np.diagonal(joint, axis1=-2, axis2=-1)), axis=-1)[..., None, None]
+    Sig = joint / scale
+    E = np.tile(np.eye(n), (N, 1))
+    batch = joint.shape[:-2]
+    kkt = np.zeros(batch + (N * n + n, N * n + n))
+    kkt[..., : N * n, : N * n] = Sig
+    kkt[..., : N * n, N * n :] = E
+    kkt[..., N * n :, : N * n] = E.T
+    rhs = np.zeros((N * n + n, n))
+    rhs[N * n :] = np.eye(n)
+    sol = np.linalg.pinv(kkt, rcond=1e-12, hermitian=True) @ rhs
+    Ct = sol[..., : N * n, :]  # (N n, n): stacked c_i^T
+    weights = [mT(Ct[..., i * n : (i + 1) * n, :]) for i in range(N)]
+    C = mT(Ct)
+    P = sym(C @ joint @ Ct)
+    return weights, P
+
+
+Criterion = Literal["trace", "det"]
+
+
+def _ci_cost(Ys: Sequence[np.ndarray], omega: np.ndarray, criterion: Criterion) -> float:
+    Y = sum(w * Yi for w, Yi in zip(omega, Ys, strict=True))
+    try:
+        if criterion == "trace":
+            return float(np.trace(np.linalg.inv(Y)))
+        sign, logdet = np.linalg.slogdet(Y)
+        return float(-logdet) if sign > 0 else np.inf
+    except np.linalg.LinAlgError:
+        return np.inf
+
+
+def ci_omega(covs: Sequence[np.ndarray], criterion: Criterion = "trace") -> np.ndarray:
+    """Weights omega (on the simplex) of covariance intersection minimising tr(P) or det(P).
+
+    Two estimates: bounded scalar minimisation, with both end points also tried since the
+    optimum may be an input itself. More: SLSQP on the simplex. Shared (non-batched) covariances.
+    """
+    Ys = [spd_inv(P) for P in covs]
+    N = len(Ys)
+    if N == 1:
+        return np.ones(1)
+    if N == 2:
+        res = optimize.minimize_scalar(
+            lambda w: _ci_cost(Ys, np.array([w, 1.0 - w]), criterion),
+            bounds=(0.0, 1.0),
+            method="bounded",
+            options={"xatol": 1e-10},
+        )
+        cands = [np.array([1.0, 0.0]), np.array([0.0, 1.0]), np.array([res.x, 1.0 - res.x])]
+    else:
+        res = optimize.minimize(
+            lambda w: _ci_cost(Ys, w, criterion),
+            np.full(N, 1.0 / N),
+            method="SLSQP",
+            bounds=[(0.0, 1.0)] * N,
+            constraints=[{"type": "eq", "fun": lambda w: np.sum(w) - 1.0}],
+            options={"ftol": 1e-14, "maxiter": 200},
+        )
+        w = np.clip(res.x, 0.0, 1.0)
+        cands = [np.eye(N)[i] for i in range(N)] + [w / w.sum()]
+    costs = [_ci_cost(Ys, w, criterion) for w in cands]
+    return cands[int(np.argmin(costs))]
+
+
+def ci_weights(
+    covs: Sequence[np.ndarray], omega: np.ndarray
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """Covariance intersection ("safe fusion"): P^-1 = sum w_i P_i^-1, c_i = w_i P P_i^-1.
+
+    For any cross-correlation between the inputs, P bounds the true error covariance.
+    """
+    infos = [spd_inv(P) for P in covs]
+    P = spd_inv(sum(w * Y for w, Y in zip(omega, infos, strict=True)))
+    return [w * (P @ Y) for w, Y in zip(omega, infos, strict=True)], P

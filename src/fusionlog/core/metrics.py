@@ -1,0 +1,402 @@
+"""Monte Carlo evaluation metrics of Section VI (eqs. 44-47), accumulated over blocks of runs.
+
+The accumulator keeps only per-step sums (and per-run averages reduced to sums), so
+
+* memory does not grow with the number of runs M,
+* blocks of runs merge by adding sums: the result does not depend on how the runs were split
+  (up to floating-point rounding of the additions),
+* a run is always handed over whole (all steps of it in one block), which lets us keep the
+  per-run average of each metric over steps and hence a Monte Carlo standard error that accounts
+  for the correlation of the errors across steps within a run.
+
+Per step k, over the runs m whose estimate is defined at k (finite mean and covariance):
+
+    MSE(x_i,k) = sum_m (x_i,k,m - xhat_i,k,m)^2 / M_k                      (eq. 44)
+    NEES_k     = sum_m e' P^-1 e / M_k,   DM_k = sum_m sqrt(e' P^-1 e) / M_k   (eq. 46)
+    trace_k    = sum_m trace(P_k,m) / M_k
+
+Overall values average the per-step values over the steps where at least one run is defined:
+``mse`` (eq. 45: over states and steps), ``anees``, ``dm`` (eq. 47), ``mean_trace``. Entries with
+an undefined estimate (NaN mean or covariance: no prior yet, state not yet observable) are left
+out of every metric and counted in ``excluded``.
+
+Chi-square band: if the filter is consistent, M_k * NEES_k ~ chi2(M_k n), so the two-sided band
+at confidence c is chi2.ppf((1 -+ c) / 2, M_k n) / M_k (scipy quantiles).
+
+Standard errors of the overall MSE / ANEES / DM come from the spread of the per-run averages over
+the valid steps of each run. They are exact for eqs. 45/47 when every run has the same set of
+valid steps (the usual case: undefined steps are the same for all runs); otherwise they are the
+standard error of the equally weighted mean of the per-run averages, a close approximation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+__all__ = [
+    "MetricsAccumulator",
+    "MetricsResult",
+    "expected_mahalanobis_consistent",
+]
+
+
+def expected_mahalanobis_consistent(n: int) -> float:
+    """E[sqrt(chi2_n)] = sqrt(2) Gamma((n+1)/2) / Gamma(n/2): the DM of a consistent filter."""
+    from scipy.special import gammaln
+
+    return math.sqrt(2.0) * math.exp(gammaln((n + 1) / 2.0) - gammaln(n / 2.0))
+
+
+@dataclass
+class MetricsAccumulator:
+    """Sums of the Section VI metrics over runs, per time step; feed it blocks of whole runs."""
+
+    n_steps: int  # K + 1
+    n_states: int  # n
+    runs: int = 0  # runs seen (including runs that are undefined everywhere)
+    count: np.ndarray = field(init=False)  # (K+1,) runs with a defined estimate at step k
+    sse: np.ndarray = field(init=False)  # (K+1, n) sum of squared errors
+    sse_sq: np.ndarray = field(init=False)  # (K+1, n) sum of squared squared errors
+    trace_sum: np.ndarray = field(init=False)  # (K+1,)
+    nees_sum: np.ndarray = field(init=False)  # (K+1,)
+    nees_sq: np.ndarray = field(init=False)  # (K+1,)
+    dm_sum: np.ndarray = field(init=False)  # (K+1,)
+    dm_sq: np.ndarray = field(init=False)  # (K+1,)
+    # per-run averages over the run's valid steps: [count, sum, sum of squares] for mse/nees/dm
+    run_count: int = 0
+    run_sums: np.ndarray = field(init=False)  # (3,) mse, nees, dm
+    run_sq: np.ndarray = field(init=False)  # (3,)
+
+    def __post_init__(self) -> None:
+        if self.n_steps < 1 or self.n_states < 1:
+            raise ValueError(
+                f"need n_steps >= 1 and n_states >= 1, got {self.n_steps}, {self.n_states}"
+            )
+        s, n = self.n_steps, self.n_states
+        self.count = np.zeros(s, dtype=np.int64)
+        self.sse = np.zeros((s, n))
+        self.sse_sq = np.zeros((s, n))
+        self.trace_sum = np.zeros(s)
+        self.nees_sum = np.zeros(s)
+        self.nees_sq = np.zeros(s)
+        self.dm_sum = np.zeros(s)
+        self.dm_sq = np.zeros(s)
+        self.run_sums = np.zeros(3)
+        self.run_sq = np.zeros(3)
+
+    @property
+    def excluded(self) -> np.ndarray:
+        """(K+1,) number of runs whose estimate was undefined at step k."""
+        return self.runs - self.count
+
+    # ------------------------------------------------------------------ accumulate
+    def add(self, x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> None:
+        """Add a block of whole runs.
+
+        x, mean: (m, K+1, n); cov: (K+1, n, n) shared by all runs of the block (the common case:
+        one solve per step for all runs) or (m, K+1, n, n) per run. NaN in mean or cov marks an
+        undefined estimate; that (run, step) entry is excluded and counted.
+        """
+        x = np.asarray(x, dtype=float)
+        mean = np.asarray(mean, dtype=float)
+        cov = np.asarray(cov, dtype=float)
+        s, n = self.n_steps, self.n_states
+        if x.ndim != 3 or x.shape[1:] != (s, n):
+            raise ValueError(f"truth must have shape (runs, {s}, {n}), got {x.shape}")
+        m = x.shape[0]
+        if mean.shape != x.shape:
+            raise ValueError(f"mean must have shape {x.shape}, got {mean.shape}")
+        shared = cov.shape == (s, n, n)
+        if not shared and cov.shape != (m, s, n, n):
+            raise ValueError(
+                f"cov must have shape ({s}, {n}, {n}) or ({m}, {s}, {n}, {n}), got {cov.shape}"
+            )
+        if m == 0:
+            return
+
+        err = x - mean
+        valid = np.isfinite(err).all(axis=-1)  # (m, s)
+        cov_ok = np.isfinite(cov).all(axis=(-2, -1))  # (s,) or (m, s)
+        valid &= cov_ok if not shared else cov_ok[None, :]
+        err = np.where(valid[..., None], err, 0.0)
+        eye = np.eye(n)
+        p_safe = np.where(cov_ok[..., None, None], cov, eye)
+
+        if shared:
+            # one factorisation per step, applied to all m runs: solve P_k Y = E_k'
+            rhs = err.transpose(1, 2, 0)  # (s, n, m)
+            try:
+                sol = np.linalg.solve(p_safe, rhs)
+            except np.linalg.LinAlgError:
+                sol = np.linalg.pinv(p_safe, hermitian=True) @ rhs
+            nees = np.einsum("msi,sim->ms", err, sol)
+            tr = np.trace(p_safe, axis1=-2, axis2=-1)  # (s,)
+            trace_sum = tr * valid.sum(axis=0)
+        else:
+            try:
+                sol = np.linalg.solve(p_safe, err[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                sol = np.einsum("msij,msj->msi", np.linalg.pinv(p_safe, hermitian=True), err)
+            nees = np.einsum("msi,msi->ms", err, sol)
+            tr = np.trace(p_safe, axis1=-2, axis2=-1)  # (m, s)
+            trace_sum = np.where(valid, tr, 0.0).sum(axis=0)
+        nees = np.where(valid, nees, 0.0)
+        dm = np.sqrt(np.maximum(nees, 0.0))
+        sq = err * err
+
+        self.runs += m
+        self.count += valid.sum(axis=0)
+        self.sse += sq.sum(axis=0)
+        self.sse_sq += (sq * sq).sum(axis=0)
+        self.trace_sum += trace_sum
+        self.nees_sum += nees.sum(axis=0)
+        self.nees_sq += (nees * nees).sum(axis=0)
+        self.dm_sum += dm.sum(axis=0)
+        self.dm_sq += (dm * dm).sum(axis=0)
+
+        # per-run averages over the run's own valid steps (whole runs are in this block)
+        n_valid = valid.sum(axis=1)  # (m,)
+        has = n_valid > 0
+        if has.any():
+            k = n_valid[has].astype(float)
+            per_run = np.stack(
+                [
+                    sq.sum(axis=(1, 2))[has] / (n * k),
+                    nees.sum(axis=1)[has] / k,
+                    dm.sum(axis=1)[has] / k,
+                ]
+            )  # (3, runs with a valid step)
+            self.run_count += int(has.sum())
+            self.run_sums += per_run.sum(axis=1)
+            self.run_sq += (per_run * per_run).sum(axis=1)
+
+    def merge(self, other: MetricsAccumulator) -> MetricsAccumulator:
+        """Add another accumulator's sums into this one (same steps and states); returns self."""
+        if (other.n_steps, other.n_states) != (self.n_steps, self.n_states):
+            raise ValueError(
+                f"cannot merge accumulators of shape ({other.n_steps}, {other.n_states}) "
+                f"into ({self.n_steps}, {self.n_states})"
+            )
+        self.runs += other.runs
+        self.run_count += other.run_count
+        for name in (
+            "count",
+            "sse",
+            "sse_sq",
+            "trace_sum",
+            "nees_sum",
+            "nees_sq",
+            "dm_sum",
+            "dm_sq",
+            "run_sums",
+            "run_sq",
+        ):
+            setattr(self, name, getattr(self, name) + getattr(other, name))
+        return self
+
+    # ------------------------------------------------------------------ results
+    def finalize(self, confidence: float = 0.95) -> MetricsResult:
+        """Per-step and overall metrics; `confidence` sets the two-sided chi-square NEES band."""
+        if not 0.0 < confidence < 1.0:
+            raise ValueError(f"confidence must lie in (0, 1), got {confidence}")
+        n = self.n_states
+        c = self.count.astype(float)
+        valid = self.count > 0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            inv = np.where(valid, 1.0 / np.where(valid, c, 1.0), np.nan)
+            mse_step = self.sse * inv[:, None]
+            trace_step = self.trace_sum * inv
+            nees_step = self.nees_sum * inv
+            dm_step = self.dm_sum * inv
+            mse_step_se = _stderr_steps(self.sse, self.sse_sq, self.count)
+            nees_step_se = _stderr_steps(self.nees_sum, self.nees_sq, self.count)
+            dm_step_se = _stderr_steps(self.dm_sum, self.dm_sq, self.count)
+
+        lower = np.full(self.n_steps, np.nan)
+        upper = np.full(self.n_steps, np.nan)
+        dof = c[valid] * n
+        lower[valid] = stats.chi2.ppf((1.0 - confidence) / 2.0, dof) / c[valid]
+        upper[valid] = stats.chi2.ppf((1.0 + confidence) / 2.0, dof) / c[valid]
+        inside = valid & (nees_step >= lower) & (nees_step <= upper)
+
+        def over_steps(a: np.ndarray) -> Any:
+            if not valid.any():
+                return np.full(a.shape[1:], np.nan) if a.ndim > 1 else float("nan")
+            r = a[valid].mean(axis=0)
+            return r if a.ndim > 1 else float(r)
+
+        mse_per_state = over_steps(mse_step)
+        se = [
+            _stderr(self.run_sums[j], self.run_sq[j], self.run_count) for j in range(3)
+        ]  # mse, anees, dm
+        return MetricsResult(
+            runs=self.runs,
+            n_steps=self.n_steps,
+            n_states=n,
+            confidence=float(confidence),
+            count=self.count.copy(),
+            excluded=self.excluded.copy(),
+            mse_step=mse_step,
+            mse_step_stderr=mse_step_se,
+            trace_step=trace_step,
+            nees_step=nees_step,
+            nees_step_stderr=nees_step_se,
+            dm_step=dm_step,
+            dm_step_stderr=dm_step_se,
+            nees_lower=lower,
+            nees_upper=upper,
+            nees_inside=inside,
+            mse_per_state=mse_per_state,
+            mse=float(np.mean(mse_per_state)) if valid.any() else float("nan"),
+            mean_trace=over_steps(trace_step),
+            anees=over_steps(nees_step),
+            dm=over_steps(dm_step),
+            nees_fraction_inside=float(inside[valid].mean()) if valid.any() else float("nan"),
+            stderr_mse=se[0],
+            stderr_anees=se[1],
+            stderr_dm=se[2],
+        )
+
+
+def _stderr(total: float, total_sq: float, count: int) -> float:
+    """Standard error of a mean from the sum and the sum of squares of `count` samples."""
+    if count < 2:
+        return float("nan")
+    mean = total / count
+    var = max(total_sq / count - mean * mean, 0.0) * count / (count - 1)
+    return math.sqrt(var / count)
+
+
+def _stderr_steps(total: np.ndarray, total_sq: np.ndarray, count: np.ndarray) -> np.ndarray:
+    c = count.astype(float).reshape(count.shape + (1,) * (total.ndim - 1))
+    ok = c >= 2
+    cs = np.where(ok, c, 2.0)
+    mean = total / cs
+    var = np.maximum(total_sq / cs - mean * mean, 0.0) * cs / (cs - 1.0)
+    return np.where(ok, np.sqrt(var / cs), np.nan)
+
+
+@dataclass(frozen=True)
+class MetricsResult:
+    """Finalised metrics of one architecture. Per-step arrays have NaN where no run is defined."""
+
+    runs: int
+    n_steps: int
+    n_states: int
+    confidence: float
+    count: np.ndarray  # (K+1,) runs with a defined estimate
+    excluded: np.ndarray  # (K+1,) runs left out (undefined estimate)
+    mse_step: np.ndarray  # (K+1, n)                   eq. 44
+    mse_step_stderr: np.ndarray  # (K+1, n)
+    trace_step: np.ndarray  # (K+1,)
+    nees_step: np.ndarray  # (K+1,) run-averaged NEES
+    nees_step_stderr: np.ndarray  # (K+1,)
+    dm_step: np.ndarray  # (K+1,) run-averaged Mahalanobis distance (eq. 46)
+    dm_step_stderr: np.ndarray  # (K+1,)
+    nees_lower: np.ndarray  # (K+1,) chi-square band of the run-averaged NEES
+    nees_upper: np.ndarray  # (K+1,)
+    nees_inside: np.ndarray  # (K+1,) bool
+    mse_per_state: np.ndarray  # (n,)
+    mse: float  # eq. 45
+    mean_trace: float
+    anees: float
+    dm: float  # eq. 47
+    nees_fraction_inside: float
+    stderr_mse: float
+    stderr_anees: float
+    stderr_dm: float
+
+    @property
+    def valid_steps(self) -> np.ndarray:
+        """(K+1,) bool: steps where at least one run has a defined estimate."""
+        return self.count > 0
+
+    def expected_overall(
+        self,
+        expected_mse: np.ndarray | None = None,
+        expected_nees: np.ndarray | None = None,
+        expected_dm: np.ndarray | None = None,
+    ) -> dict[str, float | None]:
+        """Overall expected values: means of the per-step expected arrays over the same steps as
+        the Monte Carlo values (steps with a defined estimate; non-finite entries skipped)."""
+        out: dict[str, float | None] = {}
+        for key, arr, shape in (
+            ("mse", expected_mse, (self.n_steps, self.n_states)),
+            ("anees", expected_nees, (self.n_steps,)),
+            ("dm", expected_dm, (self.n_steps,)),
+        ):
+            if arr is None:
+                out[key] = None
+                continue
+            a = np.asarray(arr, dtype=float)
+            if a.shape != shape:
+                raise ValueError(f"expected {key} must have shape {shape}, got {a.shape}")
+            sel = a[self.valid_steps]
+            if key == "mse":
+                # mean over states of the per-state means over steps (eq. 45 on the expected MSE)
+                per_state = [_finite_mean(sel[:, i]) for i in range(self.n_states)]
+                out[key] = None if any(v is None for v in per_state) else float(np.mean(per_state))
+            else:
+                out[key] = _finite_mean(sel)
+        return out
+
+    def summary(
+        self,
+        expected_mse: np.ndarray | None = None,
+        expected_nees: np.ndarray | None = None,
+        expected_dm: np.ndarray | None = None,
+    ) -> dict[str, Any]:
+        """The per-architecture entry of summary.json (DESIGN.md), plus `expected.dm`, `stderr`
+        and `excluded`. Non-finite values become None (JSON null)."""
+        return {
+            "mse": _num(self.mse),
+            "mse_per_state": [_num(v) for v in self.mse_per_state],
+            "mean_trace": _num(self.mean_trace),
+            "anees": _num(self.anees),
+            "nees_fraction_inside": _num(self.nees_fraction_inside),
+            "dm": _num(self.dm),
+            "expected": self.expected_overall(expected_mse, expected_nees, expected_dm),
+            "stderr": {
+                "mse": _num(self.stderr_mse),
+                "anees": _num(self.stderr_anees),
+                "dm": _num(self.stderr_dm),
+            },
+            "excluded": int(self.excluded.sum()),
+        }
+
+    def series(
+        self,
+        expected_mse: np.ndarray | None = None,
+        expected_nees: np.ndarray | None = None,
+        expected_dm: np.ndarray | None = None,
+    ) -> dict[str, np.ndarray]:
+        """Per-step arrays as `fusionlog.io.rrd.write_recording` takes them per architecture."""
+        out = {
+            "mse": self.mse_step,
+            "trace": self.trace_step,
+            "nees": self.nees_step,
+            "dm": self.dm_step,
+        }
+        for key, arr in (
+            ("expected_mse", expected_mse),
+            ("expected_nees", expected_nees),
+            ("expected_dm", expected_dm),
+        ):
+            if arr is not None:
+                out[key] = np.asarray(arr, dtype=float)
+        return out
+
+
+def _finite_mean(a: np.ndarray) -> float | None:
+    a = a[np.isfinite(a)]
+    return float(a.mean()) if a.size else None
+
+
+def _num(v: float) -> float | None:
+    v = float(v)
+    return v if math.isfinite(v) else None
