@@ -21,9 +21,16 @@ def _joint(rng, n, N, corr=0.5):
     """A random SPD joint covariance of N estimates with correlated blocks."""
     A = rng.standard_normal((N * n, N * n))
     common = rng.standard_normal((n, N * n))
-    return A @ A.T / (N * n) + corr * np.tile(np.eye(n), (N, 1)) @ common @ common.T @ np.tile(
-        np.eye(n), (1, N)
-    ) / (N * n) + 0.1 * np.eye(N * n)
+    return (
+        A @ A.T / (N * n)
+        + corr
+        * np.tile(np.eye(n), (N, 1))
+        @ common
+        @ common.T
+        @ np.tile(np.eye(n), (1, N))
+        / (N * n)
+        + 0.1 * np.eye(N * n)
+    )
 
 
 def _block(J, n, i, j):

@@ -36,6 +36,9 @@ class StepMap:
     U: np.ndarray  # (..., d, m)
     O: np.ndarray  # (..., n, d)
     P: np.ndarray  # (..., n, n)
+    # s = D x when the estimator knows the state exactly (I for a mean, Y for an information
+    # vector): lets the exact analysis work with s - D x, which stays small when x grows.
+    D: np.ndarray | None = None  # (..., d, n)
 
 
 @dataclass
@@ -62,6 +65,7 @@ class Plan:
     smoother: SmootherMaps | None = None
     per_run: bool = False
     info: dict = field(default_factory=dict)
+    D0: np.ndarray | None = None  # (d0, n): D of the initial state s0
 
     @property
     def reported_cov(self) -> np.ndarray:
@@ -118,6 +122,7 @@ class _Step:
     Gam: np.ndarray
     Psi: np.ndarray
     Lam: np.ndarray  # (..., n, m), embedded
+    D: np.ndarray  # (..., n, n): see StepMap.D
 
 
 class _KF:
@@ -138,10 +143,12 @@ class _KF:
             self.info = False
             self.mat = np.broadcast_to(sys.prior.cov, batch + (n, n)).copy()
             self.s0 = np.asarray(sys.prior.mean, float)
+            self.D0 = np.eye(n)
         else:
             self.info = True
             self.mat = np.zeros(batch + (n, n))
             self.s0 = np.zeros(n)
+            self.D0 = np.zeros((n, n))
             if abs(np.linalg.det(sys.F)) < 1e-300:
                 raise ValueError("without a prior, F must be invertible (information-form start)")
             self.Finv = np.linalg.inv(sys.F)
@@ -160,7 +167,7 @@ class _KF:
         IKH = self.eye - K @ Hk
         self.mat = P
         Ke = _embed(K, self.rows, self.m)
-        return _Step(IKH @ Tp, Ke, self.eye, P, Tp, Gam, IKH, -Ke)
+        return _Step(IKH @ Tp, Ke, self.eye, P, Tp, Gam, IKH, -Ke, self.eye)
 
     def _step_info(self, Hk: np.ndarray, Rk: np.ndarray, first: bool) -> _Step:
         Y = self.mat
@@ -182,9 +189,37 @@ class _KF:
         if np.all(ok):
             P = spd_inv(Y)
             self.info, self.mat = False, P
-            return _Step(P @ A, P @ Ue, self.eye, P, A, Gam, -P, -(P @ Ue))
+            return _Step(P @ A, P @ Ue, self.eye, P, A, Gam, -P, -(P @ Ue), self.eye)
         Pinv = _nan_where(np.linalg.pinv(Y, hermitian=True), ok)
-        return _Step(A, Ue, Pinv, Pinv, A, Gam, np.broadcast_to(self.eye, Y.shape), Ue)
+        return _Step(A, Ue, Pinv, Pinv, A, Gam, np.broadcast_to(self.eye, Y.shape), Ue, Y)
+
+
+class _Steady:
+    """Detects the steady state of a Riccati recursion so that long horizons reuse one map.
+
+    With every measurement present and a time-invariant model, once the covariance state after
+    step k equals the one after step k-1 (to rounding, 1e-15 relative), every later step's map is
+    the same as step k's: the plan repeats it instead of recomputing 10^5 identical gains.
+    """
+
+    def __init__(self, present: np.ndarray):
+        self.enabled = present.ndim == 2 and bool(present.all())
+        self.prev: np.ndarray | None = None
+
+    def reached(self, *mats: np.ndarray) -> bool:
+        if not self.enabled:
+            return False
+        cur = np.concatenate([np.ravel(m) for m in mats])
+        hit = self.prev is not None and np.max(np.abs(cur - self.prev)) <= 1e-15 * np.max(
+            np.abs(cur)
+        )
+        self.prev = cur
+        return bool(hit)
+
+
+def _fill(steps: list, total: int) -> None:
+    """Repeat the last (steady-state) element until the list has `total` entries."""
+    steps.extend([steps[-1]] * (total - len(steps)))
 
 
 def _block_diag(mats: list[np.ndarray]) -> np.ndarray:
@@ -215,11 +250,17 @@ def _single_filter_plan(name: str, sys: System, rows: np.ndarray, present: np.nd
     s0 = kf.s0
     steps = []
     infos: list[np.ndarray | None] = []
-    for k in range(present.shape[-2]):
+    steady = _Steady(present)
+    K1 = present.shape[-2]
+    for k in range(K1):
         st = kf.step(present[..., k, rows], first=(k == 0))
-        steps.append(StepMap(st.T, st.U, st.O, st.P))
+        steps.append(StepMap(st.T, st.U, st.O, st.P, st.D))
         infos.append(kf.mat if kf.info else None)
-    return Plan(name, s0, steps, per_run=bool(batch), info={"Y": infos})
+        if not kf.info and steady.reached(kf.mat):
+            _fill(steps, K1)
+            _fill(infos, K1)
+            break
+    return Plan(name, s0, steps, per_run=bool(batch), info={"Y": infos}, D0=kf.D0)
 
 
 def _hkf_plan(sys: System, present: np.ndarray) -> Plan:
@@ -238,11 +279,13 @@ def _hkf_plan(sys: System, present: np.ndarray) -> Plan:
     s0 = front.s0
     steps = []
     P = None
-    for k in range(present.shape[-2]):
+    steady = _Steady(present)
+    K1 = present.shape[-2]
+    for k in range(K1):
         first = k == 0
         if front.info:
             st = front.step(present[..., k, :], first)
-            steps.append(StepMap(st.T, st.U, st.O, st.P))
+            steps.append(StepMap(st.T, st.U, st.O, st.P, st.D))
             P = front.mat
             continue
         if first:
@@ -263,8 +306,11 @@ def _hkf_plan(sys: System, present: np.ndarray) -> Plan:
             Tacc = Tacc + Yj @ (eye - Kj @ Hj)
             U = U + _embed(Yj @ Kj, rows, m)
         P = spd_inv(Yf)
-        steps.append(StepMap(P @ Tacc @ Tp, P @ U, np.broadcast_to(eye, P.shape), P))
-    return Plan("HKF", s0, steps, per_run=bool(batch))
+        steps.append(StepMap(P @ Tacc @ Tp, P @ U, np.broadcast_to(eye, P.shape), P, eye))
+        if steady.reached(P):
+            _fill(steps, K1)
+            break
+    return Plan("HKF", s0, steps, per_run=bool(batch), D0=front.D0)
 
 
 def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion: str) -> Plan:
@@ -286,7 +332,9 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
         J = np.zeros(batch + (S * n, S * n))
     steps = []
     omegas = []
-    for k in range(present.shape[-2]):
+    steady = _Steady(present)
+    K1 = present.shape[-2]
+    for k in range(K1):
         first = k == 0
         sts = [lk.step(present[..., k, lk.rows], first) for lk in locs]
         if not first:
@@ -311,7 +359,9 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
             covs = [st.P for st in sts]
             if batch:
                 flat = [c.reshape((-1, n, n)) for c in covs]
-                om = np.stack([ci_omega([c[i] for c in flat], criterion) for i in range(len(flat[0]))])
+                om = np.stack(
+                    [ci_omega([c[i] for c in flat], criterion) for i in range(len(flat[0]))]
+                )
                 om = om.reshape(batch + (S,))
                 ws, P = ci_weights(covs, [om[..., j, None, None] for j in range(S)])
             else:
@@ -319,9 +369,16 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
                 ws, P = ci_weights(covs, om)
             omegas.append(om)
             O = np.concatenate([np.broadcast_to(w, batch + (n, n)) for w in ws], axis=-1)
-        steps.append(StepMap(T, U, O, P))
+        D = np.concatenate([np.broadcast_to(st.D, batch + (n, n)) for st in sts], axis=-2)
+        steps.append(StepMap(T, U, O, P, D))
+        if all_cov and steady.reached(J):
+            _fill(steps, K1)
+            if omegas:
+                _fill(omegas, K1)
+            break
     info = {"omega": np.stack(omegas, axis=-2)} if omegas else {}
-    return Plan(name, s0, steps, per_run=bool(batch), info=info)
+    D0 = np.concatenate([lk.D0 for lk in locs])
+    return Plan(name, s0, steps, per_run=bool(batch), info=info, D0=D0)
 
 
 def _msc_readout(
@@ -362,7 +419,11 @@ def _fbs_plan(sys: System, present: np.ndarray) -> Plan:
     V: list[np.ndarray] = [np.zeros(0)] * K1
     L: list[np.ndarray] = [np.zeros(0)] * (K1 - 1)
     Smat = [np.zeros(batch + (n, n)) for _ in range(K1)]
+    steady = _Steady(present)
     for k in range(K1 - 1, -1, -1):
+        if steady.enabled and k < K1 - 3 and Smat[k + 1] is Smat[k + 2]:
+            V[k], L[k], Smat[k] = V[k + 1], L[k + 1], Smat[k + 1]
+            continue
         Hk, Rk = _masked(sys.H, sys.R, present[..., k, :])
         RiH = np.linalg.solve(Rk, Hk)
         V[k] = mT(RiH)
@@ -373,10 +434,17 @@ def _fbs_plan(sys: System, present: np.ndarray) -> Plan:
             # L = F^T (I + S^+ GQG)^-1, computed as a solve with the transpose.
             L[k] = mT(np.linalg.solve(mT(Bm), np.broadcast_to(sys.F, Bm.shape)))
             Smat[k] = sym(L[k] @ Splus @ sys.F)
+            if steady.reached(Smat[k]):
+                Smat[k] = Smat[k + 1]
     A, B, Ps = [], [], []
     for k, st in enumerate(fwd.steps):
         Sk = Smat[k]
         Yf = fwd.info["Y"][k]
+        if k > 0 and st is fwd.steps[k - 1] and Sk is Smat[k - 1]:
+            A.append(A[-1])
+            B.append(B[-1])
+            Ps.append(Ps[-1])
+            continue
         if Yf is None:
             PS = st.P @ Sk
             Ks = mT(np.linalg.solve(mT(eye + PS), mT(PS)))  # eq. (26)

@@ -41,50 +41,106 @@ class Expected:
         return np.diagonal(self.mse, axis1=-2, axis2=-1).copy()
 
 
-def _forward_moments(plan: Plan, truth: System) -> tuple[list, list]:
-    """Mean and covariance of Z_k = [x_k; s_k] for every k (shared plans only)."""
+def _coupling(plan: Plan, truth: System) -> bool:
+    """Whether the estimator state deviation zeta = s - D x depends on the true state x.
+
+    For an estimator built on the true model, zeta_k = T zeta_{k-1} + (U H - D) w + U v exactly
+    (the x terms cancel), so x, whose covariance grows without bound for a random walk, can be
+    left out, avoiding a catastrophic cancellation. A mismatched model keeps the x terms.
+    """
+    D_prev = plan.D0
+    seen: set[int] = set()
+    for k, st in enumerate(plan.steps):
+        if id(st) in seen:
+            continue
+        seen.add(id(st))
+        F = truth.F if k > 0 else np.eye(truth.n)
+        C = st.T @ D_prev + (st.U @ truth.H - st.D) @ F
+        scale = (
+            np.abs(st.T).max() * np.abs(D_prev).max()
+            + np.abs(st.U @ truth.H).max()
+            + np.abs(st.D).max()
+        ) * max(1.0, np.abs(F).max())
+        if np.abs(C).max() > 1e-10 * max(scale, 1e-300):
+            return True
+        D_prev = st.D
+    return False
+
+
+def _forward_moments(plan: Plan, truth: System) -> tuple[list, list, int]:
+    """Mean and covariance of Z_k = [x_k; zeta_k], zeta_k = s_k - D_k x_k, for every k.
+
+    Returns the lists and the size of the x block (0 when x decouples, see `_coupling`).
+    Once the plan repeats its steady-state map and the moments stop changing, later steps
+    repeat them too.
+    """
     if plan.per_run:
         raise ValueError("exact analysis needs a plan shared by all runs (no missing data)")
     n = truth.n
     Ht, Rt, Ft, Qt = truth.H, truth.R, truth.F, truth.GQG
     init = truth.truth_initial
-    # Before the first update: x_0 ~ init, s_{-1} = s0 (deterministic).
-    mu = np.concatenate([init.mean, plan.s0])
-    C = np.zeros((mu.size, mu.size))
-    C[:n, :n] = init.cov
+    nx = n if _coupling(plan, truth) else 0
+    D0 = plan.D0
+    # Before the first update: x_0 ~ init, zeta_{-1} = s0 - D0 x_0.
+    Jx = np.vstack([np.eye(n), -D0])[n - nx :] if nx else -D0
+    mu = np.concatenate([init.mean, plan.s0 - D0 @ init.mean])[n - nx :]
+    C = Jx @ init.cov @ Jx.T
     mus, Cs = [], []
+    D_prev = D0
+    K1 = len(plan.steps)
     for k, st in enumerate(plan.steps):
-        d_prev = mu.size - n
+        d_prev = mu.size - nx
         d = st.T.shape[0]
+        F = Ft if k > 0 else np.eye(n)
+        UHD = st.U @ Ht - st.D
+        A = np.zeros((nx + d, nx + d_prev))
+        A[nx:, nx:] = st.T
+        Bw = UHD
+        if nx:
+            A[:nx, :nx] = F
+            A[nx:, :nx] = st.T @ D_prev + UHD @ F
+            Bw = np.vstack([np.eye(n), UHD])
+        Bv = np.zeros((nx + d, Rt.shape[0]))
+        Bv[nx:] = st.U
+        mu_new = A @ mu
+        C_new = A @ C @ A.T + Bv @ Rt @ Bv.T
         if k > 0:
-            Ax = np.eye(n + d_prev)
-            Ax[:n, :n] = Ft
-            mu = Ax @ mu
-            C = Ax @ C @ Ax.T
-            C[:n, :n] += Qt
-        A = np.zeros((n + d, n + d_prev))
-        A[:n, :n] = np.eye(n)
-        A[n:, :n] = st.U @ Ht
-        A[n:, n:] = st.T
-        Bv = np.zeros((n + d, Rt.shape[0]))
-        Bv[n:] = st.U
-        mu = A @ mu
-        C = sym(A @ C @ A.T + Bv @ Rt @ Bv.T)
+            C_new += Bw @ Qt @ Bw.T
+        C_new = sym(C_new)
+        if (
+            not nx
+            and k > 1
+            and st is plan.steps[k - 1]
+            and np.abs(C_new - C).max() <= 1e-15 * np.abs(C_new).max()
+            and np.abs(mu_new - mu).max() <= 1e-15 * max(np.abs(mu_new).max(), 1e-300)
+        ):
+            mus.extend([mu_new] * (K1 - k))
+            Cs.extend([C_new] * (K1 - k))
+            break
+        mu, C = mu_new, C_new
         mus.append(mu)
         Cs.append(C)
-    return mus, Cs
+        D_prev = st.D
+    return mus, Cs, nx
 
 
 def analyse(plan: Plan, truth: System) -> Expected:
     """Exact error mean, MSE matrix, expected NEES and expected DM of a shared plan."""
     n = truth.n
-    mus, Cs = _forward_moments(plan, truth)
+    mus, Cs, nx = _forward_moments(plan, truth)
     K1 = len(plan.steps)
+
+    def readout(k: int, A: np.ndarray, D: np.ndarray, extra: np.ndarray) -> np.ndarray:
+        """Row block L with e = L Z - (noise terms): e = (I - A D - extra) x - A zeta."""
+        if nx:
+            return np.hstack([np.eye(n) - A @ D - extra, -A])
+        return -A
+
     bias = np.empty((K1, n))
     mse = np.empty((K1, n, n))
     if plan.smoother is None:
         for k, st in enumerate(plan.steps):
-            Lk = np.hstack([np.eye(n), -st.O])
+            Lk = readout(k, st.O, st.D, 0.0)
             bias[k] = Lk @ mus[k]
             mse[k] = sym(Lk @ Cs[k] @ Lk.T) + np.outer(bias[k], bias[k])
     else:
@@ -98,11 +154,12 @@ def analyse(plan: Plan, truth: System) -> Expected:
                 Cplus = Ceta + sm.V[k + 1] @ Rt @ sm.V[k + 1].T
                 Bk = sm.L[k] @ Bplus @ Ft
                 Ceta = sym(sm.L[k] @ (Bplus @ Qt @ Bplus.T + Cplus) @ sm.L[k].T)
-            # e = x - A s_f - B (B_k x + eta) = [I - B B_k, -A] Z - B eta
-            Lk = np.hstack([np.eye(n) - sm.B[k] @ Bk, -sm.A[k]])
+            # e = x - A s_f - B (B_k x + eta) = (I - A D - B B_k) x - A zeta - B eta; with the
+            # true model I - A D - B B_k vanishes and B_k x is dropped with x (see _coupling).
+            Lk = readout(k, sm.A[k], plan.steps[k].D, sm.B[k] @ Bk)
             bias[k] = Lk @ mus[k]
-            mse[k] = (
-                sym(Lk @ Cs[k] @ Lk.T + sm.B[k] @ Ceta @ sm.B[k].T) + np.outer(bias[k], bias[k])
+            mse[k] = sym(Lk @ Cs[k] @ Lk.T + sm.B[k] @ Ceta @ sm.B[k].T) + np.outer(
+                bias[k], bias[k]
             )
     P = plan.reported_cov
     nees = np.full(K1, np.nan)
@@ -112,7 +169,12 @@ def analyse(plan: Plan, truth: System) -> Expected:
         Pinv = np.linalg.inv(P[ok])
         nees[ok] = np.einsum("kij,kji->k", Pinv, mse[ok])
         cov = mse[ok] - np.einsum("ki,kj->kij", bias[ok], bias[ok])
-        dm[ok] = expected_sqrt_quadratic(P[ok], bias[ok], cov)
+        # Steady-state steps repeat the same statistics: integrate each distinct one once.
+        key = np.concatenate([P[ok].reshape(ok.sum(), -1), bias[ok], cov.reshape(len(cov), -1)], 1)
+        uniq, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        sel = np.flatnonzero(ok)[first]
+        dm_u = expected_sqrt_quadratic(P[sel], bias[sel], cov[first])
+        dm[ok] = dm_u[inverse.ravel()]
     return Expected(mse, bias, P, nees, dm)
 
 

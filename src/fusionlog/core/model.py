@@ -110,9 +110,7 @@ class System:
         """The same system seen by a subset of the sensors (e.g. one sensor for SKF)."""
         pos = {j: p for p, j in enumerate(indices)}
         cross = {
-            (pos[i], pos[j]): Rij
-            for (i, j), Rij in self.cross_R.items()
-            if i in pos and j in pos
+            (pos[i], pos[j]): Rij for (i, j), Rij in self.cross_R.items() if i in pos and j in pos
         }
         return System(
             F=self.F,

@@ -1,0 +1,132 @@
+"""Exact covariance analysis against closed forms and against Monte Carlo."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import random_spd, random_system
+from scipy import special, stats
+
+from fusionlog.core.architectures import build_plan, estimate
+from fusionlog.core.exact import analyse, expected_sqrt_quadratic
+from fusionlog.core.model import Prior, System, ajgl2009
+from fusionlog.core.names import STATE_ARCHITECTURES
+from fusionlog.core.simulate import simulate
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4])
+def test_expected_dm_consistent_is_chi_mean(n):
+    rng = np.random.default_rng(n)
+    P = random_spd(rng, n)[None]
+    chi_mean = np.sqrt(2) * special.gamma((n + 1) / 2) / special.gamma(n / 2)
+    got = expected_sqrt_quadratic(P, np.zeros((1, n)), P)
+    np.testing.assert_allclose(got, [chi_mean], rtol=1e-12)
+    assert stats.chi(n).mean() == pytest.approx(chi_mean, rel=1e-12)
+
+
+def test_expected_dm_general_gaussian_by_sampling():
+    rng = np.random.default_rng(7)
+    P, C = random_spd(rng, 3), random_spd(rng, 3, 2.0)
+    mu = rng.standard_normal(3)
+    got = expected_sqrt_quadratic(P[None], mu[None], C[None])[0]
+    e = rng.multivariate_normal(mu, C, size=400_000)
+    q = np.sqrt(np.einsum("ki,ij,kj->k", e, np.linalg.inv(P), e))
+    assert abs(got - q.mean()) < 4 * q.std() / np.sqrt(q.size)
+
+
+@pytest.mark.parametrize("arch", ["CKF", "HKF", "MSC-GMF", "SKF", "FBS"])
+def test_optimal_architectures_report_their_true_covariance(arch):
+    """A filter (or smoother) optimal for its own data reports exactly its error covariance."""
+    rng = np.random.default_rng(11)
+    sys = random_system(rng, 3, [1, 2, 1])
+    ex = analyse(build_plan(sys, arch, 30), sys)
+    np.testing.assert_allclose(ex.mse, ex.P, rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(ex.nees, 3.0, rtol=1e-9)
+    np.testing.assert_allclose(ex.bias, 0.0, atol=1e-12)
+
+
+def _mc_stats(x, est):
+    """Per-run averages (over steps) so that standard errors respect correlation in time."""
+    err = x - est.mean
+    P = est.cov
+    nees = np.einsum("mki,kij,mkj->mk", err, np.linalg.inv(P), err)
+    per_run = {
+        "mse": (err**2).mean(axis=(1, 2)),
+        "anees": nees.mean(axis=1),
+        "dm": np.sqrt(nees).mean(axis=1),
+    }
+    return {k: (v.mean(), v.std(ddof=1) / np.sqrt(v.size)) for k, v in per_run.items()}
+
+
+@pytest.fixture(scope="module")
+def paper_mc():
+    sys = ajgl2009()
+    x, z = simulate(sys, 20, 2009, 0, 10_000)
+    return sys, x, z
+
+
+@pytest.mark.parametrize("arch", STATE_ARCHITECTURES)
+def test_monte_carlo_within_four_standard_errors_of_exact(paper_mc, arch):
+    sys, x, z = paper_mc
+    mc = _mc_stats(x, estimate(sys, z, arch))
+    ex = analyse(build_plan(sys, arch, 20), sys)
+    exact = {"mse": ex.mse_per_state.mean(), "anees": ex.nees.mean(), "dm": ex.dm.mean()}
+    for key, (mean, se) in mc.items():
+        assert abs(mean - exact[key]) < 4 * se, (key, mean, exact[key], se)
+
+
+def test_paper_consistency_structure():
+    sys = ajgl2009()
+    M, n = 10_000, 2
+    upper = stats.chi2.ppf(0.975, M * n) / M
+    ex = {a: analyse(build_plan(sys, a, 20), sys) for a in STATE_ARCHITECTURES}
+    for a in ("CKF", "HKF", "MSC-GMF", "SKF", "FBS"):
+        np.testing.assert_allclose(ex[a].nees, n, rtol=1e-9)
+        np.testing.assert_allclose(ex[a].dm, np.sqrt(np.pi / 2), rtol=1e-9)
+    # MSC ignores the common process noise: over-confident, far above the band.
+    assert np.all(ex["MSC"].nees[1:] > 1.5 * upper)
+    assert ex["MSC"].dm.mean() > 1.6
+    # Equal MSE of MSC and MSC-GMF with identical sensors, CKF = HKF.
+    np.testing.assert_allclose(ex["MSC"].mse, ex["MSC-GMF"].mse, rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(ex["CKF"].mse, ex["HKF"].mse, rtol=1e-10, atol=1e-14)
+    # CI is conservative: its reported covariance bounds the true one.
+    d = ex["CI"].P - ex["CI"].mse
+    assert np.linalg.eigvalsh(d).min() > -1e-12
+
+
+def test_model_mismatch_against_monte_carlo():
+    """A filter built on the wrong process noise and prior: exact analysis with the true model
+    predicts the biased, inconsistent errors the simulation shows."""
+    truth = ajgl2009()
+    wrong = System(
+        F=truth.F,
+        Q=0.1 * truth.Q,
+        sensors=truth.sensors,
+        prior=Prior(np.array([99.0, -0.5]), 0.5 * np.eye(2)),
+    )
+    truth = System(
+        F=truth.F, Q=truth.Q, sensors=truth.sensors, prior=truth.prior, initial=truth.prior
+    )
+    x, z = simulate(truth, 20, 5, 0, 20_000)
+    for arch in ("CKF", "MSC", "FBS"):
+        est = estimate(wrong, z, arch)
+        ex = analyse(build_plan(wrong, arch, 20), truth)
+        err = x - est.mean
+        np.testing.assert_allclose(
+            err.mean(axis=0), ex.bias, atol=4 * err.std(axis=0).max() / np.sqrt(len(x))
+        )
+        mc = _mc_stats(x, est)
+        assert abs(mc["mse"][0] - ex.mse_per_state.mean()) < 4 * mc["mse"][1]
+        assert abs(mc["anees"][0] - ex.nees.mean()) < 4 * mc["anees"][1]
+
+
+def test_long_horizon_stays_accurate():
+    """10^5 steps of a random walk: the truth's variance grows like k^3, the error's does not;
+    the analysis must not lose the error in the cancellation."""
+    sys = ajgl2009()
+    ex = analyse(build_plan(sys, "MSC-GMF", 100_000), sys)
+    np.testing.assert_allclose(ex.nees, 2.0, rtol=1e-8)
+    plan = build_plan(sys, "CKF", 100_000)
+    P = plan.reported_cov
+    np.testing.assert_array_equal(P, np.swapaxes(P, 1, 2))
+    assert np.linalg.eigvalsh(P).min() > 0
