@@ -324,7 +324,10 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
     n, m = sys.n, sys.m
     S = len(sys.sensors)
     allrows = np.arange(m)
-    locs = [_KF(sys, allrows[sl], s.R, batch) for s, sl in zip(sys.sensors, sys.sensor_slices)]
+    locs = [
+        _KF(sys, allrows[sl], s.R, batch)
+        for s, sl in zip(sys.sensors, sys.sensor_slices, strict=True)
+    ]
     s0 = np.concatenate([lk.s0 for lk in locs])
     if sys.prior is not None:
         J = np.broadcast_to(np.kron(np.ones((S, S)), sys.prior.cov), batch + (S * n, S * n)).copy()
@@ -408,7 +411,8 @@ def _fbs_plan(sys: System, present: np.ndarray) -> Plan:
     """Fixed-interval smoother, eqs. (25)-(28): the forward KF on all sensors fused by Millman's
     formula with a backward information filter started from zero information.
 
-    Backward filter: S^+ = S_{k+1} + H^T R^-1 H, y^+ = y_{k+1} + H^T R^-1 z_{k+1} (data at k+1), then
+    Backward filter: S^+ = S_{k+1} + H^T R^-1 H, y^+ = y_{k+1} + H^T R^-1 z_{k+1} (data at k+1),
+    then
     back through the dynamics, S_k = F^T (I + S^+ GQG)^-1 S^+ F and y_k = F^T (I + S^+ GQG)^-1 y^+.
     """
     fwd = _single_filter_plan("FBS", sys, np.arange(sys.m), present)

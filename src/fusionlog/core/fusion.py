@@ -2,7 +2,8 @@
 Hendeby, "The Sensor Fusion Formula").
 
 Each rule returns the weighting matrices c_i of eq. (2) (so a caller can apply one set of weights to
-many runs at once) and the covariance the rule claims for the fused estimate. `fuse` applies weights.
+many runs at once) and the covariance the rule claims for the fused estimate; `fuse` applies
+weights.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ def predict(
 
 
 def gain(P: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """Kalman gain K = P H^T (H P H^T + R)^-1, eq. (17), via a solve with the innovation covariance."""
+    """Kalman gain K = P H^T (H P H^T + R)^-1, eq. (17), solved with the innovation covariance."""
     S = sym(H @ P @ mT(H) + R)
     return mT(np.linalg.solve(S, H @ P))
 

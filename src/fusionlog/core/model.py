@@ -132,7 +132,10 @@ class System:
 
 
 def constant_velocity(dt: float, n0: float) -> tuple[np.ndarray, np.ndarray]:
-    """F and Q of eqs. (41)-(42): x = [position, velocity], Q = [[dt^3/3, dt^2/2],[dt^2/2, dt]] N0."""
+    """F and Q of eqs. (41)-(42): x = [position, velocity], Q = [[dt^3/3, dt^2/2], [dt^2/2, dt]] N0.
+
+    N0 is the noise power spectral density (the paper uses N0 = 0.16 Ts).
+    """
     F = np.array([[1.0, dt], [0.0, 1.0]])
     Q = np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]) * n0
     return F, Q
