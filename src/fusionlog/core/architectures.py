@@ -93,6 +93,8 @@ class Estimate:
 def _masked(H: np.ndarray, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """H and R with absent rows made information-free: the row of H is zeroed and the absent
     component decoupled with unit variance, so its gain column is exactly zero."""
+    if p.ndim == 1 and p.all():
+        return H, R
     pf = p.astype(float)
     Hm = H * pf[..., :, None]
     Rm = R * (pf[..., :, None] * pf[..., None, :]) + np.eye(R.shape[-1]) * (1.0 - pf)[..., None, :]
@@ -493,28 +495,56 @@ def build_plan(
     raise AssertionError(base)
 
 
+#: Horizons up to this many instants apply a shared plan as one dense linear map (below).
+DENSE_MAX_STEPS = 128
+
+
 def run_plan(plan: Plan, z: np.ndarray) -> Estimate:
-    """Apply a plan to measurements z (M, K+1, m); NaN entries must be absent in the plan's mask."""
+    """Apply a plan to measurements z (M, K+1, m); NaN entries must be absent in the plan's mask.
+
+    A shared plan over a short horizon is one affine map of the whole measurement history,
+    mean = W vec(z) + c, applied to all runs as a single GEMM on the contiguous (M, (K+1) m)
+    view of z. W and c are the plan's responses to unit measurements and to no data, obtained by
+    running the step recursion on a basis, so both routes compute the same linear map.
+    Longer horizons and per-run plans run the step recursion itself.
+    """
+    M, K1, m = z.shape
+    if plan.per_run or K1 > DENSE_MAX_STEPS:
+        return Estimate(_recursion(plan, np.where(np.isnan(z), 0.0, z)), plan.reported_cov)
+    if "dense" not in plan.info:
+        basis = np.eye(K1 * m).reshape(K1 * m, K1, m)
+        c = _recursion(plan, np.zeros((1, K1, m)))
+        W = _recursion(plan, basis) - c
+        plan.info["dense"] = (W.reshape(K1 * m, -1), c.reshape(-1))
+    W, c = plan.info["dense"]
+    if np.isnan(z).any():  # absent in the plan's own mask: W has zero weight there
+        z = np.where(np.isnan(z), 0.0, z)
+    mean = np.ascontiguousarray(z).reshape(M, K1 * m) @ W
+    mean += c
+    return Estimate(mean.reshape(M, K1, -1), plan.reported_cov)
+
+
+def _recursion(plan: Plan, z: np.ndarray) -> np.ndarray:
+    """The step recursion s_k = T s_{k-1} + U z_k, x_k = O s_k (and FBS's backward pass)."""
     M, K1, _ = z.shape
-    z = np.where(np.isnan(z), 0.0, z)
     s = np.broadcast_to(plan.s0, (M, plan.s0.shape[0]))
     n = plan.steps[0].O.shape[-2]
-    mean = np.empty((M, K1, n))
+    out = np.empty((M, K1, n))
     states = [] if plan.smoother is not None else None
     for k, st in enumerate(plan.steps):
         s = apply(st.T, s) + apply(st.U, z[:, k])
         if states is not None:
             states.append(s)
         else:
-            mean[:, k] = apply(st.O, s)
+            out[:, k] = apply(st.O, s)
     if plan.smoother is not None:
         sm = plan.smoother
         yb = np.zeros((M, n))
         for k in range(K1 - 1, -1, -1):
             if k < K1 - 1:
                 yb = apply(sm.L[k], yb + apply(sm.V[k + 1], z[:, k + 1]))
-            mean[:, k] = apply(sm.A[k], states[k]) + apply(sm.B[k], yb)
-    return Estimate(mean, plan.reported_cov)
+            out[:, k] = apply(sm.A[k], states[k]) + apply(sm.B[k], yb)
+    return out
 
 
 def estimate(sys: System, z: np.ndarray, arch: str, criterion: str = "trace") -> Estimate:

@@ -80,15 +80,25 @@ def gmf_weights(joint: np.ndarray, n: int) -> tuple[list[np.ndarray], np.ndarray
 Criterion = Literal["trace", "det"]
 
 
-def _ci_cost(Ys: Sequence[np.ndarray], omega: np.ndarray, criterion: Criterion) -> float:
-    Y = sum(w * Yi for w, Yi in zip(omega, Ys, strict=True))
+def _ci_cost(Ys: np.ndarray, omega: np.ndarray, criterion: Criterion) -> tuple[float, np.ndarray]:
+    """tr(P) or log det(P), P = (sum w_i Y_i)^-1, and its gradient in omega.
+
+    d tr(P)/d w_i = -tr(P Y_i P) and d log det(P)/d w_i = -tr(P Y_i); both costs are convex in
+    omega (tr(X^-1) and -log det X are convex on positive definite X), so a local minimum on
+    the simplex is the global one.
+    """
+    Y = np.tensordot(omega, Ys, axes=1)
     try:
-        if criterion == "trace":
-            return float(np.trace(np.linalg.inv(Y)))
-        sign, logdet = np.linalg.slogdet(Y)
-        return float(-logdet) if sign > 0 else np.inf
+        P = np.linalg.inv(Y)
     except np.linalg.LinAlgError:
-        return np.inf
+        return np.inf, np.zeros_like(omega)
+    if criterion == "trace":
+        PP = P @ P
+        return float(np.trace(P)), -np.einsum("ij,kji->k", PP, Ys)
+    sign, logdet = np.linalg.slogdet(Y)
+    if sign <= 0:
+        return np.inf, np.zeros_like(omega)
+    return float(-logdet), -np.einsum("ij,kji->k", P, Ys)
 
 
 def ci_omega(covs: Sequence[np.ndarray], criterion: Criterion = "trace") -> np.ndarray:
@@ -97,13 +107,13 @@ def ci_omega(covs: Sequence[np.ndarray], criterion: Criterion = "trace") -> np.n
     Two estimates: bounded scalar minimisation, with both end points also tried since the
     optimum may be an input itself. More: SLSQP on the simplex. Shared (non-batched) covariances.
     """
-    Ys = [spd_inv(P) for P in covs]
+    Ys = np.stack([spd_inv(P) for P in covs])
     N = len(Ys)
     if N == 1:
         return np.ones(1)
     if N == 2:
         res = optimize.minimize_scalar(
-            lambda w: _ci_cost(Ys, np.array([w, 1.0 - w]), criterion),
+            lambda w: _ci_cost(Ys, np.array([w, 1.0 - w]), criterion)[0],
             bounds=(0.0, 1.0),
             method="bounded",
             options={"xatol": 1e-10},
@@ -113,14 +123,17 @@ def ci_omega(covs: Sequence[np.ndarray], criterion: Criterion = "trace") -> np.n
         res = optimize.minimize(
             lambda w: _ci_cost(Ys, w, criterion),
             np.full(N, 1.0 / N),
+            jac=True,
             method="SLSQP",
             bounds=[(0.0, 1.0)] * N,
-            constraints=[{"type": "eq", "fun": lambda w: np.sum(w) - 1.0}],
+            constraints=[
+                {"type": "eq", "fun": lambda w: np.sum(w) - 1.0, "jac": lambda w: np.ones(N)}
+            ],
             options={"ftol": 1e-14, "maxiter": 200},
         )
         w = np.clip(res.x, 0.0, 1.0)
         cands = [np.eye(N)[i] for i in range(N)] + [w / w.sum()]
-    costs = [_ci_cost(Ys, w, criterion) for w in cands]
+    costs = [_ci_cost(Ys, w, criterion)[0] for w in cands]
     return cands[int(np.argmin(costs))]
 
 

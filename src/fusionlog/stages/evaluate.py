@@ -1,0 +1,152 @@
+"""`fusionlog evaluate`: estimates against the truth into a Rerun recording and summary.json."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fusionlog.core.architectures import build_plan
+from fusionlog.core.exact import Expected, analyse
+from fusionlog.core.metrics import MetricsAccumulator
+from fusionlog.errors import FusionlogError
+from fusionlog.io.mcap_io import McapFile
+from fusionlog.io.rrd import write_recording
+from fusionlog.scenario import system_from_dict
+
+from .common import PROVENANCE_META, SCENARIO_META, block_runs, progress, scenario_from_file
+
+
+@dataclass
+class EvaluateResult:
+    recording: Path
+    summary_path: Path | None
+    summary: dict[str, Any]
+
+
+def write_json_atomic(path: Path, data: Any, force: bool) -> None:
+    if path.exists() and not force:
+        raise FusionlogError(f"{path}: exists; use --force to overwrite")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=2)
+            f.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _estimate_topics(est: McapFile) -> list[str]:
+    topics = [t for t in est.topics if t.startswith("/estimates/")]
+    if not topics:
+        have = ", ".join(sorted(est.topics)) or "none"
+        raise FusionlogError(f"{est.path}: no /estimates/<ARCH> topics (topics: {have})")
+    return topics
+
+
+def run_evaluate(
+    sensors_path: Path,
+    estimates_path: Path,
+    out: Path,
+    *,
+    summary_path: Path | None = None,
+    force: bool = False,
+    block: int | None = None,
+) -> EvaluateResult:
+    """Metrics of every architecture in `estimates_path`, with exact expected values beside them.
+
+    Metrics are sums over blocks of runs (core.metrics), so memory does not grow with M. The
+    expected values come from the exact covariance analysis of each architecture built on the
+    filter model it ran with, under the true model of the sensors file; they are left out when
+    the data had missing measurements (the analysis assumes every measurement present).
+    """
+    for p in [out] + ([summary_path] if summary_path else []):
+        if p.exists() and not force:
+            raise FusionlogError(f"{p}: exists; use --force to overwrite")
+    sens = McapFile(sensors_path)
+    est = McapFile(estimates_path)
+    if "/truth" not in sens.topics:
+        raise FusionlogError(f"{sensors_path}: no /truth topic, nothing to evaluate against")
+    sc = scenario_from_file(sens)
+    if sc is None:
+        raise FusionlogError(f"{sensors_path}: no {SCENARIO_META} metadata (not a simulation)")
+    prov = est.metadata.get(PROVENANCE_META, {})
+    if est.steps() != sens.steps() or est.runs() != sens.runs():
+        raise FusionlogError(
+            f"{estimates_path}: {est.runs()} runs x {est.steps()} steps do not match "
+            f"{sensors_path} ({sens.runs()} x {sens.steps()})"
+        )
+    topics = _estimate_topics(est)
+    archs = [t.removeprefix("/estimates/") for t in topics]
+    truth_sys = sc.system
+    filter_sys = system_from_dict(json.loads(prov["model"])) if "model" in prov else truth_sys
+    K, M, n = sens.steps() - 1, sens.runs(), truth_sys.n
+    times = sens.times()
+    B = block_runs(K, M, block)
+    accs = {a: MetricsAccumulator(K + 1, n) for a in archs}
+    n_samples = min(sc.sample_runs, M)
+    samples: dict[int, tuple[np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = {}
+    complete = True
+    blocks = zip(
+        sens.iter_run_blocks(["/truth"], B), est.iter_run_blocks(topics, B), strict=True
+    )
+    for (off, runs, tdata), (_, _, edata) in progress(blocks, -(-M // B), "evaluate"):
+        x = tdata["/truth"]
+        for a, t in zip(archs, topics, strict=True):
+            mean, cov = edata[t]
+            accs[a].add(x, mean, cov)
+            complete &= cov.ndim == 3
+            for r in range(off, min(off + runs, n_samples)):
+                c = cov if cov.ndim == 3 else cov[r - off]
+                std = np.sqrt(np.clip(np.diagonal(c, axis1=-2, axis2=-1), 0, None))
+                samples.setdefault(r, (x[r - off], {}))[1][a] = (mean[r - off], std)
+    series, arch_summary = {}, {}
+    bounds = None
+    for a in archs:
+        res = accs[a].finalize(sc.confidence)
+        ex: Expected | None = None
+        if complete:
+            ex = analyse(build_plan(filter_sys, a, K), truth_sys)
+        kw = (
+            {"expected_mse": ex.mse_per_state, "expected_nees": ex.nees, "expected_dm": ex.dm}
+            if ex is not None
+            else {}
+        )
+        series[a] = res.series(**kw)
+        arch_summary[a] = res.summary(**kw)
+        if bounds is None:
+            bounds = (res.nees_lower, res.nees_upper)
+    summary = {
+        "scenario": sc.name,
+        "seed": sc.seed,
+        "runs": M,
+        "steps": K,
+        "state_names": list(sc.state_names),
+        "confidence": sc.confidence,
+        "architectures": arch_summary,
+    }
+    write_recording(
+        out,
+        scenario_name=sc.name,
+        seed=sc.seed,
+        times=times,
+        state_names=sc.state_names,
+        series=series,
+        summary=summary,
+        nees_bounds=bounds,
+        confidence=sc.confidence,
+        sample_runs=samples,
+        properties={"scenario": sc.source, "provenance": prov},
+        force=force,
+    )
+    if summary_path is not None:
+        write_json_atomic(summary_path, summary, force)
+    return EvaluateResult(out, summary_path, summary)
