@@ -111,7 +111,7 @@ def test_read_back_series_and_summary(written) -> None:
     assert got["summary"] == data["summary"]
     assert list(got["summary"]["architectures"]) == ARCHS  # order kept
     props = got["properties"]
-    assert props["scenario"]["name"] == "synthetic" and props["scenario"]["seed"] == 5
+    assert props["scenario"]["name"] == "synthetic" and props["scenario"]["seed"] == "5"
     assert props["scenario"]["text"] == data["properties"]["scenario"]
     assert props["provenance"]["command"] == "fusionlog evaluate"
     assert props["provenance"]["argv"] == '["a"]'  # non-scalars stored as JSON

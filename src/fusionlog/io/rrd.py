@@ -223,8 +223,10 @@ def _check_inputs(
                 raise bad(f"sample run {m}, {arch}: mean/std must have shape {(s, n)}")
 
 
-def _property_value(v: Any) -> Any:
-    if isinstance(v, bool | int | float | str):
+def _property_value(v: Any) -> str:
+    """Every property field is a string: Rerun types a field name once for all properties, so
+    `seed` as an int in one property and a string in another would be dropped with a warning."""
+    if isinstance(v, str):
         return v
     return json.dumps(v, sort_keys=True, default=str)
 
@@ -236,7 +238,7 @@ def _send_properties(
     summary: Mapping[str, Any],
     properties: Mapping[str, Any] | None,
 ) -> None:
-    props: dict[str, dict[str, Any]] = {"scenario": {"name": scenario_name, "seed": int(seed)}}
+    props: dict[str, dict[str, Any]] = {"scenario": {"name": scenario_name, "seed": str(seed)}}
     for key, value in (properties or {}).items():
         fields = (
             {str(k): _property_value(v) for k, v in value.items()}
