@@ -112,7 +112,7 @@ def run_estimate(
             w.add_metadata(SCENARIO_META, mf.metadata[SCENARIO_META])
         w.add_metadata(PROVENANCE_META, meta_prov)
         blocks = mf.iter_run_blocks(topics, B)
-        for off, runs, data in progress(blocks, -(-M // B), "estimate"):
+        for off, _runs, data in progress(blocks, -(-M // B), "estimate"):
             z = np.concatenate([data[t] for t in topics], axis=-1)
             shared = not np.isnan(z).any()
             for a in archs:

@@ -95,9 +95,7 @@ def run_evaluate(
     n_samples = min(sc.sample_runs, M)
     samples: dict[int, tuple[np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = {}
     complete = True
-    blocks = zip(
-        sens.iter_run_blocks(["/truth"], B), est.iter_run_blocks(topics, B), strict=True
-    )
+    blocks = zip(sens.iter_run_blocks(["/truth"], B), est.iter_run_blocks(topics, B), strict=True)
     for (off, runs, tdata), (_, _, edata) in progress(blocks, -(-M // B), "evaluate"):
         x = tdata["/truth"]
         for a, t in zip(archs, topics, strict=True):
