@@ -335,6 +335,8 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
         J = np.broadcast_to(np.kron(np.ones((S, S)), sys.prior.cov), batch + (S * n, S * n)).copy()
     else:
         J = np.zeros(batch + (S * n, S * n))
+    # Only the generalised Millman formula needs the cross-covariances of eq. (35).
+    joint = name == "MSC-GMF"
     steps = []
     omegas = []
     steady = _Steady(present)
@@ -342,14 +344,17 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
     for k in range(K1):
         first = k == 0
         sts = [lk.step(present[..., k, lk.rows], first) for lk in locs]
-        if not first:
-            Phi = _block_diag([st.Phi for st in sts])
-            Gam = np.concatenate([np.broadcast_to(st.Gam, batch + (n, n)) for st in sts], axis=-2)
-            J = Phi @ J @ mT(Phi) + Gam @ sys.GQG @ mT(Gam)
-        Psi = _block_diag([st.Psi for st in sts])
-        Lam = np.concatenate([np.broadcast_to(st.Lam, batch + (n, m)) for st in sts], axis=-2)
-        _, Rk = _masked(sys.H, sys.R, present[..., k, :])
-        J = sym(Psi @ J @ mT(Psi) + Lam @ Rk @ mT(Lam))
+        if joint:
+            if not first:
+                Phi = _block_diag([st.Phi for st in sts])
+                Gam = np.concatenate(
+                    [np.broadcast_to(st.Gam, batch + (n, n)) for st in sts], axis=-2
+                )
+                J = Phi @ J @ mT(Phi) + Gam @ sys.GQG @ mT(Gam)
+            Psi = _block_diag([st.Psi for st in sts])
+            Lam = np.concatenate([np.broadcast_to(st.Lam, batch + (n, m)) for st in sts], axis=-2)
+            _, Rk = _masked(sys.H, sys.R, present[..., k, :])
+            J = sym(Psi @ J @ mT(Psi) + Lam @ Rk @ mT(Lam))
         T = _block_diag([st.T for st in sts])
         U = np.concatenate([np.broadcast_to(st.U, batch + (n, m)) for st in sts], axis=-2)
         all_cov = not any(lk.info for lk in locs)
@@ -376,7 +381,7 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
             O = np.concatenate([np.broadcast_to(w, batch + (n, n)) for w in ws], axis=-1)
         D = np.concatenate([np.broadcast_to(st.D, batch + (n, n)) for st in sts], axis=-2)
         steps.append(StepMap(T, U, O, P, D))
-        if all_cov and steady.reached(J):
+        if all_cov and steady.reached(*([J] if joint else [lk.mat for lk in locs])):
             _fill(steps, K1)
             if omegas:
                 _fill(omegas, K1)

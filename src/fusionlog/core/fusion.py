@@ -118,7 +118,7 @@ def ci_omega(covs: Sequence[np.ndarray], criterion: Criterion = "trace") -> np.n
             method="bounded",
             options={"xatol": 1e-10},
         )
-        cands = [np.array([1.0, 0.0]), np.array([0.0, 1.0]), np.array([res.x, 1.0 - res.x])]
+        cands = [np.array([res.x, 1.0 - res.x]), np.array([1.0, 0.0]), np.array([0.0, 1.0])]
     else:
         res = optimize.minimize(
             lambda w: _ci_cost(Ys, w, criterion),
@@ -132,7 +132,9 @@ def ci_omega(covs: Sequence[np.ndarray], criterion: Criterion = "trace") -> np.n
             options={"ftol": 1e-14, "maxiter": 200},
         )
         w = np.clip(res.x, 0.0, 1.0)
-        cands = [np.eye(N)[i] for i in range(N)] + [w / w.sum()]
+        cands = [w / w.sum()] + [np.eye(N)[i] for i in range(N)]
+    # The optimiser's answer first, so that it wins ties: with equal covariances every omega
+    # gives the same P, and the interior one also averages the estimates.
     costs = [_ci_cost(Ys, w, criterion)[0] for w in cands]
     return cands[int(np.argmin(costs))]
 
