@@ -1,0 +1,1375 @@
+"""MCAP reading and writing for fusionlog's sensor and estimate streams.
+
+The file format is the contract in DESIGN.md ("MCAP files"): message encoding ``protobuf`` with the
+schemas embedded as a FileDescriptorSet built at runtime, so any MCAP + protobuf reader (the
+``mcap`` package with ``mcap-protobuf-support``, Rerun's ``rerun mcap convert``) decodes the files
+without fusionlog. Two message types, both in the proto3 package ``fusionlog``::
+
+    message Block         { uint32 step = 1; double time = 2; uint32 run_offset = 3;
+                            uint32 runs = 4; uint32 dim = 5; repeated double values = 6; }
+    message EstimateBlock { uint32 step = 1; double time = 2; uint32 run_offset = 3;
+                            uint32 runs = 4; uint32 dim = 5; repeated double mean = 6;
+                            repeated double covariance = 7; }
+
+``values`` is (runs, dim) and ``mean`` is (runs, n), row-major; ``covariance`` is (n, n) when it is
+the same for every run of the message and (runs, n, n) otherwise. NaN in ``values`` is a missing
+measurement. ``log_time`` = ``publish_time`` = round(time * 1e9) ns.
+
+**Writing order (what this module relies on to read with bounded memory).** Runs are split into
+contiguous blocks starting at run 0 (``run_offset`` = 0, r0, r0 + r1, ...). For each block of runs,
+for each step k = 0..K, for each topic, exactly one message. Thus all messages of one block are
+contiguous in the file, so a reader can assemble a block of runs from one sequential pass and
+then forget it. Inside a block the order of steps and topics does not matter to the reader.
+McapWriter enforces this order; McapFile checks it and raises FusionlogError if a file breaks it.
+
+Speed: messages are encoded and decoded here on the protobuf wire format directly (varint
+scalars, packed doubles straight from/to ``ndarray`` bytes) instead of through protobuf message
+classes, whose per-element handling of repeated fields costs several times more. The reader
+also walks the chunks itself, because ``SeekingReader.iter_messages(log_time_order=False)``
+in mcap 1.6 reads and decompresses *every* chunk into its queue before yielding the first
+message (unbounded memory), and log-time order would interleave the blocks of runs.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+import os
+import re
+import secrets
+import struct
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from mcap.exceptions import McapError
+from mcap.reader import SeekingReader
+from mcap.records import Channel, Chunk, ChunkIndex, Header, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.writer import CompressionType, Writer
+
+from fusionlog.errors import FusionlogError
+
+__all__ = [
+    "ESTIMATE_SCHEMA",
+    "SENSOR_SCHEMA",
+    "McapFile",
+    "McapWriter",
+    "decode_message",
+    "encode_estimate_message",
+    "encode_values_message",
+    "file_descriptor_set",
+    "protobuf_classes",
+    "recover",
+]
+
+SENSOR_SCHEMA = "fusionlog.Block"
+ESTIMATE_SCHEMA = "fusionlog.EstimateBlock"
+PROTO_FILE = "fusionlog/blocks.proto"
+
+VALUES = "values"
+ESTIMATE = "estimate"
+
+_MAGIC = b"\x89MCAP0\r\n"
+_UINT32_MAX = 2**32 - 1
+
+_F64 = struct.Struct("<d")
+_F8 = np.dtype("<f8")
+
+
+# --------------------------------------------------------------------------------------------
+# Schema
+# --------------------------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=1)
+def _file_descriptor() -> descriptor_pb2.FileDescriptorProto:
+    """The proto3 file holding both message types, built without protoc."""
+    fdp = descriptor_pb2.FileDescriptorProto(name=PROTO_FILE, package="fusionlog", syntax="proto3")
+    F = descriptor_pb2.FieldDescriptorProto
+    header = [
+        ("step", 1, F.TYPE_UINT32),
+        ("time", 2, F.TYPE_DOUBLE),
+        ("run_offset", 3, F.TYPE_UINT32),
+        ("runs", 4, F.TYPE_UINT32),
+        ("dim", 5, F.TYPE_UINT32),
+    ]
+    for name, payload in (("Block", ["values"]), ("EstimateBlock", ["mean", "covariance"])):
+        m = fdp.message_type.add(name=name)
+        for fname, number, ftype in header:
+            m.field.add(name=fname, number=number, type=ftype, label=F.LABEL_OPTIONAL)
+        for i, fname in enumerate(payload):
+            m.field.add(name=fname, number=6 + i, type=F.TYPE_DOUBLE, label=F.LABEL_REPEATED)
+    return fdp
+
+
+def file_descriptor_set() -> bytes:
+    """Serialized FileDescriptorSet embedded as the schema data of both schemas."""
+    return descriptor_pb2.FileDescriptorSet(file=[_file_descriptor()]).SerializeToString()
+
+
+@lru_cache(maxsize=1)
+def protobuf_classes() -> tuple[type, type]:
+    """Official protobuf classes (Block, EstimateBlock) for tests and third-party style checks."""
+    pool = descriptor_pool.DescriptorPool()
+    pool.Add(_file_descriptor())
+    return (
+        message_factory.GetMessageClass(pool.FindMessageTypeByName(SENSOR_SCHEMA)),
+        message_factory.GetMessageClass(pool.FindMessageTypeByName(ESTIMATE_SCHEMA)),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Wire encoding
+# --------------------------------------------------------------------------------------------
+
+_SMALL_VARINTS = [bytes([i]) for i in range(128)]
+
+
+def _varint(value: int) -> bytes:
+    if value < 0x80:
+        return _SMALL_VARINTS[value]
+    out = bytearray()
+    while value >= 0x80:
+        out.append((value & 0x7F) | 0x80)
+        value >>= 7
+    out.append(value)
+    return bytes(out)
+
+
+def _encode(
+    step: int, time: float, run_offset: int, runs: int, dim: int, payloads: Sequence[bytes]
+) -> bytes:
+    # Same bytes as SerializeToString of the official class: fields in number order and,
+    # like every proto3 writer, zero scalars and empty repeated fields left out.
+    parts: list[bytes] = []
+    if step:
+        parts += (b"\x08", _varint(step))
+    t = _F64.pack(time)
+    if t != b"\x00" * 8:  # -0.0 has a set sign bit and is written, as protobuf does
+        parts += (b"\x11", t)
+    if run_offset:
+        parts += (b"\x18", _varint(run_offset))
+    if runs:
+        parts += (b"\x20", _varint(runs))
+    if dim:
+        parts += (b"\x28", _varint(dim))
+    for tag, payload in zip((b"\x32", b"\x3a"), payloads, strict=False):
+        if payload:
+            parts += (tag, _varint(len(payload)), payload)
+    return b"".join(parts)
+
+
+def encode_values_message(
+    step: int, time: float, run_offset: int, values: np.ndarray
+) -> tuple[bytes, int, int]:
+    """Wire bytes of one ``fusionlog.Block``; returns (data, runs, dim)."""
+    v = np.ascontiguousarray(values, dtype="<f8")
+    if v.ndim != 2 or v.shape[0] < 1:
+        raise ValueError(f"values must have shape (runs >= 1, dim), got {v.shape}")
+    runs, dim = v.shape
+    return _encode(step, time, run_offset, runs, dim, (v.tobytes(),)), runs, dim
+
+
+def encode_estimate_message(
+    step: int, time: float, run_offset: int, mean: np.ndarray, cov: np.ndarray
+) -> tuple[bytes, int, int]:
+    """Wire bytes of one ``fusionlog.EstimateBlock``; returns (data, runs, n)."""
+    m = np.ascontiguousarray(mean, dtype="<f8")
+    c = np.ascontiguousarray(cov, dtype="<f8")
+    if m.ndim != 2 or m.shape[0] < 1:
+        raise ValueError(f"mean must have shape (runs >= 1, n), got {m.shape}")
+    runs, n = m.shape
+    if c.shape not in ((n, n), (runs, n, n)):
+        raise ValueError(f"cov must have shape ({n}, {n}) or ({runs}, {n}, {n}), got {c.shape}")
+    return _encode(step, time, run_offset, runs, n, (m.tobytes(), c.tobytes())), runs, n
+
+
+# --------------------------------------------------------------------------------------------
+# Wire decoding
+# --------------------------------------------------------------------------------------------
+
+# Actions of a wire key (field number << 3 | wire type) in a layout.
+_A_STEP, _A_RUN_OFFSET, _A_RUNS, _A_DIM, _A_TIME, _A_P1, _A_P2 = range(7)
+_INT_FIELDS = ("step", "run_offset", "runs", "dim")
+
+Decoded = tuple[int, float, int, int, int, Any, Any]
+"""(step, time, run_offset, runs, dim, payload1, payload2); payloads are bytes-like, LE doubles."""
+
+
+class _WireError(Exception):
+    """Malformed protobuf bytes (turned into a FusionlogError naming file and topic)."""
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """How to decode one schema: kind, a map from wire key to action, optional fast path."""
+
+    kind: str
+    keys: dict[int, int]
+    fast: re.Pattern[bytes] | None = None
+    p1_tag: int = -1
+    p2_tag: int = -1
+
+
+_VARINT_RE = rb"([\x80-\xff]{0,9}[\x00-\x7f])"
+
+
+def _fast_pattern(numbers: dict[str, int], payload: list[str]) -> re.Pattern[bytes] | None:
+    """Regex for the canonical encoding (fields in number order, one-byte tags), else None.
+
+    The regex engine runs in C, so matching the five scalars this way costs a fraction of the
+    Python loop in ``_decode_generic``; anything unusual falls back to that loop.
+    """
+    order = ["step", "time", "run_offset", "runs", "dim", *payload]
+    nums = [numbers[n] for n in order]
+    if nums != sorted(nums) or len(set(nums)) != len(nums) or nums[-1] > 15:
+        return None
+    parts = []
+    for name in order[:5]:
+        tag = re.escape(bytes([numbers[name] << 3 | (1 if name == "time" else 0)]))
+        parts.append(b"(?:" + tag + (b"(.{8})" if name == "time" else _VARINT_RE) + b")?")
+    return re.compile(b"".join(parts), re.DOTALL)
+
+
+def _read_varint(buf: Any, pos: int) -> tuple[int, int]:
+    result = 0
+    shift = 0
+    while True:
+        b = buf[pos]
+        pos += 1
+        result |= (b & 0x7F) << shift
+        if b < 0x80:
+            return result, pos
+        shift += 7
+        if shift >= 64:
+            raise _WireError("varint longer than 10 bytes")
+
+
+def _varint_value(b: bytes) -> int:
+    result = 0
+    for i, byte in enumerate(b):
+        result |= (byte & 0x7F) << (7 * i)
+    return result
+
+
+def _join(buf: Any, pieces: list[tuple[int, int]] | None) -> Any:
+    if not pieces:
+        return b""
+    if len(pieces) == 1:  # the normal case: one packed field, no copy
+        a, b = pieces[0]
+        return buf[a:b]
+    # A field may legally be split (several packed runs, or unpacked single doubles).
+    return b"".join(bytes(buf[a:b]) for a, b in pieces)
+
+
+def _decode_generic(buf: Any, keys: dict[int, int]) -> Decoded:
+    """Protobuf wire parse: any field order, unknown fields, split packed or unpacked doubles.
+
+    Absent scalars are 0, as a proto3 writer omits zeros.
+    """
+    ints = [0, 0, 0, 0]
+    t = 0.0
+    p1: list[tuple[int, int]] | None = None
+    p2: list[tuple[int, int]] | None = None
+    n = len(buf)
+    pos = 0
+    try:
+        while pos < n:
+            key = buf[pos]
+            pos += 1
+            if key >= 0x80:
+                key, pos = _read_varint(buf, pos - 1)
+            action = keys.get(key)
+            wt = key & 7
+            if wt == 0:
+                v = buf[pos]
+                pos += 1
+                if v >= 0x80:
+                    v, pos = _read_varint(buf, pos - 1)
+                if action is not None:
+                    ints[action] = v
+            elif wt == 2:
+                ln = buf[pos]
+                pos += 1
+                if ln >= 0x80:
+                    ln, pos = _read_varint(buf, pos - 1)
+                end = pos + ln
+                if end > n:
+                    raise _WireError("length-delimited field runs past the end")
+                if action is not None:
+                    if ln % 8:
+                        raise _WireError("packed double field length is not a multiple of 8")
+                    if action == _A_P1:
+                        p1 = [(pos, end)] if p1 is None else [*p1, (pos, end)]
+                    else:
+                        p2 = [(pos, end)] if p2 is None else [*p2, (pos, end)]
+                pos = end
+            elif wt == 1:
+                if pos + 8 > n:
+                    raise _WireError("fixed64 field runs past the end")
+                if action == _A_TIME:
+                    t = _F64.unpack_from(buf, pos)[0]
+                elif action == _A_P1:
+                    p1 = [(pos, pos + 8)] if p1 is None else [*p1, (pos, pos + 8)]
+                elif action == _A_P2:
+                    p2 = [(pos, pos + 8)] if p2 is None else [*p2, (pos, pos + 8)]
+                pos += 8
+            elif wt == 5:
+                pos += 4
+            else:
+                raise _WireError(f"unsupported wire type {wt}")
+        if pos != n:
+            raise _WireError("message ends inside a field")
+    except IndexError:
+        raise _WireError("message ends inside a field") from None
+    return ints[0], t, ints[1], ints[2], ints[3], _join(buf, p1), _join(buf, p2)
+
+
+def _decode(buf: Any, layout: _Layout) -> Decoded:
+    """Decode one message; canonical encodings take the regex fast path."""
+    fast = layout.fast
+    if fast is not None:
+        m = fast.match(buf)
+        pos = m.end()  # type: ignore[union-attr]  # every group is optional: always matches
+        n = len(buf)
+        p1: Any = b""
+        p2: Any = b""
+        ok = True
+        for tag, which in ((layout.p1_tag, 1), (layout.p2_tag, 2)):
+            if pos < n and buf[pos] == tag:
+                ln = buf[pos + 1] if pos + 1 < n else 0x80
+                pos += 2
+                if ln >= 0x80:
+                    try:
+                        ln, pos = _read_varint(buf, pos - 1)
+                    except (IndexError, _WireError):
+                        ok = False
+                        break
+                if pos + ln > n or ln % 8:
+                    ok = False
+                    break
+                if which == 1:
+                    p1 = buf[pos : pos + ln]
+                else:
+                    p2 = buf[pos : pos + ln]
+                pos += ln
+        if ok and pos == n:
+            gs, gt, go, gr, gd = m.groups()  # type: ignore[union-attr]
+            return (
+                0 if gs is None else gs[0] if len(gs) == 1 else _varint_value(gs),
+                0.0 if gt is None else _F64.unpack(gt)[0],
+                0 if go is None else go[0] if len(go) == 1 else _varint_value(go),
+                0 if gr is None else gr[0] if len(gr) == 1 else _varint_value(gr),
+                0 if gd is None else gd[0] if len(gd) == 1 else _varint_value(gd),
+                p1,
+                p2,
+            )
+    return _decode_generic(buf, layout.keys)
+
+
+def _layout_from_schema(schema: Schema) -> _Layout | None:
+    """Layout for a protobuf schema whose message has the fusionlog fields, else None.
+
+    Matching is by field name and type, not by schema name, so a foreign writer's schema with
+    the same fields (any numbers, proto2 or proto3) is read correctly.
+    """
+    if schema.encoding != "protobuf":
+        return None
+    try:
+        fds = descriptor_pb2.FileDescriptorSet.FromString(schema.data)
+    except Exception:
+        return None
+    msg = None
+    for fdp in fds.file:
+        stack = [
+            (f"{fdp.package}.{m.name}" if fdp.package else m.name, m) for m in fdp.message_type
+        ]
+        while stack and msg is None:
+            full, m = stack.pop()
+            if full == schema.name:
+                msg = m
+            stack.extend((f"{full}.{nm.name}", nm) for nm in m.nested_type)
+        if msg is not None:
+            break
+    if msg is None:
+        return None
+    F = descriptor_pb2.FieldDescriptorProto
+    fields = {f.name: f for f in msg.field}
+    keys: dict[int, int] = {}
+    int_types = {F.TYPE_UINT32, F.TYPE_UINT64, F.TYPE_INT32, F.TYPE_INT64}
+    for action, name in enumerate(_INT_FIELDS):
+        f = fields.get(name)
+        if f is None or f.type not in int_types or f.label == F.LABEL_REPEATED:
+            return None
+        keys[f.number << 3] = action
+    f = fields.get("time")
+    if f is None or f.type != F.TYPE_DOUBLE or f.label == F.LABEL_REPEATED:
+        return None
+    keys[f.number << 3 | 1] = _A_TIME
+    if "values" in fields:
+        kind, payload = VALUES, ["values"]
+    elif "mean" in fields and "covariance" in fields:
+        kind, payload = ESTIMATE, ["mean", "covariance"]
+    else:
+        return None
+    for action, name in zip((_A_P1, _A_P2), payload, strict=False):
+        f = fields[name]
+        if f.type != F.TYPE_DOUBLE or f.label != F.LABEL_REPEATED:
+            return None
+        keys[f.number << 3 | 2] = action  # packed
+        keys[f.number << 3 | 1] = action  # unpacked, one double per tag
+    numbers = {name: fields[name].number for name in ("step", "time", *_INT_FIELDS[1:], *payload)}
+    fast = _fast_pattern(numbers, payload)
+    tags = [numbers[name] << 3 | 2 for name in payload] + [-1]
+    return _Layout(kind, keys, fast, tags[0], tags[1])
+
+
+def decode_message(data: bytes, schema_name: str = SENSOR_SCHEMA) -> dict[str, Any]:
+    """Decode one fusionlog message (bytes) into a dict of fields, payloads reshaped.
+
+    For debugging and tests; the reader uses the same decoder without building dicts.
+    """
+    layout = _layout_for_name(schema_name)
+    step, t, off, runs, dim, p1, p2 = _decode(data, layout)
+    out: dict[str, Any] = {"step": step, "time": t, "run_offset": off, "runs": runs, "dim": dim}
+    a1 = np.frombuffer(p1, dtype="<f8")
+    if layout.kind == VALUES:
+        out["values"] = a1.reshape(runs, dim)
+    else:
+        a2 = np.frombuffer(p2, dtype="<f8")
+        out["mean"] = a1.reshape(runs, dim)
+        out["covariance"] = a2.reshape((dim, dim) if a2.size == dim * dim else (runs, dim, dim))
+    return out
+
+
+@lru_cache(maxsize=2)
+def _layout_for_name(schema_name: str) -> _Layout:
+    schema = Schema(id=0, data=file_descriptor_set(), encoding="protobuf", name=schema_name)
+    layout = _layout_from_schema(schema)
+    if layout is None:
+        raise ValueError(f"unknown fusionlog schema {schema_name!r}")
+    return layout
+
+
+# --------------------------------------------------------------------------------------------
+# Writer
+# --------------------------------------------------------------------------------------------
+
+_COMPRESSION = {
+    "zstd": CompressionType.ZSTD,
+    "lz4": CompressionType.LZ4,
+    "none": CompressionType.NONE,
+}
+
+
+class McapWriter:
+    """Write a fusionlog MCAP file atomically (temp file in the target folder, renamed on success).
+
+    Use as a context manager. Messages must come in the documented order: for each block of runs
+    (contiguous from run 0), for each step, for each topic, one message; the writer checks this
+    cheaply so a bug in a stage fails here rather than when the file is read.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        force: bool = False,
+        library: str = "fusionlog",
+        compression: str = "zstd",
+        chunk_size: int = 1024 * 1024,
+    ) -> None:
+        self.path = Path(path)
+        self.force = force
+        self.library = library
+        if compression not in _COMPRESSION:
+            raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}")
+        self._compression = _COMPRESSION[compression]
+        self._chunk_size = chunk_size
+        # Checked before anything is created so a refused run leaves no trace.
+        if self.path.is_dir():
+            raise FusionlogError(f"{self.path}: is a directory, not an output file")
+        if self.path.exists() and not force:
+            raise FusionlogError(f"{self.path}: exists; use --force to overwrite")
+        self._tmp: Path | None = None
+        self._file: BinaryIO | None = None
+        self._writer: Writer | None = None
+        self._schema_ids: dict[str, int] = {}
+        self._topic_states: dict[str, _TopicState] = {}
+        self._block_offset, self._block_runs = -1, 0  # block of runs being written
+        self._seen: set[tuple[int, int]] = set()  # (channel, step) in the current block
+        self._hstep: int = -1  # step and time whose encoded fields are in _head
+        self._htime: float = math.nan
+        self._head = b""
+        self._t_ns = 0
+
+    def __enter__(self) -> McapWriter:
+        parent = self.path.parent
+        try:
+            parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise FusionlogError(f"{self.path}: cannot create folder {parent}: {e}") from e
+        # os.open with 0o666 (not mkstemp's 0o600) so the final file gets the umask's mode.
+        for _ in range(100):
+            tmp = parent / f".{self.path.name}.{secrets.token_hex(4)}.tmp"
+            try:
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+                break
+            except FileExistsError:
+                continue
+            except OSError as e:
+                raise FusionlogError(f"{self.path}: cannot write in {parent}: {e}") from e
+        else:  # pragma: no cover - 100 collisions of 32 random bits
+            raise FusionlogError(f"{self.path}: cannot create a temporary file in {parent}")
+        self._tmp = tmp
+        try:
+            self._file = os.fdopen(fd, "wb")
+            self._writer = Writer(
+                self._file, chunk_size=self._chunk_size, compression=self._compression
+            )
+            self._writer.start(profile="", library=self.library)
+        except BaseException:
+            self._abort()
+            raise
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        if exc_type is not None:
+            self._abort()
+            return
+        try:
+            assert self._writer is not None and self._file is not None and self._tmp is not None
+            self._writer.finish()
+            self._file.flush()
+            os.fsync(self._file.fileno())
+            self._file.close()
+            if not self.force and self.path.exists():  # appeared while we were writing
+                raise FusionlogError(f"{self.path}: exists; use --force to overwrite")
+            os.replace(self._tmp, self.path)
+            self._tmp = None
+            self._writer = self._file = None  # further writes fail loudly
+        except BaseException:  # includes KeyboardInterrupt during finish
+            self._abort()
+            raise
+
+    def _abort(self) -> None:
+        """Close and delete the temp file; never raises, so the original error propagates."""
+        if self._file is not None:
+            try:
+                self._file.close()
+            except OSError:
+                pass
+        if self._tmp is not None:
+            try:
+                self._tmp.unlink()
+            except OSError:
+                pass
+            self._tmp = None
+        self._writer = None
+
+    def _live_writer(self) -> Writer:
+        if self._writer is None:
+            raise RuntimeError("McapWriter is not open; use it as a context manager")
+        return self._writer
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """Add a metadata record (e.g. ``fusionlog.scenario``, ``fusionlog.provenance``)."""
+        if not all(isinstance(k, str) and isinstance(v, str) for k, v in data.items()):
+            raise TypeError(f"metadata {name!r} must map str to str")
+        self._live_writer().add_metadata(name, dict(data))
+
+    def _new_topic(self, topic: str, kind: str, dim: int) -> _TopicState:
+        st = self._topic_states.get(topic)
+        if st is not None:
+            if st.kind != kind:
+                raise ValueError(f"topic {topic!r} was written as {st.kind}, not {kind}")
+            raise ValueError(f"topic {topic!r} has dim {st.dim}, got a message with dim {dim}")
+        if not topic or not isinstance(topic, str):
+            raise ValueError(f"bad topic {topic!r}")
+        writer = self._live_writer()
+        schema_name = SENSOR_SCHEMA if kind == VALUES else ESTIMATE_SCHEMA
+        sid = self._schema_ids.get(schema_name)
+        if sid is None:
+            sid = writer.register_schema(schema_name, "protobuf", file_descriptor_set())
+            self._schema_ids[schema_name] = sid
+        st = _TopicState(writer.register_channel(topic, "protobuf", sid), kind, dim)
+        self._topic_states[topic] = st
+        return st
+
+    def _new_block(self, topic: str, run_offset: int, runs: int) -> None:
+        run_offset = operator.index(run_offset)
+        if run_offset == self._block_offset:
+            raise ValueError(
+                f"{topic}: block at run {run_offset} has {self._block_runs} runs, got {runs}"
+            )
+        expected = 0 if self._block_offset < 0 else self._block_offset + self._block_runs
+        if run_offset != expected:
+            raise ValueError(
+                f"{topic}: block of runs starts at {run_offset}, expected {expected} "
+                "(blocks of runs must be written in order, contiguously from run 0)"
+            )
+        if run_offset + runs - 1 > _UINT32_MAX:
+            raise ValueError("run indices must fit in uint32")
+        self._block_offset, self._block_runs = run_offset, runs
+        self._seen.clear()
+
+    def _set_head(self, step: int, time: float) -> None:
+        """Encode the step and time fields once per step: every topic of the step shares them."""
+        step = operator.index(step)
+        time = float(time) + 0.0  # + 0.0 turns -0.0 into 0.0, which proto3 omits
+        if not 0 <= step <= _UINT32_MAX:
+            raise ValueError(f"step must fit in uint32, got {step}")
+        if not (time >= 0.0 and math.isfinite(time)):  # log_time is an unsigned ns count
+            raise ValueError(f"time must be finite and >= 0, got {time}")
+        t = _F64.pack(time)
+        head = (b"\x08" + _varint(step)) if step else b""
+        if time:
+            head += b"\x11" + t
+        self._hstep, self._htime = step, time
+        self._head, self._t_ns = head, round(time * 1e9)
+
+    def _write(
+        self,
+        topic: str,
+        kind: str,
+        step: int,
+        time: float,
+        run_offset: int,
+        runs: int,
+        dim: int,
+        p1: bytes,
+        p2: bytes,
+    ) -> None:
+        # The hot path: a few dict/set operations and one bytes join per message; everything
+        # that only changes per step, per topic or per block is cached.
+        writer = self._writer
+        if writer is None:
+            raise RuntimeError("McapWriter is not open; use it as a context manager")
+        st = self._topic_states.get(topic)
+        if st is None or st.kind != kind or st.dim != dim:
+            st = self._new_topic(topic, kind, dim)
+        if run_offset != self._block_offset or runs != self._block_runs:
+            self._new_block(topic, run_offset, runs)
+        key = (st.cid, step)
+        if key in self._seen:
+            raise ValueError(f"{topic}: step {step} written twice for runs from {run_offset}")
+        self._seen.add(key)
+        if step != self._hstep or time != self._htime:
+            self._set_head(step, time)
+        if st.mid_key != (run_offset, runs, len(p2)):
+            st.set_mid(run_offset, runs, len(p2))
+        data = b"".join((self._head, st.mid, p1, st.mid2, p2))
+        writer.add_message(st.cid, self._t_ns, data, self._t_ns)
+
+    def write_values(
+        self, topic: str, step: int, time: float, run_offset: int, values: np.ndarray
+    ) -> None:
+        """Write one ``fusionlog.Block``: ``values`` (runs, dim) at ``step`` for a block of runs."""
+        if type(values) is not np.ndarray or values.dtype != _F8:
+            values = np.asarray(values, dtype=_F8)
+        shape = values.shape
+        if len(shape) != 2 or shape[0] < 1 or shape[1] < 1:
+            raise ValueError(f"values must have shape (runs >= 1, dim >= 1), got {shape}")
+        # tobytes() is C order whatever the strides, so no ascontiguousarray copy is needed.
+        self._write(
+            topic, VALUES, step, time, run_offset, shape[0], shape[1], values.tobytes(), b""
+        )
+
+    def write_estimate(
+        self,
+        topic: str,
+        step: int,
+        time: float,
+        run_offset: int,
+        mean: np.ndarray,
+        cov: np.ndarray,
+    ) -> None:
+        """Write one ``fusionlog.EstimateBlock``: mean (runs, n), cov (n, n) or (runs, n, n)."""
+        m = mean if type(mean) is np.ndarray and mean.dtype == _F8 else np.asarray(mean, _F8)
+        c = cov if type(cov) is np.ndarray and cov.dtype == _F8 else np.asarray(cov, _F8)
+        if m.ndim != 2 or m.shape[0] < 1 or m.shape[1] < 1:
+            raise ValueError(f"mean must have shape (runs >= 1, n >= 1), got {m.shape}")
+        runs, n = m.shape
+        if c.shape != (n, n) and c.shape != (runs, n, n):
+            raise ValueError(f"cov must have shape ({n}, {n}) or ({runs}, {n}, {n}), got {c.shape}")
+        self._write(topic, ESTIMATE, step, time, run_offset, runs, n, m.tobytes(), c.tobytes())
+
+
+class _TopicState:
+    """Per-topic writer state: channel, kind, dim and the cached run_offset/runs/dim fields."""
+
+    __slots__ = ("cid", "kind", "dim", "mid_key", "mid", "mid2")
+
+    def __init__(self, cid: int, kind: str, dim: int) -> None:
+        self.cid, self.kind, self.dim = cid, kind, dim
+        self.mid_key: tuple[int, int, int] | None = None
+        self.mid = self.mid2 = b""
+
+    def set_mid(self, run_offset: int, runs: int, cov_len: int) -> None:
+        """Encode run_offset, runs, dim and the payload tags/lengths (fixed within a block)."""
+        mid = b"\x18" + _varint(run_offset) if run_offset else b""
+        mid += b"\x20" + _varint(runs) + b"\x28" + _varint(self.dim)
+        mid += b"\x32" + _varint(runs * self.dim * 8)
+        self.mid = mid
+        self.mid2 = b"\x3a" + _varint(cov_len) if cov_len else b""
+        self.mid_key = (run_offset, runs, cov_len)
+
+
+# --------------------------------------------------------------------------------------------
+# Reader
+# --------------------------------------------------------------------------------------------
+
+
+def _one_line(e: BaseException) -> str:
+    """Exception text for a one-line user message (library messages may contain newlines)."""
+    text = " ".join(str(e).split())
+    return f"{type(e).__name__}: {text}" if text else type(e).__name__
+
+
+def _recover_hint(path: Path) -> str:
+    return f"`fusionlog inspect --recover {path}` shows what is still readable"
+
+
+def _open_error(path: Path, e: OSError) -> FusionlogError:
+    if isinstance(e, FileNotFoundError):
+        return FusionlogError(f"{path}: no such file")
+    if isinstance(e, IsADirectoryError):
+        return FusionlogError(f"{path}: is a directory, not an MCAP file")
+    if isinstance(e, PermissionError):
+        return FusionlogError(f"{path}: permission denied")
+    return FusionlogError(f"{path}: cannot read: {e.strerror or e}")
+
+
+@dataclass
+class _TopicInfo:
+    channel_ids: list[int]
+    schema: str
+    message_encoding: str
+    layout: _Layout | None
+    count: int = 0
+
+
+@dataclass
+class _Structure:
+    """What the first block of runs and the last messages say about the whole file."""
+
+    times: np.ndarray
+    dims: dict[str, int]
+    runs: int
+
+
+@dataclass
+class _Est:
+    """Assembly buffers of one estimate topic in one output block."""
+
+    mean: np.ndarray
+    shared: np.ndarray | None = None  # (S, n, n) while every file block had one shared cov
+    shared_raw: bytes | None = None  # its bytes, to compare with the next file block's
+    per_run: np.ndarray | None = None  # (runs, S, n, n) once covariances differ between runs
+
+    def to_per_run(self, runs: int) -> None:
+        """Switch to per-run covariances; rows filled so far had the shared one."""
+        m = self.mean.shape
+        self.per_run = np.empty((runs, m[1], m[2], m[2]))
+        if self.shared is not None:
+            self.per_run[:] = self.shared
+
+
+@dataclass
+class _OutBlock:
+    lo: int
+    hi: int
+    arrays: dict[int, Any] = field(default_factory=dict)  # topic index -> ndarray | _Est
+
+
+class McapFile:
+    """A fusionlog MCAP file opened for reading; opening validates the container and schemas.
+
+    Holds no open file handle: every read opens its own, so instances are cheap and need no
+    closing.
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self._chunks: list[tuple[ChunkIndex, set[int] | None]] = []
+        self._linear = False
+        self._structure: _Structure | None = None
+        self.metadata: dict[str, dict[str, str]] = {}
+        self.library = ""
+        try:
+            with open(self.path, "rb") as f:
+                self._open(f)
+        except OSError as e:
+            raise _open_error(self.path, e) from e
+        self.topics: dict[str, int] = {t: info.count for t, info in self._topics.items()}
+
+    # -- opening -------------------------------------------------------------------------------
+
+    def _open(self, f: BinaryIO) -> None:
+        path = self.path
+        size = os.fstat(f.fileno()).st_size
+        head = f.read(len(_MAGIC))
+        if head != _MAGIC:
+            what = "empty file" if size == 0 else "does not start with the MCAP magic bytes"
+            raise FusionlogError(f"{path}: not an MCAP file ({what})")
+        f.seek(max(0, size - len(_MAGIC)))
+        if size < 2 * len(_MAGIC) or f.read(len(_MAGIC)) != _MAGIC:
+            raise FusionlogError(
+                f"{path}: truncated MCAP file (it ends before its footer; the writer was "
+                f"interrupted or the copy is incomplete); {_recover_hint(path)}"
+            )
+        try:
+            f.seek(0)
+            reader = SeekingReader(f)
+            self.library = reader.get_header().library
+            summary = reader.get_summary()
+            if summary is not None:
+                self.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+        except (McapError, struct.error, EOFError, ValueError, UnicodeDecodeError) as e:
+            raise FusionlogError(
+                f"{path}: corrupt MCAP file (footer or summary unreadable: "
+                f"{_one_line(e)}); {_recover_hint(path)}"
+            ) from e
+
+        stats = summary.statistics if summary is not None else None
+        complete = (
+            summary is not None
+            and stats is not None
+            and all(cid in summary.channels for cid in stats.channel_message_counts)
+            and all(
+                c.schema_id in summary.schemas for c in summary.channels.values() if c.schema_id
+            )
+            and (stats.message_count == 0 or len(summary.chunk_indexes) > 0)
+        )
+        if complete:
+            assert summary is not None and stats is not None
+            schemas, channels = summary.schemas, summary.channels
+            counts = dict(stats.channel_message_counts)
+            for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+                ids = set(ci.message_index_offsets) if ci.message_index_offsets else None
+                self._chunks.append((ci, ids))
+        else:
+            # No usable index (written without summary/statistics/chunks): one linear scan.
+            self._linear = True
+            schemas, channels, counts = self._scan_linear(f)
+
+        self._topics: dict[str, _TopicInfo] = {}
+        layouts: dict[int, _Layout | None] = {}
+        for cid in sorted(channels):
+            ch = channels[cid]
+            schema = schemas.get(ch.schema_id)
+            layout = None
+            if schema is not None and ch.message_encoding == "protobuf":
+                if schema.id not in layouts:
+                    layouts[schema.id] = _layout_from_schema(schema)
+                layout = layouts[schema.id]
+                if layout is None and schema.name in (SENSOR_SCHEMA, ESTIMATE_SCHEMA):
+                    raise FusionlogError(
+                        f"{path}: topic {ch.topic} claims schema {schema.name} but its "
+                        "descriptor lacks the fusionlog fields"
+                    )
+            name = schema.name if schema is not None else ""
+            info = self._topics.get(ch.topic)
+            if info is None:
+                info = _TopicInfo([], name, ch.message_encoding, layout)
+                self._topics[ch.topic] = info
+            elif (info.layout and info.layout.kind) != (layout and layout.kind):
+                raise FusionlogError(
+                    f"{path}: topic {ch.topic} has channels with different schemas "
+                    f"({info.schema}, {name})"
+                )
+            info.channel_ids.append(cid)
+            info.count += counts.get(cid, 0)
+        self._layouts: dict[int, _Layout] = {}
+        for info in self._topics.values():
+            if info.layout is not None:
+                for cid in info.channel_ids:
+                    self._layouts[cid] = info.layout
+
+    def _scan_linear(
+        self, f: BinaryIO
+    ) -> tuple[dict[int, Schema], dict[int, Channel], dict[int, int]]:
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        counts: dict[int, int] = {}
+        f.seek(0)
+        try:
+            for rec in StreamReader(f).records:
+                if isinstance(rec, Message):
+                    counts[rec.channel_id] = counts.get(rec.channel_id, 0) + 1
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Metadata):
+                    self.metadata[rec.name] = dict(rec.metadata)
+        except (McapError, struct.error, EOFError, ValueError) as e:
+            raise FusionlogError(
+                f"{self.path}: corrupt MCAP file ({_one_line(e)}); {_recover_hint(self.path)}"
+            ) from e
+        unknown = set(counts) - set(channels)
+        if unknown:
+            raise FusionlogError(f"{self.path}: messages on undeclared channels {sorted(unknown)}")
+        return schemas, channels, counts
+
+    # -- low-level message stream --------------------------------------------------------------
+
+    def _read_chunk(self, f: BinaryIO, ci: ChunkIndex) -> list[Message]:
+        """One chunk's messages, via mcap's own record reader (one chunk in memory at a time).
+
+        CRCs are validated: zstd frames carry no checksum of their own, so flipped bytes in a
+        chunk would otherwise decode as wrong numbers.
+        """
+        f.seek(ci.chunk_start_offset)
+        try:
+            chunk = next(iter(StreamReader(f, skip_magic=True, emit_chunks=True).records))
+            if not isinstance(chunk, Chunk):
+                raise ValueError("chunk index does not point at a chunk")
+            return [r for r in breakup_chunk(chunk, validate_crc=True) if isinstance(r, Message)]
+        except Exception as e:
+            raise FusionlogError(
+                f"{self.path}: corrupt MCAP chunk at byte {ci.chunk_start_offset} "
+                f"({_one_line(e)}); {_recover_hint(self.path)}"
+            ) from e
+
+    def _messages(
+        self, cids: set[int], start: tuple[int, int] = (0, 0)
+    ) -> Iterator[tuple[int, int, int, memoryview]]:
+        """Yield (chunk ordinal, message ordinal, channel id, data) in file order from ``start``.
+
+        Positions let a block of runs be read again without remembering its bytes.
+        """
+        c0, m0 = start
+        with open(self.path, "rb") as f:
+            if self._linear:
+                f.seek(0)
+                try:
+                    mi = -1
+                    for rec in StreamReader(f).records:
+                        if isinstance(rec, Message):
+                            mi += 1
+                            if mi >= m0 and rec.channel_id in cids:
+                                yield 0, mi, rec.channel_id, memoryview(rec.data)
+                except (McapError, struct.error, EOFError, ValueError) as e:
+                    raise FusionlogError(
+                        f"{self.path}: corrupt MCAP file ({_one_line(e)}); "
+                        f"{_recover_hint(self.path)}"
+                    ) from e
+                return
+            for ci in range(c0, len(self._chunks)):
+                index, ids = self._chunks[ci]
+                if ids is not None and not ids & cids:
+                    continue
+                skip = m0 if ci == c0 else 0
+                for mi, rec in enumerate(self._read_chunk(f, index)):
+                    if mi >= skip and rec.channel_id in cids:
+                        yield ci, mi, rec.channel_id, memoryview(rec.data)
+
+    def _decode(self, cid: int, data: memoryview) -> tuple:
+        try:
+            return _decode(data, self._layouts[cid])
+        except _WireError as e:
+            topic = next(t for t, i in self._topics.items() if cid in i.channel_ids)
+            raise FusionlogError(f"{self.path}: bad protobuf message on {topic}: {e}") from e
+
+    # -- structure -----------------------------------------------------------------------------
+
+    def _topic_of(self) -> dict[int, str]:
+        return {cid: t for t, i in self._topics.items() for cid in i.channel_ids}
+
+    def _get_structure(self) -> _Structure:
+        """Steps, times and dims from the first block of runs; total runs from the last one."""
+        if self._structure is not None:
+            return self._structure
+        cids = set(self._layouts)
+        topic_of = self._topic_of()
+        step_time: dict[int, float] = {}
+        dims: dict[str, int] = {}
+        first: int | None = None
+        for _, _, cid, data in self._messages(cids):
+            step, t, off, _, dim, _, _ = self._decode(cid, data)
+            if first is None:
+                first = off
+            elif off != first:
+                break
+            step_time.setdefault(step, t)
+            dims.setdefault(topic_of[cid], dim)
+        steps = len(step_time)
+        if sorted(step_time) != list(range(steps)):
+            raise FusionlogError(
+                f"{self.path}: the steps of the first block of runs are not 0..K "
+                f"(found {steps} distinct steps, largest {max(step_time)})"
+            )
+        if first not in (None, 0):
+            raise FusionlogError(f"{self.path}: the first block of runs starts at run {first}")
+        times = np.array([step_time[k] for k in range(steps)], dtype=float)
+        self._structure = _Structure(times, dims, self._last_run_end(cids))
+        return self._structure
+
+    def _last_run_end(self, cids: set[int]) -> int:
+        """End of the last block of runs: the blocks are in order, so read only the last chunk."""
+        candidates = [ci for ci, (_, ids) in enumerate(self._chunks) if ids is None or ids & cids]
+        start = (candidates[-1], 0) if candidates and not self._linear else (0, 0)
+        end = 0
+        for _, _, cid, data in self._messages(cids, start):
+            _, _, off, runs, _, _, _ = self._decode(cid, data)
+            end = max(end, off + runs)
+        return end
+
+    def schema_of(self, topic: str) -> str:
+        """Schema name of ``topic`` (e.g. ``fusionlog.Block``)."""
+        return self._info(topic).schema
+
+    def kind_of(self, topic: str) -> str | None:
+        """``"values"``, ``"estimate"``, or None for a topic fusionlog cannot read."""
+        layout = self._info(topic).layout
+        return layout.kind if layout is not None else None
+
+    def dim_of(self, topic: str) -> int:
+        """``dim`` of a topic's messages (state size n for estimates)."""
+        self._readable(topic)
+        dims = self._get_structure().dims
+        if topic not in dims:
+            raise FusionlogError(f"{self.path}: topic {topic} has no message in the first block")
+        return dims[topic]
+
+    def steps(self) -> int:
+        """Number of time steps K + 1 (distinct steps of the first block of runs)."""
+        return len(self._get_structure().times)
+
+    def runs(self) -> int:
+        """Total number of Monte Carlo runs in the file."""
+        return self._get_structure().runs
+
+    def times(self) -> np.ndarray:
+        """(K + 1,) time in seconds of each step (first message of that step in the file)."""
+        return self._get_structure().times.copy()
+
+    def _info(self, topic: str) -> _TopicInfo:
+        info = self._topics.get(topic)
+        if info is None:
+            have = ", ".join(sorted(self._topics)) or "none"
+            raise FusionlogError(f"{self.path}: no topic {topic} (topics: {have})")
+        return info
+
+    def _readable(self, topic: str) -> _TopicInfo:
+        info = self._info(topic)
+        if info.layout is None:
+            raise FusionlogError(
+                f"{self.path}: topic {topic} has schema {info.schema or '(none)'} "
+                f"({info.message_encoding}), not a fusionlog Block or EstimateBlock"
+            )
+        return info
+
+    # -- blocks of runs ------------------------------------------------------------------------
+
+    def iter_run_blocks(
+        self, topics: Sequence[str], block_runs: int
+    ) -> Iterator[tuple[int, int, dict[str, Any]]]:
+        """Yield (run_offset, runs, {topic: data}) for consecutive blocks of ``block_runs`` runs.
+
+        A values topic gives an array (runs, K+1, dim); an estimate topic gives (mean, cov) with
+        mean (runs, K+1, n) and cov (K+1, n, n) if every message of this block had one shared
+        covariance (the same across the file's blocks), else (runs, K+1, n, n).
+
+        Memory stays around two output blocks plus two chunks, whatever the file's block size:
+        the file is read sequentially, and a file block larger than the output window is read
+        again for each window (its start position is remembered, its bytes are not). Payloads
+        are gathered per file block and converted with one numpy operation per topic, because
+        per-message numpy calls would dominate the cost for small messages.
+        """
+        if block_runs < 1:
+            raise ValueError("block_runs must be >= 1")
+        names = list(dict.fromkeys(topics))
+        if not names:
+            raise ValueError("no topics to read")
+        infos = [self._readable(t) for t in names]
+        st = self._get_structure()
+        S, total = len(st.times), st.runs
+        dims = [self.dim_of(t) for t in names]
+        kinds = [i.layout.kind for i in infos]  # type: ignore[union-attr]
+        tidx = {cid: ti for ti, info in enumerate(infos) for cid in info.channel_ids}
+        cids = set(tidx)
+        decode = self._decode
+        pending: list[_OutBlock] = []
+        next_lo = 0
+
+        def bad(msg: str) -> FusionlogError:
+            return FusionlogError(f"{self.path}: {msg} (fusionlog block order violated)")
+
+        def add_blocks(upto: int) -> int:
+            """Open output blocks (at most two) towards run ``upto``; return the window end."""
+            nonlocal next_lo
+            while len(pending) < 2 and (not pending or pending[-1].hi < upto) and next_lo < total:
+                lo, hi = next_lo, min(next_lo + block_runs, total)
+                blk = _OutBlock(lo, hi)
+                for ti, d in enumerate(dims):
+                    shape = (hi - lo, S, d)
+                    blk.arrays[ti] = (
+                        np.empty(shape) if kinds[ti] == VALUES else _Est(np.empty(shape))
+                    )
+                pending.append(blk)
+                next_lo = hi
+            return min(upto, pending[-1].hi)
+
+        def take(
+            it: Iterator[tuple[int, int, int, memoryview]],
+            item: tuple[int, int, int, memoryview] | None,
+            o: int,
+            r: int,
+            a: int,
+            b: int,
+            check: bool,
+        ) -> tuple[list[list[Any]], list[list[Any]], tuple[int, int, int, memoryview] | None]:
+            """Gather the payload bytes of runs [a, b) of the file block at run ``o``.
+
+            Returns per topic a list indexed by step, and the first item after the block.
+            """
+            full = a == o and b == o + r
+            p1: list[list[Any]] = [[None] * S for _ in names]
+            p2: list[list[Any]] = [[None] * S for _ in names]
+            while item is not None:
+                cid = item[2]
+                step, _, off, runs, dim, v, c = decode(cid, item[3])
+                if off != o:
+                    break
+                ti = tidx[cid]
+                d = dims[ti]
+                if check:
+                    if runs != r:
+                        raise bad(f"{names[ti]}: messages of the block at run {o} disagree on runs")
+                    if step >= S:
+                        raise bad(f"{names[ti]}: step {step} beyond the file's {S} steps")
+                    if p1[ti][step] is not None:
+                        raise bad(f"{names[ti]}: step {step} appears twice for runs from {o}")
+                    if dim != d or len(v) != r * d * 8:
+                        raise FusionlogError(
+                            f"{self.path}: {names[ti]}: step {step} runs from {o}: payload of "
+                            f"{len(v) // 8} doubles does not match runs={r}, dim={dim} "
+                            f"(topic dim {d})"
+                        )
+                    if kinds[ti] == ESTIMATE and len(c) not in (d * d * 8, r * d * d * 8):
+                        raise FusionlogError(
+                            f"{self.path}: {names[ti]}: step {step} runs from {o}: covariance of "
+                            f"{len(c) // 8} doubles is neither n*n nor runs*n*n"
+                        )
+                # A covariance of n*n values is shared by the message's runs (for a one-run
+                # message both readings agree); the flag survives slicing to a window.
+                shared = len(c) == d * d * 8
+                if full:
+                    # Small payloads are copied so they do not pin their whole chunk in memory
+                    # (a long one-run log would otherwise keep every chunk alive).
+                    p1[ti][step] = v if len(v) >= 4096 else bytes(v)
+                    p2[ti][step] = (shared, c if len(c) >= 4096 else bytes(c))
+                else:  # copy the window's rows so the chunk buffer can be freed
+                    p1[ti][step] = bytes(v[(a - o) * d * 8 : (b - o) * d * 8])
+                    if shared:
+                        p2[ti][step] = (shared, bytes(c))
+                    else:
+                        p2[ti][step] = (shared, bytes(c[(a - o) * d * d * 8 : (b - o) * d * d * 8]))
+                item = next(it, None)
+            return p1, p2, item
+
+        def assemble(p1: list[list[Any]], p2: list[list[Any]], a: int, b: int) -> None:
+            """Copy runs [a, b) of one file block into the open output blocks."""
+            rows = b - a
+            for ti, d in enumerate(dims):
+                arr = np.frombuffer(b"".join(p1[ti]), dtype="<f8").reshape(S, rows, d)
+                shared = raw = per_run = None
+                if kinds[ti] == ESTIMATE:
+                    if all(sh for sh, _ in p2[ti]):
+                        raw = b"".join(c for _, c in p2[ti])
+                        shared = np.frombuffer(raw, dtype="<f8").reshape(S, d, d)
+                    else:
+                        per_run = np.empty((S, rows, d, d))
+                        for k, (sh, c) in enumerate(p2[ti]):
+                            ck = np.frombuffer(c, dtype="<f8")
+                            per_run[k] = ck.reshape((d, d) if sh else (rows, d, d))
+                for blk in pending:
+                    x, y = max(a, blk.lo), min(b, blk.hi)
+                    if x >= y:
+                        continue
+                    dst = slice(x - blk.lo, y - blk.lo)
+                    src = arr[:, x - a : y - a].swapaxes(0, 1)
+                    if kinds[ti] == VALUES:
+                        blk.arrays[ti][dst] = src
+                        continue
+                    est: _Est = blk.arrays[ti]
+                    est.mean[dst] = src
+                    if per_run is None:
+                        if est.per_run is None:
+                            if est.shared_raw is None:
+                                # A copy per output block: writable, and not aliased between
+                                # blocks that the caller may modify.
+                                est.shared_raw, est.shared = raw, np.array(shared)
+                                continue
+                            if est.shared_raw == raw:
+                                continue
+                            # Shared within each file block but different between them.
+                            est.to_per_run(blk.hi - blk.lo)
+                        est.per_run[dst] = shared  # type: ignore[index]
+                    else:
+                        if est.per_run is None:
+                            est.to_per_run(blk.hi - blk.lo)
+                        est.per_run[dst] = per_run[:, x - a : y - a].swapaxes(0, 1)  # type: ignore[index]
+
+        def finished(upto: int) -> Iterator[tuple[int, int, dict[str, Any]]]:
+            while pending and pending[0].hi <= upto:
+                blk = pending.pop(0)
+                out: dict[str, Any] = {}
+                for ti, t in enumerate(names):
+                    arr = blk.arrays[ti]
+                    if kinds[ti] == VALUES:
+                        out[t] = arr
+                    else:
+                        out[t] = (arr.mean, arr.shared if arr.per_run is None else arr.per_run)
+                yield blk.lo, blk.hi - blk.lo, out
+
+        stream = self._messages(cids)
+        try:
+            item = next(stream, None)
+            expected = 0
+            while item is not None:
+                start = (item[0], item[1])
+                first = decode(item[2], item[3])
+                o, r = first[2], first[3]
+                topic = names[tidx[item[2]]]
+                if o != expected:
+                    raise bad(
+                        f"{topic}: block of runs at run {o} where run {expected} was expected"
+                    )
+                if r < 1 or o + r > total:
+                    raise bad(f"{topic}: block at run {o} has {r} runs of {total}")
+                b = add_blocks(o + r)
+                p1, p2, item = take(stream, item, o, r, o, b, True)
+                for ti, parts in enumerate(p1):
+                    missing = parts.count(None)
+                    if missing:
+                        raise bad(
+                            f"{names[ti]}: {S - missing} of {S} steps for the block of runs "
+                            f"at run {o}"
+                        )
+                assemble(p1, p2, o, b)
+                del p1, p2
+                yield from finished(b)
+                # A file block wider than the window: read it again for each further window.
+                while b < o + r:
+                    a, b = b, add_blocks(o + r)
+                    again = self._messages(cids, start)
+                    p1, p2, _ = take(again, next(again, None), o, r, a, b, False)
+                    again.close()
+                    assemble(p1, p2, a, b)
+                    del p1, p2
+                    yield from finished(b)
+                expected = o + r
+        finally:
+            stream.close()
+        if expected != total:
+            raise bad(f"the requested topics cover runs 0..{expected} of {total}")
+
+    def read_all(self, topics: Sequence[str]) -> dict[str, Any]:
+        """All runs of ``topics`` at once (small files, tests); same shapes as iter_run_blocks."""
+        total = self.runs()
+        for _, _, data in self.iter_run_blocks(topics, max(total, 1)):
+            return data
+        return {}
+
+
+# --------------------------------------------------------------------------------------------
+# Recovery
+# --------------------------------------------------------------------------------------------
+
+
+def recover(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """What is still readable from a damaged (e.g. truncated) file, for ``inspect --recover``.
+
+    Reads records sequentially up to the first damage (a seeking reader needs the footer, which
+    a truncated file lacks). Returns a dict with ``error`` (why reading stopped, None if the
+    file read to its end), ``library``, ``metadata``, ``schemas`` {topic: schema name},
+    ``topics`` {topic: messages read}, ``messages``, ``steps`` (distinct steps of the first
+    block of runs), ``complete_runs`` (runs whose block was read in full for every fusionlog
+    topic), ``last_complete_step`` (last step k such that every fusionlog topic has steps 0..k
+    in the last block read; -1 if none) and ``last_complete_time``.
+    """
+    p = Path(path)
+    out: dict[str, Any] = {
+        "path": str(p),
+        "error": None,
+        "library": None,
+        "metadata": {},
+        "schemas": {},
+        "topics": {},
+        "messages": 0,
+        "steps": 0,
+        "complete_runs": 0,
+        "last_complete_step": -1,
+        "last_complete_time": None,
+    }
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, tuple[str, _Layout | None]] = {}
+    readable: set[str] = set()  # topics with a fusionlog layout
+    # The block of runs being read: (run_offset, runs) and {topic: {step: time}}.
+    block: tuple[int, int] | None = None
+    seen: dict[str, dict[int, float]] = {}
+    first_steps: set[int] | None = None
+
+    def close_block() -> None:
+        nonlocal first_steps
+        if block is None:
+            return
+        if first_steps is None:
+            first_steps = set().union(*(s.keys() for s in seen.values()))
+        if all(first_steps <= seen.get(t, {}).keys() for t in readable):
+            out["complete_runs"] += block[1]
+
+    try:
+        with open(p, "rb") as f:
+            for rec in StreamReader(f).records:
+                if isinstance(rec, Message):
+                    if rec.channel_id not in channels:
+                        continue
+                    topic, layout = channels[rec.channel_id]
+                    out["messages"] += 1
+                    out["topics"][topic] += 1
+                    if layout is None:
+                        continue
+                    step, t, off, runs, _, _, _ = _decode(rec.data, layout)
+                    if block is None or block[0] != off:
+                        close_block()
+                        block, seen = (off, runs), {}
+                    seen.setdefault(topic, {})[step] = t
+                elif isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    schema = schemas.get(rec.schema_id)
+                    layout = None
+                    if schema is not None and rec.message_encoding == "protobuf":
+                        layout = _layout_from_schema(schema)
+                    channels[rec.id] = (rec.topic, layout)
+                    out["schemas"][rec.topic] = schema.name if schema is not None else ""
+                    out["topics"].setdefault(rec.topic, 0)
+                    if layout is not None:
+                        readable.add(rec.topic)
+                elif isinstance(rec, Metadata):
+                    out["metadata"][rec.name] = dict(rec.metadata)
+                elif isinstance(rec, Header):
+                    out["library"] = rec.library
+    except OSError as e:
+        raise _open_error(p, e) from e
+    except Exception as e:  # whatever the damage looks like, report what came before it
+        out["error"] = _one_line(e)
+    close_block()
+    out["steps"] = len(first_steps or ())
+    if block is not None:
+        k = -1
+        while readable and all(k + 1 in seen.get(t, {}) for t in readable):
+            k += 1
+        out["last_complete_step"] = k
+        if k >= 0:
+            out["last_complete_time"] = next(iter(seen.values()))[k]
+    return out
