@@ -119,24 +119,34 @@ def ci_omega(covs: Sequence[np.ndarray], criterion: Criterion = "trace") -> np.n
             options={"xatol": 1e-10},
         )
         cands = [np.array([res.x, 1.0 - res.x]), np.array([1.0, 0.0]), np.array([0.0, 1.0])]
-    else:
-        res = optimize.minimize(
-            lambda w: _ci_cost(Ys, w, criterion),
-            np.full(N, 1.0 / N),
-            jac=True,
-            method="SLSQP",
-            bounds=[(0.0, 1.0)] * N,
-            constraints=[
-                {"type": "eq", "fun": lambda w: np.sum(w) - 1.0, "jac": lambda w: np.ones(N)}
-            ],
-            options={"ftol": 1e-14, "maxiter": 200},
-        )
-        w = np.clip(res.x, 0.0, 1.0)
-        cands = [w / w.sum()] + [np.eye(N)[i] for i in range(N)]
-    # The optimiser's answer first, so that it wins ties: with equal covariances every omega
-    # gives the same P, and the interior one also averages the estimates.
+        return _best_candidate(Ys, cands, criterion)
+    res = optimize.minimize(
+        lambda w: _ci_cost(Ys, w, criterion),
+        np.full(N, 1.0 / N),
+        jac=True,
+        method="SLSQP",
+        bounds=[(0.0, 1.0)] * N,
+        constraints=[{"type": "eq", "fun": lambda w: np.sum(w) - 1.0, "jac": lambda w: np.ones(N)}],
+        options={"ftol": 1e-14, "maxiter": 200},
+    )
+    w = np.clip(res.x, 0.0, 1.0)
+    cands = [w / w.sum()] + [np.eye(N)[i] for i in range(N)]
+    return _best_candidate(Ys, cands, criterion)
+
+
+def _best_candidate(Ys: np.ndarray, cands: list[np.ndarray], criterion: Criterion) -> np.ndarray:
+    """The optimiser's answer (first) unless an end point is better by more than rounding.
+
+    With equal input covariances every omega gives the same P; the interior answer also
+    averages the estimates, and letting rounding pick an end point instead would make the
+    fused estimate jump between one sensor and the average from step to step.
+    """
     costs = [_ci_cost(Ys, w, criterion)[0] for w in cands]
-    return cands[int(np.argmin(costs))]
+    best = 0
+    for i in range(1, len(cands)):
+        if costs[i] < costs[best] - 1e-9 * abs(costs[best]):
+            best = i
+    return cands[best]
 
 
 def ci_weights(
