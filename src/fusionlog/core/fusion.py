@@ -69,7 +69,10 @@ def gmf_weights(joint: np.ndarray, n: int) -> tuple[list[np.ndarray], np.ndarray
     kkt[..., N * n :, : N * n] = E.T
     rhs = np.zeros((N * n + n, n))
     rhs[N * n :] = np.eye(n)
-    sol = np.linalg.pinv(kkt, rcond=1e-12, hermitian=True) @ rhs
+    if kkt.ndim == 2:
+        sol = np.linalg.lstsq(kkt, rhs, rcond=1e-12)[0]  # SVD-based minimum-norm solution
+    else:  # lstsq does not batch; the pseudo-inverse gives the same minimum-norm solution
+        sol = np.linalg.pinv(kkt, rcond=1e-12, hermitian=True) @ rhs
     Ct = sol[..., : N * n, :]  # (N n, n): stacked c_i^T
     weights = [mT(Ct[..., i * n : (i + 1) * n, :]) for i in range(N)]
     C = mT(Ct)
