@@ -1,0 +1,80 @@
+"""The evaluation stage on the paper's example: the recording read back against summary.json,
+and the structural results of Tables I and II."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fusionlog.io.rrd import entity_path, read_recording
+from fusionlog.scenario import load_scenario
+from fusionlog.stages.estimate import run_estimate
+from fusionlog.stages.evaluate import run_evaluate
+from fusionlog.stages.simulate import run_simulate
+
+PAPER = Path(__file__).parents[1] / "pipeline" / "ajgl2009.toml"
+CONSISTENT = ("CKF", "HKF", "MSC-GMF", "SKF", "FBS")
+
+
+@pytest.fixture(scope="module")
+def paper_run(tmp_path_factory):
+    """The paper's example at its full size, M = 10^4 runs, K = 20, seed 2009."""
+    d = tmp_path_factory.mktemp("paper")
+    sc = load_scenario(PAPER)
+    run_simulate(sc, d / "sensors.mcap")
+    run_estimate(d / "sensors.mcap", d / "estimates.mcap")
+    res = run_evaluate(
+        d / "sensors.mcap", d / "estimates.mcap", d / "evaluation.rrd", summary_path=d / "s.json"
+    )
+    return d, res.summary
+
+
+def test_recording_series_match_summary(paper_run):
+    d, summary = paper_run
+    rec = read_recording(d / "evaluation.rrd")
+    assert rec["summary"] == json.loads((d / "s.json").read_text())
+    states = summary["state_names"]
+    np.testing.assert_array_equal(rec["steps"], np.arange(summary["steps"] + 1))
+    for arch, s in summary["architectures"].items():
+        mse = np.stack([rec["series"][entity_path("metrics", "mse", st, arch)] for st in states])
+        assert math.isclose(mse.mean(), s["mse"], rel_tol=1e-12)
+        np.testing.assert_allclose(mse.mean(axis=1), s["mse_per_state"], rtol=1e-12)
+        nees = rec["series"][entity_path("metrics", "nees", arch)]
+        assert math.isclose(nees.mean(), s["anees"], rel_tol=1e-12)
+        dm = rec["series"][entity_path("metrics", "dm", arch)]
+        assert math.isclose(dm.mean(), s["dm"], rel_tol=1e-12)
+        trace = rec["series"][entity_path("metrics", "trace", arch)]
+        assert math.isclose(trace.mean(), s["mean_trace"], rel_tol=1e-12)
+        lo = rec["series"][entity_path("metrics", "nees", "bounds", "lower")]
+        hi = rec["series"][entity_path("metrics", "nees", "bounds", "upper")]
+        inside = np.mean((nees >= lo) & (nees <= hi))
+        assert math.isclose(inside, s["nees_fraction_inside"], rel_tol=1e-12)
+        if arch != "CKF":
+            diff = rec["series"][entity_path("metrics", "mse_minus_ckf", states[0], arch)]
+            ckf = rec["series"][entity_path("metrics", "mse", states[0], "CKF")]
+            np.testing.assert_allclose(diff, mse[0] - ckf, atol=1e-12)
+
+
+def test_paper_tables_structure(paper_run):
+    _, summary = paper_run
+    a = summary["architectures"]
+    assert a["CKF"]["mse"] == pytest.approx(a["HKF"]["mse"], rel=1e-9)
+    assert a["CKF"]["dm"] == pytest.approx(a["HKF"]["dm"], rel=1e-9)
+    assert a["MSC"]["mse"] == pytest.approx(a["MSC-GMF"]["mse"], rel=1e-9)
+    # MSC: over-confident, NEES outside the band on most steps, DM far above sqrt(pi/2).
+    assert a["MSC"]["nees_fraction_inside"] < 0.1
+    assert a["MSC"]["dm"] > 1.3 * math.sqrt(math.pi / 2)
+    for arch in CONSISTENT:
+        assert a[arch]["nees_fraction_inside"] >= 0.9, arch
+        assert a[arch]["expected"]["anees"] == pytest.approx(2.0, rel=1e-9)
+
+
+def test_monte_carlo_within_four_standard_errors(paper_run):
+    _, summary = paper_run
+    for arch, s in summary["architectures"].items():
+        for key in ("mse", "anees", "dm"):
+            assert abs(s[key] - s["expected"][key]) < 4 * s["stderr"][key], (arch, key)
