@@ -24,7 +24,7 @@ class _Group(click.Group):
     """Turns FusionlogError into one line and exit code 2, and Ctrl-C into exit code 130."""
 
     def invoke(self, ctx: click.Context) -> Any:
-        debug = "--debug" in sys.argv[1:] or bool(ctx.params.get("debug"))
+        debug = bool(ctx.params.get("debug"))
         try:
             return super().invoke(ctx)
         except FusionlogError as e:
@@ -225,7 +225,13 @@ def compare(actual, golden, rtol, atol) -> None:
     """Compare SUMMARY.json with GOLDEN.json; exit 1 if any metric moved beyond tolerance."""
     from fusionlog.report import compare_summaries
 
-    diffs = compare_summaries(_load_json(actual), _load_json(golden), rtol=rtol, atol=atol)
+    docs = []
+    for path in (actual, golden):
+        doc = _load_json(path)
+        if not isinstance(doc, dict) or not isinstance(doc.get("architectures"), dict):
+            raise FusionlogError(f"{path}: not a fusionlog summary (no 'architectures' object)")
+        docs.append(doc)
+    diffs = compare_summaries(docs[0], docs[1], rtol=rtol, atol=atol)
     if diffs:
         click.echo(f"{actual} differs from {golden} (rtol={rtol:g}, atol={atol:g}):")
         for line in diffs:
@@ -261,9 +267,14 @@ def inspect(file, recover) -> None:
     if prov:
         version = prov.get("fusionlog_version", "?")
         click.echo(f"  written by: {prov.get('command', '?')} (fusionlog {version})")
-    click.echo(f"  runs: {mf.runs()}, instants: {mf.steps()} (k = 0..{mf.steps() - 1})")
+    ours = [t for t in mf.topics if mf.kind_of(t) is not None]
+    if ours:
+        click.echo(f"  runs: {mf.runs()}, instants: {mf.steps()} (k = 0..{mf.steps() - 1})")
+    else:
+        click.echo("  no fusionlog topics (no fusionlog.Block or fusionlog.EstimateBlock streams)")
     for t in sorted(mf.topics):
-        click.echo(f"  {t:32s} {mf.topics[t]:8d} messages  {mf.schema_of(t)}  dim {mf.dim_of(t)}")
+        kind = f"dim {mf.dim_of(t)}" if t in ours else "not a fusionlog stream"
+        click.echo(f"  {t:32s} {mf.topics[t]:8d} messages  {mf.schema_of(t)}  {kind}")
     click.echo(f"  metadata: {', '.join(sorted(mf.metadata)) or 'none'}")
 
 

@@ -19,7 +19,14 @@ from fusionlog.io.mcap_io import McapFile
 from fusionlog.io.rrd import write_recording
 from fusionlog.scenario import system_from_dict
 
-from .common import PROVENANCE_META, SCENARIO_META, block_runs, progress, scenario_from_file
+from .common import (
+    PROVENANCE_META,
+    SCENARIO_META,
+    block_runs,
+    progress,
+    scenario_from_file,
+    sha256_of,
+)
 
 
 @dataclass
@@ -35,6 +42,9 @@ def write_json_atomic(path: Path, data: Any, force: bool) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give it the usual permissions
         with os.fdopen(fd, "w") as f:
             json.dump(data, f, indent=2)
             f.write("\n")
@@ -79,6 +89,12 @@ def run_evaluate(
     if sc is None:
         raise FusionlogError(f"{sensors_path}: no {SCENARIO_META} metadata (not a simulation)")
     prov = est.metadata.get(PROVENANCE_META, {})
+    recorded = prov.get("sensors_sha256")
+    if recorded is not None and recorded != sha256_of(Path(sensors_path)):
+        raise FusionlogError(
+            f"{estimates_path}: was estimated from another sensors file "
+            f"({prov.get('sensors_file', '?')}, sha256 {recorded[:12]}...), not {sensors_path}"
+        )
     if est.steps() != sens.steps() or est.runs() != sens.runs():
         raise FusionlogError(
             f"{estimates_path}: {est.runs()} runs x {est.steps()} steps do not match "
