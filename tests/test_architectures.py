@@ -60,6 +60,13 @@ def test_paper_structure_ckf_hkf_and_msc_gmf():
     np.testing.assert_allclose(ests["FBS"].mean[:, -1], ests["CKF"].mean[:, -1], atol=1e-9)
 
 
+def _tol(arch: str) -> float:
+    """CI's omegas come out of a numerical optimiser (SLSQP, several steps or runs per call),
+    accurate to about 1e-8: paths that group the problems differently agree to that, not to
+    rounding. Every other architecture is a closed-form computation."""
+    return 1e-6 if arch == "CI" else 1e-9
+
+
 @pytest.mark.parametrize("arch", STATE_ARCHITECTURES)
 def test_per_run_path_equals_shared_path(arch):
     """The batched per-run path with nothing missing gives the shared-gain numbers."""
@@ -69,9 +76,9 @@ def test_per_run_path_equals_shared_path(arch):
     shared = run_plan(build_plan(sys, arch, 12), z)
     per_run = run_plan(build_plan(sys, arch, 12, np.ones(z.shape, bool)), z)
     assert per_run.cov.ndim == 4 and shared.cov.ndim == 3
-    np.testing.assert_allclose(per_run.mean, shared.mean, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(per_run.mean, shared.mean, rtol=_tol(arch), atol=_tol(arch) / 10)
     np.testing.assert_allclose(
-        per_run.cov, np.broadcast_to(shared.cov, per_run.cov.shape), rtol=1e-9, atol=1e-12
+        per_run.cov, np.broadcast_to(shared.cov, per_run.cov.shape), rtol=_tol(arch), atol=1e-12
     )
 
 
@@ -92,8 +99,10 @@ def test_missing_measurements_per_run(arch):
     for r in range(z.shape[0]):
         mask = ~np.isnan(z[r])
         single = run_plan(build_plan(sys, arch, 10, mask), z[r : r + 1])
-        np.testing.assert_allclose(est.mean[r], single.mean[0], rtol=1e-9, atol=1e-10)
-        np.testing.assert_allclose(est.cov[r], single.cov, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(
+            est.mean[r], single.mean[0], rtol=_tol(arch), atol=_tol(arch) / 10
+        )
+        np.testing.assert_allclose(est.cov[r], single.cov, rtol=_tol(arch), atol=1e-12)
 
 
 def test_missing_sensor_equals_filter_without_it():

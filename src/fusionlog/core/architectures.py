@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .fusion import ci_omega, ci_weights, gmf_weights, millman_weights
+from .fusion import ci_omegas, ci_weights, gmf_weights, millman_weights
 from .kalman import gain, joseph
 from .linalg import apply, is_invertible, mT, spd_inv, sym
 from .model import System
@@ -338,7 +338,7 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
     # Only the generalised Millman formula needs the cross-covariances of eq. (35).
     joint = name == "MSC-GMF"
     steps = []
-    omegas = []
+    ci_pending: list[tuple[int, np.ndarray]] = []
     steady = _Steady(present)
     K1 = present.shape[-2]
     for k in range(K1):
@@ -365,30 +365,48 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
         elif name == "MSC-GMF":
             ws, P = gmf_weights(J, n)
             O = np.concatenate(ws, axis=-1)
-        else:  # CI
-            covs = [st.P for st in sts]
-            if batch:
-                flat = [c.reshape((-1, n, n)) for c in covs]
-                om = np.stack(
-                    [ci_omega([c[i] for c in flat], criterion) for i in range(len(flat[0]))]
-                )
-                om = om.reshape(batch + (S,))
-                ws, P = ci_weights(covs, [om[..., j, None, None] for j in range(S)])
-            else:
-                om = ci_omega(covs, criterion)
-                ws, P = ci_weights(covs, om)
-            omegas.append(om)
-            O = np.concatenate([np.broadcast_to(w, batch + (n, n)) for w in ws], axis=-1)
+        else:  # CI: the omegas of all steps are solved together after the loop
+            O = P = None
+            ci_pending.append((len(steps), np.stack([st.P for st in sts], axis=-3)))
         D = np.concatenate([np.broadcast_to(st.D, batch + (n, n)) for st in sts], axis=-2)
         steps.append(StepMap(T, U, O, P, D))
         if all_cov and steady.reached(*([J] if joint else [lk.mat for lk in locs])):
             _fill(steps, K1)
-            if omegas:
-                _fill(omegas, K1)
             break
-    info = {"omega": np.stack(omegas, axis=-2)} if omegas else {}
+    info = {"omega": _ci_readouts(steps, ci_pending, batch, criterion)} if name == "CI" else {}
     D0 = np.concatenate([lk.D0 for lk in locs])
     return Plan(name, s0, steps, per_run=bool(batch), info=info, D0=D0)
+
+
+def _ci_readouts(
+    steps: list[StepMap],
+    pending: list[tuple[int, np.ndarray]],
+    batch: tuple[int, ...],
+    criterion: str,
+) -> np.ndarray:
+    """Covariance intersection of the local estimates at the steps in `pending` (step index,
+    local covariances batch + (S, n, n)): every step's (and run's) omega in one `ci_omegas`
+    call, then the fused weights and covariance written into those steps' maps. Returns the
+    omegas, batch + (K+1, S), NaN where the locals had no covariance yet."""
+    K1 = len(steps)
+    if not pending:
+        return np.full((K1,), np.nan)
+    covs = np.stack([c for _, c in pending])  # (L,) + batch + (S, n, n)
+    S, n = covs.shape[-3], covs.shape[-1]
+    om = ci_omegas(covs.reshape((-1, S, n, n)), criterion).reshape(covs.shape[:-2])
+    ws, P = ci_weights(
+        [covs[..., j, :, :] for j in range(S)], [om[..., j, None, None] for j in range(S)]
+    )
+    O = np.concatenate([np.broadcast_to(w, P.shape) for w in ws], axis=-1)
+    by_id = {}
+    for i, (k, _) in enumerate(pending):
+        steps[k].O, steps[k].P = O[i], P[i]
+        by_id[id(steps[k])] = om[i]
+    omega = np.full((K1,) + batch + (S,), np.nan)
+    for k, st in enumerate(steps):
+        if id(st) in by_id:
+            omega[k] = by_id[id(st)]
+    return np.moveaxis(omega, 0, -2)
 
 
 def _msc_readout(

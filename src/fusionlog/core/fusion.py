@@ -83,73 +83,86 @@ def gmf_weights(joint: np.ndarray, n: int) -> tuple[list[np.ndarray], np.ndarray
 Criterion = Literal["trace", "det"]
 
 
-def _ci_cost(Ys: np.ndarray, omega: np.ndarray, criterion: Criterion) -> tuple[float, np.ndarray]:
-    """tr(P) or log det(P), P = (sum w_i Y_i)^-1, and its gradient in omega.
+#: Problems solved together by one SLSQP call (the Jacobian it builds is dense in them).
+CI_GROUP = 64
 
-    d tr(P)/d w_i = -tr(P Y_i P) and d log det(P)/d w_i = -tr(P Y_i); both costs are convex in
-    omega (tr(X^-1) and -log det X are convex on positive definite X), so a local minimum on
-    the simplex is the global one.
+
+def _ci_costs(Ys: np.ndarray, omega: np.ndarray, criterion: Criterion) -> tuple[np.ndarray, ...]:
+    """Costs tr(P) or log det(P), P = (sum_i w_i Y_i)^-1, of B problems and their gradients.
+
+    Ys (B, N, n, n) informations, omega (B, N). d tr(P)/d w_i = -tr(P Y_i P) and
+    d log det(P)/d w_i = -tr(P Y_i). Both costs are convex in omega (tr X^-1 and -log det X are
+    convex on positive definite X), so a local minimum on the simplex is the global one.
     """
-    Y = np.tensordot(omega, Ys, axes=1)
-    try:
-        P = np.linalg.inv(Y)
-    except np.linalg.LinAlgError:
-        return np.inf, np.zeros_like(omega)
-    if criterion == "trace":
-        PP = P @ P
-        return float(np.trace(P)), -np.einsum("ij,kji->k", PP, Ys)
+    Y = np.einsum("bi,bijk->bjk", omega, Ys)
     sign, logdet = np.linalg.slogdet(Y)
-    if sign <= 0:
-        return np.inf, np.zeros_like(omega)
-    return float(-logdet), -np.einsum("ij,kji->k", P, Ys)
+    bad = sign <= 0
+    Y[bad] = np.eye(Y.shape[-1])
+    P = np.linalg.inv(Y)
+    if criterion == "trace":
+        f = np.trace(P, axis1=-2, axis2=-1)
+        g = -np.einsum("bjk,bikl,blj->bi", P, Ys, P)
+    else:
+        f = -logdet
+        g = -np.einsum("bjk,bikj->bi", P, Ys)
+    f = np.where(bad, np.inf, f)
+    return f, g
+
+
+def ci_omegas(covs: np.ndarray, criterion: Criterion = "trace") -> np.ndarray:
+    """Covariance-intersection weights for B independent problems at once, (B, N) on the simplex.
+
+    covs (B, N, n, n). The problems are separable, so groups of them are handed to one SLSQP
+    call (scipy) as a single problem with one simplex constraint per member: one optimiser call
+    per group instead of one per time step. Each answer is then compared with the end points
+    (an input alone), which win only if better by more than rounding: with equal input
+    covariances every omega gives the same P, the interior answer also averages the estimates,
+    and letting rounding pick an end point would make the fused estimate jump from step to step.
+    """
+    covs = np.asarray(covs, dtype=float)
+    B, N = covs.shape[:2]
+    if N == 1:
+        return np.ones((B, 1))
+    Ys = spd_inv(covs)
+    out = np.empty((B, N))
+    for g0 in range(0, B, CI_GROUP):
+        Yg = Ys[g0 : g0 + CI_GROUP]
+        b = len(Yg)
+        A = np.kron(np.eye(b), np.ones((1, N)))
+
+        def fun(w: np.ndarray, Yg: np.ndarray = Yg, b: int = b) -> tuple[float, np.ndarray]:
+            f, grad = _ci_costs(Yg, w.reshape(b, N), criterion)
+            return float(f.sum()), grad.ravel()
+
+        res = optimize.minimize(
+            fun,
+            np.full(b * N, 1.0 / N),
+            jac=True,
+            method="SLSQP",
+            bounds=[(0.0, 1.0)] * (b * N),
+            constraints=[
+                {"type": "eq", "fun": lambda w, A=A: A @ w - 1.0, "jac": lambda w, A=A: A}
+            ],
+            options={"ftol": 1e-15, "maxiter": 500},
+        )
+        w = np.clip(res.x.reshape(b, N), 0.0, 1.0)
+        w[w < 1e-12] = 0.0  # SLSQP lands within rounding of an active bound
+        w /= w.sum(axis=1, keepdims=True)
+        best, cost = w, _ci_costs(Yg, w, criterion)[0]
+        for i in range(N):
+            e = np.zeros((b, N))
+            e[:, i] = 1.0
+            c = _ci_costs(Yg, e, criterion)[0]
+            better = c < cost - 1e-9 * np.abs(cost)
+            best = np.where(better[:, None], e, best)
+            cost = np.where(better, c, cost)
+        out[g0 : g0 + b] = best
+    return out
 
 
 def ci_omega(covs: Sequence[np.ndarray], criterion: Criterion = "trace") -> np.ndarray:
-    """Weights omega (on the simplex) of covariance intersection minimising tr(P) or det(P).
-
-    Two estimates: bounded scalar minimisation, with both end points also tried since the
-    optimum may be an input itself. More: SLSQP on the simplex. Shared (non-batched) covariances.
-    """
-    Ys = np.stack([spd_inv(P) for P in covs])
-    N = len(Ys)
-    if N == 1:
-        return np.ones(1)
-    if N == 2:
-        res = optimize.minimize_scalar(
-            lambda w: _ci_cost(Ys, np.array([w, 1.0 - w]), criterion)[0],
-            bounds=(0.0, 1.0),
-            method="bounded",
-            options={"xatol": 1e-10},
-        )
-        cands = [np.array([res.x, 1.0 - res.x]), np.array([1.0, 0.0]), np.array([0.0, 1.0])]
-        return _best_candidate(Ys, cands, criterion)
-    res = optimize.minimize(
-        lambda w: _ci_cost(Ys, w, criterion),
-        np.full(N, 1.0 / N),
-        jac=True,
-        method="SLSQP",
-        bounds=[(0.0, 1.0)] * N,
-        constraints=[{"type": "eq", "fun": lambda w: np.sum(w) - 1.0, "jac": lambda w: np.ones(N)}],
-        options={"ftol": 1e-14, "maxiter": 200},
-    )
-    w = np.clip(res.x, 0.0, 1.0)
-    cands = [w / w.sum()] + [np.eye(N)[i] for i in range(N)]
-    return _best_candidate(Ys, cands, criterion)
-
-
-def _best_candidate(Ys: np.ndarray, cands: list[np.ndarray], criterion: Criterion) -> np.ndarray:
-    """The optimiser's answer (first) unless an end point is better by more than rounding.
-
-    With equal input covariances every omega gives the same P; the interior answer also
-    averages the estimates, and letting rounding pick an end point instead would make the
-    fused estimate jump between one sensor and the average from step to step.
-    """
-    costs = [_ci_cost(Ys, w, criterion)[0] for w in cands]
-    best = 0
-    for i in range(1, len(cands)):
-        if costs[i] < costs[best] - 1e-9 * abs(costs[best]):
-            best = i
-    return cands[best]
+    """Weights omega of covariance intersection for one set of estimates (see `ci_omegas`)."""
+    return ci_omegas(np.stack(covs)[None], criterion)[0]
 
 
 def ci_weights(
