@@ -140,6 +140,9 @@ def analyse(plan: Plan, truth: System) -> Expected:
     mse = np.empty((K1, n, n))
     if plan.smoother is None:
         for k, st in enumerate(plan.steps):
+            if k and st is plan.steps[k - 1] and mus[k] is mus[k - 1] and Cs[k] is Cs[k - 1]:
+                bias[k], mse[k] = bias[k - 1], mse[k - 1]  # steady state: nothing changed
+                continue
             Lk = readout(k, st.O, st.D, 0.0)
             bias[k] = Lk @ mus[k]
             mse[k] = sym(Lk @ Cs[k] @ Lk.T) + np.outer(bias[k], bias[k])
@@ -148,12 +151,26 @@ def analyse(plan: Plan, truth: System) -> Expected:
         Ht, Rt, Ft, Qt = truth.H, truth.R, truth.F, truth.GQG
         Bk = np.zeros((n, n))
         Ceta = np.zeros((n, n))
+        steady = False  # backward statistics stopped changing under a repeated map
+        prev_key = None
         for k in range(K1 - 1, -1, -1):
-            if k < K1 - 1:
+            repeated = k < K1 - 2 and sm.L[k] is sm.L[k + 1] and sm.V[k + 1] is sm.V[k + 2]
+            steady = steady and repeated
+            if k < K1 - 1 and not steady:
                 Bplus = Bk + sm.V[k + 1] @ Ht
                 Cplus = Ceta + sm.V[k + 1] @ Rt @ sm.V[k + 1].T
-                Bk = sm.L[k] @ Bplus @ Ft
-                Ceta = sym(sm.L[k] @ (Bplus @ Qt @ Bplus.T + Cplus) @ sm.L[k].T)
+                B_new = sm.L[k] @ Bplus @ Ft
+                C_new = sym(sm.L[k] @ (Bplus @ Qt @ Bplus.T + Cplus) @ sm.L[k].T)
+                steady = repeated and all(
+                    np.abs(new - old).max() <= 1e-15 * max(np.abs(new).max(), 1e-300)
+                    for new, old in ((B_new, Bk), (C_new, Ceta))
+                )
+                Bk, Ceta = B_new, C_new
+            key = (id(sm.A[k]), id(sm.B[k]), id(plan.steps[k]), id(mus[k]), id(Cs[k]))
+            if steady and key == prev_key:
+                bias[k], mse[k] = bias[k + 1], mse[k + 1]
+                continue
+            prev_key = key
             # e = x - A s_f - B (B_k x + eta) = (I - A D - B B_k) x - A zeta - B eta; with the
             # true model I - A D - B B_k vanishes and B_k x is dropped with x (see _coupling).
             Lk = readout(k, sm.A[k], plan.steps[k].D, sm.B[k] @ Bk)
