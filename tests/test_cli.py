@@ -192,7 +192,7 @@ def test_run_heterogeneous(tmp_path: Path) -> None:
     assert listing(d) == sorted(OUTPUTS)
     summary = json.loads((d / "summary.json").read_text())
     assert summary["scenario"] == "heterogeneous" and summary["steps"] == 8
-    assert list(summary["architectures"]) == ARCHS
+    assert list(summary["architectures"]) == [*ARCHS, "AVG"]
     sens = McapFile(d / "sensors.mcap")
     dims = {t: sens.dim_of(t) for t in sens.topics}
     assert dims == {

@@ -520,7 +520,7 @@ def test_invalid_names() -> None:
 @pytest.mark.parametrize(
     ("old", "new", "key", "reason"),
     [
-        ("steps = 5", "steps = 0", "scenario.steps", "must be >= 1, got 0"),
+        ("steps = 5", "steps = -1", "scenario.steps", "must be >= 0, got -1"),
         ("runs = 10", "runs = -3", "scenario.runs", "must be >= 1, got -3"),
         ("seed = 1", "seed = -1", "scenario.seed", "must be >= 0, got -1"),
         ("dt = 1.0", "dt = 0.0", "scenario.dt", "must be > 0, got 0"),
@@ -646,7 +646,7 @@ def test_overrides() -> None:
     ("kwargs", "reason"),
     [
         ({"runs": 0}, "--runs: must be >= 1, got 0"),
-        ({"steps": -1}, "--steps: must be >= 1, got -1"),
+        ({"steps": -1}, "--steps: must be >= 0, got -1"),
         ({"seed": -5}, "--seed: must be >= 0, got -5"),
         (
             {"runs": 2.5},
@@ -761,8 +761,8 @@ def test_load_model_still_validates() -> None:
         model=True,
     )
     fails(
-        "[scenario]\nsteps = 0\n" + BASE[BASE.index("[model]") :],
-        "scenario.steps: must be >= 1",
+        "[scenario]\nsteps = -1\n" + BASE[BASE.index("[model]") :],
+        "scenario.steps: must be >= 0",
         model=True,
     )
     fails("[scenario]\nfoo = 1\n" + EXPLICIT_MODEL, "scenario: unknown key 'foo'", model=True)

@@ -13,7 +13,7 @@ A scenario file has the sections (DESIGN.md, "Scenario TOML")::
     [[correlations]] sensors = ["a", "b"], cov = E[v_a v_b^T] (m_a x m_b)
     [estimate]       architectures (default: all of names.STATE_ARCHITECTURES)
     [evaluate]       confidence (two-sided chi-square band, default 0.95),
-                     sample_runs (default 3)
+                     sample_runs (default 3), plane_view (2-D state plane view, default false)
 
 A model file (``fusionlog estimate --model MODEL.toml``) has the same sections, but [scenario] is
 optional and none of its keys is required there (``dt`` is required for the constant-velocity
@@ -75,7 +75,7 @@ _TRUTH_KEYS = ("initial_mean", "initial_cov")
 _SENSOR_KEYS = ("name", "H", "R")
 _CORRELATION_KEYS = ("sensors", "cov")
 _ESTIMATE_KEYS = ("architectures",)
-_EVALUATE_KEYS = ("confidence", "sample_runs")
+_EVALUATE_KEYS = ("confidence", "sample_runs", "plane_view")
 
 #: Names that end up in MCAP topics, Rerun entity paths and folder names.
 _NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
@@ -105,6 +105,7 @@ class Scenario:
     architectures: tuple[str, ...]
     confidence: float = _DEFAULT_CONFIDENCE
     sample_runs: int = _DEFAULT_SAMPLE_RUNS
+    plane_view: bool = False  # a 2-D view of the state plane (n = 2): estimates and ellipses
     source: str = ""  # the TOML text as loaded (overrides are not written back into it)
     path: str | None = None
 
@@ -161,7 +162,7 @@ def scenario_with(
     if runs is not None:
         changes["runs"] = _check_int(ctx, runs, "--runs", minimum=1)
     if steps is not None:
-        changes["steps"] = _check_int(ctx, steps, "--steps", minimum=1)
+        changes["steps"] = _check_int(ctx, steps, "--steps", minimum=0)
     if seed is not None:
         changes["seed"] = _check_int(ctx, seed, "--seed", minimum=0)
     return dataclasses.replace(scenario, **changes) if changes else scenario
@@ -255,13 +256,15 @@ def _scenario_from_doc(doc: dict[str, Any], file: str, source: str, path: str | 
 
     name = _name(ctx, sc["name"], "scenario.name")
     description = _str(ctx, sc.get("description", ""), "scenario.description")
-    steps = _check_int(ctx, sc["steps"], "scenario.steps", minimum=1)
+    steps = _check_int(ctx, sc["steps"], "scenario.steps", minimum=0)
     runs = _check_int(ctx, sc["runs"], "scenario.runs", minimum=1)
     seed = _check_int(ctx, sc["seed"], "scenario.seed", minimum=0)
 
     system = _system(ctx, doc, sc, need_truth=True)
     architectures = _architectures(ctx, doc, system)
-    confidence, sample_runs = _evaluate(ctx, doc)
+    confidence, sample_runs, plane_view = _evaluate(ctx, doc)
+    if plane_view and system.n != 2:
+        raise ctx.err("evaluate.plane_view", f"needs a 2-D state, this one has {system.n}")
     return Scenario(
         name=name,
         description=description,
@@ -274,6 +277,7 @@ def _scenario_from_doc(doc: dict[str, Any], file: str, source: str, path: str | 
         architectures=architectures,
         confidence=confidence,
         sample_runs=sample_runs,
+        plane_view=plane_view,
         source=source,
         path=path,
     )
@@ -289,7 +293,7 @@ def _model_from_doc(doc: dict[str, Any], file: str) -> System:
         _name(ctx, sc["name"], "scenario.name")
     if "description" in sc:
         _str(ctx, sc["description"], "scenario.description")
-    for key, minimum in (("steps", 1), ("runs", 1), ("seed", 0)):
+    for key, minimum in (("steps", 0), ("runs", 1), ("seed", 0)):
         if key in sc:
             _check_int(ctx, sc[key], f"scenario.{key}", minimum=minimum)
     system = _system(ctx, doc, sc, need_truth=False)
@@ -573,7 +577,7 @@ def _architectures(ctx: _Ctx, doc: dict[str, Any], system: System) -> tuple[str,
     return tuple(archs)
 
 
-def _evaluate(ctx: _Ctx, doc: dict[str, Any]) -> tuple[float, int]:
+def _evaluate(ctx: _Ctx, doc: dict[str, Any]) -> tuple[float, int, bool]:
     ev = _table(ctx, doc, "evaluate", required=False) or {}
     _check_keys(ctx, ev, "evaluate", _EVALUATE_KEYS)
     confidence = _DEFAULT_CONFIDENCE
@@ -584,7 +588,10 @@ def _evaluate(ctx: _Ctx, doc: dict[str, Any]) -> tuple[float, int]:
     sample_runs = _DEFAULT_SAMPLE_RUNS
     if "sample_runs" in ev:
         sample_runs = _check_int(ctx, ev["sample_runs"], "evaluate.sample_runs", minimum=0)
-    return confidence, sample_runs
+    plane_view = ev.get("plane_view", False)
+    if not isinstance(plane_view, bool):
+        raise ctx.err("evaluate.plane_view", f"expected true or false, got {_tname(plane_view)}")
+    return confidence, sample_runs, plane_view
 
 
 # --------------------------------------------------------------------------------------------

@@ -317,7 +317,8 @@ def _hkf_plan(sys: System, present: np.ndarray) -> Plan:
 
 def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion: str) -> Plan:
     """Local KFs without feedback fused by Millman (MSC, eqs. 32-34), by the generalised Millman
-    formula with exact cross-covariances (MSC-GMF, eqs. 6-7 and 35) or by covariance intersection.
+    formula with exact cross-covariances (MSC-GMF, eqs. 6-7 and 35), by covariance intersection
+    (CI) or by the plain average with its true covariance (AVG).
 
     The local filters' joint error covariance follows eq. (35), extended by K_i R_ij K_j^T for
     correlated sensor noise and by information-form errors for filters started without a prior.
@@ -335,8 +336,9 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
         J = np.broadcast_to(np.kron(np.ones((S, S)), sys.prior.cov), batch + (S * n, S * n)).copy()
     else:
         J = np.zeros(batch + (S * n, S * n))
-    # Only the generalised Millman formula needs the cross-covariances of eq. (35).
-    joint = name == "MSC-GMF"
+    # Only the generalised Millman formula and the average's honest covariance need the
+    # cross-covariances of eq. (35).
+    joint = name in ("MSC-GMF", "AVG")
     steps = []
     ci_pending: list[tuple[int, np.ndarray]] = []
     steady = _Steady(present)
@@ -365,6 +367,10 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
         elif name == "MSC-GMF":
             ws, P = gmf_weights(J, n)
             O = np.concatenate(ws, axis=-1)
+        elif name == "AVG":
+            # Equal weights c_i = I/S (eq. 2) and the covariance they really give, eq. (4).
+            O = np.broadcast_to(np.tile(np.eye(n), S) / S, batch + (n, S * n))
+            P = sym(O @ J @ mT(O))
         else:  # CI: the omegas of all steps are solved together after the loop
             O = P = None
             ci_pending.append((len(steps), np.stack([st.P for st in sts], axis=-3)))
@@ -511,7 +517,7 @@ def build_plan(
         return plan
     if base == "HKF":
         return _hkf_plan(sys, present)
-    if base in ("MSC", "MSC-GMF", "CI"):
+    if base in ("MSC", "MSC-GMF", "CI", "AVG"):
         return _track_to_track_plan(base, sys, present, criterion)
     if base == "FBS":
         return _fbs_plan(sys, present)

@@ -2,8 +2,18 @@
 
 from __future__ import annotations
 
-#: Kalman-filter architectures of the Ajgl-Simandl-Dunik paper plus CI and the smoother.
-STATE_ARCHITECTURES: tuple[str, ...] = ("CKF", "HKF", "MSC-GMF", "MSC", "SKF", "CI", "FBS")
+#: Kalman-filter architectures of the Ajgl-Simandl-Dunik paper plus CI, the smoother and the
+#: plain average of the local estimates (Gustafsson-Hendeby's "LS" fusion).
+STATE_ARCHITECTURES: tuple[str, ...] = (
+    "CKF",
+    "HKF",
+    "MSC-GMF",
+    "MSC",
+    "SKF",
+    "CI",
+    "FBS",
+    "AVG",
+)
 
 #: The five architectures of the paper's Table I, in its column order.
 PAPER_ARCHITECTURES: tuple[str, ...] = ("CKF", "HKF", "MSC-GMF", "MSC", "SKF")
