@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from rerun.chunk import RrdReader
 
 from fusionlog.io.rrd import entity_path, read_recording
 from fusionlog.scenario import load_scenario
@@ -78,3 +79,37 @@ def test_monte_carlo_within_four_standard_errors(paper_run):
     for arch, s in summary["architectures"].items():
         for key in ("mse", "anees", "dm"):
             assert abs(s[key] - s["expected"][key]) < 4 * s["stderr"][key], (arch, key)
+
+
+GUSTAFSSON = Path(__file__).parents[1] / "pipeline"
+
+
+@pytest.mark.parametrize("name", ["gustafsson_triangulation", "gustafsson_correlated"])
+def test_gustafsson_scenarios(tmp_path, name):
+    """The slides' example: WLS variance 0.018 per axis against 0.05 for the average; with
+    correlated errors MSC-GMF (Bar-Shalom-Campo) is optimal, Millman over-confident, CI safe."""
+    sc = load_scenario(GUSTAFSSON / f"{name}.toml", runs=4000)
+    run_simulate(sc, tmp_path / "s.mcap")
+    run_estimate(tmp_path / "s.mcap", tmp_path / "e.mcap")
+    res = run_evaluate(tmp_path / "s.mcap", tmp_path / "e.mcap", tmp_path / "ev.rrd")
+    a = res.summary["architectures"]
+    if name == "gustafsson_triangulation":
+        for arch in ("CKF", "MSC", "MSC-GMF"):
+            np.testing.assert_allclose(a[arch]["expected"]["mse"], 0.018, rtol=1e-12)
+            assert a[arch]["expected"]["anees"] == pytest.approx(2.0, rel=1e-12)
+        np.testing.assert_allclose(a["AVG"]["expected"]["mse"], 0.05, rtol=1e-12)
+        np.testing.assert_allclose(a["SKF:s1"]["expected"]["mse"], 0.1, rtol=1e-12)
+    else:
+        assert a["MSC-GMF"]["expected"]["mse"] == pytest.approx(a["CKF"]["expected"]["mse"])
+        assert a["MSC"]["expected"]["anees"] > 2.5  # ignores the correlation
+        assert a["CI"]["expected"]["anees"] < 2.0  # safe without knowing it
+    for arch, s in a.items():
+        assert abs(s["mse"] - s["expected"]["mse"]) < 4 * s["stderr"]["mse"], arch
+    # The state-plane view (points and line strips, not scalars): read the chunk store.
+    paths = {
+        str(ch.entity_path)
+        for ch in RrdReader(str(tmp_path / "ev.rrd")).store().stream().to_chunks()
+    }
+    assert "/plane/truth" in paths
+    assert "/" + entity_path("plane", "ellipses", "input s1") in paths
+    assert "/plane/estimates/AVG" in paths

@@ -79,6 +79,7 @@ _EXTRA = [
 ]
 _TRUTH_COLOR = (230, 230, 230)
 _BOUND_COLOR = (150, 150, 150)
+_INPUT_COLOR = (140, 140, 140)
 _CKF = "CKF"
 
 
@@ -120,6 +121,7 @@ def write_recording(
     | None = None,
     properties: Mapping[str, Any] | None = None,
     recording_id: str | None = None,
+    plane: Mapping[str, Any] | None = None,
     force: bool = False,
 ) -> Path:
     """Write the evaluation recording atomically; returns the final path.
@@ -133,6 +135,9 @@ def write_recording(
     properties: more recording properties, e.g. {"scenario": TOML text, "provenance": {...}};
     a str value is stored as field ``text``, a mapping field by field (non-scalars as JSON).
     recording_id: defaults to :func:`recording_id_for` (scenario name, seed).
+    plane: for a 2-D state, the state-plane view (the slides' plot2): {"truth": (K+1, 2),
+    "estimates": {ARCH: (K+1, P, 2) sample estimates}, "ellipses": {label: (K+1, 2, 2)
+    covariances, drawn centred on the truth}, "scale": ellipse radius in standard deviations}.
 
     Raises FusionlogError if `path` exists and not `force` (before anything is written), or if
     the data are inconsistent.
@@ -154,13 +159,16 @@ def write_recording(
         send_properties=False,  # no wall-clock start_time: identical inputs give identical data
     )
     try:
-        blueprint = _blueprint(state_names, list(series), sorted(sample_runs or {}))
+        blueprint = _blueprint(
+            state_names, list(series), sorted(sample_runs or {}), plane is not None
+        )
         rec.save(tmp, default_blueprint=blueprint)
         rec.send_recording_name(scenario_name)
         _send_properties(rec, scenario_name, seed, summary, properties)
-        _Writer(rec, times).write_all(
-            state_names, series, nees_bounds, confidence, sample_runs or {}
-        )
+        writer = _Writer(rec, times)
+        writer.write_all(state_names, series, nees_bounds, confidence, sample_runs or {})
+        if plane is not None:
+            writer.write_plane(plane)
         rec.disconnect()
         os.replace(tmp, path)
     except BaseException:
@@ -349,6 +357,68 @@ class _Writer:
                         0.75,
                     )
 
+    def write_plane(self, plane: Mapping[str, Any]) -> None:
+        """The state plane: truth, sample estimates and covariance ellipses, one frame a step."""
+        K1 = self.steps.shape[0]
+        indexes = [
+            rr.TimeColumn("step", sequence=self.steps),
+            rr.TimeColumn("time", duration=self.times),
+        ]
+        truth = np.asarray(plane["truth"], dtype=float).reshape(K1, 2)
+        self.rec.send_columns(
+            entity_path("plane", "truth"),
+            indexes=[],
+            columns=rr.Points2D.columns(colors=[_TRUTH_COLOR], radii=[0.012], labels=["truth"]),
+        )
+        self.rec.send_columns(
+            entity_path("plane", "truth"),
+            indexes=indexes,
+            columns=rr.Points2D.columns(positions=truth).partition(np.ones(K1, dtype=int)),
+        )
+        for arch, pts in plane.get("estimates", {}).items():
+            pts = np.asarray(pts, dtype=float)
+            path = entity_path("plane", "estimates", arch)
+            self.rec.send_columns(
+                path,
+                indexes=[],
+                columns=rr.Points2D.columns(colors=[arch_color(arch)], radii=[0.004]),
+            )
+            keep = np.isfinite(pts).all(axis=-1)
+            self.rec.send_columns(
+                path,
+                indexes=indexes,
+                columns=rr.Points2D.columns(positions=pts[keep]).partition(keep.sum(axis=1)),
+            )
+        angle = np.linspace(0.0, 2.0 * np.pi, 97)
+        circle = np.stack([np.cos(angle), np.sin(angle)], axis=-1) * float(plane.get("scale", 2.0))
+        for label, covs in plane.get("ellipses", {}).items():
+            covs = np.asarray(covs, dtype=float).reshape(K1, 2, 2)
+            ok = np.isfinite(covs).all(axis=(1, 2))
+            if not ok.any():
+                continue
+            # x = truth + L u for u on the circle, L L^T = P: the ellipse of P around the truth.
+            w, V = np.linalg.eigh(covs[ok])
+            L = V * np.sqrt(np.clip(w, 0.0, None))[:, None, :]
+            strips = truth[ok][:, None, :] + np.einsum("kij,pj->kpi", L, circle)
+            arch = label.removeprefix("input ")
+            color = arch_color(arch) if label == arch else _INPUT_COLOR
+            path = entity_path("plane", "ellipses", label)
+            self.rec.send_columns(
+                path,
+                indexes=[],
+                columns=rr.LineStrips2D.columns(
+                    colors=[color], radii=[0.003], labels=[label], show_labels=[False]
+                ),
+            )
+            self.rec.send_columns(
+                path,
+                indexes=[
+                    rr.TimeColumn("step", sequence=self.steps[ok]),
+                    rr.TimeColumn("time", duration=self.times[ok]),
+                ],
+                columns=rr.LineStrips2D.columns(strips=list(strips)),
+            )
+
 
 def _ts_view(name: str, contents: list[str], legend: bool = True) -> rrb.TimeSeriesView:
     return rrb.TimeSeriesView(
@@ -359,7 +429,9 @@ def _ts_view(name: str, contents: list[str], legend: bool = True) -> rrb.TimeSer
     )
 
 
-def _blueprint(state_names: list[str], archs: list[str], run_ids: list[int]) -> rrb.Blueprint:
+def _blueprint(
+    state_names: list[str], archs: list[str], run_ids: list[int], plane: bool = False
+) -> rrb.Blueprint:
     def q(*parts: str | int) -> str:
         return "+ /" + entity_path(*parts)
 
@@ -408,6 +480,14 @@ def _blueprint(state_names: list[str], archs: list[str], run_ids: list[int]) -> 
             for i, s in enumerate(state_names)
         ]
         tabs.append(rrb.Grid(*run_views, grid_columns=len(state_names), name="Sample runs"))
+    if plane:
+        tabs.insert(
+            0,
+            rrb.Spatial2DView(
+                origin="/plane",
+                name=f"State plane ({state_names[0]}, {state_names[1]}): estimates and ellipses",
+            ),
+        )
     return rrb.Blueprint(
         rrb.Tabs(*tabs, active_tab=0),
         rrb.TimePanel(timeline="step", state="collapsed", play_state="paused"),

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 from fusionlog.core.architectures import build_plan
 from fusionlog.core.exact import Expected, analyse
@@ -27,6 +28,9 @@ from .common import (
     scenario_from_file,
     sha256_of,
 )
+
+#: Sample estimates per architecture drawn in the state-plane view.
+PLANE_POINTS = 300
 
 
 @dataclass
@@ -77,6 +81,8 @@ def run_evaluate(
     expected values come from the exact covariance analysis of each architecture built on the
     filter model it ran with, under the true model of the sensors file; they are left out when
     the data had missing measurements (the analysis assumes every measurement present).
+    With `[evaluate] plane_view`, the recording also shows the state plane: truth, sample
+    estimates and the ellipses (at the chi-square confidence) of every input and fused result.
     """
     for p in [out] + ([summary_path] if summary_path else []):
         if p.exists() and not force:
@@ -111,6 +117,9 @@ def run_evaluate(
     n_samples = min(sc.sample_runs, M)
     samples: dict[int, tuple[np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = {}
     complete = True
+    plane_pts: dict[str, np.ndarray] = {}
+    plane_truth: np.ndarray | None = None
+    plane_cov: dict[str, np.ndarray] = {}
     blocks = zip(sens.iter_run_blocks(["/truth"], B), est.iter_run_blocks(topics, B), strict=True)
     for (off, runs, tdata), (_, _, edata) in progress(blocks, -(-M // B), "evaluate"):
         x = tdata["/truth"]
@@ -118,6 +127,10 @@ def run_evaluate(
             mean, cov = edata[t]
             accs[a].add(x, mean, cov)
             complete &= cov.ndim == 3
+            if sc.plane_view and off == 0:
+                plane_truth = x[0]
+                plane_pts[a] = np.moveaxis(mean[:PLANE_POINTS], 0, 1)  # (K+1, P, 2)
+                plane_cov[a] = cov if cov.ndim == 3 else cov[0]
             for r in range(off, min(off + runs, n_samples)):
                 c = cov if cov.ndim == 3 else cov[r - off]
                 std = np.sqrt(np.clip(np.diagonal(c, axis1=-2, axis2=-1), 0, None))
@@ -147,6 +160,18 @@ def run_evaluate(
         "confidence": sc.confidence,
         "architectures": arch_summary,
     }
+    plane = None
+    if sc.plane_view and plane_truth is not None:
+        inputs = {
+            f"input {s.name}": build_plan(filter_sys, f"SKF:{s.name}", K).reported_cov
+            for s in filter_sys.sensors
+        }
+        plane = {
+            "truth": plane_truth,
+            "estimates": plane_pts,
+            "ellipses": {**inputs, **plane_cov},
+            "scale": float(np.sqrt(stats.chi2.ppf(sc.confidence, 2))),
+        }
     write_recording(
         out,
         scenario_name=sc.name,
@@ -159,6 +184,7 @@ def run_evaluate(
         confidence=sc.confidence,
         sample_runs=samples,
         properties={"scenario": sc.source, "provenance": prov},
+        plane=plane,
         force=force,
     )
     if summary_path is not None:
