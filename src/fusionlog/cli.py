@@ -52,9 +52,25 @@ def main(debug: bool) -> None:
 
 
 def _scenario(path: Path, runs: int | None, steps: int | None, seed: int | None):
+    """The scenario: an identity scenario if the file has [identity], else a state one."""
+    from fusionlog.stages.identity import is_identity_scenario_file, load_identity_scenario
+
+    if is_identity_scenario_file(path):
+        return load_identity_scenario(path, runs=runs, steps=steps, seed=seed)
     from fusionlog.scenario import load_scenario
 
     return load_scenario(path, runs=runs, steps=steps, seed=seed)
+
+
+def _is_identity(scenario: Any) -> bool:
+    return getattr(scenario, "kind", None) == "identity"
+
+
+def _identity_log(path: Path, model: Path | None = None) -> bool:
+    """Whether a sensors file (or, without scenario metadata, the --model) is identity."""
+    from fusionlog.stages.identity import is_identity_file, is_identity_scenario_file
+
+    return is_identity_file(path) or (model is not None and is_identity_scenario_file(model))
 
 
 _runs = click.option("--runs", type=int, help="Monte Carlo runs M (overrides the scenario).")
@@ -68,7 +84,8 @@ _arch = click.option(
     "--arch",
     "archs",
     multiple=True,
-    help="Architecture (repeatable): CKF, HKF, MSC, MSC-GMF, SKF[:sensor], CI, FBS.",
+    help="Architecture (repeatable): CKF, HKF, MSC, MSC-GMF, SKF[:sensor], CI, FBS; "
+    "BAYES, DS for identity scenarios.",
 )
 
 
@@ -82,9 +99,12 @@ _arch = click.option(
 @_block
 def simulate(scenario, output, runs, steps, seed, force, block_runs) -> None:
     """Simulate SCENARIO.toml: truth and sensor streams into an MCAP file."""
-    from fusionlog.stages.simulate import run_simulate
-
     sc = _scenario(scenario, runs, steps, seed)
+    if _is_identity(sc):
+        from fusionlog.stages.identity import run_simulate
+    else:
+        from fusionlog.stages.simulate import run_simulate
+
     res = run_simulate(sc, output, force=force, block=block_runs, command=_command_line())
     click.echo(f"{res.path}: {res.runs} runs x {res.steps + 1} steps, {res.messages} messages")
 
@@ -98,7 +118,10 @@ def simulate(scenario, output, runs, steps, seed, force, block_runs) -> None:
 @_block
 def estimate(sensors, output, archs, model, force, block_runs) -> None:
     """Replay SENSORS.mcap through fusion architectures into an estimates MCAP file."""
-    from fusionlog.stages.estimate import run_estimate
+    if _identity_log(sensors, model):
+        from fusionlog.stages.identity import run_estimate
+    else:
+        from fusionlog.stages.estimate import run_estimate
 
     res = run_estimate(
         sensors,
@@ -122,7 +145,11 @@ def estimate(sensors, output, archs, model, force, block_runs) -> None:
 def evaluate(sensors, estimates, output, summary_path, force, block_runs) -> None:
     """Evaluate ESTIMATES.mcap against the truth in SENSORS.mcap into a Rerun recording."""
     from fusionlog.report import format_table
-    from fusionlog.stages.evaluate import run_evaluate
+
+    if _identity_log(sensors):
+        from fusionlog.stages.identity import run_evaluate
+    else:
+        from fusionlog.stages.evaluate import run_evaluate
 
     res = run_evaluate(
         sensors, estimates, output, summary_path=summary_path, force=force, block=block_runs
@@ -147,12 +174,23 @@ def evaluate(sensors, estimates, output, summary_path, force, block_runs) -> Non
 def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs) -> None:
     """Simulate, estimate and evaluate SCENARIO.toml; print the results table."""
     from fusionlog.report import format_table
-    from fusionlog.stages.estimate import check_architectures, run_estimate
-    from fusionlog.stages.evaluate import run_evaluate
-    from fusionlog.stages.simulate import run_simulate
 
     sc = _scenario(scenario, runs, steps, seed)
-    check_architectures(list(archs), sc.system, "--arch")
+    if _is_identity(sc):
+        from fusionlog.stages.identity import (
+            check_architectures,
+            run_estimate,
+            run_evaluate,
+            run_simulate,
+        )
+
+        check_architectures(list(archs), "--arch")
+    else:
+        from fusionlog.stages.estimate import check_architectures, run_estimate
+        from fusionlog.stages.evaluate import run_evaluate
+        from fusionlog.stages.simulate import run_simulate
+
+        check_architectures(list(archs), sc.system, "--arch")
     d = out_dir if out_dir is not None else Path("recordings") / sc.name
     outs = {k: d / k for k in ("sensors.mcap", "estimates.mcap", "evaluation.rrd", "summary.json")}
     if not force:

@@ -19,6 +19,18 @@ _COLUMNS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("in band", ("nees_fraction_inside",)),
 )
 
+#: Columns of an identity summary ("kind": "identity"; BAYES and DS): (header, getter, percent).
+_IDENTITY_COLUMNS: tuple[tuple[str, tuple[str, ...], bool], ...] = (
+    ("accuracy", ("accuracy",), True),
+    ("accuracy at K", ("final", "accuracy"), True),
+    ("log-loss", ("log_loss",), False),
+    ("log-loss at K", ("final", "log_loss"), False),
+    ("P(true)", ("mean_p_true",), False),
+    ("Bel(true)", ("mean_belief_true",), False),
+    ("Pl(true)", ("mean_plausibility_true",), False),
+    ("conflict", ("mean_conflict",), False),
+)
+
 
 def _get(d: Any, keys: Sequence[str]) -> Any:
     for k in keys:
@@ -45,16 +57,50 @@ def format_table(summary: Mapping[str, Any]) -> str:
     """The Table I/II-style table: one row per architecture, columns MSE (eq. 45), its expected
     value, DM (eq. 47), expected DM, ANEES, expected ANEES, and the share of steps whose
     run-averaged NEES is inside the chi-square band. Takes the whole summary.json dict (or just
-    its "architectures" mapping); missing values show as "—"."""
+    its "architectures" mapping); missing values show as "—". An identity summary
+    ("kind": "identity", architectures BAYES and DS) gets its own columns instead: see
+    `_identity_table`."""
     archs = summary.get("architectures", summary)
     if not isinstance(archs, Mapping):
         raise ValueError("summary has no 'architectures' mapping")
+    if _is_identity(summary, archs):
+        return _identity_table(summary, archs)
     header = ["architecture"] + [h for h, _ in _COLUMNS]
     rows = [header]
     for arch, entry in archs.items():
         rows.append(
             [str(arch)] + [_fmt(_get(entry, keys), percent=h == "in band") for h, keys in _COLUMNS]
         )
+    return _layout(header, rows)
+
+
+def _is_identity(summary: Mapping[str, Any], archs: Mapping[str, Any]) -> bool:
+    if summary.get("kind") == "identity":
+        return True
+    entries = [e for e in archs.values() if isinstance(e, Mapping)]
+    return bool(entries) and all("accuracy" in e and "mse" not in e for e in entries)
+
+
+def _identity_table(summary: Mapping[str, Any], archs: Mapping[str, Any]) -> str:
+    """Identity summary: accuracy (over runs and steps, and at k = K), log-loss (same), mean
+    probability of the true class (DS: normalised plausibility), mean Bel and Pl of the true
+    class and mean per-step conflict (DS); then the BAYES/DS disagreement if present."""
+    header = ["architecture"] + [h for h, _, _ in _IDENTITY_COLUMNS]
+    rows = [header]
+    for arch, entry in archs.items():
+        rows.append(
+            [str(arch)] + [_fmt(_get(entry, keys), percent=pc) for _, keys, pc in _IDENTITY_COLUMNS]
+        )
+    out = _layout(header, rows)
+    if "disagreement" in summary:
+        out += (
+            f"\nBAYES and DS decide differently: {_fmt(summary['disagreement'], percent=True)}"
+            f" of runs and steps, {_fmt(summary.get('final_disagreement'), percent=True)} at K"
+        )
+    return out
+
+
+def _layout(header: list[str], rows: list[list[str]]) -> str:
     widths = [max(len(r[j]) for r in rows) for j in range(len(header))]
 
     def line(r: list[str]) -> str:

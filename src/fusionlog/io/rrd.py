@@ -28,12 +28,13 @@ colour. Recording properties: ``scenario`` (name, seed, and the scenario text if
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import uuid
 import warnings
 import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -143,14 +144,39 @@ def write_recording(
     the data are inconsistent.
     """
     path = Path(path)
+    _check_target(path, force)
+    times = np.asarray(times, dtype=float)
+    state_names = [str(s) for s in state_names]
+    _check_inputs(path, times, state_names, series, nees_bounds, sample_runs)
+    blueprint = _blueprint(state_names, list(series), sorted(sample_runs or {}), plane is not None)
+    with _recording_file(path, scenario_name, seed, recording_id, blueprint) as rec:
+        _send_properties(rec, scenario_name, seed, summary, properties)
+        writer = _Writer(rec, times)
+        writer.write_all(state_names, series, nees_bounds, confidence, sample_runs or {})
+        if plane is not None:
+            writer.write_plane(plane)
+    return path
+
+
+def _check_target(path: Path, force: bool) -> None:
+    """Refuse an existing output without `force` (before anything is written)."""
     if path.exists() and not force:
         raise FusionlogError(f"{path}: already exists (use --force to overwrite)")
     if path.exists() and path.is_dir():
         raise FusionlogError(f"{path}: is a directory")
-    times = np.asarray(times, dtype=float)
-    state_names = [str(s) for s in state_names]
-    _check_inputs(path, times, state_names, series, nees_bounds, sample_runs)
 
+
+@contextlib.contextmanager
+def _recording_file(
+    path: Path,
+    scenario_name: str,
+    seed: int,
+    recording_id: str | None,
+    blueprint: rrb.Blueprint,
+) -> Iterator[rr.RecordingStream]:
+    """A recording stream (fusionlog application id, deterministic recording id, recording name
+    set) saving to a temporary file beside `path`, renamed into place when the block completes
+    and deleted if it raises. Shared by every recording writer (state and identity)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.parent / f".{path.name}.{uuid.uuid4().hex[:12]}.tmp"
     rec = rr.RecordingStream(
@@ -159,16 +185,9 @@ def write_recording(
         send_properties=False,  # no wall-clock start_time: identical inputs give identical data
     )
     try:
-        blueprint = _blueprint(
-            state_names, list(series), sorted(sample_runs or {}), plane is not None
-        )
         rec.save(tmp, default_blueprint=blueprint)
         rec.send_recording_name(scenario_name)
-        _send_properties(rec, scenario_name, seed, summary, properties)
-        writer = _Writer(rec, times)
-        writer.write_all(state_names, series, nees_bounds, confidence, sample_runs or {})
-        if plane is not None:
-            writer.write_plane(plane)
+        yield rec
         rec.disconnect()
         os.replace(tmp, path)
     except BaseException:
@@ -177,7 +196,6 @@ def write_recording(
         finally:
             tmp.unlink(missing_ok=True)
         raise
-    return path
 
 
 def _check_inputs(
