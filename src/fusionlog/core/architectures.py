@@ -66,6 +66,7 @@ class Plan:
     per_run: bool = False
     info: dict = field(default_factory=dict)
     D0: np.ndarray | None = None  # (d0, n): D of the initial state s0
+    system: System | None = None  # the model the plan was built for
 
     @property
     def reported_cov(self) -> np.ndarray:
@@ -510,18 +511,20 @@ def build_plan(
     if present is None:
         present = np.ones((steps + 1, sys.m), dtype=bool)
     if base == "CKF":
-        return _single_filter_plan("CKF", sys, np.arange(sys.m), present)
-    if base == "SKF":
+        plan = _single_filter_plan("CKF", sys, np.arange(sys.m), present)
+    elif base == "SKF":
         j = sys.sensor_index(sensor)
         plan = _single_filter_plan(arch, sys, np.arange(sys.m)[sys.sensor_slices[j]], present)
-        return plan
-    if base == "HKF":
-        return _hkf_plan(sys, present)
-    if base in ("MSC", "MSC-GMF", "CI", "AVG"):
-        return _track_to_track_plan(base, sys, present, criterion)
-    if base == "FBS":
-        return _fbs_plan(sys, present)
-    raise AssertionError(base)
+    elif base == "HKF":
+        plan = _hkf_plan(sys, present)
+    elif base in ("MSC", "MSC-GMF", "CI", "AVG"):
+        plan = _track_to_track_plan(base, sys, present, criterion)
+    elif base == "FBS":
+        plan = _fbs_plan(sys, present)
+    else:
+        raise AssertionError(base)
+    plan.system = sys
+    return plan
 
 
 #: Horizons up to this many instants apply a shared plan as one dense linear map (below).
@@ -541,9 +544,12 @@ def run_plan(plan: Plan, z: np.ndarray) -> Estimate:
     if plan.per_run or K1 > DENSE_MAX_STEPS:
         return Estimate(_recursion(plan, np.where(np.isnan(z), 0.0, z)), plan.reported_cov)
     if "dense" not in plan.info:
+        # The linear part from unit measurements with a zero initial state, the constant from
+        # the initial state with no data: no subtraction, so a large prior mean (UTM metres)
+        # cannot cancel the small gains away.
         basis = np.eye(K1 * m).reshape(K1 * m, K1, m)
+        W = _recursion(plan, basis, np.zeros_like(plan.s0))
         c = _recursion(plan, np.zeros((1, K1, m)))
-        W = _recursion(plan, basis) - c
         plan.info["dense"] = (W.reshape(K1 * m, -1), c.reshape(-1))
     W, c = plan.info["dense"]
     if np.isnan(z).any():  # absent in the plan's own mask: W has zero weight there
@@ -553,10 +559,11 @@ def run_plan(plan: Plan, z: np.ndarray) -> Estimate:
     return Estimate(mean.reshape(M, K1, -1), plan.reported_cov)
 
 
-def _recursion(plan: Plan, z: np.ndarray) -> np.ndarray:
+def _recursion(plan: Plan, z: np.ndarray, s0: np.ndarray | None = None) -> np.ndarray:
     """The step recursion s_k = T s_{k-1} + U z_k, x_k = O s_k (and FBS's backward pass)."""
     M, K1, _ = z.shape
-    s = np.broadcast_to(plan.s0, (M, plan.s0.shape[0]))
+    s0 = plan.s0 if s0 is None else s0
+    s = np.broadcast_to(s0, (M, s0.shape[0]))
     n = plan.steps[0].O.shape[-2]
     out = np.empty((M, K1, n))
     states = [] if plan.smoother is not None else None
@@ -576,16 +583,27 @@ def _recursion(plan: Plan, z: np.ndarray) -> np.ndarray:
     return out
 
 
+def shared_pattern(z: np.ndarray) -> np.ndarray | None:
+    """The (K+1, m) mask of present measurements when every run has the same one, else None.
+
+    A pattern shared by all runs (a sensor at half rate, a gap in every run) keeps the
+    shared-gain path: one plan built with that mask serves all runs.
+    """
+    present = ~np.isnan(z)
+    return present[0] if (present == present[:1]).all() else None
+
+
 def estimate(sys: System, z: np.ndarray, arch: str, criterion: str = "trace") -> Estimate:
     """Run architecture `arch` on measurements z (M, K+1, m).
 
-    Without NaN every run shares gains and covariances (one plan, applied to all runs at once);
-    with NaN (missing measurements) the plan is built per run.
+    When every run has the same measurement pattern (usually: all present) the runs share gains
+    and covariances (one plan, applied to all runs at once); when runs differ in which
+    measurements are missing (NaN), the plan is built per run.
     """
-    present = ~np.isnan(z)
     K = z.shape[1] - 1
-    if present.all():
-        plan = build_plan(sys, arch, K, None, criterion)
+    pattern = shared_pattern(z)
+    if pattern is not None:
+        plan = build_plan(sys, arch, K, None if pattern.all() else pattern, criterion)
     else:
-        plan = build_plan(sys, arch, K, present, criterion)
+        plan = build_plan(sys, arch, K, ~np.isnan(z), criterion)
     return run_plan(plan, z)

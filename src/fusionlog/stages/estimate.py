@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fusionlog.core.architectures import Plan, build_plan, estimate, run_plan
+from fusionlog.core.architectures import Plan, build_plan, estimate, run_plan, shared_pattern
 from fusionlog.core.model import System
 from fusionlog.core.names import parse_arch
 from fusionlog.errors import FusionlogError
@@ -89,6 +89,11 @@ def run_estimate(
     system, model_source = resolve_model(mf, model_path)
     topics = _check_topics(mf, system)
     sc = scenario_from_file(mf)
+    if sc is not None and system.n != sc.system.n:
+        raise FusionlogError(
+            f"{model_path}: the model has {system.n} states, "
+            f"the scenario recorded in {sensors_path} has {sc.system.n}"
+        )
     if not archs:
         archs = list(sc.architectures) if sc is not None else ["CKF"]
     archs = check_architectures(archs, system, "--arch")
@@ -97,7 +102,7 @@ def run_estimate(
     K, M = mf.steps() - 1, mf.runs()
     times = mf.times()
     B = block_runs(K, M, block)
-    plans: dict[str, Plan] = {}
+    plans: dict[tuple[str, bytes], Plan] = {}
     meta_prov = provenance(
         command,
         sc.seed if sc is not None else None,
@@ -107,23 +112,39 @@ def run_estimate(
         model=json.dumps(system_to_dict(system)),
         architectures=json.dumps(archs),
     )
+    pattern: np.ndarray | None = None  # the measurement pattern shared by every run so far
+    per_run = False
     with McapWriter(out, force=force) as w:
         if SCENARIO_META in mf.metadata:
             w.add_metadata(SCENARIO_META, mf.metadata[SCENARIO_META])
-        w.add_metadata(PROVENANCE_META, meta_prov)
         blocks = mf.iter_run_blocks(topics, B)
         for off, _runs, data in progress(blocks, -(-M // B), "estimate"):
             z = np.concatenate([data[t] for t in topics], axis=-1)
-            shared = not np.isnan(z).any()
+            block_pattern = shared_pattern(z)
+            if block_pattern is None or (pattern is not None and (block_pattern != pattern).any()):
+                per_run = True
+            elif pattern is None:
+                pattern = block_pattern
             for a in archs:
-                if shared:
-                    if a not in plans:
-                        plans[a] = build_plan(system, a, K)
-                    est = run_plan(plans[a], z)
+                if block_pattern is not None:
+                    key = (a, np.packbits(block_pattern).tobytes())
+                    if key not in plans:
+                        mask = None if block_pattern.all() else block_pattern
+                        plans[key] = build_plan(system, a, K, mask)
+                    est = run_plan(plans[key], z)
                 else:
                     est = estimate(system, z, a)
                 topic = f"/estimates/{a}"
                 for k in range(K + 1):
                     cov = est.cov[k] if est.shared_cov else est.cov[:, k]
                     w.write_estimate(topic, k, float(times[k]), off, est.mean[:, k], cov)
+        # Written last, when the pattern of the whole file is known; the evaluator's exact
+        # analysis needs it (a shared pattern is analysed with the same mask, per-run is not).
+        if per_run or pattern is None:
+            meta_prov["measurement_pattern"] = "per-run"
+        elif pattern.all():
+            meta_prov["measurement_pattern"] = "complete"
+        else:
+            meta_prov["measurement_pattern"] = json.dumps(pattern.astype(int).tolist())
+        w.add_metadata(PROVENANCE_META, meta_prov)
     return EstimateResult(Path(out), archs, M, K)

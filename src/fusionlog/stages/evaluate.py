@@ -15,6 +15,7 @@ from scipy import stats
 from fusionlog.core.architectures import build_plan
 from fusionlog.core.exact import Expected, analyse
 from fusionlog.core.metrics import MetricsAccumulator
+from fusionlog.core.names import parse_arch
 from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap_io import McapFile
 from fusionlog.io.rrd import write_recording
@@ -56,6 +57,34 @@ def write_json_atomic(path: Path, data: Any, force: bool) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _analysable(prov: dict[str, str], filter_sys, truth_sys):
+    """(truth model as the filter saw it, measurement mask) for the exact analysis, or None.
+
+    The filter stacks its sensors in its own order, so the truth is re-ordered to match by
+    sensor name (a `--model` may list them differently or use only some); sensors the truth
+    does not have, or missing measurements that differ between runs, leave no exact analysis.
+    """
+    pattern = prov.get("measurement_pattern", "complete")
+    if pattern == "per-run":
+        return None
+    names = [s.name for s in truth_sys.sensors]
+    if any(s.name not in names for s in filter_sys.sensors):
+        return None
+    seen = truth_sys.subset([names.index(s.name) for s in filter_sys.sensors])
+    if any(a.dim != b.dim for a, b in zip(seen.sensors, filter_sys.sensors, strict=True)):
+        return None
+    mask = None if pattern == "complete" else np.array(json.loads(pattern), dtype=bool)
+    return seen, mask
+
+
+def _known(arch: str, system) -> bool:
+    try:
+        parse_arch(arch, [s.name for s in system.sensors])
+    except ValueError:
+        return False
+    return True
 
 
 def _estimate_topics(est: McapFile) -> list[str]:
@@ -110,13 +139,17 @@ def run_evaluate(
     archs = [t.removeprefix("/estimates/") for t in topics]
     truth_sys = sc.system
     filter_sys = system_from_dict(json.loads(prov["model"])) if "model" in prov else truth_sys
+    if filter_sys.n != truth_sys.n:
+        raise FusionlogError(
+            f"{estimates_path}: estimates of {filter_sys.n} states, the truth has {truth_sys.n}"
+        )
     K, M, n = sens.steps() - 1, sens.runs(), truth_sys.n
+    analysable = _analysable(prov, filter_sys, truth_sys)
     times = sens.times()
     B = block_runs(K, M, block)
     accs = {a: MetricsAccumulator(K + 1, n) for a in archs}
     n_samples = min(sc.sample_runs, M)
     samples: dict[int, tuple[np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = {}
-    complete = True
     plane_pts: dict[str, np.ndarray] = {}
     plane_truth: np.ndarray | None = None
     plane_cov: dict[str, np.ndarray] = {}
@@ -126,7 +159,6 @@ def run_evaluate(
         for a, t in zip(archs, topics, strict=True):
             mean, cov = edata[t]
             accs[a].add(x, mean, cov)
-            complete &= cov.ndim == 3
             if sc.plane_view and off == 0:
                 plane_truth = x[0]
                 plane_pts[a] = np.moveaxis(mean[:PLANE_POINTS], 0, 1)  # (K+1, P, 2)
@@ -140,8 +172,9 @@ def run_evaluate(
     for a in archs:
         res = accs[a].finalize(sc.confidence)
         ex: Expected | None = None
-        if complete:
-            ex = analyse(build_plan(filter_sys, a, K), truth_sys)
+        if analysable is not None and _known(a, filter_sys):
+            truth_seen, mask = analysable
+            ex = analyse(build_plan(filter_sys, a, K, mask), truth_seen)
         kw = (
             {"expected_mse": ex.mse_per_state, "expected_nees": ex.nees, "expected_dm": ex.dm}
             if ex is not None
