@@ -449,7 +449,13 @@ def test_symmetry_is_relative() -> None:
         (
             edit("cov = [[1.0, 0.0], [0.0, 1.0]]", "cov = [[1.0, 2.0], [2.0, 1.0]]"),
             "prior.cov",
-            "not positive semidefinite (smallest eigenvalue -1)",
+            "not positive definite (smallest eigenvalue -1)",
+        ),
+        (
+            # singular: a filter covariance must be invertible
+            edit("cov = [[1.0, 0.0], [0.0, 1.0]]", "cov = [[0.0, 0.0], [0.0, 1.0]]"),
+            "prior.cov",
+            "not positive definite",
         ),
         (
             explicit("[[1.0, 1.0], [0.0, 1.0]]", "[[-0.1, 0.0], [0.0, 1.0]]"),
@@ -776,3 +782,26 @@ def test_pipeline_files_are_plain_toml() -> None:
     for p in files:
         tomllib.loads(p.read_text())
         (load_identity_scenario if is_identity_scenario_file(p) else load_scenario)(p)
+
+
+def test_no_prior_needs_an_invertible_f() -> None:
+    text = """
+[scenario]
+name = "x"
+steps = 3
+runs = 2
+seed = 0
+dt = 1.0
+[model]
+F = [[1.0, 1.0], [0.0, 0.0]]
+Q = [[1.0, 0.0], [0.0, 1.0]]
+[truth]
+initial_mean = [0.0, 0.0]
+initial_cov = [[1.0, 0.0], [0.0, 1.0]]
+[[sensors]]
+name = "a"
+H = [1.0, 0.0]
+R = 1.0
+"""
+    with pytest.raises(ValidationError, match="model.F: must be invertible when there is no"):
+        scenario_from_text(text, SRC)

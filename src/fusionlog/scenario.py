@@ -321,7 +321,15 @@ def _system(ctx: _Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: b
         _check_keys(ctx, pr, "prior", _PRIOR_KEYS, required=_PRIOR_KEYS)
         prior = Prior(
             _vector(ctx, pr["mean"], "prior.mean", n),
-            _covariance(ctx, pr["cov"], "prior.cov", n, strict=False),
+            # Positive definite: a filter's covariance must be invertible (information form,
+            # Millman's formula); a perfectly known component belongs in [truth], not here.
+            _covariance(ctx, pr["cov"], "prior.cov", n, strict=True),
+        )
+    elif abs(np.linalg.det(F)) <= 1e-12 * max(1.0, float(np.abs(F).max()) ** n):
+        raise ctx.err(
+            "model.F",
+            "must be invertible when there is no [prior]: the filters start in information "
+            "form and predict through F^-1",
         )
 
     initial = None

@@ -84,7 +84,7 @@ Criterion = Literal["trace", "det"]
 
 
 #: Problems solved together by one SLSQP call (the Jacobian it builds is dense in them).
-CI_GROUP = 64
+CI_GROUP = 8
 
 
 def _ci_costs(Ys: np.ndarray, omega: np.ndarray, criterion: Criterion) -> tuple[np.ndarray, ...]:
@@ -124,6 +124,9 @@ def ci_omegas(covs: np.ndarray, criterion: Criterion = "trace") -> np.ndarray:
     if N == 1:
         return np.ones((B, 1))
     Ys = spd_inv(covs)
+    # omega does not change when one problem's informations are scaled together; scaling each
+    # to unit mean trace keeps SLSQP's stopping test (on the summed cost) fair to every member.
+    Ys = Ys / (np.trace(Ys.mean(axis=1), axis1=-2, axis2=-1) / Ys.shape[-1])[:, None, None, None]
     out = np.empty((B, N))
     for g0 in range(0, B, CI_GROUP):
         Yg = Ys[g0 : g0 + CI_GROUP]
