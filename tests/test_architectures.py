@@ -7,6 +7,7 @@ import pytest
 from conftest import random_spd, random_system
 
 from fusionlog.core.architectures import build_plan, estimate, run_plan
+from fusionlog.core.exact import analyse
 from fusionlog.core.kalman import update_joseph, update_millman
 from fusionlog.core.model import Prior, Sensor, System, ajgl2009
 from fusionlog.core.names import STATE_ARCHITECTURES
@@ -201,3 +202,55 @@ def test_dense_path_keeps_precision_with_a_large_prior_mean():
     from fusionlog.core.architectures import _recursion
 
     np.testing.assert_allclose(run_plan(plan, z).mean, _recursion(plan, z), rtol=1e-13, atol=1e-7)
+
+
+def _position_and_velocity_sensors(prior: bool) -> System:
+    sys0 = ajgl2009()
+    sensors = (
+        Sensor("pos", np.array([[1.0, 0.0]]), np.array([[1.0]])),
+        Sensor("vel", np.array([[0.0, 1.0]]), np.array([[0.2]])),
+    )
+    return System(
+        F=sys0.F,
+        Q=sys0.Q,
+        sensors=sensors,
+        prior=sys0.prior if prior else None,
+        initial=sys0.prior,
+    )
+
+
+@pytest.mark.parametrize("arch", ["MSC-GMF", "CI", "MSC"])
+def test_track_to_track_without_prior_when_no_local_is_observable_alone(arch):
+    """A position-only and a velocity-only local filter, no prior: neither has a mean of its
+    own for a while, but together they determine the state from k = 0 on. The information-form
+    GMF (constraint sum c_j D_j = I) and CI still fuse them."""
+    sys = _position_and_velocity_sensors(prior=False)
+    x, z = simulate(sys, 15, 3, 0, 4000)
+    est = estimate(sys, z, arch)
+    assert np.isfinite(est.mean).all() and np.isfinite(est.cov).all()
+    ex = analyse(build_plan(sys, arch, 15), sys)
+    if arch == "MSC-GMF":
+        np.testing.assert_allclose(ex.mse, ex.P, rtol=1e-8, atol=1e-12)  # optimal given J
+    err = x - est.mean
+    mse = (err**2).mean(axis=(0, 2))
+    se = (err**2).mean(axis=2).std(axis=0) / np.sqrt(len(x))
+    assert np.all(np.abs(mse - ex.mse_per_state.mean(axis=1)) < 5 * se)
+
+
+@pytest.mark.parametrize("arch", ["MSC-GMF", "CI", "AVG", "MSC"])
+def test_per_run_results_do_not_depend_on_other_runs(arch):
+    """A run whose velocity sensor never reports must not make another run's estimate undefined
+    (the block switches representation only when every run can; readouts are per run)."""
+    sys = _position_and_velocity_sensors(prior=False)
+    _, z = simulate(sys, 10, 4, 0, 2)
+    z = z.copy()
+    z[1, :, 1] = np.nan
+    z[0, 3, 0] = np.nan  # make the patterns differ so the per-run path is taken
+    both = estimate(sys, z, arch)
+    alone = estimate(sys, z[:1], arch)
+    tol = _tol(arch)
+    np.testing.assert_allclose(both.mean[0], alone.mean[0], rtol=tol, atol=tol)
+    if arch == "AVG":  # the velocity-only local never has a position: nothing to average
+        assert np.isnan(both.mean[0]).all()
+    else:
+        assert np.isfinite(both.mean[0, 1:]).all()

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .fusion import ci_omegas, ci_weights, gmf_weights, millman_weights
+from .fusion import ci_omegas, gmf_weights, millman_weights
 from .kalman import gain, joseph
 from .linalg import apply, is_invertible, mT, spd_inv, sym
 from .model import System
@@ -193,7 +193,7 @@ class _KF:
             P = spd_inv(Y)
             self.info, self.mat = False, P
             return _Step(P @ A, P @ Ue, self.eye, P, A, Gam, -P, -(P @ Ue), self.eye)
-        Pinv = _nan_where(np.linalg.pinv(Y, hermitian=True), ok)
+        Pinv = sym(_nan_where(np.linalg.pinv(Y, hermitian=True), ok))
         return _Step(A, Ue, Pinv, Pinv, A, Gam, np.broadcast_to(self.eye, Y.shape), Ue, Y)
 
 
@@ -341,7 +341,7 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
     # cross-covariances of eq. (35).
     joint = name in ("MSC-GMF", "AVG")
     steps = []
-    ci_pending: list[tuple[int, np.ndarray]] = []
+    ci_pending: list[tuple[int, np.ndarray, np.ndarray]] = []
     steady = _Steady(present)
     K1 = present.shape[-2]
     for k in range(K1):
@@ -361,21 +361,28 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
         T = _block_diag([st.T for st in sts])
         U = np.concatenate([np.broadcast_to(st.U, batch + (n, m)) for st in sts], axis=-2)
         all_cov = not any(lk.info for lk in locs)
+        D = np.concatenate([np.broadcast_to(st.D, batch + (n, n)) for st in sts], axis=-2)
+        # A local's state s_j is D_j x + sigma_j with sigma_j = -g_j (mean form: s = x_hat,
+        # g = x - x_hat) or +g_j (information form: s = y, g = y - Y x); J is cov(g).
+        sign = np.kron(np.diag([1.0 if lk.info else -1.0 for lk in locs]), np.eye(n))
         if name == "MSC":
             O, P = _msc_readout(locs, sts, batch, n)
-        elif not all_cov:
-            O, P = np.full(batch + (n, S * n), np.nan), np.full(batch + (n, n), np.nan)
         elif name == "MSC-GMF":
-            ws, P = gmf_weights(J, n)
+            # Eqs. (2)-(7) with the unbiasedness constraint sum_j c_j D_j = I, which is eq. (7)
+            # when every local is in mean form (D_j = I) and extends it to information form.
+            ws, P = gmf_weights(sign @ J @ sign, n, D)
             O = np.concatenate(ws, axis=-1)
         elif name == "AVG":
-            # Equal weights c_i = I/S (eq. 2) and the covariance they really give, eq. (4).
-            O = np.broadcast_to(np.tile(np.eye(n), S) / S, batch + (n, S * n))
-            P = sym(O @ J @ mT(O))
+            # Equal weights on the local means (eq. 2, c_i = I/S) and the covariance they
+            # really give, eq. (4); undefined (NaN) while a local has no mean yet.
+            Rs = [_mean_readout(lk, st, batch, n) for lk, st in zip(locs, sts, strict=True)]
+            O = np.concatenate(Rs, axis=-1) / S
+            Msig = O @ sign
+            P = sym(Msig @ J @ mT(Msig))
         else:  # CI: the omegas of all steps are solved together after the loop
             O = P = None
-            ci_pending.append((len(steps), np.stack([st.P for st in sts], axis=-3)))
-        D = np.concatenate([np.broadcast_to(st.D, batch + (n, n)) for st in sts], axis=-2)
+            Ys, Ws = _local_infos(locs, sts, batch, n)
+            ci_pending.append((len(steps), np.stack(Ys, axis=-3), np.stack(Ws, axis=-3)))
         steps.append(StepMap(T, U, O, P, D))
         if all_cov and steady.reached(*([J] if joint else [lk.mat for lk in locs])):
             _fill(steps, K1)
@@ -387,26 +394,28 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
 
 def _ci_readouts(
     steps: list[StepMap],
-    pending: list[tuple[int, np.ndarray]],
+    pending: list[tuple[int, np.ndarray, np.ndarray]],
     batch: tuple[int, ...],
     criterion: str,
 ) -> np.ndarray:
     """Covariance intersection of the local estimates at the steps in `pending` (step index,
-    local covariances batch + (S, n, n)): every step's (and run's) omega in one `ci_omegas`
-    call, then the fused weights and covariance written into those steps' maps. Returns the
-    omegas, batch + (K+1, S), NaN where the locals had no covariance yet."""
+    local informations Y_j and maps W_j with Y_j x_j = W_j s_j, batch + (S, n, n)): every step's
+    (and run's) omega in one `ci_omegas` call, then P = (sum w_j Y_j)^-1 and the weights
+    w_j P W_j written into those steps' maps. In information form a local with too little
+    information to have a mean of its own still contributes. Returns the omegas, batch +
+    (K+1, S)."""
     K1 = len(steps)
-    if not pending:
-        return np.full((K1,), np.nan)
-    covs = np.stack([c for _, c in pending])  # (L,) + batch + (S, n, n)
-    S, n = covs.shape[-3], covs.shape[-1]
-    om = ci_omegas(covs.reshape((-1, S, n, n)), criterion).reshape(covs.shape[:-2])
-    ws, P = ci_weights(
-        [covs[..., j, :, :] for j in range(S)], [om[..., j, None, None] for j in range(S)]
-    )
-    O = np.concatenate([np.broadcast_to(w, P.shape) for w in ws], axis=-1)
+    Y0 = pending[0][1]
+    S, n = Y0.shape[-3], Y0.shape[-1]
+    Ys = np.stack([y for _, y, _ in pending])  # (L,) + batch + (S, n, n)
+    Ws = np.stack([w for _, _, w in pending])
+    om = ci_omegas(Ys.reshape((-1, S, n, n)), criterion).reshape(Ys.shape[:-2])
+    Ysum = np.einsum("...j,...jab->...ab", om, Ys)
+    ok = is_invertible(Ysum)
+    P = sym(_nan_where(np.linalg.pinv(Ysum, hermitian=True), ok))
+    O = np.concatenate([om[..., j, None, None] * (P @ Ws[..., j, :, :]) for j in range(S)], -1)
     by_id = {}
-    for i, (k, _) in enumerate(pending):
+    for i, (k, _, _) in enumerate(pending):
         steps[k].O, steps[k].P = O[i], P[i]
         by_id[id(steps[k])] = om[i]
     omega = np.full((K1,) + batch + (S,), np.nan)
@@ -414,6 +423,30 @@ def _ci_readouts(
         if id(st) in by_id:
             omega[k] = by_id[id(st)]
     return np.moveaxis(omega, 0, -2)
+
+
+def _local_infos(
+    locs: list[_KF], sts: list[_Step], batch: tuple[int, ...], n: int
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Each local's information matrix Y_j and the map W_j with Y_j x_j = W_j s_j (the
+    information vector is the state itself while a local is in information form)."""
+    Ys, Ws = [], []
+    for lk, st in zip(locs, sts, strict=True):
+        if lk.info:
+            Ys.append(lk.mat)
+            Ws.append(np.broadcast_to(np.eye(n), batch + (n, n)))
+        else:
+            Y = spd_inv(st.P)
+            Ys.append(Y)
+            Ws.append(Y)
+    return Ys, Ws
+
+
+def _mean_readout(lk: _KF, st: _Step, batch: tuple[int, ...], n: int) -> np.ndarray:
+    """x_j = R_j s_j: I in mean form, Y_j^-1 in information form (NaN where singular)."""
+    if not lk.info:
+        return np.broadcast_to(np.eye(n), batch + (n, n))
+    return sym(_nan_where(np.linalg.pinv(lk.mat, hermitian=True), is_invertible(lk.mat)))
 
 
 def _msc_readout(
@@ -424,18 +457,10 @@ def _msc_readout(
     if not any(lk.info for lk in locs):
         ws, P = millman_weights([st.P for st in sts])
         return np.concatenate([np.broadcast_to(w, batch + (n, n)) for w in ws], axis=-1), P
-    Ys, Ws = [], []
-    for lk, st in zip(locs, sts, strict=True):
-        if lk.info:
-            Ys.append(lk.mat)
-            Ws.append(np.broadcast_to(np.eye(n), batch + (n, n)))
-        else:
-            Y = spd_inv(st.P)
-            Ys.append(Y)
-            Ws.append(Y)
+    Ys, Ws = _local_infos(locs, sts, batch, n)
     Ysum = sum(Ys)
     ok = is_invertible(Ysum)
-    P = _nan_where(np.linalg.pinv(Ysum, hermitian=True), ok)
+    P = sym(_nan_where(np.linalg.pinv(Ysum, hermitian=True), ok))
     return np.concatenate([P @ W for W in Ws], axis=-1), P
 
 
@@ -491,7 +516,7 @@ def _fbs_plan(sys: System, present: np.ndarray) -> Plan:
             # Forward filter still in information form: Millman's formula in information form.
             Ysum = Yf + Sk
             ok = is_invertible(Ysum)
-            Pk = _nan_where(np.linalg.pinv(Ysum, hermitian=True), ok)
+            Pk = sym(_nan_where(np.linalg.pinv(Ysum, hermitian=True), ok))
             A.append(Pk)
             B.append(Pk)
         Ps.append(Pk)

@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 from scipy import optimize
 
-from .linalg import mT, spd_inv, sym
+from .linalg import is_invertible, mT, spd_inv, sym
 
 
 def fuse(weights: Sequence[np.ndarray], estimates: Sequence[np.ndarray]) -> np.ndarray:
@@ -45,7 +45,9 @@ def bar_shalom_campo(
     return [c1, c2], sym(P)
 
 
-def gmf_weights(joint: np.ndarray, n: int) -> tuple[list[np.ndarray], np.ndarray]:
+def gmf_weights(
+    joint: np.ndarray, n: int, E: np.ndarray | None = None
+) -> tuple[list[np.ndarray], np.ndarray]:
     """Generalised Millman formula, eqs. (2)-(7), in constrained least-squares form.
 
     Minimises J of eq. (5), tr(C Sigma C^T), subject to sum_i c_i = I (eq. 7), where Sigma is the
@@ -55,28 +57,38 @@ def gmf_weights(joint: np.ndarray, n: int) -> tuple[list[np.ndarray], np.ndarray
     paper's own example (identical local filters sharing the prior). The KKT system is solved by
     least squares (pseudo-inverse), whose minimum-norm solution is optimal even when Sigma is
     singular: weights that differ by a null direction of Sigma give the same estimate almost surely.
-    Returns the weights c_i and P of eq. (4).
+
+    `E` generalises the constraint to sum_i c_i E_i = I for inputs s_i = E_i x + noise (an
+    information vector has E_i = Y_i); weights that cannot meet it (too little information in
+    all inputs together) come back as NaN. Returns the weights c_i and P of eq. (4).
     """
     N = joint.shape[-1] // n
+    batch = joint.shape[:-2]
+    if E is None:
+        E = np.tile(np.eye(n), (N, 1))
+    E = np.broadcast_to(E, batch + (N * n, n))
     # Scale so that the KKT matrix mixes blocks of comparable size (R may span 1e-8 .. 1e8).
     scale = np.max(np.abs(np.diagonal(joint, axis1=-2, axis2=-1)), axis=-1)[..., None, None]
-    Sig = joint / scale
-    E = np.tile(np.eye(n), (N, 1))
-    batch = joint.shape[:-2]
+    scale = np.where(scale > 0, scale, 1.0)
+    e_scale = np.max(np.abs(E), axis=(-2, -1))[..., None, None]
+    e_scale = np.where(e_scale > 0, e_scale, 1.0)
+    Sig, Es = joint / scale, E / e_scale
     kkt = np.zeros(batch + (N * n + n, N * n + n))
     kkt[..., : N * n, : N * n] = Sig
-    kkt[..., : N * n, N * n :] = E
-    kkt[..., N * n :, : N * n] = E.T
+    kkt[..., : N * n, N * n :] = Es
+    kkt[..., N * n :, : N * n] = mT(Es)
     rhs = np.zeros((N * n + n, n))
     rhs[N * n :] = np.eye(n)
     if kkt.ndim == 2:
         sol = np.linalg.lstsq(kkt, rhs, rcond=1e-12)[0]  # SVD-based minimum-norm solution
     else:  # lstsq does not batch; the pseudo-inverse gives the same minimum-norm solution
         sol = np.linalg.pinv(kkt, rcond=1e-12, hermitian=True) @ rhs
-    Ct = sol[..., : N * n, :]  # (N n, n): stacked c_i^T
-    weights = [mT(Ct[..., i * n : (i + 1) * n, :]) for i in range(N)]
+    Ct = sol[..., : N * n, :] / e_scale  # (N n, n): stacked c_i^T, back to the unscaled E
     C = mT(Ct)
-    P = sym(C @ joint @ Ct)
+    ok = np.max(np.abs(C @ E - np.eye(n)), axis=(-2, -1)) < 1e-8
+    C = np.where(ok[..., None, None], C, np.nan)
+    weights = [C[..., :, i * n : (i + 1) * n] for i in range(N)]
+    P = sym(C @ joint @ mT(C))
     return weights, P
 
 
@@ -109,63 +121,78 @@ def _ci_costs(Ys: np.ndarray, omega: np.ndarray, criterion: Criterion) -> tuple[
     return f, g
 
 
-def ci_omegas(covs: np.ndarray, criterion: Criterion = "trace") -> np.ndarray:
+def ci_omegas(infos: np.ndarray, criterion: Criterion = "trace") -> np.ndarray:
     """Covariance-intersection weights for B independent problems at once, (B, N) on the simplex.
 
-    covs (B, N, n, n). The problems are separable, so groups of them are handed to one SLSQP
-    call (scipy) as a single problem with one simplex constraint per member: one optimiser call
-    per group instead of one per time step. Each answer is then compared with the end points
-    (an input alone), which win only if better by more than rounding: with equal input
-    covariances every omega gives the same P, the interior answer also averages the estimates,
-    and letting rounding pick an end point would make the fused estimate jump from step to step.
+    infos (B, N, n, n): the inputs' information matrices P_i^-1. When every input's information
+    is invertible, every omega gives a finite cost and the problems are separable, so groups of
+    them go to one SLSQP call (scipy) as a single problem with one simplex constraint per member:
+    one optimiser call per group instead of one per time step. A problem with a singular input
+    (a local filter that cannot see the whole state yet) has infinite cost on part of the simplex
+    and is solved on its own; one whose inputs together are singular has no CI estimate (NaN).
+    Each answer is compared with the end points (an input alone), which win only if better by
+    more than rounding: with equal input covariances every omega gives the same P, the interior
+    answer also averages the estimates, and letting rounding pick an end point would make the
+    fused estimate jump from step to step.
     """
-    covs = np.asarray(covs, dtype=float)
-    B, N = covs.shape[:2]
+    Ys = np.asarray(infos, dtype=float)
+    B, N = Ys.shape[:2]
     if N == 1:
         return np.ones((B, 1))
-    Ys = spd_inv(covs)
     # omega does not change when one problem's informations are scaled together; scaling each
     # to unit mean trace keeps SLSQP's stopping test (on the summed cost) fair to every member.
-    Ys = Ys / (np.trace(Ys.mean(axis=1), axis1=-2, axis2=-1) / Ys.shape[-1])[:, None, None, None]
-    out = np.empty((B, N))
-    for g0 in range(0, B, CI_GROUP):
-        Yg = Ys[g0 : g0 + CI_GROUP]
-        b = len(Yg)
-        A = np.kron(np.eye(b), np.ones((1, N)))
-
-        def fun(w: np.ndarray, Yg: np.ndarray = Yg, b: int = b) -> tuple[float, np.ndarray]:
-            f, grad = _ci_costs(Yg, w.reshape(b, N), criterion)
-            return float(f.sum()), grad.ravel()
-
-        res = optimize.minimize(
-            fun,
-            np.full(b * N, 1.0 / N),
-            jac=True,
-            method="SLSQP",
-            bounds=[(0.0, 1.0)] * (b * N),
-            constraints=[
-                {"type": "eq", "fun": lambda w, A=A: A @ w - 1.0, "jac": lambda w, A=A: A}
-            ],
-            options={"ftol": 1e-15, "maxiter": 500},
-        )
-        w = np.clip(res.x.reshape(b, N), 0.0, 1.0)
-        w[w < 1e-12] = 0.0  # SLSQP lands within rounding of an active bound
-        w /= w.sum(axis=1, keepdims=True)
-        best, cost = w, _ci_costs(Yg, w, criterion)[0]
-        for i in range(N):
-            e = np.zeros((b, N))
-            e[:, i] = 1.0
-            c = _ci_costs(Yg, e, criterion)[0]
-            better = c < cost - 1e-9 * np.abs(cost)
-            best = np.where(better[:, None], e, best)
-            cost = np.where(better, c, cost)
-        out[g0 : g0 + b] = best
+    tr = np.trace(Ys.mean(axis=1), axis1=-2, axis2=-1) / Ys.shape[-1]
+    Ys = Ys / np.where(tr > 0, tr, 1.0)[:, None, None, None]
+    out = np.full((B, N), np.nan)
+    solvable = is_invertible(Ys.mean(axis=1))
+    regular = np.flatnonzero(solvable & is_invertible(Ys).all(axis=1))
+    for g0 in range(0, len(regular), CI_GROUP):
+        idx = regular[g0 : g0 + CI_GROUP]
+        out[idx] = _ci_group(Ys[idx], criterion)
+    for i in np.flatnonzero(solvable & ~is_invertible(Ys).all(axis=1)):
+        out[i] = _ci_group(Ys[i : i + 1], criterion)[0]
     return out
+
+
+def _ci_group(Yg: np.ndarray, criterion: Criterion) -> np.ndarray:
+    """SLSQP on b separable CI problems (b, N, n, n) at once, then the end-point check."""
+    b, N = Yg.shape[:2]
+    A = np.kron(np.eye(b), np.ones((1, N)))
+
+    def fun(w: np.ndarray) -> tuple[float, np.ndarray]:
+        f, grad = _ci_costs(Yg, w.reshape(b, N), criterion)
+        return float(f.sum()), np.nan_to_num(grad.ravel(), posinf=0.0, neginf=0.0)
+
+    res = optimize.minimize(
+        fun,
+        np.full(b * N, 1.0 / N),
+        jac=True,
+        method="SLSQP",
+        bounds=[(0.0, 1.0)] * (b * N),
+        constraints=[{"type": "eq", "fun": lambda w: A @ w - 1.0, "jac": lambda w: A}],
+        options={"ftol": 1e-15, "maxiter": 500},
+    )
+    w = np.clip(res.x.reshape(b, N), 0.0, 1.0)
+    w[w < 1e-12] = 0.0  # SLSQP lands within rounding of an active bound
+    w /= w.sum(axis=1, keepdims=True)
+    best, cost = w, _ci_costs(Yg, w, criterion)[0]
+    if not np.isfinite(cost).all():  # the optimiser stepped out: fall back to the start point
+        bad = ~np.isfinite(cost)
+        best[bad] = 1.0 / N
+        cost = _ci_costs(Yg, best, criterion)[0]
+    for i in range(N):
+        e = np.zeros((b, N))
+        e[:, i] = 1.0
+        c = _ci_costs(Yg, e, criterion)[0]
+        better = c < cost - 1e-9 * np.abs(cost)
+        best = np.where(better[:, None], e, best)
+        cost = np.where(better, c, cost)
+    return best
 
 
 def ci_omega(covs: Sequence[np.ndarray], criterion: Criterion = "trace") -> np.ndarray:
     """Weights omega of covariance intersection for one set of estimates (see `ci_omegas`)."""
-    return ci_omegas(np.stack(covs)[None], criterion)[0]
+    return ci_omegas(spd_inv(np.stack(covs))[None], criterion)[0]
 
 
 def ci_weights(
