@@ -18,6 +18,7 @@ yet gathered enough information for a covariance to exist, its information vecto
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
@@ -91,6 +92,12 @@ class Estimate:
 # Building blocks
 
 
+def _bc(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """np.broadcast_to, skipped when nothing is to be done (it costs microseconds per call, and
+    plan building calls it a dozen times a step)."""
+    return a if a.shape == shape else np.broadcast_to(a, shape)
+
+
 def _masked(H: np.ndarray, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """H and R with absent rows made information-free: the row of H is zeroed and the absent
     component decoupled with unit variance, so its gain column is exactly zero."""
@@ -144,7 +151,7 @@ class _KF:
         self.eye = np.eye(n)
         if sys.prior is not None:
             self.info = False
-            self.mat = np.broadcast_to(sys.prior.cov, batch + (n, n)).copy()
+            self.mat = _bc(sys.prior.cov, batch + (n, n)).copy()
             self.s0 = np.asarray(sys.prior.mean, float)
             self.D0 = np.eye(n)
         else:
@@ -181,7 +188,7 @@ class _KF:
             # with M = F^-T Y F^-1, Y^- = (I + M GQG)^-1 M and y^- = (I + M GQG)^-1 F^-T y.
             Mi = self.Finv.T @ Y @ self.Finv
             Bm = self.eye + Mi @ self.GQG
-            A = np.linalg.solve(Bm, np.broadcast_to(self.Finv.T, Bm.shape))
+            A = np.linalg.solve(Bm, _bc(self.Finv.T, Bm.shape))
             Yp = sym(np.linalg.solve(Bm, Mi))
             Gam = -(A @ Y @ self.Finv)
         RiH = np.linalg.solve(Rk, Hk)
@@ -194,7 +201,7 @@ class _KF:
             self.info, self.mat = False, P
             return _Step(P @ A, P @ Ue, self.eye, P, A, Gam, -P, -(P @ Ue), self.eye)
         Pinv = sym(_nan_where(np.linalg.pinv(Y, hermitian=True), ok))
-        return _Step(A, Ue, Pinv, Pinv, A, Gam, np.broadcast_to(self.eye, Y.shape), Ue, Y)
+        return _Step(A, Ue, Pinv, Pinv, A, Gam, _bc(self.eye, Y.shape), Ue, Y)
 
 
 class _Steady:
@@ -309,7 +316,7 @@ def _hkf_plan(sys: System, present: np.ndarray) -> Plan:
             Tacc = Tacc + Yj @ (eye - Kj @ Hj)
             U = U + _embed(Yj @ Kj, rows, m)
         P = spd_inv(Yf)
-        steps.append(StepMap(P @ Tacc @ Tp, P @ U, np.broadcast_to(eye, P.shape), P, eye))
+        steps.append(StepMap(P @ Tacc @ Tp, P @ U, _bc(eye, P.shape), P, eye))
         if steady.reached(P):
             _fill(steps, K1)
             break
@@ -334,7 +341,7 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
     ]
     s0 = np.concatenate([lk.s0 for lk in locs])
     if sys.prior is not None:
-        J = np.broadcast_to(np.kron(np.ones((S, S)), sys.prior.cov), batch + (S * n, S * n)).copy()
+        J = _bc(np.kron(np.ones((S, S)), sys.prior.cov), batch + (S * n, S * n)).copy()
     else:
         J = np.zeros(batch + (S * n, S * n))
     # Only the generalised Millman formula and the average's honest covariance need the
@@ -350,27 +357,28 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
         if joint:
             if not first:
                 Phi = _block_diag([st.Phi for st in sts])
-                Gam = np.concatenate(
-                    [np.broadcast_to(st.Gam, batch + (n, n)) for st in sts], axis=-2
-                )
+                Gam = np.concatenate([_bc(st.Gam, batch + (n, n)) for st in sts], axis=-2)
                 J = Phi @ J @ mT(Phi) + Gam @ sys.GQG @ mT(Gam)
             Psi = _block_diag([st.Psi for st in sts])
-            Lam = np.concatenate([np.broadcast_to(st.Lam, batch + (n, m)) for st in sts], axis=-2)
+            Lam = np.concatenate([_bc(st.Lam, batch + (n, m)) for st in sts], axis=-2)
             _, Rk = _masked(sys.H, sys.R, present[..., k, :])
             J = sym(Psi @ J @ mT(Psi) + Lam @ Rk @ mT(Lam))
         T = _block_diag([st.T for st in sts])
-        U = np.concatenate([np.broadcast_to(st.U, batch + (n, m)) for st in sts], axis=-2)
+        U = np.concatenate([_bc(st.U, batch + (n, m)) for st in sts], axis=-2)
         all_cov = not any(lk.info for lk in locs)
-        D = np.concatenate([np.broadcast_to(st.D, batch + (n, n)) for st in sts], axis=-2)
+        D = np.concatenate([_bc(st.D, batch + (n, n)) for st in sts], axis=-2)
         # A local's state s_j is D_j x + sigma_j with sigma_j = -g_j (mean form: s = x_hat,
         # g = x - x_hat) or +g_j (information form: s = y, g = y - Y x); J is cov(g).
-        sign = np.kron(np.diag([1.0 if lk.info else -1.0 for lk in locs]), np.eye(n))
+        sign = _signs(tuple(lk.info for lk in locs), n)
         if name == "MSC":
             O, P = _msc_readout(locs, sts, batch, n)
         elif name == "MSC-GMF":
             # Eqs. (2)-(7) with the unbiasedness constraint sum_j c_j D_j = I, which is eq. (7)
             # when every local is in mean form (D_j = I) and extends it to information form.
-            ws, P = gmf_weights(sign @ J @ sign, n, D)
+            if all_cov:
+                ws, P = gmf_weights(J, n)  # sign = -I cancels
+            else:
+                ws, P = gmf_weights(sign @ J @ sign, n, D)
             O = np.concatenate(ws, axis=-1)
         elif name == "AVG":
             # Equal weights on the local means (eq. 2, c_i = I/S) and the covariance they
@@ -390,6 +398,12 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
     info = {"omega": _ci_readouts(steps, ci_pending, batch, criterion)} if name == "CI" else {}
     D0 = np.concatenate([lk.D0 for lk in locs])
     return Plan(name, s0, steps, per_run=bool(batch), info=info, D0=D0)
+
+
+@lru_cache(maxsize=64)
+def _signs(info: tuple[bool, ...], n: int) -> np.ndarray:
+    """diag(+I for a local in information form, -I in mean form): sigma = sign g."""
+    return np.kron(np.diag([1.0 if i else -1.0 for i in info]), np.eye(n))
 
 
 def _ci_readouts(
@@ -434,7 +448,7 @@ def _local_infos(
     for lk, st in zip(locs, sts, strict=True):
         if lk.info:
             Ys.append(lk.mat)
-            Ws.append(np.broadcast_to(np.eye(n), batch + (n, n)))
+            Ws.append(_bc(np.eye(n), batch + (n, n)))
         else:
             Y = spd_inv(st.P)
             Ys.append(Y)
@@ -445,7 +459,7 @@ def _local_infos(
 def _mean_readout(lk: _KF, st: _Step, batch: tuple[int, ...], n: int) -> np.ndarray:
     """x_j = R_j s_j: I in mean form, Y_j^-1 in information form (NaN where singular)."""
     if not lk.info:
-        return np.broadcast_to(np.eye(n), batch + (n, n))
+        return _bc(np.eye(n), batch + (n, n))
     return sym(_nan_where(np.linalg.pinv(lk.mat, hermitian=True), is_invertible(lk.mat)))
 
 
@@ -456,7 +470,7 @@ def _msc_readout(
     Y_j x_j is the information vector itself for a local still in information form."""
     if not any(lk.info for lk in locs):
         ws, P = millman_weights([st.P for st in sts])
-        return np.concatenate([np.broadcast_to(w, batch + (n, n)) for w in ws], axis=-1), P
+        return np.concatenate([_bc(w, batch + (n, n)) for w in ws], axis=-1), P
     Ys, Ws = _local_infos(locs, sts, batch, n)
     Ysum = sum(Ys)
     ok = is_invertible(Ysum)
@@ -493,7 +507,7 @@ def _fbs_plan(sys: System, present: np.ndarray) -> Plan:
             Splus = sym(Smat[k + 1] + mT(Hn) @ mT(V[k + 1]))
             Bm = eye + Splus @ sys.GQG
             # L = F^T (I + S^+ GQG)^-1, computed as a solve with the transpose.
-            L[k] = mT(np.linalg.solve(mT(Bm), np.broadcast_to(sys.F, Bm.shape)))
+            L[k] = mT(np.linalg.solve(mT(Bm), _bc(sys.F, Bm.shape)))
             Smat[k] = sym(L[k] @ Splus @ sys.F)
             if steady.reached(Smat[k]):
                 Smat[k] = Smat[k + 1]
@@ -588,7 +602,7 @@ def _recursion(plan: Plan, z: np.ndarray, s0: np.ndarray | None = None) -> np.nd
     """The step recursion s_k = T s_{k-1} + U z_k, x_k = O s_k (and FBS's backward pass)."""
     M, K1, _ = z.shape
     s0 = plan.s0 if s0 is None else s0
-    s = np.broadcast_to(s0, (M, s0.shape[0]))
+    s = _bc(s0, (M, s0.shape[0]))
     n = plan.steps[0].O.shape[-2]
     out = np.empty((M, K1, n))
     states = [] if plan.smoother is not None else None

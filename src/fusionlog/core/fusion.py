@@ -64,13 +64,14 @@ def gmf_weights(
     """
     N = joint.shape[-1] // n
     batch = joint.shape[:-2]
+    general = E is not None
     if E is None:
         E = np.tile(np.eye(n), (N, 1))
     E = np.broadcast_to(E, batch + (N * n, n))
     # Scale so that the KKT matrix mixes blocks of comparable size (R may span 1e-8 .. 1e8).
     scale = np.max(np.abs(np.diagonal(joint, axis1=-2, axis2=-1)), axis=-1)[..., None, None]
     scale = np.where(scale > 0, scale, 1.0)
-    e_scale = np.max(np.abs(E), axis=(-2, -1))[..., None, None]
+    e_scale = np.max(np.abs(E), axis=(-2, -1))[..., None, None] if general else np.ones(1)
     e_scale = np.where(e_scale > 0, e_scale, 1.0)
     Sig, Es = joint / scale, E / e_scale
     kkt = np.zeros(batch + (N * n + n, N * n + n))
@@ -85,8 +86,9 @@ def gmf_weights(
         sol = np.linalg.pinv(kkt, rcond=1e-12, hermitian=True) @ rhs
     Ct = sol[..., : N * n, :] / e_scale  # (N n, n): stacked c_i^T, back to the unscaled E
     C = mT(Ct)
-    ok = np.max(np.abs(C @ E - np.eye(n)), axis=(-2, -1)) < 1e-8
-    C = np.where(ok[..., None, None], C, np.nan)
+    if general:
+        ok = np.max(np.abs(C @ E - np.eye(n)), axis=(-2, -1)) < 1e-8
+        C = np.where(ok[..., None, None], C, np.nan)
     weights = [C[..., :, i * n : (i + 1) * n] for i in range(N)]
     P = sym(C @ joint @ mT(C))
     return weights, P
