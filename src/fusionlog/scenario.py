@@ -34,7 +34,7 @@ import os
 import re
 import tomllib
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -149,15 +149,20 @@ def model_from_text(text: str, source: str = "<string>") -> System:
     return _model_from_doc(_parse_toml(text, source), source)
 
 
+_S = TypeVar("_S")
+
+
 def scenario_with(
-    scenario: Scenario,
+    scenario: _S,
     *,
     runs: int | None = None,
     steps: int | None = None,
     seed: int | None = None,
-) -> Scenario:
-    """A copy with the given Monte Carlo settings replaced (None keeps the scenario's value)."""
-    ctx = _Ctx(scenario.path if scenario.path is not None else "<scenario>")
+) -> _S:
+    """A copy with the given Monte Carlo settings replaced (None keeps the scenario's value);
+    any scenario dataclass with `path`, `runs`, `steps` and `seed` (state or identity)."""
+    path = scenario.path  # type: ignore[attr-defined]
+    ctx = _Ctx(path if path is not None else "<scenario>")
     changes: dict[str, int] = {}
     if runs is not None:
         changes["runs"] = _check_int(ctx, runs, "--runs", minimum=1)
@@ -165,7 +170,7 @@ def scenario_with(
         changes["steps"] = _check_int(ctx, steps, "--steps", minimum=0)
     if seed is not None:
         changes["seed"] = _check_int(ctx, seed, "--seed", minimum=0)
-    return dataclasses.replace(scenario, **changes) if changes else scenario
+    return dataclasses.replace(scenario, **changes) if changes else scenario  # type: ignore
 
 
 def system_to_dict(system: System) -> dict[str, Any]:

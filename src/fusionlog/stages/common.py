@@ -88,3 +88,31 @@ def scenario_from_file(mf: McapFile) -> Scenario | None:
 def system_from_file(mf: McapFile) -> System | None:
     sc = scenario_from_file(mf)
     return None if sc is None else sc.system
+
+
+def open_evaluation_inputs(
+    sensors_path: Path, estimates_path: Path, outputs: list[Path], force: bool
+) -> tuple[McapFile, McapFile, dict[str, str]]:
+    """What every evaluation checks first: outputs free (or --force), both files readable, the
+    truth present, the estimates made from this very sensors file and of the same size.
+    Returns the two files and the estimates' provenance record."""
+    for p in outputs:
+        if p.exists() and not force:
+            raise FusionlogError(f"{p}: exists; use --force to overwrite")
+    sens = McapFile(sensors_path)
+    est = McapFile(estimates_path)
+    if "/truth" not in sens.topics:
+        raise FusionlogError(f"{sensors_path}: no /truth topic, nothing to evaluate against")
+    prov = est.metadata.get(PROVENANCE_META, {})
+    recorded = prov.get("sensors_sha256")
+    if recorded is not None and recorded != sha256_of(Path(sensors_path)):
+        raise FusionlogError(
+            f"{estimates_path}: was estimated from another sensors file "
+            f"({prov.get('sensors_file', '?')}, sha256 {recorded[:12]}...), not {sensors_path}"
+        )
+    if est.steps() != sens.steps() or est.runs() != sens.runs():
+        raise FusionlogError(
+            f"{estimates_path}: {est.runs()} runs x {est.steps()} steps do not match "
+            f"{sensors_path} ({sens.runs()} x {sens.steps()})"
+        )
+    return sens, est, prov

@@ -22,12 +22,11 @@ from fusionlog.io.rrd import write_recording
 from fusionlog.scenario import system_from_dict
 
 from .common import (
-    PROVENANCE_META,
     SCENARIO_META,
     block_runs,
+    open_evaluation_inputs,
     progress,
     scenario_from_file,
-    sha256_of,
 )
 
 #: Sample estimates per architecture drawn in the state-plane view.
@@ -113,28 +112,11 @@ def run_evaluate(
     With `[evaluate] plane_view`, the recording also shows the state plane: truth, sample
     estimates and the ellipses (at the chi-square confidence) of every input and fused result.
     """
-    for p in [out] + ([summary_path] if summary_path else []):
-        if p.exists() and not force:
-            raise FusionlogError(f"{p}: exists; use --force to overwrite")
-    sens = McapFile(sensors_path)
-    est = McapFile(estimates_path)
-    if "/truth" not in sens.topics:
-        raise FusionlogError(f"{sensors_path}: no /truth topic, nothing to evaluate against")
+    outputs = [out] + ([summary_path] if summary_path else [])
+    sens, est, prov = open_evaluation_inputs(sensors_path, estimates_path, outputs, force)
     sc = scenario_from_file(sens)
     if sc is None:
         raise FusionlogError(f"{sensors_path}: no {SCENARIO_META} metadata (not a simulation)")
-    prov = est.metadata.get(PROVENANCE_META, {})
-    recorded = prov.get("sensors_sha256")
-    if recorded is not None and recorded != sha256_of(Path(sensors_path)):
-        raise FusionlogError(
-            f"{estimates_path}: was estimated from another sensors file "
-            f"({prov.get('sensors_file', '?')}, sha256 {recorded[:12]}...), not {sensors_path}"
-        )
-    if est.steps() != sens.steps() or est.runs() != sens.runs():
-        raise FusionlogError(
-            f"{estimates_path}: {est.runs()} runs x {est.steps()} steps do not match "
-            f"{sensors_path} ({sens.runs()} x {sens.steps()})"
-        )
     topics = _estimate_topics(est)
     archs = [t.removeprefix("/estimates/") for t in topics]
     truth_sys = sc.system

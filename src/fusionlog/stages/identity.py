@@ -91,7 +91,6 @@ disagreement over all runs.
 
 from __future__ import annotations
 
-import dataclasses
 import difflib
 import json
 import math
@@ -127,12 +126,14 @@ from fusionlog.scenario import (
     _str,
     _table,
     _tname,
+    scenario_with,
 )
 
 from .common import (
     PROVENANCE_META,
     SCENARIO_META,
     block_runs,
+    open_evaluation_inputs,
     progress,
     provenance,
     sha256_of,
@@ -323,15 +324,7 @@ def identity_with(
     seed: int | None = None,
 ) -> IdentityScenario:
     """A copy with the Monte Carlo settings replaced (None keeps the scenario's value)."""
-    ctx = _Ctx(sc.path if sc.path is not None else "<scenario>")
-    changes: dict[str, int] = {}
-    if runs is not None:
-        changes["runs"] = _check_int(ctx, runs, "--runs", minimum=1)
-    if steps is not None:
-        changes["steps"] = _check_int(ctx, steps, "--steps", minimum=0)
-    if seed is not None:
-        changes["seed"] = _check_int(ctx, seed, "--seed", minimum=0)
-    return dataclasses.replace(sc, **changes) if changes else sc
+    return scenario_with(sc, runs=runs, steps=steps, seed=seed)
 
 
 def _from_doc(
@@ -1035,28 +1028,11 @@ def run_evaluate(
 
     from .evaluate import EvaluateResult, write_json_atomic
 
-    for p in [out] + ([summary_path] if summary_path else []):
-        if p.exists() and not force:
-            raise FusionlogError(f"{p}: exists; use --force to overwrite")
-    sens = McapFile(sensors_path)
-    est = McapFile(estimates_path)
-    if "/truth" not in sens.topics:
-        raise FusionlogError(f"{sensors_path}: no /truth topic, nothing to evaluate against")
+    outputs = [out] + ([summary_path] if summary_path else [])
+    sens, est, prov = open_evaluation_inputs(sensors_path, estimates_path, outputs, force)
     sc = _scenario_of(sens)
     if sc is None:
         raise FusionlogError(f"{sensors_path}: no {SCENARIO_META} metadata (not a simulation)")
-    prov = est.metadata.get(PROVENANCE_META, {})
-    recorded = prov.get("sensors_sha256")
-    if recorded is not None and recorded != sha256_of(Path(sensors_path)):
-        raise FusionlogError(
-            f"{estimates_path}: was estimated from another sensors file "
-            f"({prov.get('sensors_file', '?')}, sha256 {recorded[:12]}...), not {sensors_path}"
-        )
-    if est.steps() != sens.steps() or est.runs() != sens.runs():
-        raise FusionlogError(
-            f"{estimates_path}: {est.runs()} runs x {est.steps()} steps do not match "
-            f"{sensors_path} ({sens.runs()} x {sens.steps()})"
-        )
     n = len(sc.classes)
     dims = _dims(n)
     archs = [a for a in ARCHITECTURES if f"/estimates/{a}" in est.topics]
