@@ -340,6 +340,7 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
         for s, sl in zip(sys.sensors, sys.sensor_slices, strict=True)
     ]
     s0 = np.concatenate([lk.s0 for lk in locs])
+    twins = _twins(sys)
     if sys.prior is not None:
         J = _bc(np.kron(np.ones((S, S)), sys.prior.cov), batch + (S * n, S * n)).copy()
     else:
@@ -353,7 +354,7 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
     K1 = present.shape[-2]
     for k in range(K1):
         first = k == 0
-        sts = [lk.step(present[..., k, lk.rows], first) for lk in locs]
+        sts = _step_locals(locs, present[..., k, :], first, twins)
         if joint:
             if not first:
                 Phi = _block_diag([st.Phi for st in sts])
@@ -404,6 +405,40 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
 def _signs(info: tuple[bool, ...], n: int) -> np.ndarray:
     """diag(+I for a local in information form, -I in mean form): sigma = sign g."""
     return np.kron(np.diag([1.0 if i else -1.0 for i in info]), np.eye(n))
+
+
+def _twins(sys: System) -> list[int]:
+    """For each sensor, the first sensor with the same H and R (itself if none): their local
+    filters run the same covariance recursion, so it is computed once per step."""
+    first: dict[bytes, int] = {}
+    out = []
+    for j, sen in enumerate(sys.sensors):
+        key = sen.H.tobytes() + b"|" + sen.R.tobytes() + repr(sen.H.shape).encode()
+        out.append(first.setdefault(key, j))
+    return out
+
+
+def _step_locals(
+    locs: list[_KF], present: np.ndarray, first: bool, twins: list[int]
+) -> list[_Step]:
+    """One step of every local filter; a twin with the same measurement pattern this step
+    takes its original's gains and covariances, re-embedded at its own rows."""
+    sts: list[_Step] = []
+    for j, lk in enumerate(locs):
+        o = twins[j]
+        if o != j and np.array_equal(present[..., lk.rows], present[..., locs[o].rows]):
+            src, st = locs[o], sts[o]
+            lk.info, lk.mat = src.info, src.mat
+
+            def move(A: np.ndarray, src: _KF = src, lk: _KF = lk) -> np.ndarray:
+                return _embed(A[..., src.rows], lk.rows, lk.m)
+
+            sts.append(
+                _Step(st.T, move(st.U), st.O, st.P, st.Phi, st.Gam, st.Psi, move(st.Lam), st.D)
+            )
+        else:
+            sts.append(lk.step(present[..., lk.rows], first))
+    return sts
 
 
 def _ci_readouts(
