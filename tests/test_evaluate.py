@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -113,3 +116,10 @@ def test_gustafsson_scenarios(tmp_path, name):
     assert "/plane/truth" in paths
     assert "/" + entity_path("plane", "ellipses", "input s1") in paths
     assert "/plane/estimates/AVG" in paths
+    rerun = Path(sys.executable).parent / "rerun"
+    verify = subprocess.run(
+        [str(rerun), "rrd", "verify", str(tmp_path / "ev.rrd")],
+        capture_output=True,
+        env={**os.environ, "RERUN_ANALYTICS": "0"},
+    )
+    assert verify.returncode == 0, verify.stderr
