@@ -988,6 +988,10 @@ class McapFile:
             return self._structure
         cids = set(self._layouts)
         topic_of = self._topic_of()
+        recorded = self._recorded_structure(cids, topic_of)
+        if recorded is not None:
+            self._structure = recorded
+            return recorded
         step_time: dict[int, float] = {}
         dims: dict[str, int] = {}
         first: int | None = None
@@ -1010,6 +1014,32 @@ class McapFile:
         times = np.array([step_time[k] for k in range(steps)], dtype=float)
         self._structure = _Structure(times, dims, self._last_run_end(cids))
         return self._structure
+
+    def _recorded_structure(self, cids: set[int], topic_of: dict[int, str]) -> _Structure | None:
+        """The structure a fusionlog writer recorded (steps, runs, dt in `fusionlog.scenario`),
+        checked against the file's last block and first messages, so that a long one-run log
+        is not decoded twice (once to learn its steps, once to read it). None: scan instead."""
+        meta = self.metadata.get("fusionlog.scenario", {})
+        try:
+            steps, runs, dt = int(meta["steps"]), int(meta["runs"]), float(meta["dt"])
+        except (KeyError, ValueError):
+            return None
+        if runs != self._last_run_end(cids):
+            return None
+        dims: dict[str, int] = {}
+        wanted = len({topic_of[c] for c in cids})
+        for _, _, cid, data in self._messages(cids):
+            if topic_of[cid] in dims:
+                continue
+            step, t, off, _, dim, _, _ = self._decode(cid, data)
+            if off != 0 or step != 0 or t != 0.0:
+                return None  # not the writer's order: fall back to the scan
+            dims[topic_of[cid]] = dim
+            if len(dims) == wanted:
+                break
+        # The writer's times are exactly these (np.arange(K + 1) * dt); the block reader checks
+        # every message's step against 0..K, so a wrong record cannot go unnoticed.
+        return _Structure(np.arange(steps + 1) * dt, dims, runs)
 
     def _last_run_end(self, cids: set[int]) -> int:
         """End of the last block of runs: the blocks are in order, so read only the last chunk."""
