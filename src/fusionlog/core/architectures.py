@@ -22,9 +22,9 @@ from functools import lru_cache
 
 import numpy as np
 
-from .fusion import ci_omegas, gmf_weights, millman_weights
+from .fusion import ci_omegas, gmf_weights
 from .kalman import gain, joseph
-from .linalg import apply, is_invertible, mT, spd_inv, sym
+from .linalg import apply, inv_or_nan, is_invertible, mT, spd_inv, sym
 from .model import System
 from .names import parse_arch
 
@@ -116,10 +116,6 @@ def _embed(block: np.ndarray, rows: np.ndarray, m: int) -> np.ndarray:
     return out
 
 
-def _nan_where(A: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    return np.where(ok[..., None, None], A, np.nan)
-
-
 @dataclass
 class _Step:
     T: np.ndarray
@@ -200,7 +196,7 @@ class _KF:
             P = spd_inv(Y)
             self.info, self.mat = False, P
             return _Step(P @ A, P @ Ue, self.eye, P, A, Gam, -P, -(P @ Ue), self.eye)
-        Pinv = sym(_nan_where(np.linalg.pinv(Y, hermitian=True), ok))
+        Pinv = inv_or_nan(Y)
         return _Step(A, Ue, Pinv, Pinv, A, Gam, _bc(self.eye, Y.shape), Ue, Y)
 
 
@@ -459,9 +455,7 @@ def _ci_readouts(
     Ys = np.stack([y for _, y, _ in pending])  # (L,) + batch + (S, n, n)
     Ws = np.stack([w for _, _, w in pending])
     om = ci_omegas(Ys.reshape((-1, S, n, n)), criterion).reshape(Ys.shape[:-2])
-    Ysum = np.einsum("...j,...jab->...ab", om, Ys)
-    ok = is_invertible(Ysum)
-    P = sym(_nan_where(np.linalg.pinv(Ysum, hermitian=True), ok))
+    P = inv_or_nan(np.einsum("...j,...jab->...ab", om, Ys))
     O = np.concatenate([om[..., j, None, None] * (P @ Ws[..., j, :, :]) for j in range(S)], -1)
     by_id = {}
     for i, (k, _, _) in enumerate(pending):
@@ -495,7 +489,7 @@ def _mean_readout(lk: _KF, st: _Step, batch: tuple[int, ...], n: int) -> np.ndar
     """x_j = R_j s_j: I in mean form, Y_j^-1 in information form (NaN where singular)."""
     if not lk.info:
         return _bc(np.eye(n), batch + (n, n))
-    return sym(_nan_where(np.linalg.pinv(lk.mat, hermitian=True), is_invertible(lk.mat)))
+    return inv_or_nan(lk.mat)
 
 
 def _msc_readout(
@@ -503,13 +497,8 @@ def _msc_readout(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Millman fusion (33)-(34) in information form: P^-1 = sum Y_j, x = P sum Y_j x_j, where
     Y_j x_j is the information vector itself for a local still in information form."""
-    if not any(lk.info for lk in locs):
-        ws, P = millman_weights([st.P for st in sts])
-        return np.concatenate([_bc(w, batch + (n, n)) for w in ws], axis=-1), P
     Ys, Ws = _local_infos(locs, sts, batch, n)
-    Ysum = sum(Ys)
-    ok = is_invertible(Ysum)
-    P = sym(_nan_where(np.linalg.pinv(Ysum, hermitian=True), ok))
+    P = inv_or_nan(sum(Ys))
     return np.concatenate([P @ W for W in Ws], axis=-1), P
 
 
@@ -563,9 +552,7 @@ def _fbs_plan(sys: System, present: np.ndarray) -> Plan:
             B.append(Pk)
         else:
             # Forward filter still in information form: Millman's formula in information form.
-            Ysum = Yf + Sk
-            ok = is_invertible(Ysum)
-            Pk = sym(_nan_where(np.linalg.pinv(Ysum, hermitian=True), ok))
+            Pk = inv_or_nan(Yf + Sk)
             A.append(Pk)
             B.append(Pk)
         Ps.append(Pk)

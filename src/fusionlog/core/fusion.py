@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 from scipy import optimize
 
-from .linalg import is_invertible, mT, spd_inv, sym
+from .linalg import inv_or_nan, is_invertible, mT, spd_inv, sym
 
 
 def fuse(weights: Sequence[np.ndarray], estimates: Sequence[np.ndarray]) -> np.ndarray:
@@ -27,9 +27,7 @@ def millman_weights(covs: Sequence[np.ndarray]) -> tuple[list[np.ndarray], np.nd
 
     P = (sum_j P_jj^-1)^-1, c_i = P P_ii^-1.
     """
-    infos = [spd_inv(P) for P in covs]
-    P = spd_inv(sum(infos))
-    return [P @ Y for Y in infos], P
+    return ci_weights(covs, np.ones(len(covs)))
 
 
 def bar_shalom_campo(
@@ -200,10 +198,11 @@ def ci_omega(covs: Sequence[np.ndarray], criterion: Criterion = "trace") -> np.n
 def ci_weights(
     covs: Sequence[np.ndarray], omega: np.ndarray
 ) -> tuple[list[np.ndarray], np.ndarray]:
-    """Covariance intersection ("safe fusion"): P^-1 = sum w_i P_i^-1, c_i = w_i P P_i^-1.
+    """Covariance intersection ("safe fusion"): P^-1 = sum w_i P_i^-1, c_i = w_i P P_i^-1;
+    with w = 1 it is Millman's formula.
 
     For any cross-correlation between the inputs, P bounds the true error covariance.
     """
     infos = [spd_inv(P) for P in covs]
-    P = spd_inv(sum(w * Y for w, Y in zip(omega, infos, strict=True)))
+    P = inv_or_nan(sum(w * Y for w, Y in zip(omega, infos, strict=True)))
     return [w * (P @ Y) for w, Y in zip(omega, infos, strict=True)], P

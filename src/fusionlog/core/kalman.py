@@ -7,13 +7,6 @@ import numpy as np
 from .linalg import mT, spd_inv, sym
 
 
-def predict(
-    x: np.ndarray, P: np.ndarray, F: np.ndarray, GQG: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """One-step prediction, eqs. (39)-(40)."""
-    return x @ F.T, sym(F @ P @ F.T + GQG)
-
-
 def gain(P: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Kalman gain K = P H^T (H P H^T + R)^-1, eq. (17), solved with the innovation covariance."""
     S = sym(H @ P @ mT(H) + R)

@@ -35,6 +35,15 @@ def is_invertible(Y: np.ndarray, rtol: float = 1e-13) -> np.ndarray:
     return w[..., 0] > rtol * np.maximum(w[..., -1], np.finfo(float).tiny)
 
 
+def inv_or_nan(Y: np.ndarray) -> np.ndarray:
+    """Covariance from an information matrix: Y^-1 where Y is invertible, NaN elsewhere (an
+    estimate that does not exist yet, e.g. a filter started without a prior)."""
+    ok = is_invertible(Y)
+    if np.all(ok):
+        return spd_inv(Y)
+    return sym(np.where(ok[..., None, None], np.linalg.pinv(Y, hermitian=True), np.nan))
+
+
 def apply(A: np.ndarray, v: np.ndarray) -> np.ndarray:
     """A v for v of shape (runs, d): one GEMM when A is shared, batched products when per run."""
     if A.ndim == 2:

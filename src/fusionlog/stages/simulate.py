@@ -5,8 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from fusionlog.core.simulate import simulate
 from fusionlog.io.mcap_io import McapWriter
 from fusionlog.scenario import Scenario
@@ -41,7 +39,7 @@ def run_simulate(
     sys_ = scenario.system
     K, M = scenario.steps, scenario.runs
     B = block_runs(K, M, block)
-    times = np.arange(K + 1) * scenario.dt
+    times = scenario.times  # the reader relies on exactly these (McapFile._recorded_structure)
     slices = sys_.sensor_slices
     topics = [f"/sensors/{s.name}" for s in sys_.sensors]
     messages = 0
