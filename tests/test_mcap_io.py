@@ -606,10 +606,19 @@ def test_recover_on_intact_file(sample):
     assert rec["library"] == "fusionlog"
 
 
-def test_corrupt_chunk_is_reported(tmp_path, sample):
-    raw = bytearray(sample.read_bytes())
-    i = raw.index(b"zstd") + 30  # inside the first chunk's compressed data
-    raw[i : i + 40] = b"\x00" * 40
+@pytest.mark.parametrize("compression", ["none", "zstd"])
+def test_corrupt_chunk_is_reported(tmp_path, compression):
+    truth, sens, mean = make_data(5, 40, 10)
+    path = tmp_path / "s.mcap"
+    covs = [np.eye(2)[None].repeat(10, 0)] * 8
+    write_file(path, truth, sens, mean, covs, 5, compression=compression, chunk_size=4096)
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        first = make_reader(f).get_summary().chunk_indexes[0]
+    raw = bytearray(path.read_bytes())
+    i = first.chunk_start_offset + first.chunk_length // 2  # inside the chunk's record data
+    raw[i : i + 40] = bytes(b ^ 0x5A for b in raw[i : i + 40])
     bad = tmp_path / "corrupt.mcap"
     bad.write_bytes(bytes(raw))
     with pytest.raises(FusionlogError, match="corrupt") as e:

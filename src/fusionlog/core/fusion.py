@@ -12,7 +12,6 @@ from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
-from scipy import optimize
 
 from .linalg import inv_or_nan, is_invertible, mT, spd_inv, sym
 
@@ -162,6 +161,8 @@ def _ci_group(Yg: np.ndarray, criterion: Criterion) -> np.ndarray:
     def fun(w: np.ndarray) -> tuple[float, np.ndarray]:
         f, grad = _ci_costs(Yg, w.reshape(b, N), criterion)
         return float(f.sum()), np.nan_to_num(grad.ravel(), posinf=0.0, neginf=0.0)
+
+    from scipy import optimize  # here: its import costs ~0.2 s that only CI needs
 
     res = optimize.minimize(
         fun,

@@ -282,30 +282,46 @@ class _Writer:
         self.rec = rec
         self.times = times
         self.steps = np.arange(times.shape[0], dtype=np.int64)
+        # Many entities share a style (an architecture's colour and name across states) and
+        # most series are defined at every step: build those column batches once.
+        self._styles: dict[tuple, Any] = {}
+        self._full_index = self._index(np.ones(times.shape[0], dtype=bool))
+
+    def _index(self, keep: np.ndarray) -> list[rr.TimeColumn]:
+        return [
+            rr.TimeColumn("step", sequence=self.steps[keep]),
+            rr.TimeColumn("time", duration=self.times[keep]),
+        ]
 
     # Styling goes out with send_columns and no index (= static), so that it lands in the file
     # right before its series instead of being batched; one unbatched chunk each, in order.
     def style_lines(self, path: str, name: str, color: Sequence[int], width: float) -> None:
-        cols = rr.SeriesLines.columns(names=[name], colors=[list(color)], widths=[width])
-        self.rec.send_columns(path, indexes=[], columns=cols, strict=True)
+        key = ("lines", name, tuple(color), width)
+        if key not in self._styles:
+            self._styles[key] = rr.SeriesLines.columns(
+                names=[name], colors=[list(color)], widths=[width]
+            )
+        self.rec.send_columns(path, indexes=[], columns=self._styles[key], strict=True)
 
     def style_points(self, path: str, name: str, color: Sequence[int]) -> None:
-        cols = rr.SeriesPoints.columns(
-            names=[name], colors=[list(color)], markers=["circle"], marker_sizes=[2.5]
-        )
-        self.rec.send_columns(path, indexes=[], columns=cols, strict=True)
+        key = ("points", name, tuple(color))
+        if key not in self._styles:
+            self._styles[key] = rr.SeriesPoints.columns(
+                names=[name], colors=[list(color)], markers=["circle"], marker_sizes=[2.5]
+            )
+        self.rec.send_columns(path, indexes=[], columns=self._styles[key], strict=True)
 
     def send(self, path: str, values: np.ndarray) -> None:
         values = np.asarray(values, dtype=float)
         keep = np.isfinite(values)
-        if not keep.any():
+        if keep.all():
+            indexes = self._full_index
+        elif keep.any():
+            indexes, values = self._index(keep), values[keep]
+        else:
             return
-        indexes = [
-            rr.TimeColumn("step", sequence=self.steps[keep]),
-            rr.TimeColumn("time", duration=self.times[keep]),
-        ]
         self.rec.send_columns(
-            path, indexes=indexes, columns=rr.Scalars.columns(scalars=values[keep]), strict=True
+            path, indexes=indexes, columns=rr.Scalars.columns(scalars=values), strict=True
         )
 
     def line(self, path: str, values: np.ndarray, name: str, color: Sequence[int], width: float):

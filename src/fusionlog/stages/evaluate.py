@@ -10,11 +10,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from fusionlog.core.architectures import build_plan
 from fusionlog.core.exact import Expected, analyse
-from fusionlog.core.metrics import MetricsAccumulator
+from fusionlog.core.metrics import MetricsAccumulator, chi2_quantile
 from fusionlog.core.names import parse_arch
 from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap_io import McapFile
@@ -185,7 +184,7 @@ def run_evaluate(
             "truth": plane_truth,
             "estimates": plane_pts,
             "ellipses": {**inputs, **plane_cov},
-            "scale": float(np.sqrt(stats.chi2.ppf(sc.confidence, 2))),
+            "scale": float(np.sqrt(chi2_quantile(sc.confidence, 2))),
         }
     write_recording(
         out,
