@@ -204,6 +204,32 @@ def test_dense_path_keeps_precision_with_a_large_prior_mean():
     np.testing.assert_allclose(run_plan(plan, z).mean, _recursion(plan, z), rtol=1e-13, atol=1e-7)
 
 
+@pytest.mark.parametrize("arch", STATE_ARCHITECTURES)
+@pytest.mark.parametrize("prior", [True, False])
+def test_steady_tail_in_blocks_equals_step_recursion(arch, prior, monkeypatch):
+    """A long log with few runs runs its steady tail (and FBS's steady middle) in blocks of
+    steps; the numbers are those of the plain step recursion, also far from the origin."""
+    import fusionlog.core.architectures as archs
+
+    sys0 = ajgl2009()  # every local filter observable: all plans reach a steady state
+    far = Prior(np.array([5e4, -1.0]), np.eye(2))
+    sys = System(
+        F=sys0.F,
+        Q=sys0.Q,
+        sensors=sys0.sensors,
+        prior=far if prior else None,
+        initial=None if prior else far,
+    )
+    K = 1000 + 7  # not a multiple of the block
+    _, z = simulate(sys, K, 2, 3, 50)
+    plan = build_plan(sys, arch, K)
+    assert archs._steady_from(plan.steps) < K + 1 - 2 * archs._BLOCK  # the blocked path runs
+    blocked = run_plan(plan, z).mean
+    monkeypatch.setattr(archs, "_FEW_RUNS", 0)
+    stepwise = run_plan(plan, z).mean
+    np.testing.assert_allclose(blocked, stepwise, rtol=1e-11, atol=1e-9)
+
+
 def _position_and_velocity_sensors(prior: bool) -> System:
     sys0 = ajgl2009()
     sensors = (

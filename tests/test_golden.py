@@ -150,7 +150,8 @@ def mcap_structure(path: Path) -> dict[str, Any]:
             "messages": counts.get(cid, 0),
         }
     return {
-        "library": header.library,
+        # the writing library's name without versions, which move within the pinned range
+        "library": header.library.split("/")[0],
         "profile": header.profile,
         "messages": summary.statistics.message_count,
         "schemas": schemas,

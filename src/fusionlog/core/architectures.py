@@ -620,6 +620,11 @@ def run_plan(plan: Plan, z: np.ndarray) -> Estimate:
     return Estimate(mean.reshape(M, K1, -1), plan.reported_cov)
 
 
+#: A steady tail of a plan run on at most _FEW_RUNS runs goes through in blocks of _BLOCK steps.
+_FEW_RUNS = 16
+_BLOCK = 32
+
+
 def _recursion(plan: Plan, z: np.ndarray, s0: np.ndarray | None = None) -> np.ndarray:
     """The step recursion s_k = T s_{k-1} + U z_k, x_k = O s_k (and FBS's backward pass)."""
     M, K1, _ = z.shape
@@ -628,20 +633,112 @@ def _recursion(plan: Plan, z: np.ndarray, s0: np.ndarray | None = None) -> np.nd
     n = plan.steps[0].O.shape[-2]
     out = np.empty((M, K1, n))
     states = [] if plan.smoother is not None else None
-    for k, st in enumerate(plan.steps):
+    # With few runs the per-step numpy calls, not the arithmetic, are the cost: a long steady
+    # tail (a 10^5-step log) is run in blocks instead, a few GEMMs for all of it.
+    blocks = 0
+    if not plan.per_run and M <= _FEW_RUNS:
+        blocks = (K1 - _steady_from(plan.steps)) // _BLOCK
+        blocks = blocks if blocks >= 2 else 0
+    head = K1 - blocks * _BLOCK
+    for k in range(head):
+        st = plan.steps[k]
         s = apply(st.T, s) + apply(st.U, z[:, k])
         if states is not None:
             states.append(s)
         else:
             out[:, k] = apply(st.O, s)
+    if blocks:
+        st = plan.steps[-1]
+        tail = _steady_states(st.T, st.U, s, z[:, head:])  # (M, blocks * _BLOCK, d)
+        if states is not None:
+            states.extend(tail[:, j] for j in range(tail.shape[1]))
+        else:
+            out[:, head:] = tail @ st.O.T
     if plan.smoother is not None:
-        sm = plan.smoother
-        yb = np.zeros((M, n))
-        for k in range(K1 - 1, -1, -1):
-            if k < K1 - 1:
-                yb = apply(sm.L[k], yb + apply(sm.V[k + 1], z[:, k + 1]))
-            out[:, k] = apply(sm.A[k], states[k]) + apply(sm.B[k], yb)
+        _smooth(plan.smoother, states, z, out, few_runs=not plan.per_run and M <= _FEW_RUNS)
     return out
+
+
+def _smooth(
+    sm: SmootherMaps, states: list[np.ndarray], z: np.ndarray, out: np.ndarray, few_runs: bool
+) -> None:
+    """FBS's backward pass into `out`; its steady middle, with few runs, in blocks as well."""
+    M, K1, _ = z.shape
+    yb = np.zeros((M, out.shape[-1]))
+    a, b = _steady_segment(sm, K1) if few_runs else (0, -1)
+    k = K1 - 1
+    while k >= 0:
+        if k == b:
+            # y_b[k] = L y_b[k+1] + (L V) z[k+1] for k = b..a: the forward recursion on the
+            # reversed inputs z[b+1], ..., z[a+1]
+            Lm = sm.L[b]
+            Y = _steady_states(Lm, Lm @ sm.V[b + 1], yb, z[:, b + 1 : a : -1])[:, ::-1]
+            S = np.stack(states[a : b + 1], axis=1)
+            out[:, a : b + 1] = S @ mT(sm.A[b]) + Y @ mT(sm.B[b])
+            yb, k = Y[:, 0], a - 1
+            continue
+        if k < K1 - 1:
+            yb = apply(sm.L[k], yb + apply(sm.V[k + 1], z[:, k + 1]))
+        out[:, k] = apply(sm.A[k], states[k]) + apply(sm.B[k], yb)
+        k -= 1
+
+
+def _steady_segment(sm: SmootherMaps, K1: int) -> tuple[int, int]:
+    """(a, b): the longest run of steps k <= K-1 with the same backward and fusion maps, cut to
+    a multiple of _BLOCK steps (at least two blocks); (0, -1) if there is none."""
+    best, start = (0, -1), 0
+    for k in range(1, K1 - 1):
+        if not (
+            sm.L[k] is sm.L[k - 1]
+            and sm.V[k + 1] is sm.V[k]
+            and sm.A[k] is sm.A[k - 1]
+            and sm.B[k] is sm.B[k - 1]
+        ):
+            start = k
+        if k - start > best[1] - best[0]:
+            best = (start, k)
+    a, b = best
+    N = (b - a + 1) // _BLOCK * _BLOCK
+    return (b - N + 1, b) if N >= 2 * _BLOCK else (0, -1)
+
+
+def _steady_from(steps: list[StepMap]) -> int:
+    """First k from which every step is the same map (the steady state reused by _Steady)."""
+    k = len(steps) - 1
+    while k > 0 and steps[k - 1] is steps[-1]:
+        k -= 1
+    return k
+
+
+def _steady_states(T: np.ndarray, U: np.ndarray, s: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """States s_1..s_N of the time-invariant recursion s_j = T s_{j-1} + U z_j from s (M, d),
+    z (M, N, m), N a multiple of _BLOCK = L.
+
+    Within a block, state j (from 0) is T^(j+1) s_init + sum_(i <= j) T^(j-i) U z_i: one GEMM
+    gives every block's response to its own inputs, one more adds the response to its initial
+    state; only the B block-initial states go through a sequential loop.
+    """
+    M, N, m = z.shape
+    d, L = T.shape[0], _BLOCK
+    B = N // L
+    Tp = np.empty((L, d, d))  # Tp[j] = T^(j+1)
+    Tp[0] = T
+    for j in range(1, L):
+        Tp[j] = T @ Tp[j - 1]
+    TU = np.concatenate([U[None], Tp[:-1] @ U])  # TU[q] = T^q U
+    G = np.zeros((L, m, L, d))  # (input i, its component) -> (state j, its component)
+    for i in range(L):
+        G[i, :, i:, :] = TU[: L - i].transpose(2, 0, 1)
+    G = G.reshape(L * m, L * d)
+    Phi = Tp.transpose(2, 0, 1).reshape(d, L * d)  # initial state -> the block's states
+    S = (np.ascontiguousarray(z).reshape(M, B, L * m) @ G).reshape(M, B, L, d)
+    starts = np.empty((M, B, d))
+    TL = Tp[-1].T
+    for b in range(B):
+        starts[:, b] = s
+        s = S[:, b, -1] + s @ TL
+    S += (starts @ Phi).reshape(M, B, L, d)
+    return S.reshape(M, N, d)
 
 
 def shared_pattern(z: np.ndarray) -> np.ndarray | None:
