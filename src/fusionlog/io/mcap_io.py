@@ -252,6 +252,8 @@ def _read_varint(buf: Any, pos: int) -> tuple[int, int]:
 
 
 def _varint_value(b: bytes) -> int:
+    if len(b) == 2:  # steps 128..16383: most messages of a long log
+        return (b[0] & 0x7F) | b[1] << 7
     result = 0
     for i, byte in enumerate(b):
         result |= (byte & 0x7F) << (7 * i)
@@ -331,6 +333,20 @@ def _decode_generic(buf: Any, keys: dict[int, int]) -> Decoded:
     return ints[0], t, ints[1], ints[2], ints[3], _join(buf, p1), _join(buf, p2)
 
 
+def _payload(buf: Any, pos: int, n: int) -> tuple[int, Any]:
+    """(end, bytes) of the length-delimited field whose tag is at ``pos``; end -1 if malformed."""
+    ln = buf[pos + 1] if pos + 1 < n else 0x80
+    pos += 2
+    if ln >= 0x80:
+        try:
+            ln, pos = _read_varint(buf, pos - 1)
+        except (IndexError, _WireError):
+            return -1, b""
+    if pos + ln > n or ln % 8:
+        return -1, b""
+    return pos + ln, buf[pos : pos + ln]
+
+
 def _decode(buf: Any, layout: _Layout) -> Decoded:
     """Decode one message; canonical encodings take the regex fast path."""
     fast = layout.fast
@@ -340,26 +356,12 @@ def _decode(buf: Any, layout: _Layout) -> Decoded:
         n = len(buf)
         p1: Any = b""
         p2: Any = b""
-        ok = True
-        for tag, which in ((layout.p1_tag, 1), (layout.p2_tag, 2)):
-            if pos < n and buf[pos] == tag:
-                ln = buf[pos + 1] if pos + 1 < n else 0x80
-                pos += 2
-                if ln >= 0x80:
-                    try:
-                        ln, pos = _read_varint(buf, pos - 1)
-                    except (IndexError, _WireError):
-                        ok = False
-                        break
-                if pos + ln > n or ln % 8:
-                    ok = False
-                    break
-                if which == 1:
-                    p1 = buf[pos : pos + ln]
-                else:
-                    p2 = buf[pos : pos + ln]
-                pos += ln
-        if ok and pos == n:
+        # the payload fields, unrolled: tag, length (one byte below 128), packed doubles
+        if pos < n and buf[pos] == layout.p1_tag:
+            pos, p1 = _payload(buf, pos, n)
+        if 0 <= pos < n and buf[pos] == layout.p2_tag:
+            pos, p2 = _payload(buf, pos, n)
+        if pos == n:  # -1 when a payload was malformed
             gs, gt, go, gr, gd = m.groups()  # type: ignore[union-attr]
             return (
                 0 if gs is None else gs[0] if len(gs) == 1 else _varint_value(gs),
@@ -1003,7 +1005,9 @@ class McapFile:
                 skip = m0 if ci == c0 else 0
                 for mi, rec in enumerate(self._read_chunk(f, index)):
                     if mi >= skip and rec.channel_id in cids:
-                        yield ci, mi, rec.channel_id, memoryview(rec.data)
+                        # large payloads as views (no copy); small ones as the bytes they are
+                        d = rec.data
+                        yield ci, mi, rec.channel_id, d if len(d) < 4096 else memoryview(d)
 
     def _decode(self, cid: int, data: memoryview) -> tuple:
         try:
