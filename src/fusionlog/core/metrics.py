@@ -124,7 +124,7 @@ class MetricsAccumulator:
         if m == 0:
             return
 
-        per_run = self._add_steps(x - mean, cov, shared)
+        per_run = self._add_steps(np.subtract(x, mean, out=_scratch("err", x.shape)), cov, shared)
         self.runs += m
 
         # per-run averages over the run's own valid steps (whole runs are in this block)
@@ -161,9 +161,11 @@ class MetricsAccumulator:
         if shared:
             # one inverse per step for all m runs: a batched (m x n) @ (n x n) product per step
             err_t = err.transpose(1, 0, 2)  # (w, m, n) view
-            nees = _rowdot(np.matmul(err_t, p_inv), err_t).T  # (m, w)
+            y = np.matmul(err_t, p_inv, out=_scratch("y", err_t.shape))
+            nees = _rowdot(y, err_t).T  # (m, w)
         else:
-            nees = _rowdot(np.matmul(err[..., None, :], p_inv)[..., 0, :], err)
+            y = np.matmul(err[..., None, :], p_inv, out=_scratch("y", (m, w, 1, n)))
+            nees = _rowdot(y[..., 0, :], err)
         tr = np.trace(p_safe, axis1=-2, axis2=-1)  # (w,) or (m, w)
         if valid is None:
             self.count += m
@@ -179,13 +181,15 @@ class MetricsAccumulator:
         # Sums over runs and over steps as matrix-vector products: numpy reduces the short
         # trailing axes of these (m, w, n) arrays several times slower than BLAS does.
         ones_m, ones_w = np.ones(m), np.ones(w)
-        sq = (err * err).reshape(m, w * n)
+        sq = np.multiply(err, err, out=_scratch("sq", err.shape)).reshape(m, w * n)
         per_run[1] += sq @ np.ones(w * n)
         self.sse += (ones_m @ sq).reshape(w, n)
         self.sse_sq += (ones_m @ np.square(sq, out=sq)).reshape(w, n)
         self.nees_sum += ones_m @ nees
         per_run[2] += nees @ ones_w
-        dm = np.maximum(nees, 0.0)  # negative only for an indefinite reported P
+        dm = np.maximum(
+            nees, 0.0, out=_scratch("dm", nees.shape)
+        )  # negative only for an indefinite reported P
         self.dm_sq += ones_m @ dm  # sum of DM^2 = sum of the non-negative NEES
         self.nees_sq += ones_m @ np.square(nees, out=nees)
         np.sqrt(dm, out=dm)
@@ -281,11 +285,27 @@ class MetricsAccumulator:
         )
 
 
+_SCRATCH: dict[str, np.ndarray] = {}
+
+
+def _scratch(name: str, shape: tuple[int, ...]) -> np.ndarray:
+    """A float array reused between calls for a temporary that does not outlive the call.
+
+    Fresh multi-megabyte arrays are mapped anew by the allocator, and in a virtual machine
+    their first-touch page faults cost several times the arithmetic done in them. One array per
+    name is kept (the last shape asked for), so the memory is a few blocks' worth.
+    """
+    a = _SCRATCH.get(name)
+    if a is None or a.shape != shape:
+        a = _SCRATCH[name] = np.empty(shape)
+    return a
+
+
 def _rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """sum_i a[..., i] * b[..., i]; a loop over the (small) state axis, because numpy reduces a
     short trailing axis about ten times slower than it adds whole arrays."""
-    out = a[..., 0] * b[..., 0]
-    term = np.empty_like(out)
+    out = np.multiply(a[..., 0], b[..., 0], out=_scratch("dot", a.shape[:-1]))
+    term = _scratch("term", out.shape)
     for i in range(1, a.shape[-1]):
         out += np.multiply(a[..., i], b[..., i], out=term)
     return out
