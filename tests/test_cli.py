@@ -176,6 +176,28 @@ def test_run_refuses_to_overwrite_then_force(ajgl_run: Path, tmp_path: Path) -> 
     assert compare_summaries(a, b, rtol=0, atol=0) == []
 
 
+def test_run_force_that_fails_leaves_the_old_outputs(ajgl_run: Path, tmp_path: Path, monkeypatch):
+    """Outputs are staged and moved into place together: a failure in the last stage keeps the
+    previous run's four files as they were (no new sensors next to old estimates), and no
+    staging folder is left behind."""
+    import fusionlog.stages.evaluate as evaluate_stage
+
+    d = tmp_path / "out"
+    shutil.copytree(ajgl_run, d)
+    before = snapshot(d / n for n in OUTPUTS)
+    before_bytes = {n: (d / n).read_bytes() for n in OUTPUTS}
+
+    def fail(*args, **kwargs):
+        raise evaluate_stage.FusionlogError("disk trouble while evaluating")
+
+    monkeypatch.setattr(evaluate_stage, "run_evaluate", fail)
+    res = cli("run", AJGL, "--out-dir", d, "--runs", "30", "--steps", "4", "--force")
+    assert_one_line_error(res, "disk trouble")
+    assert snapshot(d / n for n in OUTPUTS) == before
+    assert {n: (d / n).read_bytes() for n in OUTPUTS} == before_bytes
+    assert listing(d) == sorted(OUTPUTS)
+
+
 def test_run_refuses_when_only_a_later_output_exists(tmp_path: Path) -> None:
     d = tmp_path / "out"
     d.mkdir()

@@ -7,7 +7,10 @@ stderr naming the file and the problem; a traceback only with --debug), 130 inte
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -198,26 +201,38 @@ def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs) -> None:
             if p.exists():
                 raise FusionlogError(f"{p}: exists; use --force to overwrite")
     cmd = _command_line()
-    t0 = time.perf_counter()
-    run_simulate(sc, outs["sensors.mcap"], force=force, block=block_runs, command=cmd)
-    t1 = time.perf_counter()
-    run_estimate(
-        outs["sensors.mcap"],
-        outs["estimates.mcap"],
-        archs=list(archs) or list(sc.architectures),
-        force=force,
-        block=block_runs,
-        command=cmd,
-    )
-    t2 = time.perf_counter()
-    res = run_evaluate(
-        outs["sensors.mcap"],
-        outs["estimates.mcap"],
-        outs["evaluation.rrd"],
-        summary_path=outs["summary.json"],
-        force=force,
-        block=block_runs,
-    )
+    # All four outputs are made in a staging folder beside them and moved into place together
+    # at the end: a run that fails half-way leaves the previous outputs as they were, not a mix.
+    d.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(dir=d, prefix=".run-"))
+    new = {k: staging / k for k in outs}
+    try:
+        t0 = time.perf_counter()
+        run_simulate(sc, new["sensors.mcap"], block=block_runs, command=cmd)
+        t1 = time.perf_counter()
+        run_estimate(
+            new["sensors.mcap"],
+            new["estimates.mcap"],
+            archs=list(archs) or list(sc.architectures),
+            block=block_runs,
+            command=cmd,
+        )
+        t2 = time.perf_counter()
+        res = run_evaluate(
+            new["sensors.mcap"],
+            new["estimates.mcap"],
+            new["evaluation.rrd"],
+            summary_path=new["summary.json"],
+            block=block_runs,
+        )
+        if not force:  # an output that appeared while we were running is not overwritten
+            for p in outs.values():
+                if p.exists():
+                    raise FusionlogError(f"{p}: exists; use --force to overwrite")
+        for k, p in outs.items():
+            os.replace(new[k], p)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     t3 = time.perf_counter()
     click.echo(f"{sc.name}: M = {sc.runs} runs, K = {sc.steps}, seed {sc.seed}")
     click.echo(format_table(res.summary))
