@@ -635,8 +635,9 @@ def _recursion(plan: Plan, z: np.ndarray, s0: np.ndarray | None = None) -> np.nd
     states = [] if plan.smoother is not None else None
     # With few runs the per-step numpy calls, not the arithmetic, are the cost: a long steady
     # tail (a 10^5-step log) is run in blocks instead, a few GEMMs for all of it.
+    few_runs = not plan.per_run and M <= _FEW_RUNS
     blocks = 0
-    if not plan.per_run and M <= _FEW_RUNS:
+    if few_runs:
         blocks = (K1 - _steady_from(plan.steps)) // _BLOCK
         blocks = blocks if blocks >= 2 else 0
     head = K1 - blocks * _BLOCK
@@ -655,7 +656,7 @@ def _recursion(plan: Plan, z: np.ndarray, s0: np.ndarray | None = None) -> np.nd
         else:
             out[:, head:] = tail @ st.O.T
     if plan.smoother is not None:
-        _smooth(plan.smoother, states, z, out, few_runs=not plan.per_run and M <= _FEW_RUNS)
+        _smooth(plan.smoother, states, z, out, few_runs)
     return out
 
 

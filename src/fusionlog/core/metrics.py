@@ -187,9 +187,8 @@ class MetricsAccumulator:
         self.sse_sq += (ones_m @ np.square(sq, out=sq)).reshape(w, n)
         self.nees_sum += ones_m @ nees
         per_run[2] += nees @ ones_w
-        dm = np.maximum(
-            nees, 0.0, out=_scratch("dm", nees.shape)
-        )  # negative only for an indefinite reported P
+        # NEES is negative only for an indefinite reported P
+        dm = np.maximum(nees, 0.0, out=_scratch("dm", nees.shape))
         self.dm_sq += ones_m @ dm  # sum of DM^2 = sum of the non-negative NEES
         self.nees_sq += ones_m @ np.square(nees, out=nees)
         np.sqrt(dm, out=dm)

@@ -579,8 +579,8 @@ class McapWriter:
         raise) a message it failed to record, so a silent loss would otherwise go unnoticed."""
         try:
             with open(tmp, "rb") as f:
-                stats = SeekingReader(f).get_summary()
-            count = stats.statistics.message_count if stats and stats.statistics else -1
+                summary = SeekingReader(f).get_summary()
+            count = summary.statistics.message_count if summary and summary.statistics else -1
         except (McapError, OSError, ValueError) as e:
             raise FusionlogError(f"{self.path}: written file does not read back: {e}") from None
         if count != self._messages:
