@@ -224,7 +224,7 @@ def _fast_pattern(numbers: dict[str, int], payload: list[str]) -> re.Pattern[byt
     """Regex for the canonical encoding (fields in number order, one-byte tags), else None.
 
     The regex engine runs in C, so matching the five scalars this way costs a fraction of the
-    Python loop in ``_decode_generic``; anything unusual falls back to that loop.
+    Python loop in ``_fields_generic``; anything unusual falls back to that loop.
     """
     order = ["step", "time", "run_offset", "runs", "dim", *payload]
     nums = [numbers[n] for n in order]
@@ -260,7 +260,13 @@ def _varint_value(b: bytes) -> int:
     return result
 
 
-def _join(buf: Any, pieces: list[tuple[int, int]] | None) -> Any:
+Pieces = list[tuple[int, int]]
+Fields = tuple[int, float, int, int, int, Pieces, Pieces]
+"""(step, time, run_offset, runs, dim, pieces1, pieces2): a payload as (start, end) byte ranges
+of the message, usually one; several when a writer split the packed field or did not pack it."""
+
+
+def _join(buf: Any, pieces: Pieces) -> Any:
     if not pieces:
         return b""
     if len(pieces) == 1:  # the normal case: one packed field, no copy
@@ -270,15 +276,15 @@ def _join(buf: Any, pieces: list[tuple[int, int]] | None) -> Any:
     return b"".join(bytes(buf[a:b]) for a, b in pieces)
 
 
-def _decode_generic(buf: Any, keys: dict[int, int]) -> Decoded:
+def _fields_generic(buf: Any, keys: dict[int, int]) -> Fields:
     """Protobuf wire parse: any field order, unknown fields, split packed or unpacked doubles.
 
     Absent scalars are 0, as a proto3 writer omits zeros.
     """
     ints = [0, 0, 0, 0]
     t = 0.0
-    p1: list[tuple[int, int]] | None = None
-    p2: list[tuple[int, int]] | None = None
+    p1: Pieces = []
+    p2: Pieces = []
     n = len(buf)
     pos = 0
     try:
@@ -307,10 +313,7 @@ def _decode_generic(buf: Any, keys: dict[int, int]) -> Decoded:
                 if action is not None:
                     if ln % 8:
                         raise _WireError("packed double field length is not a multiple of 8")
-                    if action == _A_P1:
-                        p1 = [(pos, end)] if p1 is None else [*p1, (pos, end)]
-                    else:
-                        p2 = [(pos, end)] if p2 is None else [*p2, (pos, end)]
+                    (p1 if action == _A_P1 else p2).append((pos, end))
                 pos = end
             elif wt == 1:
                 if pos + 8 > n:
@@ -318,9 +321,9 @@ def _decode_generic(buf: Any, keys: dict[int, int]) -> Decoded:
                 if action == _A_TIME:
                     t = _F64.unpack_from(buf, pos)[0]
                 elif action == _A_P1:
-                    p1 = [(pos, pos + 8)] if p1 is None else [*p1, (pos, pos + 8)]
+                    p1.append((pos, pos + 8))
                 elif action == _A_P2:
-                    p2 = [(pos, pos + 8)] if p2 is None else [*p2, (pos, pos + 8)]
+                    p2.append((pos, pos + 8))
                 pos += 8
             elif wt == 5:
                 pos += 4
@@ -330,37 +333,40 @@ def _decode_generic(buf: Any, keys: dict[int, int]) -> Decoded:
             raise _WireError("message ends inside a field")
     except IndexError:
         raise _WireError("message ends inside a field") from None
-    return ints[0], t, ints[1], ints[2], ints[3], _join(buf, p1), _join(buf, p2)
+    return ints[0], t, ints[1], ints[2], ints[3], p1, p2
 
 
-def _payload(buf: Any, pos: int, n: int) -> tuple[int, Any]:
-    """(end, bytes) of the length-delimited field whose tag is at ``pos``; end -1 if malformed."""
+def _payload_span(buf: Any, pos: int, n: int) -> tuple[int, int]:
+    """(start, end) of the packed doubles of the length-delimited field whose tag is at ``pos``;
+    (-1, -1) if malformed."""
     ln = buf[pos + 1] if pos + 1 < n else 0x80
     pos += 2
     if ln >= 0x80:
         try:
             ln, pos = _read_varint(buf, pos - 1)
         except (IndexError, _WireError):
-            return -1, b""
+            return -1, -1
     if pos + ln > n or ln % 8:
-        return -1, b""
-    return pos + ln, buf[pos : pos + ln]
+        return -1, -1
+    return pos, pos + ln
 
 
-def _decode(buf: Any, layout: _Layout) -> Decoded:
+def _fields(buf: Any, layout: _Layout) -> Fields:
     """Decode one message; canonical encodings take the regex fast path."""
     fast = layout.fast
     if fast is not None:
         m = fast.match(buf)
         pos = m.end()  # type: ignore[union-attr]  # every group is optional: always matches
         n = len(buf)
-        p1: Any = b""
-        p2: Any = b""
-        # the payload fields, unrolled: tag, length (one byte below 128), packed doubles
+        p1: Pieces = []
+        p2: Pieces = []
+        # the payload fields, unrolled: tag, length, packed doubles
         if pos < n and buf[pos] == layout.p1_tag:
-            pos, p1 = _payload(buf, pos, n)
+            a, pos = _payload_span(buf, pos, n)
+            p1 = [(a, pos)]
         if 0 <= pos < n and buf[pos] == layout.p2_tag:
-            pos, p2 = _payload(buf, pos, n)
+            a, pos = _payload_span(buf, pos, n)
+            p2 = [(a, pos)]
         if pos == n:  # -1 when a payload was malformed
             gs, gt, go, gr, gd = m.groups()  # type: ignore[union-attr]
             return (
@@ -372,7 +378,102 @@ def _decode(buf: Any, layout: _Layout) -> Decoded:
                 p1,
                 p2,
             )
-    return _decode_generic(buf, layout.keys)
+    return _fields_generic(buf, layout.keys)
+
+
+def _decode(buf: Any, layout: _Layout) -> Decoded:
+    """Decode one message, payloads as bytes-like (views of ``buf`` where they are contiguous)."""
+    step, t, off, runs, dim, q1, q2 = _fields(buf, layout)
+    return step, t, off, runs, dim, _join(buf, q1), _join(buf, q2)
+
+
+#: Varints of up to this many bytes are decoded in int64 columns (uint32 needs five).
+_MAX_VARINT = 5
+
+
+@dataclass(frozen=True)
+class _Template:
+    """Where the fields lie in one canonical message, so that every message of the same channel
+    and length with the same tag and length bytes is decoded at once, as numpy columns.
+
+    Equal tags, lengths and varint continuation bits at the same places make two messages of
+    one length parse identically field by field; only the bytes of the values differ. The
+    payload bytes are not read here: a message's payloads start at its offset + p1 / p2.
+    """
+
+    cols: np.ndarray  # positions read from every message: everything but the payload doubles
+    mask: np.ndarray  # per col: 0xFF tag/length byte, 0x80 varint value byte, 0 time byte
+    expect: np.ndarray  # the template's bytes & mask
+    ints: tuple[tuple[int, int] | None, ...]  # step, run_offset, runs, dim: (col, bytes)
+    time: int | None  # col of the time's first byte
+    p1: tuple[int, int]  # (start, length) of the payloads in the message; (0, 0) if absent
+    p2: tuple[int, int]
+
+    @staticmethod
+    def of(data: bytes, layout: _Layout) -> _Template | None:
+        """The template of ``data``, or None if it is not canonical (decode one by one)."""
+        fast = layout.fast
+        if fast is None:
+            return None
+        n = len(data)
+        m = fast.match(data)
+        pos = m.end()  # type: ignore[union-attr]
+        payload: list[tuple[int, int]] = []
+        for tag in (layout.p1_tag, layout.p2_tag):
+            if 0 <= pos < n and data[pos] == tag:
+                a, pos = _payload_span(data, pos, n)
+                payload.append((a, pos))
+            else:
+                payload.append((0, 0))
+        if pos != n:
+            return None
+        mask = np.full(n, 0xFF, np.uint8)
+        for a, b in payload:
+            mask[a:b] = 1  # not read: dropped from cols below
+        spans = [m.span(g) for g in range(1, 6)]  # type: ignore[union-attr]
+        for g, (a, b) in enumerate(spans):
+            if a >= 0:
+                if g != 1 and b - a > _MAX_VARINT:
+                    return None
+                mask[a:b] = 0 if g == 1 else 0x80
+        cols = np.flatnonzero(mask != 1)
+        where = np.full(n, -1)
+        where[cols] = np.arange(len(cols))
+        mask = mask[cols]
+        ints = tuple(
+            None if spans[g][0] < 0 else (int(where[spans[g][0]]), spans[g][1] - spans[g][0])
+            for g in (0, 2, 3, 4)
+        )
+        time = None if spans[1][0] < 0 else int(where[spans[1][0]])
+        expect = np.frombuffer(data, np.uint8)[cols] & mask
+        (a1, b1), (a2, b2) = payload
+        return _Template(cols, mask, expect, ints, time, (a1, b1 - a1), (a2, b2 - a2))
+
+    def decode(
+        self, u8: np.ndarray, starts: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The messages at byte offsets ``starts`` of ``u8``: (ok, ints, time) with ints rows
+        step, run_offset, runs, dim, p1, n1, p2, n2 (payload offsets in ``u8`` and byte
+        lengths); ok is False where a message does not fit the template (decode it singly)."""
+        head = u8[starts[:, None] + self.cols]
+        ok = ((head & self.mask) == self.expect).all(axis=1)
+        ints = np.zeros((8, len(starts)), np.int64)
+        for row, spec in enumerate(self.ints):
+            if spec is not None:
+                c, ln = spec
+                v = ints[row]
+                for i in range(ln):
+                    v |= (head[:, c + i] & 0x7F).astype(np.int64) << (7 * i)
+        ints[4] = starts + self.p1[0]
+        ints[5] = self.p1[1]
+        ints[6] = starts + self.p2[0]
+        ints[7] = self.p2[1]
+        if self.time is None:
+            time = np.zeros(len(starts))
+        else:
+            c = self.time
+            time = np.ascontiguousarray(head[:, c : c + 8]).view("<f8")[:, 0]
+        return ok, ints, time
 
 
 def _layout_from_schema(schema: Schema) -> _Layout | None:
@@ -824,6 +925,64 @@ class _OutBlock:
     arrays: dict[int, Any] = field(default_factory=dict)  # topic index -> ndarray | _Est
 
 
+#: Messages shorter than this are decoded a group at a time (``_Template``), longer ones singly:
+#: their bytes dominate, and a template would have to be checked against every payload length.
+_SMALL = 4096
+#: Messages per table when a file without index is read linearly.
+_LINEAR_BATCH = 8192
+#: Payloads of more doubles than this are copied one message at a time (no index arrays).
+_GATHER_LOOP = 1024
+
+
+@dataclass
+class _Table:
+    """The wanted messages of one chunk, decoded into columns, in file order.
+
+    The payloads stay in ``raw`` (the messages' bytes joined, then any payload that had to be
+    reassembled from pieces): p1/p2 are their byte offsets in it, n1/n2 their byte lengths.
+    """
+
+    raw: bytes
+    cid: np.ndarray
+    step: np.ndarray
+    off: np.ndarray
+    runs: np.ndarray
+    dim: np.ndarray
+    time: np.ndarray
+    p1: np.ndarray
+    n1: np.ndarray
+    p2: np.ndarray
+    n2: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.cid)
+
+
+def _gather(raw: bytes, starts: np.ndarray, nvals: int) -> np.ndarray:
+    """(len(starts), nvals) little-endian doubles read from ``raw`` at byte offsets ``starts``.
+
+    The offsets are rarely multiples of 8; numpy reads unaligned arrays, so ``raw`` is viewed
+    as doubles once per residue mod 8 and whole doubles are gathered (an index per double,
+    not per byte).
+    """
+    count = len(starts)
+    out = np.empty((count, nvals), _F8)
+    if not count or not nvals:
+        return out
+    if nvals > _GATHER_LOOP:
+        for i, s in enumerate(starts.tolist()):
+            out[i] = np.frombuffer(raw, _F8, nvals, s)
+        return out
+    res = starts & 7
+    cols = np.arange(nvals)
+    for j in np.flatnonzero(np.bincount(res, minlength=8)).tolist():
+        view = np.frombuffer(raw, _F8, (len(raw) - j) // 8, j)
+        sel = res == j
+        at = (starts[sel] - j) >> 3
+        out[sel] = view[at[:, None] + cols]
+    return out
+
+
 class McapFile:
     """A fusionlog MCAP file opened for reading; opening validates the container and schemas.
 
@@ -954,7 +1113,7 @@ class McapFile:
             raise FusionlogError(f"{self.path}: messages on undeclared channels {sorted(unknown)}")
         return schemas, channels, counts
 
-    # -- low-level message stream --------------------------------------------------------------
+    # -- decoded chunks ------------------------------------------------------------------------
 
     def _read_chunk(self, f: BinaryIO, ci: ChunkIndex) -> list[Message]:
         """One chunk's messages, via mcap's own record reader (one chunk in memory at a time).
@@ -974,47 +1133,129 @@ class McapFile:
                 f"({_one_line(e)}); {_recover_hint(self.path)}"
             ) from e
 
-    def _messages(
-        self, cids: set[int], start: tuple[int, int] = (0, 0)
-    ) -> Iterator[tuple[int, int, int, memoryview]]:
-        """Yield (chunk ordinal, message ordinal, channel id, data) in file order from ``start``.
+    def _linear_batches(self, f: BinaryIO) -> Iterator[list[Message]]:
+        """A file without index, read from its start in batches of messages."""
+        f.seek(0)
+        records = iter(StreamReader(f).records)
+        batch: list[Message] = []
+        while True:
+            try:
+                rec = next(records, None)
+            except (McapError, struct.error, EOFError, ValueError) as e:
+                raise FusionlogError(
+                    f"{self.path}: corrupt MCAP file ({_one_line(e)}); {_recover_hint(self.path)}"
+                ) from e
+            if isinstance(rec, Message):
+                batch.append(rec)
+            if rec is None or len(batch) == _LINEAR_BATCH:
+                if batch:
+                    yield batch
+                if rec is None:
+                    return
+                batch = []
 
-        Positions let a block of runs be read again without remembering its bytes.
+    def _tables(self, cids: set[int], start: int = 0) -> Iterator[tuple[int, _Table]]:
+        """(ordinal, table) of every chunk from the ``start``-th that has messages of ``cids``.
+
+        Ordinals count chunks (batches of messages in a file without index), so a block of runs
+        can be read again from where it started without keeping its bytes.
         """
-        c0, m0 = start
         with open(self.path, "rb") as f:
             if self._linear:
-                f.seek(0)
-                try:
-                    mi = -1
-                    for rec in StreamReader(f).records:
-                        if isinstance(rec, Message):
-                            mi += 1
-                            if mi >= m0 and rec.channel_id in cids:
-                                yield 0, mi, rec.channel_id, memoryview(rec.data)
-                except (McapError, struct.error, EOFError, ValueError) as e:
-                    raise FusionlogError(
-                        f"{self.path}: corrupt MCAP file ({_one_line(e)}); "
-                        f"{_recover_hint(self.path)}"
-                    ) from e
+                for bi, batch in enumerate(self._linear_batches(f)):
+                    tab = self._table(batch, cids) if bi >= start else None
+                    if tab is not None:
+                        yield bi, tab
                 return
-            for ci in range(c0, len(self._chunks)):
+            for ci in range(start, len(self._chunks)):
                 index, ids = self._chunks[ci]
                 if ids is not None and not ids & cids:
                     continue
-                skip = m0 if ci == c0 else 0
-                for mi, rec in enumerate(self._read_chunk(f, index)):
-                    if mi >= skip and rec.channel_id in cids:
-                        # large payloads as views (no copy); small ones as the bytes they are
-                        d = rec.data
-                        yield ci, mi, rec.channel_id, d if len(d) < 4096 else memoryview(d)
+                tab = self._table(self._read_chunk(f, index), cids)
+                if tab is not None:
+                    yield ci, tab
 
-    def _decode(self, cid: int, data: memoryview) -> tuple:
-        try:
-            return _decode(data, self._layouts[cid])
-        except _WireError as e:
-            topic = next(t for t, i in self._topics.items() if cid in i.channel_ids)
-            raise FusionlogError(f"{self.path}: bad protobuf message on {topic}: {e}") from e
+    def _table(self, msgs: list[Message], cids: set[int]) -> _Table | None:
+        """Decode the messages of ``cids`` among ``msgs`` into columns.
+
+        Messages shorter than _SMALL are grouped by channel and length and each group decoded
+        at once against the template of its first message (a fusionlog writer's messages of
+        one topic differ only in their values, except where the step's varint grows); the rest,
+        and any message that does not fit its group's template, one by one. The per-message
+        Python work left is two list comprehensions.
+        """
+        keep = [m for m in msgs if m.channel_id in cids]
+        n = len(keep)
+        if not n:
+            return None
+        datas = [m.data for m in keep]
+        cid = np.fromiter([m.channel_id for m in keep], np.int64, n)
+        lens = np.fromiter(map(len, datas), np.int64, n)
+        starts = np.zeros(n, np.int64)
+        np.cumsum(lens[:-1], out=starts[1:])
+        raw = b"".join(datas)
+        del keep, datas
+        u8 = np.frombuffer(raw, np.uint8)
+        # step, run_offset, runs, dim, p1, n1, p2, n2 (payload offsets in raw and byte lengths)
+        cols = np.zeros((8, n), np.int64)
+        time = np.zeros(n)
+        done = np.zeros(n, bool)
+        small = np.flatnonzero(lens < _SMALL)
+        if len(small):
+            key = cid[small] << 32 | lens[small]
+            order = np.argsort(key, kind="stable")
+            bounds = np.flatnonzero(np.diff(key[order])) + 1
+            for g in np.split(small[order], bounds):
+                s0 = int(starts[g[0]])
+                tpl = _Template.of(raw[s0 : s0 + int(lens[g[0]])], self._layouts[int(cid[g[0]])])
+                if tpl is None:
+                    continue
+                ok, ints, t = tpl.decode(u8, starts[g])
+                if not ok.all():
+                    g, ints, t = g[ok], ints[:, ok], t[ok]
+                cols[:, g] = ints
+                time[g] = t
+                done[g] = True
+        rest = np.flatnonzero(~done)
+        if len(rest):
+            raw = self._decode_rows(raw, rest, cid, starts, lens, cols, time)
+        return _Table(raw, cid, *cols[:4], time, *cols[4:])
+
+    def _decode_rows(
+        self,
+        raw: bytes,
+        rows: np.ndarray,
+        cid: np.ndarray,
+        starts: np.ndarray,
+        lens: np.ndarray,
+        cols: np.ndarray,
+        time: np.ndarray,
+    ) -> bytes:
+        """Decode ``rows`` one by one into ``cols``/``time``; return ``raw`` with any payload
+        that was split into pieces appended whole (payloads must be contiguous in the table)."""
+        mv = memoryview(raw)
+        extra: list[bytes] = []
+        end = len(raw)
+        for i in rows.tolist():
+            s, c = int(starts[i]), int(cid[i])
+            try:
+                fields = _fields(mv[s : s + int(lens[i])], self._layouts[c])
+            except _WireError as e:
+                topic = self._topic_of()[c]
+                raise FusionlogError(f"{self.path}: bad protobuf message on {topic}: {e}") from e
+            step, t, off, runs, dim, q1, q2 = fields
+            cols[:4, i] = step, off, runs, dim
+            time[i] = t
+            for j, q in ((4, q1), (6, q2)):
+                if len(q) == 1:
+                    cols[j, i], cols[j + 1, i] = s + q[0][0], q[0][1] - q[0][0]
+                elif q:
+                    piece = b"".join(mv[s + a : s + b] for a, b in q)
+                    extra.append(piece)
+                    cols[j, i], cols[j + 1, i] = end, len(piece)
+                    end += len(piece)
+        mv.release()
+        return b"".join([raw, *extra]) if extra else raw
 
     # -- structure -----------------------------------------------------------------------------
 
@@ -1031,26 +1272,32 @@ class McapFile:
         if recorded is not None:
             self._structure = recorded
             return recorded
-        step_time: dict[int, float] = {}
-        dims: dict[str, int] = {}
+        parts: list[tuple[np.ndarray, ...]] = []  # (step, time, cid, dim) of the first block
         first: int | None = None
-        for _, _, cid, data in self._messages(cids):
-            step, t, off, _, dim, _, _ = self._decode(cid, data)
+        for _, tab in self._tables(cids):
             if first is None:
-                first = off
-            elif off != first:
+                first = int(tab.off[0])
+            other = np.flatnonzero(tab.off != first)
+            j = int(other[0]) if len(other) else len(tab)
+            parts.append((tab.step[:j], tab.time[:j], tab.cid[:j], tab.dim[:j]))
+            if j < len(tab):
                 break
-            step_time.setdefault(step, t)
-            dims.setdefault(topic_of[cid], dim)
-        steps = len(step_time)
-        if sorted(step_time) != list(range(steps)):
-            raise FusionlogError(
-                f"{self.path}: the steps of the first block of runs are not 0..K "
-                f"(found {steps} distinct steps, largest {max(step_time)})"
-            )
+        dims: dict[str, int] = {}
+        times = np.zeros(0)
+        if parts:
+            step, t, cid, dim = (np.concatenate(p) for p in zip(*parts, strict=True))
+            found, at = np.unique(step, return_index=True)
+            if not np.array_equal(found, np.arange(len(found))):
+                raise FusionlogError(
+                    f"{self.path}: the steps of the first block of runs are not 0..K "
+                    f"(found {len(found)} distinct steps, largest {found[-1]})"
+                )
+            times = t[at]
+            _, at = np.unique(cid, return_index=True)
+            for i in sorted(at.tolist()):
+                dims.setdefault(topic_of[int(cid[i])], int(dim[i]))
         if first not in (None, 0):
             raise FusionlogError(f"{self.path}: the first block of runs starts at run {first}")
-        times = np.array([step_time[k] for k in range(steps)], dtype=float)
         self._structure = _Structure(times, dims, self._last_run_end(cids))
         return self._structure
 
@@ -1067,13 +1314,15 @@ class McapFile:
             return None
         dims: dict[str, int] = {}
         wanted = len({topic_of[c] for c in cids})
-        for _, _, cid, data in self._messages(cids):
-            if topic_of[cid] in dims:
-                continue
-            step, t, off, _, dim, _, _ = self._decode(cid, data)
-            if off != 0 or step != 0 or t != 0.0:
-                return None  # not the writer's order: fall back to the scan
-            dims[topic_of[cid]] = dim
+        for _, tab in self._tables(cids):
+            _, at = np.unique(tab.cid, return_index=True)
+            for i in sorted(at.tolist()):
+                topic = topic_of[int(tab.cid[i])]
+                if topic in dims:
+                    continue
+                if tab.off[i] != 0 or tab.step[i] != 0 or tab.time[i] != 0.0:
+                    return None  # not the writer's order: fall back to the scan
+                dims[topic] = int(tab.dim[i])
             if len(dims) == wanted:
                 break
         # The writer's times are exactly these (np.arange(K + 1) * dt); the block reader checks
@@ -1083,11 +1332,10 @@ class McapFile:
     def _last_run_end(self, cids: set[int]) -> int:
         """End of the last block of runs: the blocks are in order, so read only the last chunk."""
         candidates = [ci for ci, (_, ids) in enumerate(self._chunks) if ids is None or ids & cids]
-        start = (candidates[-1], 0) if candidates and not self._linear else (0, 0)
+        start = candidates[-1] if candidates and not self._linear else 0
         end = 0
-        for _, _, cid, data in self._messages(cids, start):
-            _, _, off, runs, _, _, _ = self._decode(cid, data)
-            end = max(end, off + runs)
+        for _, tab in self._tables(cids, start):
+            end = max(end, int((tab.off + tab.runs).max()))
         return end
 
     def schema_of(self, topic: str) -> str:
@@ -1148,9 +1396,9 @@ class McapFile:
 
         Memory stays around two output blocks plus two chunks, whatever the file's block size:
         the file is read sequentially, and a file block larger than the output window is read
-        again for each window (its start position is remembered, its bytes are not). Payloads
-        are gathered per file block and converted with one numpy operation per topic, because
-        per-message numpy calls would dominate the cost for small messages.
+        again for each window (where it starts is remembered, its bytes are not). Each chunk is
+        decoded into columns (``_table``) and copied into the output blocks with a few numpy
+        operations per topic, so no Python runs per message here.
         """
         if block_runs < 1:
             raise ValueError("block_runs must be >= 1")
@@ -1164,9 +1412,17 @@ class McapFile:
         kinds = [i.layout.kind for i in infos]  # type: ignore[union-attr]
         tidx = {cid: ti for ti, info in enumerate(infos) for cid in info.channel_ids}
         cids = set(tidx)
-        decode = self._decode
+        topic_index = np.zeros(max(cids) + 1, np.int64)
+        topic_index[list(tidx)] = list(tidx.values())
         pending: list[_OutBlock] = []
         next_lo = 0
+        # Per file block: which steps each topic had, and the shared covariances met so far.
+        seen = [np.zeros(S, bool) for _ in names]
+        shared = [
+            np.zeros((S, d, d)) if k == ESTIMATE else None for k, d in zip(kinds, dims, strict=True)
+        ]
+        has_shared = [np.zeros(S, bool) for _ in names]
+        any_per_run = [False for _ in names]
 
         def bad(msg: str) -> FusionlogError:
             return FusionlogError(f"{self.path}: {msg} (fusionlog block order violated)")
@@ -1186,106 +1442,140 @@ class McapFile:
                 next_lo = hi
             return min(upto, pending[-1].hi)
 
-        def take(
-            it: Iterator[tuple[int, int, int, memoryview]],
-            item: tuple[int, int, int, memoryview] | None,
+        def overlaps(a: int, b: int) -> Iterator[tuple[_OutBlock, slice, slice]]:
+            """Output blocks meeting runs [a, b): (block, its rows, rows of the window)."""
+            for blk in pending:
+                x, y = max(a, blk.lo), min(b, blk.hi)
+                if x < y:
+                    yield blk, slice(x - blk.lo, y - blk.lo), slice(x - a, y - a)
+
+        def check_rows(tab: _Table, sel: np.ndarray, ti: int, o: int, r: int) -> None:
+            """The messages ``sel`` of topic ``ti`` in the file block at run ``o`` fit it."""
+            name, d = names[ti], dims[ti]
+            steps = tab.step[sel]
+            wrong = np.flatnonzero(tab.runs[sel] != r)
+            if len(wrong):
+                raise bad(f"{name}: messages of the block at run {o} disagree on runs")
+            if steps.max() >= S:
+                raise bad(f"{name}: step {steps.max()} beyond the file's {S} steps")
+            counts = np.bincount(steps, minlength=S)
+            counts += seen[ti]
+            if counts.max() > 1:
+                raise bad(f"{name}: step {counts.argmax()} appears twice for runs from {o}")
+            wrong = np.flatnonzero((tab.dim[sel] != d) | (tab.n1[sel] != r * d * 8))
+            if len(wrong):
+                i = sel[wrong[0]]
+                raise FusionlogError(
+                    f"{self.path}: {name}: step {tab.step[i]} runs from {o}: payload of "
+                    f"{tab.n1[i] // 8} doubles does not match runs={r}, dim={tab.dim[i]} "
+                    f"(topic dim {d})"
+                )
+            if kinds[ti] == ESTIMATE:
+                n2 = tab.n2[sel]
+                wrong = np.flatnonzero((n2 != d * d * 8) & (n2 != r * d * d * 8))
+                if len(wrong):
+                    i = sel[wrong[0]]
+                    raise FusionlogError(
+                        f"{self.path}: {name}: step {tab.step[i]} runs from {o}: covariance of "
+                        f"{tab.n2[i] // 8} doubles is neither n*n nor runs*n*n"
+                    )
+
+        def add_rows(tab: _Table, i: int, j: int, o: int, r: int, a: int, b: int, check: bool):
+            """Copy runs [a, b) of rows [i, j) of ``tab`` (file block at run ``o``) into the
+            open output blocks."""
+            of_topic = topic_index[tab.cid[i:j]]
+            for ti in range(len(names)):
+                sel = i + np.flatnonzero(of_topic == ti)
+                if not len(sel):
+                    continue
+                if check:
+                    check_rows(tab, sel, ti, o, r)
+                d, steps = dims[ti], tab.step[sel]
+                seen[ti][steps] = True
+                rows = b - a
+                # A window's rows of each message: its payload from row a - o on.
+                vals = _gather(tab.raw, tab.p1[sel] + (a - o) * d * 8, rows * d)
+                vals = vals.reshape(len(sel), rows, d)
+                for blk, dst, src in overlaps(a, b):
+                    out = blk.arrays[ti] if kinds[ti] == VALUES else blk.arrays[ti].mean
+                    out[dst, steps] = vals[:, src].swapaxes(0, 1)
+                if kinds[ti] == VALUES:
+                    continue
+                # A covariance of n*n values is shared by the message's runs (for a one-run
+                # message both readings agree); shared ones are placed when the block ends.
+                sh = tab.n2[sel] == d * d * 8
+                if sh.any():
+                    k = steps[sh]
+                    shared[ti][k] = _gather(tab.raw, tab.p2[sel[sh]], d * d).reshape(-1, d, d)
+                    has_shared[ti][k] = True
+                if not sh.all():
+                    any_per_run[ti] = True
+                    pr = sel[~sh]
+                    covs = _gather(tab.raw, tab.p2[pr] + (a - o) * d * d * 8, rows * d * d)
+                    covs = covs.reshape(len(pr), rows, d, d)
+                    for blk, dst, src in overlaps(a, b):
+                        est: _Est = blk.arrays[ti]
+                        if est.per_run is None:
+                            est.to_per_run(blk.hi - blk.lo)
+                        est.per_run[dst, steps[~sh]] = covs[:, src].swapaxes(0, 1)  # type: ignore[index]
+
+        def end_block(o: int, a: int, b: int, check: bool) -> None:
+            """Every step of every topic came; place the block's shared covariances."""
+            for ti in range(len(names)):
+                if check and not seen[ti].all():
+                    raise bad(
+                        f"{names[ti]}: {seen[ti].sum()} of {S} steps for the block of runs "
+                        f"at run {o}"
+                    )
+                seen[ti][:] = False
+                if kinds[ti] == VALUES:
+                    continue
+                cov, some = shared[ti], has_shared[ti]
+                for blk, dst, _ in overlaps(a, b):
+                    est: _Est = blk.arrays[ti]
+                    if any_per_run[ti]:  # est.per_run exists: add the steps that were shared
+                        est.per_run[dst, some] = cov[some]  # type: ignore[index]
+                        continue
+                    if est.per_run is None:
+                        raw = cov.tobytes()
+                        if est.shared_raw is None:
+                            # A copy per output block: writable, and not aliased between
+                            # blocks that the caller may modify.
+                            est.shared_raw, est.shared = raw, cov.copy()
+                            continue
+                        if est.shared_raw == raw:
+                            continue
+                        # Shared within each file block but different between them.
+                        est.to_per_run(blk.hi - blk.lo)
+                    est.per_run[dst] = cov  # type: ignore[index]
+                some[:] = False
+                any_per_run[ti] = False
+
+        Cursor = tuple[tuple[int, _Table] | None, int]
+
+        def read_block(
+            tables: Iterator[tuple[int, _Table]],
+            cur: Cursor,
             o: int,
             r: int,
             a: int,
             b: int,
             check: bool,
-        ) -> tuple[list[list[Any]], list[list[Any]], tuple[int, int, int, memoryview] | None]:
-            """Gather the payload bytes of runs [a, b) of the file block at run ``o``.
-
-            Returns per topic a list indexed by step, and the first item after the block.
-            """
-            full = a == o and b == o + r
-            p1: list[list[Any]] = [[None] * S for _ in names]
-            p2: list[list[Any]] = [[None] * S for _ in names]
+        ) -> Cursor:
+            """Copy runs [a, b) of the file block at run ``o`` that starts at ``cur`` (a table
+            and a row); return where the next file block starts (no table: end of file)."""
+            item, i = cur
             while item is not None:
-                cid = item[2]
-                step, _, off, runs, dim, v, c = decode(cid, item[3])
-                if off != o:
+                tab = item[1]
+                other = np.flatnonzero(tab.off[i:] != o)
+                j = i + int(other[0]) if len(other) else len(tab)
+                add_rows(tab, i, j, o, r, a, b, check)
+                if j < len(tab):
+                    i = j
                     break
-                ti = tidx[cid]
-                d = dims[ti]
-                if check:
-                    if runs != r:
-                        raise bad(f"{names[ti]}: messages of the block at run {o} disagree on runs")
-                    if step >= S:
-                        raise bad(f"{names[ti]}: step {step} beyond the file's {S} steps")
-                    if p1[ti][step] is not None:
-                        raise bad(f"{names[ti]}: step {step} appears twice for runs from {o}")
-                    if dim != d or len(v) != r * d * 8:
-                        raise FusionlogError(
-                            f"{self.path}: {names[ti]}: step {step} runs from {o}: payload of "
-                            f"{len(v) // 8} doubles does not match runs={r}, dim={dim} "
-                            f"(topic dim {d})"
-                        )
-                    if kinds[ti] == ESTIMATE and len(c) not in (d * d * 8, r * d * d * 8):
-                        raise FusionlogError(
-                            f"{self.path}: {names[ti]}: step {step} runs from {o}: covariance of "
-                            f"{len(c) // 8} doubles is neither n*n nor runs*n*n"
-                        )
-                # A covariance of n*n values is shared by the message's runs (for a one-run
-                # message both readings agree); the flag survives slicing to a window.
-                shared = len(c) == d * d * 8
-                if full:
-                    # Small payloads are copied so they do not pin their whole chunk in memory
-                    # (a long one-run log would otherwise keep every chunk alive).
-                    p1[ti][step] = v if len(v) >= 4096 else bytes(v)
-                    p2[ti][step] = (shared, c if len(c) >= 4096 else bytes(c))
-                else:  # copy the window's rows so the chunk buffer can be freed
-                    p1[ti][step] = bytes(v[(a - o) * d * 8 : (b - o) * d * 8])
-                    if shared:
-                        p2[ti][step] = (shared, bytes(c))
-                    else:
-                        p2[ti][step] = (shared, bytes(c[(a - o) * d * d * 8 : (b - o) * d * d * 8]))
-                item = next(it, None)
-            return p1, p2, item
-
-        def assemble(p1: list[list[Any]], p2: list[list[Any]], a: int, b: int) -> None:
-            """Copy runs [a, b) of one file block into the open output blocks."""
-            rows = b - a
-            for ti, d in enumerate(dims):
-                arr = np.frombuffer(b"".join(p1[ti]), dtype="<f8").reshape(S, rows, d)
-                shared = raw = per_run = None
-                if kinds[ti] == ESTIMATE:
-                    if all(sh for sh, _ in p2[ti]):
-                        raw = b"".join(c for _, c in p2[ti])
-                        shared = np.frombuffer(raw, dtype="<f8").reshape(S, d, d)
-                    else:
-                        per_run = np.empty((S, rows, d, d))
-                        for k, (sh, c) in enumerate(p2[ti]):
-                            ck = np.frombuffer(c, dtype="<f8")
-                            per_run[k] = ck.reshape((d, d) if sh else (rows, d, d))
-                for blk in pending:
-                    x, y = max(a, blk.lo), min(b, blk.hi)
-                    if x >= y:
-                        continue
-                    dst = slice(x - blk.lo, y - blk.lo)
-                    src = arr[:, x - a : y - a].swapaxes(0, 1)
-                    if kinds[ti] == VALUES:
-                        blk.arrays[ti][dst] = src
-                        continue
-                    est: _Est = blk.arrays[ti]
-                    est.mean[dst] = src
-                    if per_run is None:
-                        if est.per_run is None:
-                            if est.shared_raw is None:
-                                # A copy per output block: writable, and not aliased between
-                                # blocks that the caller may modify.
-                                est.shared_raw, est.shared = raw, np.array(shared)
-                                continue
-                            if est.shared_raw == raw:
-                                continue
-                            # Shared within each file block but different between them.
-                            est.to_per_run(blk.hi - blk.lo)
-                        est.per_run[dst] = shared  # type: ignore[index]
-                    else:
-                        if est.per_run is None:
-                            est.to_per_run(blk.hi - blk.lo)
-                        est.per_run[dst] = per_run[:, x - a : y - a].swapaxes(0, 1)  # type: ignore[index]
+                item, i = next(tables, None), 0
+            end_block(o, a, b, check)
+            return item, i
 
         def finished(upto: int) -> Iterator[tuple[int, int, dict[str, Any]]]:
             while pending and pending[0].hi <= upto:
@@ -1299,15 +1589,14 @@ class McapFile:
                         out[t] = (arr.mean, arr.shared if arr.per_run is None else arr.per_run)
                 yield blk.lo, blk.hi - blk.lo, out
 
-        stream = self._messages(cids)
+        tables = self._tables(cids)
         try:
-            item = next(stream, None)
+            cur: Cursor = (next(tables, None), 0)
             expected = 0
-            while item is not None:
-                start = (item[0], item[1])
-                first = decode(item[2], item[3])
-                o, r = first[2], first[3]
-                topic = names[tidx[item[2]]]
+            while cur[0] is not None:
+                (ci, tab), row = cur
+                o, r = int(tab.off[row]), int(tab.runs[row])
+                topic = names[topic_index[tab.cid[row]]]
                 if o != expected:
                     raise bad(
                         f"{topic}: block of runs at run {o} where run {expected} was expected"
@@ -1315,29 +1604,21 @@ class McapFile:
                 if r < 1 or o + r > total:
                     raise bad(f"{topic}: block at run {o} has {r} runs of {total}")
                 b = add_blocks(o + r)
-                p1, p2, item = take(stream, item, o, r, o, b, True)
-                for ti, parts in enumerate(p1):
-                    missing = parts.count(None)
-                    if missing:
-                        raise bad(
-                            f"{names[ti]}: {S - missing} of {S} steps for the block of runs "
-                            f"at run {o}"
-                        )
-                assemble(p1, p2, o, b)
-                del p1, p2
+                start = (ci, row)
+                cur = read_block(tables, cur, o, r, o, b, True)
                 yield from finished(b)
                 # A file block wider than the window: read it again for each further window.
                 while b < o + r:
                     a, b = b, add_blocks(o + r)
-                    again = self._messages(cids, start)
-                    p1, p2, _ = take(again, next(again, None), o, r, a, b, False)
-                    again.close()
-                    assemble(p1, p2, a, b)
-                    del p1, p2
+                    again = self._tables(cids, start[0])
+                    try:
+                        read_block(again, (next(again), start[1]), o, r, a, b, False)
+                    finally:
+                        again.close()
                     yield from finished(b)
                 expected = o + r
         finally:
-            stream.close()
+            tables.close()
         if expected != total:
             raise bad(f"the requested topics cover runs 0..{expected} of {total}")
 
