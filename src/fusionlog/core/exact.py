@@ -56,12 +56,13 @@ def _coupling(plan: Plan, truth: System) -> bool:
     return not (np.array_equal(model.F, truth.F) and np.array_equal(model.H, truth.H))
 
 
-def _forward_moments(plan: Plan, truth: System) -> tuple[list, list, int]:
+def _forward_moments(plan: Plan, truth: System) -> tuple[list, list, int, int]:
     """Mean and covariance of Z_k = [x_k; zeta_k], zeta_k = s_k - D_k x_k, for every k.
 
-    Returns the lists and the size of the x block (0 when x decouples, see `_coupling`).
-    Once the plan repeats its steady-state map and the moments stop changing, later steps
-    repeat them too.
+    Returns the lists, the size of the x block (0 when x decouples, see `_coupling`) and the
+    step from which the moments and the plan's map repeat (K + 1 if they never settle): once
+    the plan repeats its steady-state map and the moments stop changing, later steps repeat
+    them too (the same objects in the lists).
     """
     if plan.per_run:
         raise ValueError("exact analysis needs a plan shared by all runs (no missing data)")
@@ -105,18 +106,18 @@ def _forward_moments(plan: Plan, truth: System) -> tuple[list, list, int]:
         ):
             mus.extend([mu_new] * (K1 - k))
             Cs.extend([C_new] * (K1 - k))
-            break
+            return mus, Cs, nx, k
         mu, C = mu_new, C_new
         mus.append(mu)
         Cs.append(C)
         D_prev = st.D
-    return mus, Cs, nx
+    return mus, Cs, nx, K1
 
 
 def analyse(plan: Plan, truth: System) -> Expected:
     """Exact error mean, MSE matrix, expected NEES and expected DM of a shared plan."""
     n = truth.n
-    mus, Cs, nx = _forward_moments(plan, truth)
+    mus, Cs, nx, settled = _forward_moments(plan, truth)
     K1 = len(plan.steps)
 
     def readout(k: int, A: np.ndarray, D: np.ndarray, extra: np.ndarray) -> np.ndarray:
@@ -128,13 +129,12 @@ def analyse(plan: Plan, truth: System) -> Expected:
     bias = np.empty((K1, n))
     mse = np.empty((K1, n, n))
     if plan.smoother is None:
-        for k, st in enumerate(plan.steps):
-            if k and st is plan.steps[k - 1] and mus[k] is mus[k - 1] and Cs[k] is Cs[k - 1]:
-                bias[k], mse[k] = bias[k - 1], mse[k - 1]  # steady state: nothing changed
-                continue
+        for k, st in enumerate(plan.steps[: settled + 1]):
             Lk = readout(k, st.O, st.D, 0.0)
             bias[k] = Lk @ mus[k]
             mse[k] = sym(Lk @ Cs[k] @ Lk.T) + np.outer(bias[k], bias[k])
+        if settled < K1:  # steady state: the same map of the same moments at every later step
+            bias[settled + 1 :], mse[settled + 1 :] = bias[settled], mse[settled]
     else:
         sm = plan.smoother
         Ht, Rt, Ft, Qt = truth.H, truth.R, truth.F, truth.GQG
@@ -170,17 +170,19 @@ def analyse(plan: Plan, truth: System) -> Expected:
     P = plan.reported_cov
     nees = np.full(K1, np.nan)
     dm = np.full(K1, np.nan)
-    ok = ~np.isnan(P).any(axis=(-1, -2))
+    # A filter's statistics and reported covariance repeat after `settled`: compute them once.
+    m = settled + 1 if plan.smoother is None and settled < K1 else K1
+    ok = ~np.isnan(P[:m]).any(axis=(-1, -2))
     if ok.any():
-        Pinv = np.linalg.inv(P[ok])
-        nees[ok] = np.einsum("kij,kji->k", Pinv, mse[ok])
-        cov = mse[ok] - np.einsum("ki,kj->kij", bias[ok], bias[ok])
+        Pk, bk, mk = P[:m][ok], bias[:m][ok], mse[:m][ok]
+        nees[:m][ok] = np.einsum("kij,kji->k", np.linalg.inv(Pk), mk)
+        cov = mk - np.einsum("ki,kj->kij", bk, bk)
         # Steady-state steps repeat the same statistics: integrate each distinct one once.
-        key = np.concatenate([P[ok].reshape(ok.sum(), -1), bias[ok], cov.reshape(len(cov), -1)], 1)
+        key = np.concatenate([Pk.reshape(len(Pk), -1), bk, cov.reshape(len(cov), -1)], 1)
         uniq, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-        sel = np.flatnonzero(ok)[first]
-        dm_u = expected_sqrt_quadratic(P[sel], bias[sel], cov[first])
-        dm[ok] = dm_u[inverse.ravel()]
+        dm_u = expected_sqrt_quadratic(Pk[first], bk[first], cov[first])
+        dm[:m][ok] = dm_u[inverse.ravel()]
+    nees[m:], dm[m:] = nees[m - 1], dm[m - 1]
     return Expected(mse, bias, P, nees, dm)
 
 
