@@ -25,7 +25,10 @@ McapWriter enforces this order; McapFile checks it and raises FusionlogError if 
 Speed: messages are encoded and decoded here on the protobuf wire format directly (varint
 scalars, packed doubles straight from/to ``ndarray`` bytes) instead of through protobuf message
 classes, whose per-element handling of repeated fields costs several times more. The reader
-also walks the chunks itself, because ``SeekingReader.iter_messages(log_time_order=False)``
+decodes each chunk at once: its messages grouped by channel and length, each group checked
+against the tag and length bytes of its first message and its fields read as numpy columns, so
+that after mcap has split the chunk into records no Python runs per message. It walks the
+chunks itself, because ``SeekingReader.iter_messages(log_time_order=False)``
 in mcap 1.6 reads and decompresses *every* chunk into its queue before yielding the first
 message (unbounded memory), and log-time order would interleave the blocks of runs.
 """
