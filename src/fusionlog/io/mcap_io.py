@@ -431,15 +431,16 @@ class _Template:
         if pos != n:
             return None
         mask = np.full(n, 0xFF, np.uint8)
+        unread = np.zeros(n, bool)  # the payload doubles
         for a, b in payload:
-            mask[a:b] = 1  # not read: dropped from cols below
+            unread[a:b] = True
         spans = [m.span(g) for g in range(1, 6)]  # type: ignore[union-attr]
         for g, (a, b) in enumerate(spans):
             if a >= 0:
                 if g != 1 and b - a > _MAX_VARINT:
                     return None
                 mask[a:b] = 0 if g == 1 else 0x80
-        cols = np.flatnonzero(mask != 1)
+        cols = np.flatnonzero(~unread)
         where = np.full(n, -1)
         where[cols] = np.arange(len(cols))
         mask = mask[cols]
@@ -471,6 +472,7 @@ class _Template:
         ints[5] = self.p1[1]
         ints[6] = starts + self.p2[0]
         ints[7] = self.p2[1]
+        ok &= (ints[:4] <= _UINT32_MAX).all(axis=0)  # else decoded singly, which says why
         if self.time is None:
             time = np.zeros(len(starts))
         else:
@@ -931,8 +933,9 @@ class _OutBlock:
 #: Messages shorter than this are decoded a group at a time (``_Template``), longer ones singly:
 #: their bytes dominate, and a template would have to be checked against every payload length.
 _SMALL = 4096
-#: Messages per table when a file without index is read linearly.
+#: Messages (at most) and bytes (about) per table when a file without index is read linearly.
 _LINEAR_BATCH = 8192
+_LINEAR_BYTES = 1 << 20
 #: Payloads of more doubles than this are copied one message at a time (no index arrays).
 _GATHER_LOOP = 1024
 
@@ -1136,11 +1139,13 @@ class McapFile:
                 f"({_one_line(e)}); {_recover_hint(self.path)}"
             ) from e
 
-    def _linear_batches(self, f: BinaryIO) -> Iterator[list[Message]]:
-        """A file without index, read from its start in batches of messages."""
+    def _linear_batches(self, f: BinaryIO, cids: set[int]) -> Iterator[list[Message]]:
+        """The messages of ``cids`` in a file without index, read from its start in batches
+        (at most _LINEAR_BATCH messages or _LINEAR_BYTES bytes: memory as with chunks)."""
         f.seek(0)
         records = iter(StreamReader(f).records)
         batch: list[Message] = []
+        size = 0
         while True:
             try:
                 rec = next(records, None)
@@ -1148,14 +1153,15 @@ class McapFile:
                 raise FusionlogError(
                     f"{self.path}: corrupt MCAP file ({_one_line(e)}); {_recover_hint(self.path)}"
                 ) from e
-            if isinstance(rec, Message):
+            if isinstance(rec, Message) and rec.channel_id in cids:
                 batch.append(rec)
-            if rec is None or len(batch) == _LINEAR_BATCH:
+                size += len(rec.data)
+            if rec is None or len(batch) == _LINEAR_BATCH or size >= _LINEAR_BYTES:
                 if batch:
                     yield batch
                 if rec is None:
                     return
-                batch = []
+                batch, size = [], 0
 
     def _tables(self, cids: set[int], start: int = 0) -> Iterator[tuple[int, _Table]]:
         """(ordinal, table) of every chunk from the ``start``-th that has messages of ``cids``.
@@ -1165,7 +1171,7 @@ class McapFile:
         """
         with open(self.path, "rb") as f:
             if self._linear:
-                for bi, batch in enumerate(self._linear_batches(f)):
+                for bi, batch in enumerate(self._linear_batches(f, cids)):
                     tab = self._table(batch, cids) if bi >= start else None
                     if tab is not None:
                         yield bi, tab
@@ -1185,7 +1191,7 @@ class McapFile:
         at once against the template of its first message (a fusionlog writer's messages of
         one topic differ only in their values, except where the step's varint grows); the rest,
         and any message that does not fit its group's template, one by one. The per-message
-        Python work left is two list comprehensions.
+        Python work left is three list comprehensions and a map.
         """
         keep = [m for m in msgs if m.channel_id in cids]
         n = len(keep)
@@ -1222,7 +1228,8 @@ class McapFile:
         rest = np.flatnonzero(~done)
         if len(rest):
             raw = self._decode_rows(raw, rest, cid, starts, lens, cols, time)
-        return _Table(raw, cid, *cols[:4], time, *cols[4:])
+        step, off, runs, dim, p1, n1, p2, n2 = cols
+        return _Table(raw, cid, step, off, runs, dim, time, p1, n1, p2, n2)
 
     def _decode_rows(
         self,
@@ -1247,6 +1254,12 @@ class McapFile:
                 topic = self._topic_of()[c]
                 raise FusionlogError(f"{self.path}: bad protobuf message on {topic}: {e}") from e
             step, t, off, runs, dim, q1, q2 = fields
+            if max(step, off, runs, dim) > _UINT32_MAX:
+                topic = self._topic_of()[c]
+                raise FusionlogError(
+                    f"{self.path}: bad protobuf message on {topic}: step {step}, run_offset "
+                    f"{off}, runs {runs}, dim {dim}: each must fit in 32 bits"
+                )
             cols[:4, i] = step, off, runs, dim
             time[i] = t
             for j, q in ((4, q1), (6, q2)):
@@ -1275,30 +1288,34 @@ class McapFile:
         if recorded is not None:
             self._structure = recorded
             return recorded
-        parts: list[tuple[np.ndarray, ...]] = []  # (step, time, cid, dim) of the first block
+        # Reduced chunk by chunk to each step's first time and each topic's first dim, since a
+        # one-run log's first block is the whole file: memory grows with the steps only.
+        step_parts: list[np.ndarray] = []
+        time_parts: list[np.ndarray] = []
+        dims: dict[str, int] = {}
         first: int | None = None
         for _, tab in self._tables(cids):
             if first is None:
                 first = int(tab.off[0])
             other = np.flatnonzero(tab.off != first)
             j = int(other[0]) if len(other) else len(tab)
-            parts.append((tab.step[:j], tab.time[:j], tab.cid[:j], tab.dim[:j]))
+            steps, at = np.unique(tab.step[:j], return_index=True)
+            step_parts.append(steps)
+            time_parts.append(tab.time[at])
+            _, at = np.unique(tab.cid[:j], return_index=True)
+            for i in sorted(at.tolist()):
+                dims.setdefault(topic_of[int(tab.cid[i])], int(tab.dim[i]))
             if j < len(tab):
                 break
-        dims: dict[str, int] = {}
         times = np.zeros(0)
-        if parts:
-            step, t, cid, dim = (np.concatenate(p) for p in zip(*parts, strict=True))
-            found, at = np.unique(step, return_index=True)
-            if not np.array_equal(found, np.arange(len(found))):
+        if step_parts:
+            steps, at = np.unique(np.concatenate(step_parts), return_index=True)
+            if steps[-1] != len(steps) - 1:
                 raise FusionlogError(
                     f"{self.path}: the steps of the first block of runs are not 0..K "
-                    f"(found {len(found)} distinct steps, largest {found[-1]})"
+                    f"(found {len(steps)} distinct steps, largest {steps[-1]})"
                 )
-            times = t[at]
-            _, at = np.unique(cid, return_index=True)
-            for i in sorted(at.tolist()):
-                dims.setdefault(topic_of[int(cid[i])], int(dim[i]))
+            times = np.concatenate(time_parts)[at]
         if first not in (None, 0):
             raise FusionlogError(f"{self.path}: the first block of runs starts at run {first}")
         self._structure = _Structure(times, dims, self._last_run_end(cids))
@@ -1458,13 +1475,20 @@ class McapFile:
             steps = tab.step[sel]
             wrong = np.flatnonzero(tab.runs[sel] != r)
             if len(wrong):
-                raise bad(f"{name}: messages of the block at run {o} disagree on runs")
+                i = sel[wrong[0]]
+                raise bad(
+                    f"{name}: messages of the block at run {o} disagree on runs (step "
+                    f"{tab.step[i]} has runs={tab.runs[i]}, the block's first message {r})"
+                )
             if steps.max() >= S:
                 raise bad(f"{name}: step {steps.max()} beyond the file's {S} steps")
-            counts = np.bincount(steps, minlength=S)
-            counts += seen[ti]
-            if counts.max() > 1:
-                raise bad(f"{name}: step {counts.argmax()} appears twice for runs from {o}")
+            # twice: in an earlier table of this block, or twice in this one
+            twice = steps[seen[ti][steps]]
+            if not len(twice):
+                ordered = np.sort(steps)
+                twice = ordered[1:][ordered[1:] == ordered[:-1]]
+            if len(twice):
+                raise bad(f"{name}: step {twice[0]} appears twice for runs from {o}")
             wrong = np.flatnonzero((tab.dim[sel] != d) | (tab.n1[sel] != r * d * 8))
             if len(wrong):
                 i = sel[wrong[0]]
