@@ -989,6 +989,220 @@ def _gather(raw: bytes, starts: np.ndarray, nvals: int) -> np.ndarray:
     return out
 
 
+@dataclass(frozen=True)
+class _Window:
+    """Runs [a, b) of the file block of runs [o, o + r); check: validate its messages (first
+    reading) or trust them (a window read again)."""
+
+    o: int
+    r: int
+    a: int
+    b: int
+    check: bool
+
+
+#: Where reading stands: a (chunk ordinal, table) and a row of it; no table at the end.
+_Cursor = tuple[tuple[int, "_Table"] | None, int]
+
+
+class _Assembly:
+    """Copies decoded tables into output blocks of runs, for ``McapFile.iter_run_blocks``.
+
+    Holds at most two output blocks (``pending``) and, for the file block being read, which
+    steps each topic had and the shared covariances met so far (reset by ``end_block``).
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        names: list[str],
+        dims: list[int],
+        kinds: list[str],
+        topic_index: np.ndarray,
+        steps: int,
+        total: int,
+        block_runs: int,
+    ) -> None:
+        self.path, self.names, self.dims, self.kinds = path, names, dims, kinds
+        self.topic_index = topic_index  # channel id -> index into names
+        self.S, self.total, self.block_runs = steps, total, block_runs
+        self.pending: list[_OutBlock] = []
+        self.next_lo = 0
+        self.seen = [np.zeros(steps, bool) for _ in names]
+        self.shared = [
+            np.zeros((steps, d, d)) if k == ESTIMATE else None
+            for k, d in zip(kinds, dims, strict=True)
+        ]
+        self.has_shared = [np.zeros(steps, bool) for _ in names]
+        self.any_per_run = [False for _ in names]
+
+    def bad(self, msg: str) -> FusionlogError:
+        return FusionlogError(f"{self.path}: {msg} (fusionlog block order violated)")
+
+    def add_blocks(self, upto: int) -> int:
+        """Open output blocks (at most two) towards run ``upto``; return the window end."""
+        pending = self.pending
+        while (
+            len(pending) < 2
+            and (not pending or pending[-1].hi < upto)
+            and self.next_lo < self.total
+        ):
+            lo, hi = self.next_lo, min(self.next_lo + self.block_runs, self.total)
+            blk = _OutBlock(lo, hi)
+            for ti, d in enumerate(self.dims):
+                shape = (hi - lo, self.S, d)
+                blk.arrays[ti] = (
+                    np.empty(shape) if self.kinds[ti] == VALUES else _Est(np.empty(shape))
+                )
+            pending.append(blk)
+            self.next_lo = hi
+        return min(upto, pending[-1].hi)
+
+    def overlaps(self, w: _Window) -> Iterator[tuple[_OutBlock, slice, slice]]:
+        """Output blocks meeting the window's runs: (block, its rows, rows of the window)."""
+        for blk in self.pending:
+            x, y = max(w.a, blk.lo), min(w.b, blk.hi)
+            if x < y:
+                yield blk, slice(x - blk.lo, y - blk.lo), slice(x - w.a, y - w.a)
+
+    def read_block(self, tables: Iterator[tuple[int, _Table]], cur: _Cursor, w: _Window) -> _Cursor:
+        """Copy the window of the file block that starts at ``cur`` into the output blocks;
+        return where the next file block starts."""
+        item, i = cur
+        while item is not None:
+            tab = item[1]
+            other = np.flatnonzero(tab.off[i:] != w.o)
+            j = i + int(other[0]) if len(other) else len(tab)
+            self.add_rows(tab, i, j, w)
+            if j < len(tab):
+                i = j
+                break
+            item, i = next(tables, None), 0
+        self.end_block(w)
+        return item, i
+
+    def check_rows(self, tab: _Table, sel: np.ndarray, ti: int, w: _Window) -> None:
+        """The messages ``sel`` of topic ``ti`` fit the file block at run ``w.o``."""
+        name, d, o, r = self.names[ti], self.dims[ti], w.o, w.r
+        steps = tab.step[sel]
+        wrong = np.flatnonzero(tab.runs[sel] != r)
+        if len(wrong):
+            i = sel[wrong[0]]
+            raise self.bad(
+                f"{name}: messages of the block at run {o} disagree on runs (step "
+                f"{tab.step[i]} has runs={tab.runs[i]}, the block's first message {r})"
+            )
+        if steps.max() >= self.S:
+            raise self.bad(f"{name}: step {steps.max()} beyond the file's {self.S} steps")
+        # twice: in an earlier table of this block, or twice in this one
+        twice = steps[self.seen[ti][steps]]
+        if not len(twice):
+            ordered = np.sort(steps)
+            twice = ordered[1:][ordered[1:] == ordered[:-1]]
+        if len(twice):
+            raise self.bad(f"{name}: step {twice[0]} appears twice for runs from {o}")
+        wrong = np.flatnonzero((tab.dim[sel] != d) | (tab.n1[sel] != r * d * 8))
+        if len(wrong):
+            i = sel[wrong[0]]
+            raise FusionlogError(
+                f"{self.path}: {name}: step {tab.step[i]} runs from {o}: payload of "
+                f"{tab.n1[i] // 8} doubles does not match runs={r}, dim={tab.dim[i]} "
+                f"(topic dim {d})"
+            )
+        if self.kinds[ti] == ESTIMATE:
+            n2 = tab.n2[sel]
+            wrong = np.flatnonzero((n2 != d * d * 8) & (n2 != r * d * d * 8))
+            if len(wrong):
+                i = sel[wrong[0]]
+                raise FusionlogError(
+                    f"{self.path}: {name}: step {tab.step[i]} runs from {o}: covariance of "
+                    f"{tab.n2[i] // 8} doubles is neither n*n nor runs*n*n"
+                )
+
+    def add_rows(self, tab: _Table, i: int, j: int, w: _Window) -> None:
+        """Copy the window's runs of rows [i, j) of ``tab`` into the output blocks."""
+        of_topic = self.topic_index[tab.cid[i:j]]
+        rows, skip = w.b - w.a, w.a - w.o  # a window's rows of a message: from row a - o on
+        for ti, d in enumerate(self.dims):
+            sel = i + np.flatnonzero(of_topic == ti)
+            if not len(sel):
+                continue
+            if w.check:
+                self.check_rows(tab, sel, ti, w)
+            steps = tab.step[sel]
+            self.seen[ti][steps] = True
+            vals = _gather(tab.raw, tab.p1[sel] + skip * d * 8, rows * d)
+            vals = vals.reshape(len(sel), rows, d)
+            estimate = self.kinds[ti] == ESTIMATE
+            for blk, dst, src in self.overlaps(w):
+                out = blk.arrays[ti].mean if estimate else blk.arrays[ti]
+                out[dst, steps] = vals[:, src].swapaxes(0, 1)
+            if not estimate:
+                continue
+            # A covariance of n*n values is shared by the message's runs (for a one-run
+            # message both readings agree); shared ones are placed when the block ends.
+            sh = tab.n2[sel] == d * d * 8
+            if sh.any():
+                k = steps[sh]
+                self.shared[ti][k] = _gather(tab.raw, tab.p2[sel[sh]], d * d).reshape(-1, d, d)  # type: ignore[index]
+                self.has_shared[ti][k] = True
+            if not sh.all():
+                self.any_per_run[ti] = True
+                pr = sel[~sh]
+                covs = _gather(tab.raw, tab.p2[pr] + skip * d * d * 8, rows * d * d)
+                covs = covs.reshape(len(pr), rows, d, d)
+                for blk, dst, src in self.overlaps(w):
+                    est: _Est = blk.arrays[ti]
+                    if est.per_run is None:
+                        est.to_per_run(blk.hi - blk.lo)
+                    est.per_run[dst, steps[~sh]] = covs[:, src].swapaxes(0, 1)  # type: ignore[index]
+
+    def end_block(self, w: _Window) -> None:
+        """Every step of every topic came; place the block's shared covariances; reset."""
+        for ti, name in enumerate(self.names):
+            seen = self.seen[ti]
+            if w.check and not seen.all():
+                raise self.bad(
+                    f"{name}: {seen.sum()} of {self.S} steps for the block of runs at run {w.o}"
+                )
+            seen[:] = False
+            cov, some = self.shared[ti], self.has_shared[ti]
+            if cov is None:
+                continue
+            for blk, dst, _ in self.overlaps(w):
+                est: _Est = blk.arrays[ti]
+                if self.any_per_run[ti]:  # est.per_run exists: add the steps that were shared
+                    est.per_run[dst, some] = cov[some]  # type: ignore[index]
+                    continue
+                if est.per_run is None:
+                    raw = cov.tobytes()
+                    if est.shared_raw is None:
+                        # A copy per output block: writable, and not aliased between blocks
+                        # that the caller may modify.
+                        est.shared_raw, est.shared = raw, cov.copy()
+                        continue
+                    if est.shared_raw == raw:
+                        continue
+                    # Shared within each file block but different between them.
+                    est.to_per_run(blk.hi - blk.lo)
+                est.per_run[dst] = cov  # type: ignore[index]
+            some[:] = False
+            self.any_per_run[ti] = False
+
+    def finished(self, upto: int) -> Iterator[tuple[int, int, dict[str, Any]]]:
+        """Hand over the output blocks that end at or before run ``upto``."""
+        while self.pending and self.pending[0].hi <= upto:
+            blk = self.pending.pop(0)
+            out: dict[str, Any] = {}
+            for ti, t in enumerate(self.names):
+                arr = blk.arrays[ti]
+                if self.kinds[ti] == VALUES:
+                    out[t] = arr
+                else:
+                    out[t] = (arr.mean, arr.shared if arr.per_run is None else arr.per_run)
+            yield blk.lo, blk.hi - blk.lo, out
+
+
 class McapFile:
     """A fusionlog MCAP file opened for reading; opening validates the container and schemas.
 
@@ -1418,7 +1632,7 @@ class McapFile:
         the file is read sequentially, and a file block larger than the output window is read
         again for each window (where it starts is remembered, its bytes are not). Each chunk is
         decoded into columns (``_table``) and copied into the output blocks with a few numpy
-        operations per topic, so no Python runs per message here.
+        operations per topic (``_Assembly``), so no Python runs per message here.
         """
         if block_runs < 1:
             raise ValueError("block_runs must be >= 1")
@@ -1427,227 +1641,48 @@ class McapFile:
             raise ValueError("no topics to read")
         infos = [self._readable(t) for t in names]
         st = self._get_structure()
-        S, total = len(st.times), st.runs
-        dims = [self.dim_of(t) for t in names]
-        kinds = [i.layout.kind for i in infos]  # type: ignore[union-attr]
+        total = st.runs
         tidx = {cid: ti for ti, info in enumerate(infos) for cid in info.channel_ids}
         cids = set(tidx)
         topic_index = np.zeros(max(cids) + 1, np.int64)
         topic_index[list(tidx)] = list(tidx.values())
-        pending: list[_OutBlock] = []
-        next_lo = 0
-        # Per file block: which steps each topic had, and the shared covariances met so far.
-        seen = [np.zeros(S, bool) for _ in names]
-        shared = [
-            np.zeros((S, d, d)) if k == ESTIMATE else None for k, d in zip(kinds, dims, strict=True)
-        ]
-        has_shared = [np.zeros(S, bool) for _ in names]
-        any_per_run = [False for _ in names]
-
-        def bad(msg: str) -> FusionlogError:
-            return FusionlogError(f"{self.path}: {msg} (fusionlog block order violated)")
-
-        def add_blocks(upto: int) -> int:
-            """Open output blocks (at most two) towards run ``upto``; return the window end."""
-            nonlocal next_lo
-            while len(pending) < 2 and (not pending or pending[-1].hi < upto) and next_lo < total:
-                lo, hi = next_lo, min(next_lo + block_runs, total)
-                blk = _OutBlock(lo, hi)
-                for ti, d in enumerate(dims):
-                    shape = (hi - lo, S, d)
-                    blk.arrays[ti] = (
-                        np.empty(shape) if kinds[ti] == VALUES else _Est(np.empty(shape))
-                    )
-                pending.append(blk)
-                next_lo = hi
-            return min(upto, pending[-1].hi)
-
-        def overlaps(a: int, b: int) -> Iterator[tuple[_OutBlock, slice, slice]]:
-            """Output blocks meeting runs [a, b): (block, its rows, rows of the window)."""
-            for blk in pending:
-                x, y = max(a, blk.lo), min(b, blk.hi)
-                if x < y:
-                    yield blk, slice(x - blk.lo, y - blk.lo), slice(x - a, y - a)
-
-        def check_rows(tab: _Table, sel: np.ndarray, ti: int, o: int, r: int) -> None:
-            """The messages ``sel`` of topic ``ti`` in the file block at run ``o`` fit it."""
-            name, d = names[ti], dims[ti]
-            steps = tab.step[sel]
-            wrong = np.flatnonzero(tab.runs[sel] != r)
-            if len(wrong):
-                i = sel[wrong[0]]
-                raise bad(
-                    f"{name}: messages of the block at run {o} disagree on runs (step "
-                    f"{tab.step[i]} has runs={tab.runs[i]}, the block's first message {r})"
-                )
-            if steps.max() >= S:
-                raise bad(f"{name}: step {steps.max()} beyond the file's {S} steps")
-            # twice: in an earlier table of this block, or twice in this one
-            twice = steps[seen[ti][steps]]
-            if not len(twice):
-                ordered = np.sort(steps)
-                twice = ordered[1:][ordered[1:] == ordered[:-1]]
-            if len(twice):
-                raise bad(f"{name}: step {twice[0]} appears twice for runs from {o}")
-            wrong = np.flatnonzero((tab.dim[sel] != d) | (tab.n1[sel] != r * d * 8))
-            if len(wrong):
-                i = sel[wrong[0]]
-                raise FusionlogError(
-                    f"{self.path}: {name}: step {tab.step[i]} runs from {o}: payload of "
-                    f"{tab.n1[i] // 8} doubles does not match runs={r}, dim={tab.dim[i]} "
-                    f"(topic dim {d})"
-                )
-            if kinds[ti] == ESTIMATE:
-                n2 = tab.n2[sel]
-                wrong = np.flatnonzero((n2 != d * d * 8) & (n2 != r * d * d * 8))
-                if len(wrong):
-                    i = sel[wrong[0]]
-                    raise FusionlogError(
-                        f"{self.path}: {name}: step {tab.step[i]} runs from {o}: covariance of "
-                        f"{tab.n2[i] // 8} doubles is neither n*n nor runs*n*n"
-                    )
-
-        def add_rows(tab: _Table, i: int, j: int, o: int, r: int, a: int, b: int, check: bool):
-            """Copy runs [a, b) of rows [i, j) of ``tab`` (file block at run ``o``) into the
-            open output blocks."""
-            of_topic = topic_index[tab.cid[i:j]]
-            for ti in range(len(names)):
-                sel = i + np.flatnonzero(of_topic == ti)
-                if not len(sel):
-                    continue
-                if check:
-                    check_rows(tab, sel, ti, o, r)
-                d, steps = dims[ti], tab.step[sel]
-                seen[ti][steps] = True
-                rows = b - a
-                # A window's rows of each message: its payload from row a - o on.
-                vals = _gather(tab.raw, tab.p1[sel] + (a - o) * d * 8, rows * d)
-                vals = vals.reshape(len(sel), rows, d)
-                for blk, dst, src in overlaps(a, b):
-                    out = blk.arrays[ti] if kinds[ti] == VALUES else blk.arrays[ti].mean
-                    out[dst, steps] = vals[:, src].swapaxes(0, 1)
-                if kinds[ti] == VALUES:
-                    continue
-                # A covariance of n*n values is shared by the message's runs (for a one-run
-                # message both readings agree); shared ones are placed when the block ends.
-                sh = tab.n2[sel] == d * d * 8
-                if sh.any():
-                    k = steps[sh]
-                    shared[ti][k] = _gather(tab.raw, tab.p2[sel[sh]], d * d).reshape(-1, d, d)
-                    has_shared[ti][k] = True
-                if not sh.all():
-                    any_per_run[ti] = True
-                    pr = sel[~sh]
-                    covs = _gather(tab.raw, tab.p2[pr] + (a - o) * d * d * 8, rows * d * d)
-                    covs = covs.reshape(len(pr), rows, d, d)
-                    for blk, dst, src in overlaps(a, b):
-                        est: _Est = blk.arrays[ti]
-                        if est.per_run is None:
-                            est.to_per_run(blk.hi - blk.lo)
-                        est.per_run[dst, steps[~sh]] = covs[:, src].swapaxes(0, 1)  # type: ignore[index]
-
-        def end_block(o: int, a: int, b: int, check: bool) -> None:
-            """Every step of every topic came; place the block's shared covariances."""
-            for ti in range(len(names)):
-                if check and not seen[ti].all():
-                    raise bad(
-                        f"{names[ti]}: {seen[ti].sum()} of {S} steps for the block of runs "
-                        f"at run {o}"
-                    )
-                seen[ti][:] = False
-                if kinds[ti] == VALUES:
-                    continue
-                cov, some = shared[ti], has_shared[ti]
-                for blk, dst, _ in overlaps(a, b):
-                    est: _Est = blk.arrays[ti]
-                    if any_per_run[ti]:  # est.per_run exists: add the steps that were shared
-                        est.per_run[dst, some] = cov[some]  # type: ignore[index]
-                        continue
-                    if est.per_run is None:
-                        raw = cov.tobytes()
-                        if est.shared_raw is None:
-                            # A copy per output block: writable, and not aliased between
-                            # blocks that the caller may modify.
-                            est.shared_raw, est.shared = raw, cov.copy()
-                            continue
-                        if est.shared_raw == raw:
-                            continue
-                        # Shared within each file block but different between them.
-                        est.to_per_run(blk.hi - blk.lo)
-                    est.per_run[dst] = cov  # type: ignore[index]
-                some[:] = False
-                any_per_run[ti] = False
-
-        Cursor = tuple[tuple[int, _Table] | None, int]
-
-        def read_block(
-            tables: Iterator[tuple[int, _Table]],
-            cur: Cursor,
-            o: int,
-            r: int,
-            a: int,
-            b: int,
-            check: bool,
-        ) -> Cursor:
-            """Copy runs [a, b) of the file block at run ``o`` that starts at ``cur`` (a table
-            and a row); return where the next file block starts (no table: end of file)."""
-            item, i = cur
-            while item is not None:
-                tab = item[1]
-                other = np.flatnonzero(tab.off[i:] != o)
-                j = i + int(other[0]) if len(other) else len(tab)
-                add_rows(tab, i, j, o, r, a, b, check)
-                if j < len(tab):
-                    i = j
-                    break
-                item, i = next(tables, None), 0
-            end_block(o, a, b, check)
-            return item, i
-
-        def finished(upto: int) -> Iterator[tuple[int, int, dict[str, Any]]]:
-            while pending and pending[0].hi <= upto:
-                blk = pending.pop(0)
-                out: dict[str, Any] = {}
-                for ti, t in enumerate(names):
-                    arr = blk.arrays[ti]
-                    if kinds[ti] == VALUES:
-                        out[t] = arr
-                    else:
-                        out[t] = (arr.mean, arr.shared if arr.per_run is None else arr.per_run)
-                yield blk.lo, blk.hi - blk.lo, out
-
+        kinds = [i.layout.kind for i in infos]  # type: ignore[union-attr]
+        dims = [self.dim_of(t) for t in names]
+        asm = _Assembly(
+            self.path, names, dims, kinds, topic_index, len(st.times), total, block_runs
+        )
         tables = self._tables(cids)
         try:
-            cur: Cursor = (next(tables, None), 0)
+            cur: _Cursor = (next(tables, None), 0)
             expected = 0
             while cur[0] is not None:
                 (ci, tab), row = cur
                 o, r = int(tab.off[row]), int(tab.runs[row])
                 topic = names[topic_index[tab.cid[row]]]
                 if o != expected:
-                    raise bad(
+                    raise asm.bad(
                         f"{topic}: block of runs at run {o} where run {expected} was expected"
                     )
                 if r < 1 or o + r > total:
-                    raise bad(f"{topic}: block at run {o} has {r} runs of {total}")
-                b = add_blocks(o + r)
+                    raise asm.bad(f"{topic}: block at run {o} has {r} runs of {total}")
+                b = asm.add_blocks(o + r)
                 start = (ci, row)
-                cur = read_block(tables, cur, o, r, o, b, True)
-                yield from finished(b)
+                cur = asm.read_block(tables, cur, _Window(o, r, o, b, True))
+                yield from asm.finished(b)
                 # A file block wider than the window: read it again for each further window.
                 while b < o + r:
-                    a, b = b, add_blocks(o + r)
+                    a, b = b, asm.add_blocks(o + r)
                     again = self._tables(cids, start[0])
                     try:
-                        read_block(again, (next(again), start[1]), o, r, a, b, False)
+                        asm.read_block(again, (next(again), start[1]), _Window(o, r, a, b, False))
                     finally:
                         again.close()
-                    yield from finished(b)
+                    yield from asm.finished(b)
                 expected = o + r
         finally:
             tables.close()
         if expected != total:
-            raise bad(f"the requested topics cover runs 0..{expected} of {total}")
+            raise asm.bad(f"the requested topics cover runs 0..{expected} of {total}")
 
     def read_all(self, topics: Sequence[str]) -> dict[str, Any]:
         """All runs of ``topics`` at once (small files, tests); same shapes as iter_run_blocks."""
