@@ -141,25 +141,40 @@ def analyse(plan: Plan, truth: System) -> Expected:
         Bk = np.zeros((n, n))
         Ceta = np.zeros((n, n))
         steady = False  # backward statistics stopped changing under a repeated map
-        prev_key = None
-        for k in range(K1 - 1, -1, -1):
-            repeated = k < K1 - 2 and sm.L[k] is sm.L[k + 1] and sm.V[k + 1] is sm.V[k + 2]
-            steady = steady and repeated
+        # repeated[k]: step k's backward map is step k + 1's; same[k]: and so is everything
+        # step k's statistics are made of, so in the steady state they are step k + 1's.
+        repeated = [sm.L[k] is sm.L[k + 1] and sm.V[k + 1] is sm.V[k + 2] for k in range(K1 - 2)]
+        repeated += [False, False]
+        same = [
+            rep and a is a1 and b is b1 and s is s1 and m is m1 and c is c1
+            for rep, a, a1, b, b1, s, s1, m, m1, c, c1 in zip(
+                repeated,
+                sm.A, sm.A[1:], sm.B, sm.B[1:], plan.steps, plan.steps[1:],
+                mus, mus[1:], Cs, Cs[1:], strict=False,  # the shifted lists are one shorter
+            )
+        ]  # fmt: skip
+        same += [False]
+        # run_start[k]: first step of the stretch of `same` steps that ends at k
+        idx = np.arange(K1)
+        run_start = np.maximum.accumulate(np.where(same, -1, idx)) + 1
+        k = K1 - 1
+        while k >= 0:
+            steady = steady and repeated[k]
+            if steady and same[k]:  # the steady stretch repeats step k + 1's statistics
+                j = int(run_start[k])
+                bias[j : k + 1], mse[j : k + 1] = bias[k + 1], mse[k + 1]
+                k = j - 1
+                continue
             if k < K1 - 1 and not steady:
                 Bplus = Bk + sm.V[k + 1] @ Ht
                 Cplus = Ceta + sm.V[k + 1] @ Rt @ sm.V[k + 1].T
                 B_new = sm.L[k] @ Bplus @ Ft
                 C_new = sym(sm.L[k] @ (Bplus @ Qt @ Bplus.T + Cplus) @ sm.L[k].T)
-                steady = repeated and all(
+                steady = repeated[k] and all(
                     np.abs(new - old).max() <= 1e-15 * max(np.abs(new).max(), 1e-300)
                     for new, old in ((B_new, Bk), (C_new, Ceta))
                 )
                 Bk, Ceta = B_new, C_new
-            key = (id(sm.A[k]), id(sm.B[k]), id(plan.steps[k]), id(mus[k]), id(Cs[k]))
-            if steady and key == prev_key:
-                bias[k], mse[k] = bias[k + 1], mse[k + 1]
-                continue
-            prev_key = key
             # e = x - A s_f - B (B_k x + eta) = (I - A D - B B_k) x - A zeta - B eta; with the
             # true model I - A D - B B_k vanishes and B_k x is dropped with x (see _coupling).
             Lk = readout(k, sm.A[k], plan.steps[k].D, sm.B[k] @ Bk)
@@ -167,6 +182,7 @@ def analyse(plan: Plan, truth: System) -> Expected:
             mse[k] = sym(Lk @ Cs[k] @ Lk.T + sm.B[k] @ Ceta @ sm.B[k].T) + np.outer(
                 bias[k], bias[k]
             )
+            k -= 1
     P = plan.reported_cov
     nees = np.full(K1, np.nan)
     dm = np.full(K1, np.nan)
