@@ -106,6 +106,24 @@ def test_missing_measurements_per_run(arch):
         np.testing.assert_allclose(est.cov[r], single.cov, rtol=_tol(arch), atol=1e-12)
 
 
+@pytest.mark.parametrize("per_run", [False, True])
+def test_identical_sensors_with_different_gaps_keep_their_own_history(per_run):
+    """Local filters of identical sensors that missed different measurements have different
+    covariances from then on, even when their sensors report together again: MSC's P is
+    Millman's fusion, eq. (33), of the single-sensor filters run with the same mask."""
+    sys = ajgl2009()
+    K = 12
+    present = np.ones((K + 1, 3), dtype=bool)
+    present[0, 1] = False
+    present[3:5, 0] = False
+    if per_run:
+        present = np.stack([present, np.ones_like(present), present[:, ::-1]])
+    msc = build_plan(sys, "MSC", K, present).reported_cov
+    local = [build_plan(sys, f"SKF:s{j + 1}", K, present).reported_cov for j in range(3)]
+    millman = np.linalg.inv(sum(np.linalg.inv(P) for P in local))
+    np.testing.assert_allclose(msc, millman, rtol=1e-12, atol=1e-14)
+
+
 def test_missing_sensor_equals_filter_without_it():
     rng = np.random.default_rng(3)
     sys = random_system(rng, 2, [1, 1])

@@ -17,12 +17,12 @@ yet gathered enough information for a covariance to exist, its information vecto
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from functools import lru_cache
 
 import numpy as np
 
-from .fusion import ci_omegas, gmf_weights
+from .fusion import ci_omegas, gmf_weight_matrix
 from .kalman import gain, joseph
 from .linalg import apply, inv_or_nan, is_invertible, mT, spd_inv, sym
 from .model import System
@@ -101,7 +101,7 @@ def _bc(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
 def _masked(H: np.ndarray, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """H and R with absent rows made information-free: the row of H is zeroed and the absent
     component decoupled with unit variance, so its gain column is exactly zero."""
-    if p.ndim == 1 and p.all():
+    if p.shape == H.shape[:-1] and p.all():  # nothing absent, and no per-run pattern
         return H, R
     pf = p.astype(float)
     Hm = H * pf[..., :, None]
@@ -109,11 +109,54 @@ def _masked(H: np.ndarray, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np
     return Hm, Rm
 
 
-def _embed(block: np.ndarray, rows: np.ndarray, m: int) -> np.ndarray:
-    """Place the columns of `block` (..., r, len(rows)) into a (..., r, m) matrix at `rows`."""
-    out = np.zeros(block.shape[:-1] + (m,))
-    out[..., rows] = block
-    return out
+@dataclass
+class _Rows:
+    """The measurement components a filter uses: its H and R, and where they sit in the stacked
+    measurement z_k of eq. (30).
+
+    A stack of S local filters, one per sensor, carries a leading axis S, padded to the largest
+    sensor dimension with components that carry no information: a zero row of H with unit,
+    uncorrelated variance, which is what `_masked` makes of an absent component. Their gain
+    columns are exactly zero and masking leaves them as they are (so their `cols` entry is an
+    arbitrary 0), and one batched computation serves sensors of different sizes.
+    """
+
+    H: np.ndarray  # ([S,] r, n)
+    R: np.ndarray  # ([S,] r, r)
+    cols: np.ndarray  # ([S,] r): index of each component in z_k
+    E: np.ndarray  # ([S,] r, m): 0/1 placement, K E puts the columns of a gain K at its rows
+    _masks: dict[bytes, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, sys: System, rows: np.ndarray, R: np.ndarray) -> _Rows:
+        """One filter on the components `rows` of z_k, believing noise covariance R."""
+        return cls(sys.H[rows], R, rows, np.eye(sys.m)[rows])
+
+    @classmethod
+    def per_sensor(cls, sys: System) -> _Rows:
+        """A stack of one filter per sensor j, each with its own H_j and R_j."""
+        S, m = len(sys.sensors), sys.m
+        r = max(sen.dim for sen in sys.sensors)
+        H = np.zeros((S, r, sys.n))
+        R = np.tile(np.eye(r), (S, 1, 1))
+        cols = np.zeros((S, r), dtype=int)
+        E = np.zeros((S, r, m))
+        for j, (sen, sl) in enumerate(zip(sys.sensors, sys.sensor_slices, strict=True)):
+            d = sen.dim
+            H[j, :d], R[j, :d, :d] = sen.H, sen.R
+            cols[j, :d] = np.arange(m)[sl]
+            E[j, np.arange(d), cols[j, :d]] = 1.0
+        return cls(H, R, cols, E)
+
+    def masked(self, present: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`_masked` H and R for the present components of z_k (`present`, batch + (m,)). A
+        pattern shared by all runs usually recurs every step: its matrices are kept."""
+        if present.ndim > 1:
+            return _masked(self.H, self.R, present[..., self.cols])
+        key = present.tobytes()
+        if key not in self._masks:
+            self._masks[key] = _masked(self.H, self.R, present[self.cols])
+        return self._masks[key]
 
 
 @dataclass
@@ -131,54 +174,121 @@ class _Step:
     D: np.ndarray  # (..., n, n): see StepMap.D
 
 
-class _KF:
-    """A Kalman filter on a subset `rows` of the stacked measurement, eqs. (14)-(18), Joseph form.
+def _merge(parts: list[tuple[np.ndarray, _Step]], shape: tuple[int, ...]) -> _Step:
+    """The step of a stack of filters (batch + (S,) = `shape`) from the steps of parts of it,
+    given as (indices of the local filters, their step)."""
+    out = {}
+    for f in fields(_Step):
+        first = getattr(parts[0][1], f.name)
+        arr = np.empty(shape + first.shape[-2:])
+        for j, st in parts:
+            arr[..., j, :, :] = getattr(st, f.name)
+        out[f.name] = arr
+    return _Step(**out)
 
-    Without a prior it runs in information form from zero information, exactly, and switches to
-    covariance form at the first step where the information matrix is invertible for every run.
+
+@dataclass
+class _Part:
+    """What a step of some filters needs: their matrices (covariance, or information matrix in
+    information form), H and R this step (`_masked`), placement E (see `_Rows`), and their
+    identity and zero maps, shaped once rather than broadcast at every step. For a stack the
+    local axis is the third-last of every array."""
+
+    mat: np.ndarray
+    H: np.ndarray
+    R: np.ndarray
+    E: np.ndarray
+    I: np.ndarray  # noqa: E741
+    Z: np.ndarray
+
+    def take(self, j: np.ndarray) -> _Part:
+        """The local filters j of a stack."""
+        mats = (self.mat, self.H, self.R, self.E, self.I, self.Z)
+        return _Part(*(a[..., j, :, :] for a in mats))
+
+
+class _KF:
+    """Kalman filters on parts of the stacked measurement, eqs. (14)-(18), Joseph form: one
+    filter, or a stack of S local filters (one per sensor, `_Rows.per_sensor`) whose steps are
+    computed together, as batched arrays batch + (S, ., .).
+
+    Without a prior a filter runs in information form from zero information, exactly, and
+    switches to covariance form at the first step where its information matrix is invertible
+    for every run; in a stack, each local filter switches on its own.
     """
 
-    def __init__(self, sys: System, rows: np.ndarray, R: np.ndarray, batch: tuple[int, ...]):
+    def __init__(self, sys: System, rows: _Rows, batch: tuple[int, ...]):
         n = sys.n
-        self.F, self.GQG, self.m = sys.F, sys.GQG, sys.m
+        self.F, self.GQG = sys.F, sys.GQG
         self.rows = rows
-        self.H = sys.H[rows]
-        self.R = R
         self.eye = np.eye(n)
+        local = rows.H.shape[:-2]  # (S,) for a stack, () for one filter
+        self.n_local = len(local)
+        self.I = _bc(self.eye, local + (n, n))
+        self.Z = _bc(np.zeros((n, n)), local + (n, n))
+        S = int(np.prod(local, dtype=int))
+        shape = batch + local + (n, n)
+        # `info` (a flag per filter) and `mat` (see _Part) are replaced at every step, never
+        # modified in place.
         if sys.prior is not None:
-            self.info = False
-            self.mat = _bc(sys.prior.cov, batch + (n, n)).copy()
-            self.s0 = np.asarray(sys.prior.mean, float)
-            self.D0 = np.eye(n)
+            self.info = np.zeros(local, dtype=bool)
+            self.mat = _bc(sys.prior.cov, shape).copy()
+            self.s0 = np.tile(np.asarray(sys.prior.mean, float), S)
+            self.D0 = np.tile(np.eye(n), (S, 1))
         else:
-            self.info = True
-            self.mat = np.zeros(batch + (n, n))
-            self.s0 = np.zeros(n)
-            self.D0 = np.zeros((n, n))
+            self.info = np.ones(local, dtype=bool)
+            self.mat = np.zeros(shape)
+            self.s0 = np.zeros(S * n)
+            self.D0 = np.zeros((S * n, n))
             if abs(np.linalg.det(sys.F)) < 1e-300:
                 raise ValueError("without a prior, F must be invertible (information-form start)")
             self.Finv = np.linalg.inv(sys.F)
 
+        # Whether a filter is still in information form (has no covariance yet).
+        self.any_info = bool(self.info.any())
+
     def step(self, present: np.ndarray, first: bool) -> _Step:
-        Hk, Rk = _masked(self.H, self.R, present)
-        return self._step_info(Hk, Rk, first) if self.info else self._step_cov(Hk, Rk, first)
+        """Step k of every filter, with the components `present` (batch + (m,)) of z_k."""
+        Hk, Rk = self.rows.masked(present)
+        part = _Part(self.mat, Hk, Rk, self.rows.E, self.I, self.Z)
+        if not self.any_info:  # the usual case: all in covariance form, and they stay so
+            st, self.mat, _ = self._step_cov(part, first)
+            return st
+        if self.info.all():  # all in information form: one batched step
+            st, self.mat, self.info = self._step_info(part, first)
+            self.any_info = bool(self.info.any())
+            return st
+        # Local filters in different forms (no prior, and one local could invert its
+        # information earlier than another): each group in its own form, then put together.
+        mat, info, parts = np.empty_like(self.mat), self.info.copy(), []
+        for form in (False, True):
+            j = np.flatnonzero(self.info == form)
+            st, mat[..., j, :, :], info[j] = self._step(form, part.take(j), first)
+            parts.append((j, st))
+        self.mat, self.info, self.any_info = mat, info, bool(info.any())
+        return _merge(parts, mat.shape[:-2])
 
-    def _step_cov(self, Hk: np.ndarray, Rk: np.ndarray, first: bool) -> _Step:
+    def _step(self, info: bool, part: _Part, first: bool) -> tuple[_Step, np.ndarray, np.ndarray]:
+        """One step of filters all in information form (`info`) or all in covariance form:
+        their step, their new matrices and their new forms."""
+        return self._step_info(part, first) if info else self._step_cov(part, first)
+
+    def _step_cov(self, part: _Part, first: bool) -> tuple[_Step, np.ndarray, np.ndarray]:
         if first:
-            Pp, Tp, Gam = self.mat, self.eye, np.zeros_like(self.eye)
+            Pp, Tp, Gam = part.mat, self.eye, part.Z
         else:
-            Pp, Tp, Gam = sym(self.F @ self.mat @ self.F.T + self.GQG), self.F, self.eye
-        K = gain(Pp, Hk, Rk)
-        P = joseph(Pp, K, Hk, Rk)
-        IKH = self.eye - K @ Hk
-        self.mat = P
-        Ke = _embed(K, self.rows, self.m)
-        return _Step(IKH @ Tp, Ke, self.eye, P, Tp, Gam, IKH, -Ke, self.eye)
+            Pp, Tp, Gam = sym(self.F @ part.mat @ self.F.T + self.GQG), self.F, part.I
+        K = gain(Pp, part.H, part.R)
+        IKH = self.eye - K @ part.H
+        P = joseph(Pp, K, part.H, part.R, IKH)
+        Ke = K @ part.E  # exact: each column of K E is one column of K, or zero
+        info = np.zeros(P.shape[P.ndim - 2 - self.n_local : -2], dtype=bool)
+        return _Step(IKH @ Tp, Ke, part.I, P, Tp, Gam, IKH, -Ke, part.I), P, info
 
-    def _step_info(self, Hk: np.ndarray, Rk: np.ndarray, first: bool) -> _Step:
-        Y = self.mat
+    def _step_info(self, part: _Part, first: bool) -> tuple[_Step, np.ndarray, np.ndarray]:
+        Y, Hk = part.mat, part.H
         if first:
-            A, Yp, Gam = self.eye, Y, np.zeros_like(self.eye)
+            A, Yp, Gam = self.eye, Y, part.Z
         else:
             # Prediction in information form valid for singular Y (and singular Q):
             # with M = F^-T Y F^-1, Y^- = (I + M GQG)^-1 M and y^- = (I + M GQG)^-1 F^-T y.
@@ -187,17 +297,29 @@ class _KF:
             A = np.linalg.solve(Bm, _bc(self.Finv.T, Bm.shape))
             Yp = sym(np.linalg.solve(Bm, Mi))
             Gam = -(A @ Y @ self.Finv)
-        RiH = np.linalg.solve(Rk, Hk)
+        RiH = np.linalg.solve(part.R, Hk)
         Y = sym(Yp + mT(Hk) @ RiH)
-        Ue = _embed(mT(RiH), self.rows, self.m)
-        self.mat = Y
+        Ue = mT(RiH) @ part.E
         ok = is_invertible(Y)
-        if np.all(ok):
+        # A filter switches to covariance form when its Y is invertible in every run.
+        switch = np.all(ok, axis=tuple(range(ok.ndim - self.n_local)))
+        if switch.all():
             P = spd_inv(Y)
-            self.info, self.mat = False, P
-            return _Step(P @ A, P @ Ue, self.eye, P, A, Gam, -P, -(P @ Ue), self.eye)
-        Pinv = inv_or_nan(Y)
-        return _Step(A, Ue, Pinv, Pinv, A, Gam, _bc(self.eye, Y.shape), Ue, Y)
+            step = _Step(P @ A, P @ Ue, part.I, P, A, Gam, -P, -(P @ Ue), part.I)
+            return step, P, ~switch
+        Pinv = inv_or_nan(Y, axes=tuple(range(-self.n_local, 0)))  # per filter, as alone
+        step = _Step(A, Ue, Pinv, Pinv, A, Gam, _bc(self.eye, Y.shape), Ue, Y)
+        if not switch.any():
+            return step, Y, ~switch
+        # Some local filters of a stack switch now, the others later. For the former,
+        # inv_or_nan gave spd_inv(Y), as above.
+        P = Pinv
+        cov = _Step(P @ A, P @ Ue, part.I, P, A, Gam, -P, -(P @ Ue), part.I)
+        w = switch[:, None, None]
+        step = _Step(
+            *(np.where(w, getattr(cov, f.name), getattr(step, f.name)) for f in fields(_Step))
+        )
+        return step, np.where(w, P, Y), ~switch
 
 
 class _Steady:
@@ -215,10 +337,8 @@ class _Steady:
     def reached(self, *mats: np.ndarray) -> bool:
         if not self.enabled:
             return False
-        cur = np.concatenate([np.ravel(m) for m in mats])
-        hit = self.prev is not None and np.max(np.abs(cur - self.prev)) <= 1e-15 * np.max(
-            np.abs(cur)
-        )
+        cur = mats[0].ravel() if len(mats) == 1 else np.concatenate([m.ravel() for m in mats])
+        hit = self.prev is not None and np.abs(cur - self.prev).max() <= 1e-15 * np.abs(cur).max()
         self.prev = cur
         return bool(hit)
 
@@ -240,6 +360,33 @@ def _block_diag(mats: list[np.ndarray]) -> np.ndarray:
     return out
 
 
+def _stack_diag(X: np.ndarray) -> np.ndarray:
+    """Block-diagonal matrix of a stack: (..., S, a, b) -> (..., S a, S b)."""
+    *lead, S, a, b = X.shape
+    out = np.zeros((*lead, S, a, S, b))
+    i = np.arange(S)
+    out[..., i, :, i, :] = np.moveaxis(X, -3, 0) if lead else X  # the index puts S first
+    return out.reshape((*lead, S * a, S * b))
+
+
+def _stack_rows(X: np.ndarray) -> np.ndarray:
+    """A stack's matrices one above the other: (..., S, a, b) -> (..., S a, b)."""
+    *lead, S, a, b = X.shape
+    return X.reshape((*lead, S * a, b))
+
+
+def _stack_cols(X: np.ndarray) -> np.ndarray:
+    """A stack's matrices side by side: (..., S, a, b) -> (..., a, S b)."""
+    *lead, S, a, b = X.shape
+    return X.swapaxes(-3, -2).reshape((*lead, a, S * b))
+
+
+def _sum_after(a: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """a + X_1 + ... + X_S for a stack X (..., S, p, q), added in that order (a numpy sum over
+    a leading axis adds sequentially), as a sum over the sensors written out would."""
+    return np.concatenate([a[..., None, :, :], X], axis=-3).sum(axis=-3)
+
+
 def _blockdiag_R(sys: System) -> np.ndarray:
     """R of eq. (31) without cross-covariances: what architectures that assume independent
     sensor noise (HKF's equivalent measurements) believe."""
@@ -252,17 +399,17 @@ def _blockdiag_R(sys: System) -> np.ndarray:
 
 def _single_filter_plan(name: str, sys: System, rows: np.ndarray, present: np.ndarray) -> Plan:
     batch = present.shape[:-2]
-    kf = _KF(sys, rows, sys.R[np.ix_(rows, rows)], batch)
+    kf = _KF(sys, _Rows.of(sys, rows, sys.R[np.ix_(rows, rows)]), batch)
     s0 = kf.s0
     steps = []
     infos: list[np.ndarray | None] = []
     steady = _Steady(present)
     K1 = present.shape[-2]
     for k in range(K1):
-        st = kf.step(present[..., k, rows], first=(k == 0))
+        st = kf.step(present[..., k, :], first=(k == 0))
         steps.append(StepMap(st.T, st.U, st.O, st.P, st.D))
-        infos.append(kf.mat if kf.info else None)
-        if not kf.info and steady.reached(kf.mat):
+        infos.append(kf.mat if kf.any_info else None)
+        if not kf.any_info and steady.reached(kf.mat):
             _fill(steps, K1)
             _fill(infos, K1)
             break
@@ -273,15 +420,18 @@ def _hkf_plan(sys: System, present: np.ndarray) -> Plan:
     """Hierarchical KF with feedback, eqs. (36)-(40).
 
     Each local KF j restarts from the fused prediction (38), updates with its own sensor, and the
-    fusion centre adds the equivalent measurements P_j^-1 x_j - P^-1_pred x_pred (36)-(37).
+    fusion centre adds the equivalent measurements P_j^-1 x_j - P^-1_pred x_pred (36)-(37). The
+    S local updates are one batched computation on the stacked sensors (`_Rows.per_sensor`).
     """
     batch = present.shape[:-2]
     n, m = sys.n, sys.m
+    S = len(sys.sensors)
+    F, GQG = sys.F, sys.GQG
     eye = np.eye(n)
-    allrows = np.arange(m)
     # Before a covariance exists (no prior), local equivalent measurements are just
     # H_j^T R_j^-1 H_j: the fused information filter on block-diagonal R is exactly that.
-    front = _KF(sys, allrows, _blockdiag_R(sys), batch)
+    front = _KF(sys, _Rows.of(sys, np.arange(m), _blockdiag_R(sys)), batch)
+    sensors = _Rows.per_sensor(sys)
     s0 = front.s0
     steps = []
     P = None
@@ -289,7 +439,7 @@ def _hkf_plan(sys: System, present: np.ndarray) -> Plan:
     K1 = present.shape[-2]
     for k in range(K1):
         first = k == 0
-        if front.info:
+        if front.any_info:
             st = front.step(present[..., k, :], first)
             steps.append(StepMap(st.T, st.U, st.O, st.P, st.D))
             P = front.mat
@@ -297,20 +447,17 @@ def _hkf_plan(sys: System, present: np.ndarray) -> Plan:
         if first:
             Pp, Tp = front.mat, eye
         else:
-            Pp, Tp = sym(sys.F @ P @ sys.F.T + sys.GQG), sys.F
+            Pp, Tp = sym(F @ P @ F.T + GQG), F
         Yp = spd_inv(Pp)
-        S = len(sys.sensors)
-        Yf = (1 - S) * Yp
-        Tacc = (1 - S) * Yp
-        U = np.zeros(batch + (n, m))
-        for j, sl in enumerate(sys.sensor_slices):
-            rows = allrows[sl]
-            Hj, Rj = _masked(sys.sensors[j].H, sys.sensors[j].R, present[..., k, rows])
-            Kj = gain(Pp, Hj, Rj)
-            Yj = spd_inv(joseph(Pp, Kj, Hj, Rj))
-            Yf = Yf + Yj
-            Tacc = Tacc + Yj @ (eye - Kj @ Hj)
-            U = U + _embed(Yj @ Kj, rows, m)
+        Hj, Rj = sensors.masked(present[..., k, :])  # batch + (S, r, .)
+        Ppj = Pp[..., None, :, :]  # every local starts from the fused prediction
+        Kj = gain(Ppj, Hj, Rj)
+        IKH = eye - Kj @ Hj
+        Yj = spd_inv(joseph(Ppj, Kj, Hj, Rj, IKH))
+        Yf = _sum_after((1 - S) * Yp, Yj)
+        Tacc = _sum_after((1 - S) * Yp, Yj @ IKH)
+        # Each sensor's gain sits in its own columns of z_k, zero elsewhere: the sum is exact.
+        U = (Yj @ Kj @ sensors.E).sum(axis=-3)
         P = spd_inv(Yf)
         steps.append(StepMap(P @ Tacc @ Tp, P @ U, _bc(eye, P.shape), P, eye))
         if steady.reached(P):
@@ -326,17 +473,15 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
 
     The local filters' joint error covariance follows eq. (35), extended by K_i R_ij K_j^T for
     correlated sensor noise and by information-form errors for filters started without a prior.
+    The local filters run as one stack (`_KF` on `_Rows.per_sensor`); the fusion rules, which do
+    not feed back, are evaluated for all steps together after the recursion.
     """
     batch = present.shape[:-2]
     n, m = sys.n, sys.m
     S = len(sys.sensors)
-    allrows = np.arange(m)
-    locs = [
-        _KF(sys, allrows[sl], s.R, batch)
-        for s, sl in zip(sys.sensors, sys.sensor_slices, strict=True)
-    ]
-    s0 = np.concatenate([lk.s0 for lk in locs])
-    twins = _twins(sys)
+    GQG = sys.GQG
+    locs = _KF(sys, _Rows.per_sensor(sys), batch)
+    everything = _Rows.of(sys, np.arange(m), sys.R)  # masked per step for eq. (35)
     if sys.prior is not None:
         J = _bc(np.kron(np.ones((S, S)), sys.prior.cov), batch + (S * n, S * n)).copy()
     else:
@@ -344,57 +489,75 @@ def _track_to_track_plan(name: str, sys: System, present: np.ndarray, criterion:
     # Only the generalised Millman formula and the average's honest covariance need the
     # cross-covariances of eq. (35).
     joint = name in ("MSC-GMF", "AVG")
+    stack = batch + (S, n, n)
+    # When every local is in covariance form they all predict with F and the full process
+    # noise: Phi and Gam of eq. (35), and the noise term, are then the same at every step.
+    Phi_cov = _stack_diag(_bc(sys.F, (S, n, n)))
+    Gam_cov = D_cov = _stack_rows(locs.I)  # and D_j = I
+    GQG_cov = Gam_cov @ GQG @ mT(Gam_cov)
     steps = []
-    ci_pending: list[tuple[int, np.ndarray, np.ndarray]] = []
+    # After each computed step: the locals' forms, their matrices (covariance, or information
+    # in information form), J, and their readouts x_j = O_j s_j.
+    after: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     steady = _Steady(present)
     K1 = present.shape[-2]
     for k in range(K1):
         first = k == 0
-        sts = _step_locals(locs, present[..., k, :], first, twins)
+        st = locs.step(present[..., k, :], first)
         if joint:
-            if not first:
-                Phi = _block_diag([st.Phi for st in sts])
-                Gam = np.concatenate([_bc(st.Gam, batch + (n, n)) for st in sts], axis=-2)
-                J = Phi @ J @ mT(Phi) + Gam @ sys.GQG @ mT(Gam)
-            Psi = _block_diag([st.Psi for st in sts])
-            Lam = np.concatenate([_bc(st.Lam, batch + (n, m)) for st in sts], axis=-2)
-            _, Rk = _masked(sys.H, sys.R, present[..., k, :])
+            if not first and st.Phi is locs.F:  # every local predicted in covariance form
+                J = Phi_cov @ J @ mT(Phi_cov) + GQG_cov
+            elif not first:
+                Phi = _stack_diag(_bc(st.Phi, stack))
+                Gam = _stack_rows(_bc(st.Gam, stack))
+                J = Phi @ J @ mT(Phi) + Gam @ GQG @ mT(Gam)
+            Psi = _stack_diag(_bc(st.Psi, stack))
+            Lam = _stack_rows(st.Lam)
+            _, Rk = everything.masked(present[..., k, :])
             J = sym(Psi @ J @ mT(Psi) + Lam @ Rk @ mT(Lam))
-        T = _block_diag([st.T for st in sts])
-        U = np.concatenate([_bc(st.U, batch + (n, m)) for st in sts], axis=-2)
-        all_cov = not any(lk.info for lk in locs)
-        D = np.concatenate([_bc(st.D, batch + (n, n)) for st in sts], axis=-2)
+        T = _stack_diag(_bc(st.T, stack))
         # A local's state s_j is D_j x + sigma_j with sigma_j = -g_j (mean form: s = x_hat,
         # g = x - x_hat) or +g_j (information form: s = y, g = y - Y x); J is cov(g).
-        sign = _signs(tuple(lk.info for lk in locs), n)
-        if name == "MSC":
-            O, P = _msc_readout(locs, sts, batch, n)
-        elif name == "MSC-GMF":
-            # Eqs. (2)-(7) with the unbiasedness constraint sum_j c_j D_j = I, which is eq. (7)
-            # when every local is in mean form (D_j = I) and extends it to information form.
-            if all_cov:
-                ws, P = gmf_weights(J, n)  # sign = -I cancels
-            else:
-                ws, P = gmf_weights(sign @ J @ sign, n, D)
-            O = np.concatenate(ws, axis=-1)
-        elif name == "AVG":
-            # Equal weights on the local means (eq. 2, c_i = I/S) and the covariance they
-            # really give, eq. (4); undefined (NaN) while a local has no mean yet.
-            Rs = [_mean_readout(lk, st, batch, n) for lk, st in zip(locs, sts, strict=True)]
-            O = np.concatenate(Rs, axis=-1) / S
-            Msig = O @ sign
-            P = sym(Msig @ J @ mT(Msig))
-        else:  # CI: the omegas of all steps are solved together after the loop
-            O = P = None
-            Ys, Ws = _local_infos(locs, sts, batch, n)
-            ci_pending.append((len(steps), np.stack(Ys, axis=-3), np.stack(Ws, axis=-3)))
-        steps.append(StepMap(T, U, O, P, D))
-        if all_cov and steady.reached(*([J] if joint else [lk.mat for lk in locs])):
+        D = D_cov if st.D is locs.I else _stack_rows(_bc(st.D, stack))  # D_j = I: mean form
+        steps.append(StepMap(T, _stack_rows(st.U), None, None, D))  # O, P: below
+        after.append((locs.info, locs.mat, J, st.O))
+        if not locs.any_info and steady.reached(J if joint else locs.mat):
             _fill(steps, K1)
             break
-    info = {"omega": _ci_readouts(steps, ci_pending, batch, criterion)} if name == "CI" else {}
-    D0 = np.concatenate([lk.D0 for lk in locs])
-    return Plan(name, s0, steps, per_run=bool(batch), info=info, D0=D0)
+    computed = steps[: len(after)]  # the rest repeat the last one
+    forms = np.stack([a[0] for a in after])  # (L, S)
+    info = {}
+    if name == "MSC":
+        O, P = _msc_readouts(forms, np.stack([a[1] for a in after]))
+        _set_readouts(computed, O, P)
+    elif name == "MSC-GMF":
+        for sm, (form, _, J, _) in zip(computed, after, strict=True):
+            # Eqs. (2)-(7) with the unbiasedness constraint sum_j c_j D_j = I, which is eq. (7)
+            # when every local is in mean form (D_j = I) and extends it to information form.
+            # One call per step: lstsq (the shared path's solver) does not batch.
+            if not form.any():
+                sm.O, sm.P = gmf_weight_matrix(J, n)  # sign = -I cancels
+            else:
+                sign = _signs(tuple(form.tolist()), n)
+                sm.O, sm.P = gmf_weight_matrix(sign @ J @ sign, n, sm.D)
+    elif name == "AVG":
+        # Equal weights on the local means (eq. 2, c_i = I/S) and the covariance they really
+        # give, eq. (4); undefined (NaN) while a local has no mean yet.
+        O = _stack_cols(np.stack([_bc(a[3], stack) for a in after])) / S
+        sign = np.stack([_signs(tuple(f.tolist()), n) for f in forms])
+        Msig = O @ sign.reshape(sign.shape[:1] + (1,) * len(batch) + sign.shape[1:])
+        P = sym(Msig @ np.stack([a[2] for a in after]) @ mT(Msig))
+        _set_readouts(computed, O, P)
+    else:  # CI: the omegas of all steps in one go
+        Ys, Ws = _local_infos(forms, np.stack([a[1] for a in after]))
+        info["omega"] = _ci_readouts(steps, Ys, Ws, batch, criterion)
+    return Plan(name, locs.s0, steps, per_run=bool(batch), info=info, D0=locs.D0)
+
+
+def _set_readouts(steps: list[StepMap], O: np.ndarray, P: np.ndarray) -> None:
+    """Readout O and reported covariance P of each step from arrays over the steps (L, ...)."""
+    for i, st in enumerate(steps):
+        st.O, st.P = O[i], P[i]
 
 
 @lru_cache(maxsize=64)
@@ -403,103 +566,56 @@ def _signs(info: tuple[bool, ...], n: int) -> np.ndarray:
     return np.kron(np.diag([1.0 if i else -1.0 for i in info]), np.eye(n))
 
 
-def _twins(sys: System) -> list[int]:
-    """For each sensor, the first sensor with the same H and R (itself if none): their local
-    filters run the same covariance recursion, so it is computed once per step."""
-    first: dict[bytes, int] = {}
-    out = []
-    for j, sen in enumerate(sys.sensors):
-        key = sen.H.tobytes() + b"|" + sen.R.tobytes() + repr(sen.H.shape).encode()
-        out.append(first.setdefault(key, j))
-    return out
+def _local_infos(forms: np.ndarray, mats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each local's information matrix Y_j and the map W_j with Y_j x_j = W_j s_j, for L steps
+    at once: forms (L, S), mats (L,) + batch + (S, n, n). In covariance form Y_j = P_j^-1 = W_j;
+    in information form the state is the information vector itself: Y_j is the matrix the
+    filter carries and W_j = I."""
+    if not forms.any():
+        Y = spd_inv(mats)
+        return Y, Y
+    # Steps and locals side by side, (L, S) + batch + (n, n), to pick them by their form.
+    M = np.moveaxis(mats, -3, 1)
+    Y = np.empty_like(M)
+    Y[~forms] = spd_inv(M[~forms])
+    Y[forms] = M[forms]
+    W = Y.copy()
+    W[forms] = np.eye(mats.shape[-1])
+    return np.moveaxis(Y, 1, -3), np.moveaxis(W, 1, -3)
 
 
-def _step_locals(
-    locs: list[_KF], present: np.ndarray, first: bool, twins: list[int]
-) -> list[_Step]:
-    """One step of every local filter; a twin with the same measurement pattern this step
-    takes its original's gains and covariances, re-embedded at its own rows."""
-    sts: list[_Step] = []
-    for j, lk in enumerate(locs):
-        o = twins[j]
-        if o != j and np.array_equal(present[..., lk.rows], present[..., locs[o].rows]):
-            src, st = locs[o], sts[o]
-            lk.info, lk.mat = src.info, src.mat
-
-            def move(A: np.ndarray, src: _KF = src, lk: _KF = lk) -> np.ndarray:
-                return _embed(A[..., src.rows], lk.rows, lk.m)
-
-            sts.append(
-                _Step(st.T, move(st.U), st.O, st.P, st.Phi, st.Gam, st.Psi, move(st.Lam), st.D)
-            )
-        else:
-            sts.append(lk.step(present[..., lk.rows], first))
-    return sts
+def _msc_readouts(forms: np.ndarray, mats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Millman fusion (33)-(34) in information form for L steps at once: P^-1 = sum Y_j,
+    x = P sum Y_j x_j, where Y_j x_j is the information vector itself for a local still in
+    information form. Returns O (L,) + batch + (n, S n) and P (L,) + batch + (n, n)."""
+    Ys, Ws = _local_infos(forms, mats)
+    P = inv_or_nan(Ys.sum(axis=-3), axes=(0,))  # each step on its own
+    return _stack_cols(P[..., None, :, :] @ Ws), P
 
 
 def _ci_readouts(
-    steps: list[StepMap],
-    pending: list[tuple[int, np.ndarray, np.ndarray]],
-    batch: tuple[int, ...],
-    criterion: str,
+    steps: list[StepMap], Ys: np.ndarray, Ws: np.ndarray, batch: tuple[int, ...], criterion: str
 ) -> np.ndarray:
-    """Covariance intersection of the local estimates at the steps in `pending` (step index,
-    local informations Y_j and maps W_j with Y_j x_j = W_j s_j, batch + (S, n, n)): every step's
+    """Covariance intersection of the local estimates at the first L steps, given the local
+    informations Y_j and maps W_j with Y_j x_j = W_j s_j, (L,) + batch + (S, n, n): every step's
     (and run's) omega in one `ci_omegas` call, then P = (sum w_j Y_j)^-1 and the weights
     w_j P W_j written into those steps' maps. In information form a local with too little
     information to have a mean of its own still contributes. Returns the omegas, batch +
     (K+1, S)."""
     K1 = len(steps)
-    Y0 = pending[0][1]
-    S, n = Y0.shape[-3], Y0.shape[-1]
-    Ys = np.stack([y for _, y, _ in pending])  # (L,) + batch + (S, n, n)
-    Ws = np.stack([w for _, _, w in pending])
+    L, S, n = Ys.shape[0], Ys.shape[-3], Ys.shape[-1]
     om = ci_omegas(Ys.reshape((-1, S, n, n)), criterion).reshape(Ys.shape[:-2])
     P = inv_or_nan(np.einsum("...j,...jab->...ab", om, Ys))
     O = np.concatenate([om[..., j, None, None] * (P @ Ws[..., j, :, :]) for j in range(S)], -1)
     by_id = {}
-    for i, (k, _, _) in enumerate(pending):
-        steps[k].O, steps[k].P = O[i], P[i]
-        by_id[id(steps[k])] = om[i]
+    for i in range(L):
+        steps[i].O, steps[i].P = O[i], P[i]
+        by_id[id(steps[i])] = om[i]
     omega = np.full((K1,) + batch + (S,), np.nan)
     for k, st in enumerate(steps):
         if id(st) in by_id:
             omega[k] = by_id[id(st)]
     return np.moveaxis(omega, 0, -2)
-
-
-def _local_infos(
-    locs: list[_KF], sts: list[_Step], batch: tuple[int, ...], n: int
-) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Each local's information matrix Y_j and the map W_j with Y_j x_j = W_j s_j (the
-    information vector is the state itself while a local is in information form)."""
-    Ys, Ws = [], []
-    for lk, st in zip(locs, sts, strict=True):
-        if lk.info:
-            Ys.append(lk.mat)
-            Ws.append(_bc(np.eye(n), batch + (n, n)))
-        else:
-            Y = spd_inv(st.P)
-            Ys.append(Y)
-            Ws.append(Y)
-    return Ys, Ws
-
-
-def _mean_readout(lk: _KF, st: _Step, batch: tuple[int, ...], n: int) -> np.ndarray:
-    """x_j = R_j s_j: I in mean form, Y_j^-1 in information form (NaN where singular)."""
-    if not lk.info:
-        return _bc(np.eye(n), batch + (n, n))
-    return inv_or_nan(lk.mat)
-
-
-def _msc_readout(
-    locs: list[_KF], sts: list[_Step], batch: tuple[int, ...], n: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Millman fusion (33)-(34) in information form: P^-1 = sum Y_j, x = P sum Y_j x_j, where
-    Y_j x_j is the information vector itself for a local still in information form."""
-    Ys, Ws = _local_infos(locs, sts, batch, n)
-    P = inv_or_nan(sum(Ys))
-    return np.concatenate([P @ W for W in Ws], axis=-1), P
 
 
 def _fbs_plan(sys: System, present: np.ndarray) -> Plan:
@@ -519,17 +635,19 @@ def _fbs_plan(sys: System, present: np.ndarray) -> Plan:
     L: list[np.ndarray] = [np.zeros(0)] * (K1 - 1)
     Smat = [np.zeros(batch + (n, n)) for _ in range(K1)]
     steady = _Steady(present)
+    everything = _Rows.of(sys, np.arange(sys.m), sys.R)
+    GQG = sys.GQG
     for k in range(K1 - 1, -1, -1):
         if steady.enabled and k < K1 - 3 and Smat[k + 1] is Smat[k + 2]:
             V[k], L[k], Smat[k] = V[k + 1], L[k + 1], Smat[k + 1]
             continue
-        Hk, Rk = _masked(sys.H, sys.R, present[..., k, :])
+        Hk, Rk = everything.masked(present[..., k, :])
         RiH = np.linalg.solve(Rk, Hk)
         V[k] = mT(RiH)
         if k < K1 - 1:
-            Hn = _masked(sys.H, sys.R, present[..., k + 1, :])[0]
+            Hn = everything.masked(present[..., k + 1, :])[0]
             Splus = sym(Smat[k + 1] + mT(Hn) @ mT(V[k + 1]))
-            Bm = eye + Splus @ sys.GQG
+            Bm = eye + Splus @ GQG
             # L = F^T (I + S^+ GQG)^-1, computed as a solve with the transpose.
             L[k] = mT(np.linalg.solve(mT(Bm), _bc(sys.F, Bm.shape)))
             Smat[k] = sym(L[k] @ Splus @ sys.F)

@@ -9,6 +9,7 @@ weights.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import lru_cache
 from typing import Literal
 
 import numpy as np
@@ -59,36 +60,57 @@ def gmf_weights(
     information vector has E_i = Y_i); weights that cannot meet it (too little information in
     all inputs together) come back as NaN. Returns the weights c_i and P of eq. (4).
     """
+    C, P = gmf_weight_matrix(joint, n, E)
+    N = joint.shape[-1] // n
+    return [C[..., :, i * n : (i + 1) * n] for i in range(N)], P
+
+
+@lru_cache(maxsize=32)
+def _kkt_constants(N: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """E = [I; ...; I] (N n x n) of eq. (7) and the KKT right-hand side [0; I]."""
+    rhs = np.zeros((N * n + n, n))
+    rhs[N * n :] = np.eye(n)
+    E = np.tile(np.eye(n), (N, 1))
+    E.flags.writeable = rhs.flags.writeable = False  # shared by every call
+    return E, rhs
+
+
+def gmf_weight_matrix(
+    joint: np.ndarray, n: int, E: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """`gmf_weights` with the weights side by side, C = [c_1 ... c_N] (..., n, N n): what a
+    caller applying them to the stacked estimates uses directly. Returns C and P of eq. (4)."""
     N = joint.shape[-1] // n
     batch = joint.shape[:-2]
     general = E is not None
-    if E is None:
-        E = np.tile(np.eye(n), (N, 1))
-    E = np.broadcast_to(E, batch + (N * n, n))
+    E0, rhs = _kkt_constants(N, n)
     # Scale so that the KKT matrix mixes blocks of comparable size (R may span 1e-8 .. 1e8).
-    scale = np.max(np.abs(np.diagonal(joint, axis1=-2, axis2=-1)), axis=-1)[..., None, None]
+    scale = np.abs(joint.diagonal(0, -2, -1)).max(axis=-1)[..., None, None]
     scale = np.where(scale > 0, scale, 1.0)
-    e_scale = np.max(np.abs(E), axis=(-2, -1))[..., None, None] if general else np.ones(1)
-    e_scale = np.where(e_scale > 0, e_scale, 1.0)
-    Sig, Es = joint / scale, E / e_scale
+    if general:
+        E = np.broadcast_to(E, batch + (N * n, n))
+        e_scale = np.abs(E).max(axis=(-2, -1))[..., None, None]
+        e_scale = np.where(e_scale > 0, e_scale, 1.0)
+        Es = E / e_scale
+    else:  # E = [I; ...; I] needs no scaling
+        Es = E0
     kkt = np.zeros(batch + (N * n + n, N * n + n))
-    kkt[..., : N * n, : N * n] = Sig
+    kkt[..., : N * n, : N * n] = joint / scale
     kkt[..., : N * n, N * n :] = Es
     kkt[..., N * n :, : N * n] = mT(Es)
-    rhs = np.zeros((N * n + n, n))
-    rhs[N * n :] = np.eye(n)
     if kkt.ndim == 2:
         sol = np.linalg.lstsq(kkt, rhs, rcond=1e-12)[0]  # SVD-based minimum-norm solution
     else:  # lstsq does not batch; the pseudo-inverse gives the same minimum-norm solution
         sol = np.linalg.pinv(kkt, rcond=1e-12, hermitian=True) @ rhs
-    Ct = sol[..., : N * n, :] / e_scale  # (N n, n): stacked c_i^T, back to the unscaled E
+    Ct = sol[..., : N * n, :]  # (N n, n): stacked c_i^T
+    if general:
+        Ct = Ct / e_scale  # back to the unscaled E
     C = mT(Ct)
     if general:
         ok = np.max(np.abs(C @ E - np.eye(n)), axis=(-2, -1)) < 1e-8
         C = np.where(ok[..., None, None], C, np.nan)
-    weights = [C[..., :, i * n : (i + 1) * n] for i in range(N)]
     P = sym(C @ joint @ mT(C))
-    return weights, P
+    return C, P
 
 
 Criterion = Literal["trace", "det"]
@@ -98,8 +120,11 @@ Criterion = Literal["trace", "det"]
 CI_GROUP = 8
 
 
-def _ci_costs(Ys: np.ndarray, omega: np.ndarray, criterion: Criterion) -> tuple[np.ndarray, ...]:
-    """Costs tr(P) or log det(P), P = (sum_i w_i Y_i)^-1, of B problems and their gradients.
+def _ci_costs(
+    Ys: np.ndarray, omega: np.ndarray, criterion: Criterion, gradient: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Costs tr(P) or log det(P), P = (sum_i w_i Y_i)^-1, of B problems and their gradients
+    (None with gradient=False).
 
     Ys (B, N, n, n) informations, omega (B, N). d tr(P)/d w_i = -tr(P Y_i P) and
     d log det(P)/d w_i = -tr(P Y_i). Both costs are convex in omega (tr X^-1 and -log det X are
@@ -110,12 +135,15 @@ def _ci_costs(Ys: np.ndarray, omega: np.ndarray, criterion: Criterion) -> tuple[
     bad = sign <= 0
     Y[bad] = np.eye(Y.shape[-1])
     P = np.linalg.inv(Y)
+    g = None
     if criterion == "trace":
         f = np.trace(P, axis1=-2, axis2=-1)
-        g = -np.einsum("bjk,bikl,blj->bi", P, Ys, P)
+        if gradient:
+            g = -np.einsum("bjk,bikl,blj->bi", P, Ys, P)
     else:
         f = -logdet
-        g = -np.einsum("bjk,bikj->bi", P, Ys)
+        if gradient:
+            g = -np.einsum("bjk,bikj->bi", P, Ys)
     f = np.where(bad, np.inf, f)
     return f, g
 
@@ -176,17 +204,21 @@ def _ci_group(Yg: np.ndarray, criterion: Criterion) -> np.ndarray:
     w = np.clip(res.x.reshape(b, N), 0.0, 1.0)
     w[w < 1e-12] = 0.0  # SLSQP lands within rounding of an active bound
     w /= w.sum(axis=1, keepdims=True)
-    best, cost = w, _ci_costs(Yg, w, criterion)[0]
+    # The answer and the N end points (e_i: input i alone) costed in one call, as N + 1 stacked
+    # copies of the group; each problem's cost is computed on its own all the same.
+    ends = np.broadcast_to(np.eye(N)[:, None, :], (N, b, N))
+    cands = np.concatenate([w[None], ends]).reshape(-1, N)
+    Yc = np.broadcast_to(Yg, (N + 1,) + Yg.shape).reshape((-1,) + Yg.shape[1:])
+    costs = _ci_costs(Yc, cands, criterion, gradient=False)[0].reshape(N + 1, b)
+    best, cost = w, costs[0]
     if not np.isfinite(cost).all():  # the optimiser stepped out: fall back to the start point
         bad = ~np.isfinite(cost)
         best[bad] = 1.0 / N
-        cost = _ci_costs(Yg, best, criterion)[0]
+        cost = _ci_costs(Yg, best, criterion, gradient=False)[0]
     for i in range(N):
-        e = np.zeros((b, N))
-        e[:, i] = 1.0
-        c = _ci_costs(Yg, e, criterion)[0]
+        c = costs[i + 1]
         better = c < cost - 1e-9 * np.abs(cost)
-        best = np.where(better[:, None], e, best)
+        best = np.where(better[:, None], ends[i], best)
         cost = np.where(better, c, cost)
     return best
 

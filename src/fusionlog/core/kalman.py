@@ -9,13 +9,20 @@ from .linalg import mT, spd_inv, sym
 
 def gain(P: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Kalman gain K = P H^T (H P H^T + R)^-1, eq. (17), solved with the innovation covariance."""
-    S = sym(H @ P @ mT(H) + R)
-    return mT(np.linalg.solve(S, H @ P))
+    HP = H @ P
+    S = sym(HP @ mT(H) + R)
+    return mT(np.linalg.solve(S, HP))
 
 
-def joseph(P: np.ndarray, K: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """Joseph form (I - K H) P (I - K H)^T + K R K^T of eq. (18): PSD by construction."""
-    A = np.eye(P.shape[-1]) - K @ H
+def joseph(
+    P: np.ndarray, K: np.ndarray, H: np.ndarray, R: np.ndarray, A: np.ndarray | None = None
+) -> np.ndarray:
+    """Joseph form (I - K H) P (I - K H)^T + K R K^T of eq. (18): PSD by construction.
+
+    A = I - K H may be passed by a caller that needs it anyway.
+    """
+    if A is None:
+        A = np.eye(P.shape[-1]) - K @ H
     return sym(A @ P @ mT(A) + K @ R @ mT(K))
 
 
