@@ -864,3 +864,22 @@ def test_table_decoding_matches_the_message_decoder(two_channel_file, specs, see
         )
         assert tab.raw[tab.p1[i] : tab.p1[i] + tab.n1[i]] == bytes(p1)
         assert tab.raw[tab.p2[i] : tab.p2[i] + tab.n2[i]] == bytes(p2)
+
+
+@pytest.mark.parametrize("chunk_size", [300, 1 << 20])
+def test_one_topic_of_many_read_through_the_message_indexes(tmp_path, chunk_size):
+    """Reading a quarter of the messages takes them through the chunks' message indexes (the
+    rest are not split out of the chunk); the arrays are those of reading every topic."""
+    truth, sens, mean = make_data(3, 7, 4)
+    covs = [np.random.default_rng(0).normal(size=(4, 2, 2))] * 3
+    path = tmp_path / "x.mcap"
+    write_file(path, truth, sens, mean, covs, 3, chunk_size=chunk_size)
+    f = McapFile(path)
+    for topic in ("/truth", "/sensors/a"):
+        _, alone = concat_blocks(f, [topic], 2)
+        _, all_ = concat_blocks(f, ["/truth", "/sensors/a", "/estimates/CKF"], 2)
+        assert all(
+            np.array_equal(x, y, equal_nan=True)
+            for x, y in zip(alone[topic], all_[topic], strict=True)
+        )
+    assert np.array_equal(np.concatenate(alone["/sensors/a"]), sens, equal_nan=True)

@@ -44,6 +44,7 @@ import struct
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
+from io import BytesIO
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -51,10 +52,21 @@ import foxglove
 import numpy as np
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions, MCAPWriter
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
+from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Chunk, ChunkIndex, Header, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.records import (
+    Channel,
+    Chunk,
+    ChunkIndex,
+    Header,
+    Message,
+    MessageIndex,
+    Metadata,
+    Schema,
+)
+from mcap.stream_reader import StreamReader, breakup_chunk, get_chunk_data_stream
 
 from fusionlog.errors import FusionlogError
 
@@ -1335,8 +1347,12 @@ class McapFile:
 
     # -- decoded chunks ------------------------------------------------------------------------
 
-    def _read_chunk(self, f: BinaryIO, ci: ChunkIndex) -> list[Message]:
-        """One chunk's messages, via mcap's own record reader (one chunk in memory at a time).
+    def _read_chunk(
+        self, f: BinaryIO, ci: ChunkIndex, only: set[int] | None = None
+    ) -> list[Message]:
+        """One chunk's messages, via mcap's own record reader (one chunk in memory at a time);
+        with ``only``, just those channels' messages, found through the chunk's message indexes
+        (every record is still mcap's to read).
 
         CRCs are validated: uncompressed chunks and zstd frames carry no checksum of their own,
         so flipped bytes in a chunk would otherwise decode as wrong numbers.
@@ -1346,7 +1362,29 @@ class McapFile:
             chunk = next(iter(StreamReader(f, skip_magic=True, emit_chunks=True).records))
             if not isinstance(chunk, Chunk):
                 raise ValueError("chunk index does not point at a chunk")
-            return [r for r in breakup_chunk(chunk, validate_crc=True) if isinstance(r, Message)]
+            if only is None:
+                recs = breakup_chunk(chunk, validate_crc=True)
+                return [r for r in recs if isinstance(r, Message)]
+            offsets: list[int] = []
+            for cid in only:
+                f.seek(ci.message_index_offsets[cid])
+                index = next(iter(StreamReader(f, skip_magic=True).records))
+                if not isinstance(index, MessageIndex) or index.channel_id != cid:
+                    raise ValueError(f"no message index of channel {cid} where the index says")
+                offsets.extend(o for _, o in index.records)
+            stream, size = get_chunk_data_stream(chunk, validate_crc=True)
+            data = BytesIO(stream.read(size))
+            records = ReadDataStream(data)
+            out = []
+            for o in sorted(offsets):  # file order
+                data.seek(o)
+                if records.read1() != Opcode.MESSAGE:
+                    raise ValueError(f"message index points at offset {o}, not at a message")
+                msg = Message.read(records, records.read8())
+                if msg.channel_id not in only:
+                    raise ValueError(f"message index points at offset {o}, another channel")
+                out.append(msg)
+            return out
         except Exception as e:
             raise FusionlogError(
                 f"{self.path}: corrupt MCAP chunk at byte {ci.chunk_start_offset} "
@@ -1390,11 +1428,17 @@ class McapFile:
                     if tab is not None:
                         yield bi, tab
                 return
+            # Few of the file's messages wanted (evaluate reads /truth only, which every chunk
+            # interleaves with the sensors): take them through the chunks' message indexes.
+            wanted = sum(i.count for i in self._topics.values() if set(i.channel_ids) & cids)
+            total = sum(i.count for i in self._topics.values())
+            sparse = 2 * wanted <= total
             for ci in range(start, len(self._chunks)):
                 index, ids = self._chunks[ci]
                 if ids is not None and not ids & cids:
                     continue
-                tab = self._table(self._read_chunk(f, index), cids)
+                only = cids & ids if sparse and ids is not None else None
+                tab = self._table(self._read_chunk(f, index, only), cids)
                 if tab is not None:
                     yield ci, tab
 
