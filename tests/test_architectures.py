@@ -298,3 +298,23 @@ def test_per_run_results_do_not_depend_on_other_runs(arch):
         assert np.isnan(both.mean[0]).all()
     else:
         assert np.isfinite(both.mean[0, 1:]).all()
+
+
+@pytest.mark.parametrize("arch", ["CI", "MSC", "MSC-GMF", "HKF", "CKF", "FBS"])
+def test_no_prior_run_that_sees_nothing_at_first(arch):
+    """Without a prior, a run with no measurement at k = 0 has no estimate there (NaN), and
+    once its information suffices, finite ones. CI once raised LinAlgError here: its fusion of
+    no weights is NaN, and the invertibility test ran LAPACK's eigensolver on NaN."""
+    sys = random_system(np.random.default_rng(4), 3, [2, 2, 1], prior=False, correlated=True)
+    K = 12
+    present = np.ones((3, K + 1, sys.m), bool)
+    present[0, 2, 0] = False
+    present[1, 4:7, sys.m - 1] = False
+    present[2, 0, :] = False
+    present[2, 8, 1 % sys.m] = False
+    _, z = simulate(sys, K, 5, 0, 3)
+    z[~present] = np.nan
+    e = estimate(sys, z, arch)
+    if arch != "FBS":  # the smoother has the later measurements at k = 0
+        assert np.isnan(e.mean[2, 0]).all()
+    assert np.isfinite(e.mean[:, -1]).all()

@@ -34,10 +34,14 @@ def is_invertible(Y: np.ndarray, rtol: float = 1e-13) -> np.ndarray:
     """Whether each symmetric PSD matrix has full rank (smallest eigenvalue above rtol * largest).
 
     Used to decide when an information-form filter that started without a prior has gathered
-    enough information for a covariance to exist.
+    enough information for a covariance to exist. A matrix with a NaN (e.g. the information of
+    a fusion with no weights because nothing was observed yet) is not invertible.
     """
+    finite = np.isfinite(Y).all(axis=(-2, -1))
+    if not finite.all():  # LAPACK's eigensolver does not converge on NaN
+        Y = np.where(finite[..., None, None], Y, 0.0)
     w = np.linalg.eigvalsh(Y)
-    return w[..., 0] > rtol * np.maximum(w[..., -1], np.finfo(float).tiny)
+    return finite & (w[..., 0] > rtol * np.maximum(w[..., -1], np.finfo(float).tiny))
 
 
 def inv_or_nan(Y: np.ndarray, axes: tuple[int, ...] = ()) -> np.ndarray:
@@ -53,6 +57,7 @@ def inv_or_nan(Y: np.ndarray, axes: tuple[int, ...] = ()) -> np.ndarray:
     if np.all(ok):
         return spd_inv(Y)
     if not axes:
+        Y = np.where(ok[..., None, None], Y, 0.0)  # the others are NaN anyway; no NaN in SVD
         return sym(np.where(ok[..., None, None], np.linalg.pinv(Y, hermitian=True), np.nan))
     # The slices along `axes` first, each one either wholly invertible or not.
     axes = tuple(a % ok.ndim for a in axes)  # batch axes: the same in Y and in ok
