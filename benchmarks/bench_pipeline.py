@@ -57,7 +57,7 @@ from bench_core import filterpy_ckf  # noqa: E402
 
 from fusionlog.core.names import PAPER_ARCHITECTURES  # noqa: E402
 from fusionlog.io.mcap_io import McapFile, McapWriter  # noqa: E402
-from fusionlog.stages.common import system_from_file  # noqa: E402
+from fusionlog.stages.common import scenario_from_file  # noqa: E402
 
 SCENARIO = ROOT / "pipeline" / "ajgl2009.toml"
 STAGES = ("simulate", "estimate", "evaluate")
@@ -319,7 +319,7 @@ def throughput_rows(case: str, stages: dict[str, float], io: dict, base: dict) -
 def load_z(sensors: Path) -> tuple[object, np.ndarray]:
     """The filter model and every run's stacked measurements (M, K+1, m) of a sensors file."""
     mf = McapFile(sensors)
-    system = system_from_file(mf)
+    system = scenario_from_file(mf).system
     topics = [f"/sensors/{s.name}" for s in system.sensors]
     parts = [data for _, _, data in mf.iter_run_blocks(topics, mf.runs())]
     z = np.concatenate([np.concatenate([d[t] for t in topics], axis=-1) for d in parts])

@@ -7,10 +7,8 @@ stderr naming the file and the problem; a traceback only with --debug), 130 inte
 from __future__ import annotations
 
 import json
-import os
-import shutil
+import signal
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -18,28 +16,87 @@ from typing import Any
 import click
 
 from fusionlog import __version__
-from fusionlog.errors import FusionlogError
+from fusionlog.errors import DamagedFile, FusionlogError, OutputExists
 
 PATH = click.Path(path_type=Path, dir_okay=False)
 
 
+#: Exit codes (DESIGN.md): 0 success, 1 a regression found by `compare`, 2 bad usage, bad
+#: input or a failed output (one line on stderr), 3 an internal error (a bug: one line; the
+#: traceback with --debug), 128 + N killed by signal N (SIGINT 130, SIGHUP 129, SIGTERM 143).
+EXIT_BAD_INPUT = 2
+EXIT_INTERNAL = 3
+
+
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP: unwinds like Ctrl-C so every temporary file is removed."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _on_signal(signum: int, _frame: Any) -> None:
+    raise Terminated(signum)
+
+
+def _hint(e: FusionlogError) -> str:
+    """How to fix it, where that depends on the command line rather than on the library."""
+    if isinstance(e, OutputExists):
+        return "; use --force to overwrite"
+    if isinstance(e, DamagedFile) and e.path is not None:
+        return f"; `fusionlog inspect --recover {e.path}` shows what is still readable"
+    return ""
+
+
 class _Group(click.Group):
-    """Turns FusionlogError into one line and exit code 2, and Ctrl-C into exit code 130."""
+    """One line and an exit code for every failure; SIGTERM/SIGHUP clean up like Ctrl-C."""
 
     def invoke(self, ctx: click.Context) -> Any:
-        debug = bool(ctx.params.get("debug"))
+        debug = bool(ctx.params.get("debug")) or "--debug" in sys.argv[1:2]
+        for sig in (signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, _on_signal)
         try:
             return super().invoke(ctx)
         except FusionlogError as e:
             if debug:
                 raise
-            click.echo(f"fusionlog: error: {e}", err=True)
-            ctx.exit(2)
-        except KeyboardInterrupt:
+            click.echo(f"fusionlog: error: {_one_line(str(e))}{_hint(e)}", err=True)
+            ctx.exit(EXIT_BAD_INPUT)
+        except (KeyboardInterrupt, Terminated) as e:
             if debug:
                 raise
+            signum = e.signum if isinstance(e, Terminated) else signal.SIGINT
             click.echo("fusionlog: interrupted; no partial output was left behind", err=True)
-            ctx.exit(130)
+            ctx.exit(128 + int(signum))
+        except (click.exceptions.Exit, click.ClickException, click.Abort):
+            raise
+        except MemoryError:
+            if debug:
+                raise
+            click.echo(
+                "fusionlog: error: out of memory (use fewer runs per block or steps)", err=True
+            )
+            ctx.exit(EXIT_BAD_INPUT)
+        except OSError as e:  # a file the library did not name: still one line
+            if debug:
+                raise
+            where = f"{e.filename}: " if e.filename else ""
+            click.echo(f"fusionlog: error: {where}{e.strerror or e}", err=True)
+            ctx.exit(EXIT_BAD_INPUT)
+        except Exception as e:
+            if debug:
+                raise
+            click.echo(
+                f"fusionlog: internal error: {type(e).__name__}: {_one_line(str(e))} "
+                "(please report it; --debug shows the traceback)",
+                err=True,
+            )
+            ctx.exit(EXIT_INTERNAL)
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
 
 
 def _command_line() -> str:
@@ -55,25 +112,23 @@ def main(debug: bool) -> None:
 
 
 def _scenario(path: Path, runs: int | None, steps: int | None, seed: int | None):
-    """The scenario: an identity scenario if the file has [identity], else a state one."""
-    from fusionlog.stages.identity import is_identity_scenario_file, load_identity_scenario
-
-    if is_identity_scenario_file(path):
-        return load_identity_scenario(path, runs=runs, steps=steps, seed=seed)
+    """The scenario, of whichever kind the file is (decided once, by the loader)."""
     from fusionlog.scenario import load_scenario
 
     return load_scenario(path, runs=runs, steps=steps, seed=seed)
 
 
-def _is_identity(scenario: Any) -> bool:
-    return getattr(scenario, "kind", None) == "identity"
+def _warn_stale(targets: list[Path]) -> None:
+    """Report temporary files a killed fusionlog left beside these outputs."""
+    from fusionlog.io.atomic import stale_temporaries
 
-
-def _identity_log(path: Path, model: Path | None = None) -> bool:
-    """Whether a sensors file (or, without scenario metadata, the --model) is identity."""
-    from fusionlog.stages.identity import is_identity_file, is_identity_scenario_file
-
-    return is_identity_file(path) or (model is not None and is_identity_scenario_file(model))
+    for t in targets:
+        for p in stale_temporaries(t):
+            click.echo(
+                f"fusionlog: warning: {p} is a temporary file left by a killed fusionlog run "
+                f"(its process is gone); remove it with: rm {p}",
+                err=True,
+            )
 
 
 _runs = click.option("--runs", type=int, help="Monte Carlo runs M (overrides the scenario).")
@@ -102,12 +157,9 @@ _arch = click.option(
 @_block
 def simulate(scenario, output, runs, steps, seed, force, block_runs) -> None:
     """Simulate SCENARIO.toml: truth and sensor streams into an MCAP file."""
-    sc = _scenario(scenario, runs, steps, seed)
-    if _is_identity(sc):
-        from fusionlog.stages.identity import run_simulate
-    else:
-        from fusionlog.stages.simulate import run_simulate
+    from fusionlog.stages.simulate import run_simulate
 
+    sc = _scenario(scenario, runs, steps, seed)
     res = run_simulate(sc, output, force=force, block=block_runs, command=_command_line())
     click.echo(f"{res.path}: {res.runs} runs x {res.steps + 1} steps, {res.messages} messages")
 
@@ -121,10 +173,7 @@ def simulate(scenario, output, runs, steps, seed, force, block_runs) -> None:
 @_block
 def estimate(sensors, output, archs, model, force, block_runs) -> None:
     """Replay SENSORS.mcap through fusion architectures into an estimates MCAP file."""
-    if _identity_log(sensors, model):
-        from fusionlog.stages.identity import run_estimate
-    else:
-        from fusionlog.stages.estimate import run_estimate
+    from fusionlog.stages.estimate import run_estimate
 
     res = run_estimate(
         sensors,
@@ -148,11 +197,7 @@ def estimate(sensors, output, archs, model, force, block_runs) -> None:
 def evaluate(sensors, estimates, output, summary_path, force, block_runs) -> None:
     """Evaluate ESTIMATES.mcap against the truth in SENSORS.mcap into a Rerun recording."""
     from fusionlog.report import format_table
-
-    if _identity_log(sensors):
-        from fusionlog.stages.identity import run_evaluate
-    else:
-        from fusionlog.stages.evaluate import run_evaluate
+    from fusionlog.stages.evaluate import run_evaluate
 
     res = run_evaluate(
         sensors, estimates, output, summary_path=summary_path, force=force, block=block_runs
@@ -176,66 +221,50 @@ def evaluate(sensors, estimates, output, summary_path, force, block_runs) -> Non
 @_block
 def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs) -> None:
     """Simulate, estimate and evaluate SCENARIO.toml; print the results table."""
+    from fusionlog.io.atomic import Outputs
+    from fusionlog.io.mcap import McapWriter
     from fusionlog.report import format_table
+    from fusionlog.stages.estimate import estimate_to
+    from fusionlog.stages.evaluate import evaluate_into
+    from fusionlog.stages.kinds import kind_of
+    from fusionlog.stages.simulate import simulate_to
 
     sc = _scenario(scenario, runs, steps, seed)
-    if _is_identity(sc):
-        from fusionlog.stages.identity import (
-            check_architectures,
-            run_estimate,
-            run_evaluate,
-            run_simulate,
-        )
-
-        check_architectures(list(archs), "--arch")
-    else:
-        from fusionlog.stages.estimate import check_architectures, run_estimate
-        from fusionlog.stages.evaluate import run_evaluate
-        from fusionlog.stages.simulate import run_simulate
-
-        check_architectures(list(archs), sc.system, "--arch")
+    archs = kind_of(sc.kind).check_architectures(list(archs), sc.system, "--arch")
     d = out_dir if out_dir is not None else Path("recordings") / sc.name
-    outs = {k: d / k for k in ("sensors.mcap", "estimates.mcap", "evaluation.rrd", "summary.json")}
-    if not force:
-        for p in outs.values():
-            if p.exists():
-                raise FusionlogError(f"{p}: exists; use --force to overwrite")
+    names = ("sensors.mcap", "estimates.mcap", "evaluation.rrd", "summary.json")
+    outs = {k: d / k for k in names}
+    _warn_stale(list(outs.values()))
     cmd = _command_line()
-    # All four outputs are made in a staging folder beside them and moved into place together
-    # at the end: a run that fails half-way leaves the previous outputs as they were, not a mix.
-    d.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(dir=d, prefix=".run-"))
-    new = {k: staging / k for k in outs}
-    try:
+    # The four outputs are committed together at the end, or none of them: a run that fails
+    # half-way leaves the previous outputs as they were, not a mix.
+    with Outputs(list(outs.values()), force=force, inputs=[scenario]) as o:
         t0 = time.perf_counter()
-        run_simulate(sc, new["sensors.mcap"], block=block_runs, command=cmd)
+        with McapWriter(o.open(outs["sensors.mcap"])) as w:
+            simulate_to(sc, w, block=block_runs, command=cmd)
         t1 = time.perf_counter()
-        run_estimate(
-            new["sensors.mcap"],
-            new["estimates.mcap"],
-            archs=list(archs) or list(sc.architectures),
-            block=block_runs,
-            command=cmd,
-        )
+        with McapWriter(o.open(outs["estimates.mcap"])) as w:
+            estimate_to(
+                o.temp_path(outs["sensors.mcap"]),
+                w,
+                archs=archs or list(sc.architectures),
+                block=block_runs,
+                command=cmd,
+                sensors_name="sensors.mcap",
+            )
         t2 = time.perf_counter()
-        res = run_evaluate(
-            new["sensors.mcap"],
-            new["estimates.mcap"],
-            new["evaluation.rrd"],
-            summary_path=new["summary.json"],
+        summary_ = evaluate_into(
+            o.temp_path(outs["sensors.mcap"]),
+            o.temp_path(outs["estimates.mcap"]),
+            o,
+            outs["evaluation.rrd"],
+            outs["summary.json"],
             block=block_runs,
         )
-        if not force:  # an output that appeared while we were running is not overwritten
-            for p in outs.values():
-                if p.exists():
-                    raise FusionlogError(f"{p}: exists; use --force to overwrite")
-        for k, p in outs.items():
-            os.replace(new[k], p)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+        o.commit()
     t3 = time.perf_counter()
     click.echo(f"{sc.name}: M = {sc.runs} runs, K = {sc.steps}, seed {sc.seed}")
-    click.echo(format_table(res.summary))
+    click.echo(format_table(summary_))
     click.echo(
         f"simulate {t1 - t0:.2f} s, estimate {t2 - t1:.2f} s, evaluate {t3 - t2:.2f} s -> {d}"
     )
@@ -298,10 +327,12 @@ def compare(actual, golden, rtol, atol) -> None:
 @click.option("--recover", is_flag=True, help="Read a damaged file as far as it goes.")
 def inspect(file, recover) -> None:
     """Show what is in an MCAP file: scenario, topics, message counts, runs, steps."""
-    from fusionlog.io import mcap_io
+    from fusionlog.io.mcap import McapFile
+    from fusionlog.io.mcap import recover as recover_file
 
+    _warn_stale([file])
     if recover:
-        info = mcap_io.recover(file)
+        info = recover_file(file)
         click.echo(f"{file}: {'damaged: ' + str(info['error']) if info['error'] else 'intact'}")
         for t, c in sorted(info["topics"].items()):
             click.echo(f"  {t:32s} {c:8d} messages readable")
@@ -311,7 +342,7 @@ def inspect(file, recover) -> None:
         )
         click.echo(f"  metadata: {', '.join(sorted(info['metadata'])) or 'none'}")
         return
-    mf = mcap_io.McapFile(file)
+    mf = McapFile(file)
     sc = mf.metadata.get("fusionlog.scenario", {})
     prov = mf.metadata.get("fusionlog.provenance", {})
     click.echo(f"{file}")

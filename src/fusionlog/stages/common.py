@@ -1,10 +1,9 @@
-"""Pieces the three stages share: block sizes, provenance, progress bars, loading a scenario
-back out of a sensors file."""
+"""Pieces the three stage drivers share: block sizes, provenance, progress bars, the scenario
+recorded in a sensors file, and the checks every evaluation makes first."""
 
 from __future__ import annotations
 
 import hashlib
-import json
 import sys
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -13,10 +12,9 @@ from typing import TypeVar
 from tqdm import tqdm
 
 from fusionlog import __version__
-from fusionlog.core.model import System
 from fusionlog.errors import FusionlogError
-from fusionlog.io.mcap_io import McapFile
-from fusionlog.scenario import Scenario, scenario_from_text, scenario_with
+from fusionlog.io.mcap import McapFile
+from fusionlog.scenario import Scenario, scenario_from_metadata
 
 SCENARIO_META = "fusionlog.scenario"
 PROVENANCE_META = "fusionlog.provenance"
@@ -56,53 +54,42 @@ def provenance(command: str, seed: int | None, **extra: str) -> dict[str, str]:
     return out
 
 
-def scenario_metadata(scenario: Scenario) -> dict[str, str]:
-    """The `fusionlog.scenario` record: the TOML as written plus the values actually used."""
-    from fusionlog.scenario import system_to_dict
-
+def scenario_metadata(scenario: Scenario, system_fields: dict[str, str]) -> dict[str, str]:
+    """The `fusionlog.scenario` record: the kind, the TOML as written and the values actually
+    used (the kind adds its resolved system under its own field names)."""
     return {
+        "kind": scenario.kind,
         "toml": scenario.source,
         "name": scenario.name,
         "steps": str(scenario.steps),
         "runs": str(scenario.runs),
         "seed": str(scenario.seed),
         "dt": repr(scenario.dt),
-        "system": json.dumps(system_to_dict(scenario.system)),
+        **system_fields,
     }
 
 
 def scenario_from_file(mf: McapFile) -> Scenario | None:
-    """The scenario recorded in a sensors file, with the runs/steps/seed it was run with."""
+    """The scenario recorded in a sensors file (None if it has no record)."""
     meta = mf.metadata.get(SCENARIO_META)
     if meta is None:
         return None
-    try:
-        sc = scenario_from_text(meta["toml"], source=f"{mf.path} (metadata {SCENARIO_META})")
-        return scenario_with(
-            sc, runs=int(meta["runs"]), steps=int(meta["steps"]), seed=int(meta["seed"])
-        )
-    except (KeyError, ValueError) as e:
-        raise FusionlogError(f"{mf.path}: metadata {SCENARIO_META} is unreadable ({e})") from e
-
-
-def system_from_file(mf: McapFile) -> System | None:
-    sc = scenario_from_file(mf)
-    return None if sc is None else sc.system
+    return scenario_from_metadata(meta, f"{mf.path}: metadata {SCENARIO_META}")
 
 
 def open_evaluation_inputs(
-    sensors_path: Path, estimates_path: Path, outputs: list[Path], force: bool
-) -> tuple[McapFile, McapFile, dict[str, str]]:
-    """What every evaluation checks first: outputs free (or --force), both files readable, the
-    truth present, the estimates made from this very sensors file and of the same size.
-    Returns the two files and the estimates' provenance record."""
-    for p in outputs:
-        if p.exists() and not force:
-            raise FusionlogError(f"{p}: exists; use --force to overwrite")
+    sensors_path: Path, estimates_path: Path
+) -> tuple[McapFile, McapFile, dict[str, str], Scenario]:
+    """What every evaluation checks first: both files readable, the truth and the scenario
+    present, the estimates made from this very sensors file and of the same size.
+    Returns the two files, the estimates' provenance record and the recorded scenario."""
     sens = McapFile(sensors_path)
     est = McapFile(estimates_path)
     if "/truth" not in sens.topics:
         raise FusionlogError(f"{sensors_path}: no /truth topic, nothing to evaluate against")
+    sc = scenario_from_file(sens)
+    if sc is None:
+        raise FusionlogError(f"{sensors_path}: no {SCENARIO_META} metadata (not a simulation)")
     prov = est.metadata.get(PROVENANCE_META, {})
     recorded = prov.get("sensors_sha256")
     if recorded is not None and recorded != sha256_of(Path(sensors_path)):
@@ -115,4 +102,4 @@ def open_evaluation_inputs(
             f"{estimates_path}: {est.runs()} runs x {est.steps()} steps do not match "
             f"{sensors_path} ({sens.runs()} x {sens.steps()})"
         )
-    return sens, est, prov
+    return sens, est, prov, sc

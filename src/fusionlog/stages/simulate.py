@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from fusionlog.core.simulate import simulate
-from fusionlog.io.mcap_io import McapWriter
-from fusionlog.scenario import Scenario
+from fusionlog.io.atomic import Outputs
+from fusionlog.io.mcap import McapWriter
+from fusionlog.scenario import Scenario, check_budget
 
 from .common import (
     PROVENANCE_META,
@@ -17,6 +17,7 @@ from .common import (
     provenance,
     scenario_metadata,
 )
+from .kinds import kind_of
 
 
 @dataclass
@@ -27,6 +28,33 @@ class SimulateResult:
     messages: int
 
 
+def simulate_to(
+    scenario: Scenario, w: McapWriter, *, block: int | None = None, command: str
+) -> int:
+    """Simulate `scenario` block by block of runs into an open writer; returns the message
+    count. /truth and /sensors/<name> get one message per step per block of runs."""
+    kind = kind_of(scenario.kind)
+    K, M = scenario.steps, scenario.runs
+    check_budget(scenario, kind.bytes_per_run_step(scenario), "simulating")
+    B = block_runs(K, M, block)
+    times = scenario.times  # the reader relies on exactly these
+    topics = [f"/sensors/{name}" for name in kind.sensor_names(scenario.system)]
+    w.add_metadata(SCENARIO_META, scenario_metadata(scenario, kind.system_fields(scenario)))
+    w.add_metadata(PROVENANCE_META, provenance(command, scenario.seed))
+    messages = 0
+    offsets = range(0, M, B)
+    for off in progress(offsets, len(offsets), "simulate"):
+        runs = min(B, M - off)
+        x, z = kind.simulate(scenario, off, runs)
+        for k in range(K + 1):
+            t = float(times[k])
+            w.write_values("/truth", k, t, off, x[:, k])
+            for topic, zs in zip(topics, z, strict=True):
+                w.write_values(topic, k, t, off, zs[:, k])
+        messages += (K + 1) * (1 + len(topics))
+    return messages
+
+
 def run_simulate(
     scenario: Scenario,
     out: Path,
@@ -35,24 +63,11 @@ def run_simulate(
     block: int | None = None,
     command: str = "fusionlog simulate",
 ) -> SimulateResult:
-    """Simulate `scenario` block by block of runs and write /truth and /sensors/<name>."""
-    sys_ = scenario.system
-    K, M = scenario.steps, scenario.runs
-    B = block_runs(K, M, block)
-    times = scenario.times  # the reader relies on exactly these (McapFile._recorded_structure)
-    slices = sys_.sensor_slices
-    topics = [f"/sensors/{s.name}" for s in sys_.sensors]
-    messages = 0
-    with McapWriter(out, force=force) as w:
-        w.add_metadata(SCENARIO_META, scenario_metadata(scenario))
-        w.add_metadata(PROVENANCE_META, provenance(command, scenario.seed))
-        offsets = range(0, M, B)
-        for off in progress(offsets, len(offsets), "simulate"):
-            runs = min(B, M - off)
-            x, z = simulate(sys_, K, scenario.seed, off, runs)
-            for k in range(K + 1):
-                w.write_values("/truth", k, float(times[k]), off, x[:, k])
-                for topic, sl in zip(topics, slices, strict=True):
-                    w.write_values(topic, k, float(times[k]), off, z[:, k, sl])
-            messages += (K + 1) * (1 + len(topics))
-    return SimulateResult(Path(out), M, K, messages)
+    """Simulate `scenario` into the sensors file `out` (committed only when complete)."""
+    out = Path(out)
+    inputs = [Path(scenario.path)] if scenario.path else []
+    with Outputs([out], force=force, inputs=inputs) as outs:
+        with McapWriter(outs.open(out)) as w:
+            messages = simulate_to(scenario, w, block=block, command=command)
+        outs.commit()
+    return SimulateResult(out, scenario.runs, scenario.steps, messages)

@@ -1,0 +1,110 @@
+"""Scenario definitions (pipeline/*.toml, DESIGN.md "Scenario TOML"): loading and validation.
+
+The kind of a scenario (``state`` or ``identity``, see :mod:`.base`) is decided here, once,
+from the file (:func:`load_scenario`) or from the sensors file's metadata
+(:func:`scenario_from_metadata`); the parsers of the two kinds sit side by side in
+:mod:`.state` and :mod:`.identity`, on the shared helpers of :mod:`.toml`.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from typing import Any
+
+from fusionlog.errors import FusionlogError
+
+from . import toml
+from .base import KINDS, Scenario, check_budget, scenario_with
+from .identity import check_identity_architectures, identity_from_doc, is_identity_doc
+from .state import MODEL_KINDS, model_from_doc, state_from_doc, system_from_dict, system_to_dict
+
+__all__ = [
+    "KINDS",
+    "MODEL_KINDS",
+    "Scenario",
+    "check_budget",
+    "check_identity_architectures",
+    "kind_of_text",
+    "load_model",
+    "load_scenario",
+    "model_from_text",
+    "scenario_from_metadata",
+    "scenario_from_text",
+    "scenario_with",
+    "system_from_dict",
+    "system_to_dict",
+]
+
+
+def _from_text(text: str, file: str, path: str | None) -> Scenario:
+    doc = toml.parse_toml(text, file)
+    if is_identity_doc(doc):
+        return identity_from_doc(doc, file, text, path)
+    return state_from_doc(doc, file, text, path)
+
+
+def load_scenario(
+    path: str | os.PathLike[str],
+    *,
+    runs: int | None = None,
+    steps: int | None = None,
+    seed: int | None = None,
+) -> Scenario:
+    """Read and validate a scenario file of either kind; `runs`, `steps`, `seed` override it."""
+    file = os.fspath(path)
+    scenario = _from_text(toml.read_text(file), file, file)
+    return scenario_with(scenario, runs=runs, steps=steps, seed=seed)
+
+
+def scenario_from_text(text: str, source: str = "<string>") -> Scenario:
+    """Validate a scenario given as TOML text; `source` names it in error messages."""
+    return _from_text(text, source, None)
+
+
+def kind_of_text(text: str, source: str = "<string>") -> str:
+    """The kind of a scenario or model file's text (``state`` unless it has [identity])."""
+    return "identity" if is_identity_doc(toml.parse_toml(text, source)) else "state"
+
+
+def load_model(path: str | os.PathLike[str], kind: str | None = None) -> Any:
+    """The filter model of ``estimate --model``: a state System, or for the identity kind an
+    identity Scenario (classes, prior, sensors). ``kind`` defaults to the file's own."""
+    file = os.fspath(path)
+    return model_from_text(toml.read_text(file), file, kind)
+
+
+def model_from_text(text: str, source: str = "<string>", kind: str | None = None) -> Any:
+    """Validate a model given as TOML text (see :func:`load_model`)."""
+    doc = toml.parse_toml(text, source)
+    own = "identity" if is_identity_doc(doc) else "state"
+    if kind is not None and own != kind:
+        raise FusionlogError(
+            f"{source}: a {own} model, but the sensors file holds a {kind} scenario"
+        )
+    if own == "identity":
+        return identity_from_doc(doc, source, text, source, model=True)
+    return model_from_doc(doc, source)
+
+
+def scenario_from_metadata(meta: Mapping[str, str], source: str) -> Scenario:
+    """The scenario recorded in a sensors file's ``fusionlog.scenario`` record, with the runs,
+    steps and seed it was run with. Its kind is the record's ``kind`` (files written before the
+    field existed are state files unless their TOML has [identity])."""
+    try:
+        text = meta["toml"]
+        kind = meta.get("kind") or kind_of_text(text, source)
+        if kind not in KINDS:
+            raise ValueError(f"unknown kind {kind!r}")
+        doc = toml.parse_toml(text, source)
+        if kind == "identity":
+            sc = identity_from_doc(doc, source, text, None)
+        else:
+            sc = state_from_doc(doc, source, text, None)
+        if sc.kind != kind:
+            raise ValueError(f"kind {kind!r} but the TOML is a {sc.kind} scenario")
+        return scenario_with(
+            sc, runs=int(meta["runs"]), steps=int(meta["steps"]), seed=int(meta["seed"])
+        )
+    except (KeyError, ValueError, TypeError) as e:
+        raise FusionlogError(f"{source}: unreadable ({e})") from e

@@ -1,0 +1,168 @@
+"""What every scenario has, whatever its kind: the Monte Carlo budget, the instants, the limits.
+
+A scenario has a **kind**, decided once when it is loaded (:func:`fusionlog.scenario.load_scenario`)
+and recorded in the sensors file's ``fusionlog.scenario`` metadata for the later stages:
+
+* ``state`` — a linear Gaussian system (:class:`fusionlog.core.model.System`) and the fusion
+  architectures of the Ajgl-Šimandl-Duník paper;
+* ``identity`` — a classification problem (:class:`fusionlog.core.identity.IdentitySystem`:
+  classes, prior, sensors with confusion matrices) fused by Bayes' and Dempster's rules.
+
+``Scenario.system`` is the kind's system; everything else is common.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from fusionlog.errors import ValidationError
+
+from . import toml
+from .toml import Ctx
+
+__all__ = ["KINDS", "Scenario", "Header", "header", "scenario_with", "check_budget"]
+
+#: The kinds of scenario.
+KINDS: tuple[str, ...] = ("state", "identity")
+
+DEFAULT_SAMPLE_RUNS = 3
+DEFAULT_CONFIDENCE = 0.95
+
+#: MCAP fields step, runs and run_offset are uint32.
+MAX_INDEX = 2**32 - 1
+#: log_time is an unsigned 64-bit count of nanoseconds; keep a margin below 2^64 ns (584 years).
+MAX_TIME_S = 1.8e10
+
+
+@dataclass(frozen=True, eq=False)
+class Scenario:
+    """A validated scenario of either kind: the system, the Monte Carlo budget, the defaults."""
+
+    kind: str  # "state" | "identity"
+    name: str
+    description: str
+    steps: int  # K: instants k = 0..K
+    runs: int  # M
+    seed: int
+    dt: float
+    state_names: tuple[str, ...]  # identity: the classes
+    system: Any  # core.model.System | core.identity.IdentitySystem
+    architectures: tuple[str, ...]
+    confidence: float = DEFAULT_CONFIDENCE
+    sample_runs: int = DEFAULT_SAMPLE_RUNS
+    plane_view: bool = False  # a 2-D view of the state plane (n = 2): estimates and ellipses
+    source: str = ""  # the TOML text as loaded (overrides are not written back into it)
+    path: str | None = None
+
+    @property
+    def times(self) -> np.ndarray:
+        """t_k = k dt for k = 0..K."""
+        return np.arange(self.steps + 1) * self.dt
+
+
+@dataclass(frozen=True)
+class Header:
+    """The ``[scenario]`` keys common to every kind."""
+
+    name: str
+    description: str
+    steps: int
+    runs: int
+    seed: int
+    dt: float | None
+
+
+def header(ctx: Ctx, sc: dict[str, Any], *, model: bool, name_default: str = "model") -> Header:
+    """Check ``[scenario]``'s common keys; in a model file (``model``) none is required."""
+    for key in ("name", "steps", "runs", "seed", "dt"):
+        if not model and key not in sc:
+            raise ctx.err(f"scenario.{key}", "missing required key")
+    name = toml.name(ctx, sc["name"], "scenario.name") if "name" in sc else name_default
+    description = toml.string(ctx, sc.get("description", ""), "scenario.description")
+    ints = {}
+    for key, minimum, default in (("steps", 0, 0), ("runs", 1, 1), ("seed", 0, 0)):
+        v = sc.get(key, default)
+        ints[key] = toml.integer(ctx, v, f"scenario.{key}", minimum=minimum)
+    dt = None
+    if "dt" in sc:
+        dt = toml.number(ctx, sc["dt"], "scenario.dt")
+        if not dt > 0:
+            raise ctx.err("scenario.dt", f"must be > 0, got {toml.fmt(dt)}")
+    h = Header(name, description, ints["steps"], ints["runs"], ints["seed"], dt)
+    _check_ranges(ctx, h.steps, h.runs, h.dt, "scenario.steps", "scenario.runs")
+    return h
+
+
+def _check_ranges(
+    ctx: Ctx, steps: int, runs: int, dt: float | None, steps_key: str, runs_key: str
+) -> None:
+    """What the files can hold: indices in uint32, the last instant's time in uint64 ns."""
+    if steps > MAX_INDEX - 1:
+        raise ctx.err(steps_key, f"must be < {MAX_INDEX} (a uint32 step index), got {steps}")
+    if runs > MAX_INDEX:
+        raise ctx.err(runs_key, f"must be <= {MAX_INDEX} (a uint32 run index), got {runs}")
+    if dt is not None and steps * dt > MAX_TIME_S:
+        raise ctx.err(
+            steps_key,
+            f"steps x dt = {toml.fmt(steps * dt)} s exceeds {MAX_TIME_S:.3g} s, the longest time a "
+            "log can stamp (nanoseconds in 64 bits)",
+        )
+
+
+def check_budget(scenario: Scenario, bytes_per_run_step: int, what: str) -> None:
+    """Refuse a scenario whose smallest block (one run, every instant) cannot fit in memory.
+
+    The stages hold one block of runs at a time (a million run-steps by default, at least one
+    run): one run of K+1 instants, ``bytes_per_run_step`` each, must fit in half of the
+    machine's memory, or the stage would end in a MemoryError far into the work.
+    """
+    need = (scenario.steps + 1) * bytes_per_run_step
+    have = _memory_bytes()
+    if have and need > have // 2:
+        raise ValidationError(
+            f"{scenario.path or scenario.name}: {what} of {scenario.steps + 1} instants needs "
+            f"about {need / 2**30:.1f} GiB for a single run, this machine has "
+            f"{have / 2**30:.1f} GiB: use fewer steps"
+        )
+
+
+def _memory_bytes() -> int:
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - not POSIX
+        return 0
+
+
+def scenario_with(
+    scenario: Scenario,
+    *,
+    runs: int | None = None,
+    steps: int | None = None,
+    seed: int | None = None,
+) -> Scenario:
+    """A copy with the given Monte Carlo settings replaced (None keeps the scenario's value)."""
+    ctx = Ctx(scenario.path if scenario.path is not None else "<scenario>")
+    changes: dict[str, int] = {}
+    if runs is not None:
+        changes["runs"] = toml.integer(ctx, runs, "--runs", minimum=1)
+    if steps is not None:
+        changes["steps"] = toml.integer(ctx, steps, "--steps", minimum=0)
+    if seed is not None:
+        changes["seed"] = toml.integer(ctx, seed, "--seed", minimum=0)
+    if not changes:
+        return scenario
+    new = dataclasses.replace(scenario, **changes)
+    _check_ranges(
+        ctx,
+        new.steps,
+        new.runs,
+        new.dt,
+        "--steps" if steps is not None else "scenario.steps",
+        "--runs" if runs is not None else "scenario.runs",
+    )
+    return new

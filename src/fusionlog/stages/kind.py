@@ -1,0 +1,122 @@
+"""The hooks a kind of scenario gives the generic stage drivers.
+
+The drivers (:mod:`.simulate`, :mod:`.estimate`, :mod:`.evaluate`) own what every kind shares:
+the block loop over runs, progress, provenance, the MCAP layout and atomic outputs. A kind
+(``state``: :mod:`.state`; ``identity``: :mod:`.identity`) subclasses :class:`Kind` and says
+how to simulate a block, how to estimate one (an :class:`Estimator`), and how to accumulate
+metrics and write the recording (an :class:`Evaluator`) — as Stone Soup's categorical state is
+just another state type whose updater subclasses the same base.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, BinaryIO, NamedTuple
+
+import numpy as np
+
+from fusionlog.io.mcap import McapFile, McapWriter
+from fusionlog.scenario import Scenario
+
+
+class Model(NamedTuple):
+    """The model a filter runs with."""
+
+    system: Any  # the kind's system
+    source: str  # "scenario" or the --model file
+    json: str  # the resolved system as JSON (estimates provenance)
+    architectures: list[str]  # the default when --arch is not given
+
+
+#: Writes one step of one topic: (writer, topic, step, time, run_offset).
+StepWriter = Callable[[McapWriter, str, int, float, int], None]
+
+
+class Estimator(ABC):
+    """Estimates blocks of runs with a kind's architectures."""
+
+    @abstractmethod
+    def block_runs(self, requested: int | None) -> int:
+        """Runs per block."""
+
+    @abstractmethod
+    def estimate(self, run_offset: int, data: dict[str, np.ndarray]) -> dict[str, StepWriter]:
+        """Estimates of one block, from the sensor topics' arrays (runs, K+1, dim): for each
+        output topic, the function writing its message at a step."""
+
+    @abstractmethod
+    def provenance(self) -> dict[str, str]:
+        """Fields the estimates' provenance record adds, known once every block is done."""
+
+
+class Evaluator(ABC):
+    """Accumulates a kind's metrics block by block and writes its recording."""
+
+    #: The estimates file's topics to read, and the runs per block.
+    topics: list[str]
+
+    @abstractmethod
+    def block_runs(self, requested: int | None) -> int:
+        """Runs per block."""
+
+    @abstractmethod
+    def add(self, run_offset: int, truth: np.ndarray, estimates: dict[str, Any]) -> None:
+        """Add one block: truth (runs, K+1, dim) and each topic's decoded estimates."""
+
+    @abstractmethod
+    def summary(self) -> dict[str, Any]:
+        """The summary.json dict (DESIGN.md "summary.json")."""
+
+    @abstractmethod
+    def write_recording(self, file: BinaryIO, times: np.ndarray, provenance: dict) -> None:
+        """Serialise the Rerun recording into ``file``."""
+
+
+class Kind(ABC):
+    """A kind of scenario: its system, its architectures and its three stage hooks."""
+
+    name: str
+
+    @abstractmethod
+    def system_fields(self, scenario: Scenario) -> dict[str, str]:
+        """The resolved system for the ``fusionlog.scenario`` record."""
+
+    @abstractmethod
+    def bytes_per_run_step(self, scenario: Scenario) -> int:
+        """Memory a stage holds per (run, instant), for the budget check."""
+
+    @abstractmethod
+    def sensor_names(self, system: Any) -> list[str]:
+        """Sensor names in the system's order (topics ``/sensors/<name>``)."""
+
+    @abstractmethod
+    def check_architectures(self, names: Sequence[str], system: Any, where: str) -> list[str]:
+        """Valid architecture names (duplicates dropped), else FusionlogError naming `where`."""
+
+    @abstractmethod
+    def simulate(
+        self, scenario: Scenario, run_offset: int, runs: int
+    ) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Truth (runs, K+1, d) and each sensor's readings (runs, K+1, m), in sensor order."""
+
+    @abstractmethod
+    def model(self, sensors: McapFile, recorded: Scenario | None, model_path: Path | None) -> Model:
+        """The filter's model: the recorded scenario's system, or the ``--model`` file's."""
+
+    @abstractmethod
+    def check_sensor_topics(self, sensors: McapFile, system: Any) -> list[str]:
+        """The sensor topics the model needs, checked against the file."""
+
+    @abstractmethod
+    def estimator(
+        self, system: Any, steps: int, runs: int, archs: list[str], sensors: McapFile
+    ) -> Estimator:
+        """An estimator of every run with `archs`."""
+
+    @abstractmethod
+    def evaluator(
+        self, scenario: Scenario, estimates: McapFile, provenance: dict[str, str]
+    ) -> Evaluator:
+        """An evaluator of the estimates against the scenario's truth."""

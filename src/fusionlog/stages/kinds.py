@@ -1,0 +1,24 @@
+"""The registry of scenario kinds: a kind's name (as recorded in the files) to its hooks."""
+
+from __future__ import annotations
+
+from functools import cache
+
+from fusionlog.errors import FusionlogError
+
+from .kind import Kind
+
+
+@cache
+def kind_of(name: str) -> Kind:
+    """The hooks of the kind `name` ("state" or "identity"); each is imported on first use, so
+    a command pays only for the kind it runs."""
+    if name == "state":
+        from .state import StateKind
+
+        return StateKind()
+    if name == "identity":
+        from .identity import IdentityKind
+
+        return IdentityKind()
+    raise FusionlogError(f"unknown kind of scenario {name!r} (known: state, identity)")

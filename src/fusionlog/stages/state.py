@@ -1,0 +1,306 @@
+"""The state kind's stage hooks: linear Gaussian systems and the paper's fusion architectures.
+
+Simulation is :func:`fusionlog.core.simulate.simulate`; estimation compiles each architecture
+into a plan once per measurement pattern shared by a block's runs (:mod:`fusionlog.core.
+architectures`) and falls back to the per-run path when runs differ; evaluation accumulates
+MSE (eq. 45), NEES and the Mahalanobis distance (eq. 47) over blocks
+(:class:`fusionlog.core.metrics.MetricsAccumulator`) and puts the exact expected values of the
+covariance analysis (:func:`fusionlog.core.exact.analyse`) beside them.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+
+from fusionlog.core.architectures import Plan, build_plan, estimate, run_plan, shared_pattern
+from fusionlog.core.exact import Expected, analyse
+from fusionlog.core.metrics import MetricsAccumulator, chi2_quantile
+from fusionlog.core.model import System
+from fusionlog.core.names import parse_arch
+from fusionlog.core.simulate import simulate
+from fusionlog.errors import FusionlogError
+from fusionlog.io.mcap import McapFile, McapWriter
+from fusionlog.scenario import Scenario, load_model, system_from_dict, system_to_dict
+
+from .common import SCENARIO_META, block_runs
+from .kind import Estimator, Evaluator, Kind, Model, StepWriter
+
+#: Sample estimates per architecture drawn in the state-plane view.
+PLANE_POINTS = 300
+
+
+class StateKind(Kind):
+    name = "state"
+
+    def system_fields(self, scenario: Scenario) -> dict[str, str]:
+        return {"system": json.dumps(system_to_dict(scenario.system))}
+
+    def bytes_per_run_step(self, scenario: Scenario) -> int:
+        # truth and measurements in float64, and the plans' per-step maps of the estimate stage
+        s: System = scenario.system
+        return 8 * (s.n + s.m) * 4 + 8 * s.n * (s.n + s.m) * len(scenario.architectures)
+
+    def sensor_names(self, system: System) -> list[str]:
+        return [s.name for s in system.sensors]
+
+    def check_architectures(self, names: Sequence[str], system: System, where: str) -> list[str]:
+        for a in names:
+            try:
+                parse_arch(a, [s.name for s in system.sensors])
+            except ValueError as e:
+                raise FusionlogError(f"{where}: {e}") from e
+        return list(dict.fromkeys(names))
+
+    def simulate(
+        self, scenario: Scenario, run_offset: int, runs: int
+    ) -> tuple[np.ndarray, list[np.ndarray]]:
+        x, z = simulate(scenario.system, scenario.steps, scenario.seed, run_offset, runs)
+        return x, [z[..., sl] for sl in scenario.system.sensor_slices]
+
+    def model(self, sensors: McapFile, recorded: Scenario | None, model_path: Path | None) -> Model:
+        if model_path is None:
+            if recorded is None:
+                raise FusionlogError(
+                    f"{sensors.path}: no {SCENARIO_META} metadata to take the model from; "
+                    "pass --model MODEL.toml"
+                )
+            system, source = recorded.system, "scenario"
+        else:
+            system, source = load_model(model_path, "state"), str(model_path)
+            if recorded is not None and system.n != recorded.system.n:
+                raise FusionlogError(
+                    f"{model_path}: the model has {system.n} states, "
+                    f"the scenario recorded in {sensors.path} has {recorded.system.n}"
+                )
+        archs = list(recorded.architectures) if recorded is not None else ["CKF"]
+        return Model(system, source, json.dumps(system_to_dict(system)), archs)
+
+    def check_sensor_topics(self, sensors: McapFile, system: System) -> list[str]:
+        topics = []
+        for s in system.sensors:
+            t = f"/sensors/{s.name}"
+            if t not in sensors.topics:
+                have = ", ".join(sorted(sensors.topics)) or "none"
+                raise FusionlogError(
+                    f"{sensors.path}: no topic {t} for sensor {s.name!r} of the model "
+                    f"(topics: {have})"
+                )
+            if sensors.dim_of(t) != s.dim:
+                raise FusionlogError(
+                    f"{sensors.path}: topic {t} has {sensors.dim_of(t)} values per step, "
+                    f"the model's sensor {s.name!r} has {s.dim}"
+                )
+            topics.append(t)
+        return topics
+
+    def estimator(
+        self, system: System, steps: int, runs: int, archs: list[str], sensors: McapFile
+    ) -> Estimator:
+        topics = [f"/sensors/{s.name}" for s in system.sensors]
+        return _StateEstimator(system, steps, runs, archs, topics)
+
+    def evaluator(
+        self, scenario: Scenario, estimates: McapFile, provenance: dict[str, str]
+    ) -> Evaluator:
+        return _StateEvaluator(scenario, estimates, provenance)
+
+
+class _StateEstimator(Estimator):
+    def __init__(
+        self, system: System, steps: int, runs: int, archs: list[str], topics: list[str]
+    ) -> None:
+        self.system, self.K, self.M, self.archs, self.topics = system, steps, runs, archs, topics
+        self.plans: dict[tuple[str, bytes], Plan] = {}
+        self.pattern: np.ndarray | None = None  # the measurement pattern shared by every run
+        self.per_run = False
+
+    def block_runs(self, requested: int | None) -> int:
+        return block_runs(self.K, self.M, requested)
+
+    def estimate(self, run_offset: int, data: dict[str, np.ndarray]) -> dict[str, StepWriter]:
+        z = np.concatenate([data[t] for t in self.topics], axis=-1)
+        block_pattern = shared_pattern(z)
+        if block_pattern is None or (
+            self.pattern is not None and (block_pattern != self.pattern).any()
+        ):
+            self.per_run = True
+        elif self.pattern is None:
+            self.pattern = block_pattern
+        out: dict[str, StepWriter] = {}
+        for a in self.archs:
+            if block_pattern is not None:
+                key = (a, np.packbits(block_pattern).tobytes())
+                if key not in self.plans:
+                    mask = None if block_pattern.all() else block_pattern
+                    self.plans[key] = build_plan(self.system, a, self.K, mask)
+                est = run_plan(self.plans[key], z)
+            else:
+                est = estimate(self.system, z, a)
+            out[a] = _estimate_writer(est.mean, est.cov, est.shared_cov)
+        return out
+
+    def provenance(self) -> dict[str, str]:
+        # The evaluator's exact analysis needs it: a shared pattern is analysed with the same
+        # mask, per-run patterns are not.
+        if self.per_run or self.pattern is None:
+            return {"measurement_pattern": "per-run"}
+        if self.pattern.all():
+            return {"measurement_pattern": "complete"}
+        return {"measurement_pattern": json.dumps(self.pattern.astype(int).tolist())}
+
+
+def _estimate_writer(mean: np.ndarray, cov: np.ndarray, shared: bool) -> StepWriter:
+    def write(w: McapWriter, topic: str, k: int, t: float, off: int) -> None:
+        w.write_estimate(topic, k, t, off, mean[:, k], cov[k] if shared else cov[:, k])
+
+    return write
+
+
+def _analysable(prov: dict[str, str], filter_sys: System, truth_sys: System):
+    """(truth model as the filter saw it, measurement mask) for the exact analysis, or None.
+
+    The filter stacks its sensors in its own order, so the truth is re-ordered to match by
+    sensor name (a `--model` may list them differently or use only some); sensors the truth
+    does not have, or missing measurements that differ between runs, leave no exact analysis.
+    """
+    pattern = prov.get("measurement_pattern", "complete")
+    if pattern == "per-run":
+        return None
+    names = [s.name for s in truth_sys.sensors]
+    if any(s.name not in names for s in filter_sys.sensors):
+        return None
+    seen = truth_sys.subset([names.index(s.name) for s in filter_sys.sensors])
+    if any(a.dim != b.dim for a, b in zip(seen.sensors, filter_sys.sensors, strict=True)):
+        return None
+    mask = None if pattern == "complete" else np.array(json.loads(pattern), dtype=bool)
+    return seen, mask
+
+
+def _known(arch: str, system: System) -> bool:
+    try:
+        parse_arch(arch, [s.name for s in system.sensors])
+    except ValueError:
+        return False
+    return True
+
+
+class _StateEvaluator(Evaluator):
+    """MSE, NEES, DM per architecture with exact expected values; sample runs; state plane."""
+
+    def __init__(self, sc: Scenario, est: McapFile, prov: dict[str, str]) -> None:
+        self.topics = [t for t in est.topics if t.startswith("/estimates/")]
+        if not self.topics:
+            have = ", ".join(sorted(est.topics)) or "none"
+            raise FusionlogError(f"{est.path}: no /estimates/<ARCH> topics (topics: {have})")
+        self.archs = [t.removeprefix("/estimates/") for t in self.topics]
+        self.sc, self.prov = sc, prov
+        truth_sys = sc.system
+        self.filter_sys = (
+            system_from_dict(json.loads(prov["model"]), f"{est.path}: provenance model")
+            if "model" in prov
+            else truth_sys
+        )
+        if self.filter_sys.n != truth_sys.n:
+            raise FusionlogError(
+                f"{est.path}: estimates of {self.filter_sys.n} states, the truth has {truth_sys.n}"
+            )
+        self.K, self.M = est.steps() - 1, est.runs()
+        self.analysable = _analysable(prov, self.filter_sys, truth_sys)
+        n = truth_sys.n
+        self.accs = {a: MetricsAccumulator(self.K + 1, n) for a in self.archs}
+        self.n_samples = min(sc.sample_runs, self.M)
+        self.samples: dict[int, tuple[np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = {}
+        self.plane_pts: dict[str, np.ndarray] = {}
+        self.plane_truth: np.ndarray | None = None
+        self.plane_cov: dict[str, np.ndarray] = {}
+        self._series: dict[str, dict[str, np.ndarray]] = {}
+        self._bounds: tuple[np.ndarray, np.ndarray] | None = None
+
+    def block_runs(self, requested: int | None) -> int:
+        return block_runs(self.K, self.M, requested)
+
+    def add(self, run_offset: int, truth: np.ndarray, estimates: dict[str, Any]) -> None:
+        x, off = truth, run_offset
+        if x.shape[-1] != self.sc.system.n:
+            raise FusionlogError(f"/truth has {x.shape[-1]} values per run, not {self.sc.system.n}")
+        for a, t in zip(self.archs, self.topics, strict=True):
+            mean, cov = estimates[t]
+            if mean.shape[-1] != x.shape[-1]:
+                raise FusionlogError(
+                    f"{t}: estimates of {mean.shape[-1]} states, the truth has {x.shape[-1]}"
+                )
+            self.accs[a].add(x, mean, cov)
+            if self.sc.plane_view and off == 0:
+                self.plane_truth = x[0]
+                self.plane_pts[a] = np.moveaxis(mean[:PLANE_POINTS], 0, 1)  # (K+1, P, 2)
+                self.plane_cov[a] = cov if cov.ndim == 3 else cov[0]
+            for r in range(off, min(off + x.shape[0], self.n_samples)):
+                c = cov if cov.ndim == 3 else cov[r - off]
+                std = np.sqrt(np.clip(np.diagonal(c, axis1=-2, axis2=-1), 0, None))
+                self.samples.setdefault(r, (x[r - off], {}))[1][a] = (mean[r - off], std)
+
+    def summary(self) -> dict[str, Any]:
+        arch_summary = {}
+        for a in self.archs:
+            res = self.accs[a].finalize(self.sc.confidence)
+            ex: Expected | None = None
+            if self.analysable is not None and _known(a, self.filter_sys):
+                truth_seen, mask = self.analysable
+                ex = analyse(build_plan(self.filter_sys, a, self.K, mask), truth_seen)
+            kw = (
+                {"expected_mse": ex.mse_per_state, "expected_nees": ex.nees, "expected_dm": ex.dm}
+                if ex is not None
+                else {}
+            )
+            self._series[a] = res.series(**kw)
+            arch_summary[a] = res.summary(**kw)
+            if self._bounds is None:
+                self._bounds = (res.nees_lower, res.nees_upper)
+        self._summary = {
+            "scenario": self.sc.name,
+            "seed": self.sc.seed,
+            "runs": self.M,
+            "steps": self.K,
+            "state_names": list(self.sc.state_names),
+            "confidence": self.sc.confidence,
+            "architectures": arch_summary,
+        }
+        return self._summary
+
+    def _plane(self) -> dict[str, Any] | None:
+        if not self.sc.plane_view or self.plane_truth is None:
+            return None
+        inputs = {
+            f"input {s.name}": build_plan(self.filter_sys, f"SKF:{s.name}", self.K).reported_cov
+            for s in self.filter_sys.sensors
+        }
+        return {
+            "truth": self.plane_truth,
+            "estimates": self.plane_pts,
+            "ellipses": {**inputs, **self.plane_cov},
+            # the ellipse of a 2-D Gaussian at the confidence: chi-square with 2 dof
+            "scale": float(np.sqrt(chi2_quantile(self.sc.confidence, 2))),
+        }
+
+    def write_recording(self, file: BinaryIO, times: np.ndarray, provenance: dict) -> None:
+        from fusionlog.io.rrd import write_recording  # rerun: slow to import, needed only here
+
+        write_recording(
+            file,
+            scenario_name=self.sc.name,
+            seed=self.sc.seed,
+            times=times,
+            state_names=self.sc.state_names,
+            series=self._series,
+            summary=self._summary,
+            nees_bounds=self._bounds,
+            confidence=self.sc.confidence,
+            sample_runs=self.samples,
+            properties={"scenario": self.sc.source, "provenance": provenance},
+            plane=self._plane(),
+        )
