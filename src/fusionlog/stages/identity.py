@@ -93,23 +93,27 @@ from __future__ import annotations
 
 import difflib
 import json
-import math
 import os
 import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from fusionlog.core.identity import (
-    bayes_fusion,
-    belief_array,
-    dempster_combine_array,
-    plausibility_array,
+from fusionlog.core.identity.fusion import columns, dims, estimate, report_indices
+from fusionlog.core.identity.metrics import IdentityMetrics
+from fusionlog.core.identity.model import (
+    ARCHITECTURES,
+    MAX_CLASSES,
+    SUM_TOL,
+    UNKNOWN,
+    IdentitySensor,
+    IdentitySystem,
 )
-from fusionlog.core.simulate import chunk_runs
+from fusionlog.core.identity.simulate import simulate
 from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap_io import VALUES, McapFile, McapWriter
 from fusionlog.scenario import (
@@ -148,11 +152,7 @@ __all__ = [
     "ARCHITECTURES",
     "KIND",
     "IdentityScenario",
-    "IdentitySensor",
-    "bayes_posteriors",
     "check_architectures",
-    "ds_columns",
-    "ds_combine",
     "identity_scenario_from_text",
     "is_identity_file",
     "is_identity_scenario_file",
@@ -161,22 +161,11 @@ __all__ = [
     "run_estimate",
     "run_evaluate",
     "run_simulate",
-    "simulate_identity",
 ]
 
 KIND = "identity"
-#: Identity architectures (DESIGN.md): Bayes' rule and Dempster's rule.
-ARCHITECTURES: tuple[str, ...] = ("BAYES", "DS")
-#: The implicit name of the whole frame.
-UNKNOWN = "unknown"
-#: Largest frame: DS keeps 2^N masses per run.
-MAX_CLASSES = 12
 #: Default bound on masses held at once by DS (runs x 2^N), as RUN_STEPS_PER_BLOCK for steps.
 DS_MASSES_PER_BLOCK = 1 << 21
-#: Tolerance of "sums to one" (prior, rows of the confusion matrices).
-SUM_TOL = 1e-9
-#: Two scores closer than this count as a tie in a decision.
-TIE_TOL = 1e-12
 
 _TOP_KEYS = ("scenario", "identity", "identity_sensors", "estimate", "evaluate")
 _SCENARIO_KEYS = ("name", "description", "steps", "runs", "seed", "dt")
@@ -191,31 +180,6 @@ _DEFAULT_SAMPLE_RUNS = 3
 # --------------------------------------------------------------------------------------------
 # Scenario
 # --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, eq=False)
-class IdentitySensor:
-    """A sensor's report alphabet, its confusion matrix and its DS reliability."""
-
-    name: str
-    reports: tuple[str, ...]  # as written: class names, set names or "unknown"
-    subsets: tuple[int, ...]  # each report's subset of the frame as a bitmask (subset_index)
-    confusion: np.ndarray  # (N classes, len(reports)): P(report | class), rows sum to one
-    reliability: float  # DS: m(report) = reliability, m(frame) = 1 - reliability
-
-    def mass_table(self, n_classes: int) -> np.ndarray:
-        """(len(reports) + 1, 2^N): the DS mass function of each report; last row: no report."""
-        size = 1 << n_classes
-        table = np.zeros((len(self.reports) + 1, size))
-        table[:, size - 1] = 1.0
-        for j, b in enumerate(self.subsets):
-            table[j, size - 1] -= self.reliability
-            table[j, b] += self.reliability
-        return table
-
-    def likelihood(self) -> np.ndarray:
-        """(len(reports) + 1, N): P(report | class) of each report; last row (no report): 1."""
-        return np.vstack([self.confusion.T, np.ones(self.confusion.shape[0])])
 
 
 @dataclass(frozen=True, eq=False)
@@ -247,26 +211,14 @@ class IdentityScenario:
     def times(self) -> np.ndarray:
         return np.arange(self.steps + 1) * self.dt
 
+    @cached_property
+    def system(self) -> IdentitySystem:
+        """The classes, prior, sets and sensors: what simulation and fusion use."""
+        return IdentitySystem(self.classes, self.prior, self.sets, self.sensors)
+
     def to_dict(self) -> dict[str, Any]:
         """The resolved definitions as plain data (metadata, provenance)."""
-        return {
-            "classes": list(self.classes),
-            "prior": [float(p) for p in self.prior],
-            "sets": {k: list(v) for k, v in self.sets.items()},
-            "sensors": [
-                {
-                    "name": s.name,
-                    "reports": list(s.reports),
-                    "subsets": [
-                        [c for j, c in enumerate(self.classes) if b >> j & 1] for b in s.subsets
-                    ],
-                    "confusion": s.confusion.tolist(),
-                    "reliability": s.reliability,
-                }
-                for s in self.sensors
-            ],
-            "architectures": list(self.architectures),
-        }
+        return {**self.system.to_dict(), "architectures": list(self.architectures)}
 
 
 def _peek_toml(path: str | os.PathLike[str]) -> dict[str, Any] | None:
@@ -609,172 +561,10 @@ def _scenario_of(mf: McapFile) -> IdentityScenario | None:
         raise FusionlogError(f"{mf.path}: metadata {SCENARIO_META} is unreadable ({e})") from e
 
 
-def ds_columns(classes: Sequence[str]) -> list[str]:
-    """Column names of ``/estimates/DS``."""
-    return (
-        [f"Bel({c})" for c in classes]
-        + [f"Pl({c})" for c in classes]
-        + ["conflict", "accumulated_conflict"]
-    )
-
-
-def _columns(classes: Sequence[str], archs: Sequence[str]) -> dict[str, list[str]]:
-    cols = {"BAYES": [f"P({c})" for c in classes], "DS": ds_columns(classes)}
-    return {a: cols[a] for a in archs}
-
-
-def _dims(n: int) -> dict[str, int]:
-    return {"BAYES": n, "DS": 2 * n + 2}
-
-
 def _block(steps: int, runs: int, n_classes: int, requested: int | None) -> int:
     if requested is not None:
         return block_runs(steps, runs, requested)
     return max(1, min(block_runs(steps, runs), DS_MASSES_PER_BLOCK >> n_classes))
-
-
-def _indices(values: np.ndarray, n: int, what: str, allow_nan: bool) -> np.ndarray:
-    """Float indices -> int64, NaN -> n (the "no report" row); raises ValueError if invalid."""
-    v = values
-    nan = np.isnan(v)
-    if nan.any() and not allow_nan:
-        raise ValueError(f"{what}: NaN where a class index is expected")
-    ok = nan | ((v >= 0) & (v < n) & (v == np.floor(v)))
-    if not ok.all():
-        bad = v[~ok][0]
-        raise ValueError(f"{what}: value {bad!r} is not an index 0..{n - 1}")
-    return np.where(nan, n, v).astype(np.int64)
-
-
-# --------------------------------------------------------------------------------------------
-# Core math (numpy only; no I/O)
-# --------------------------------------------------------------------------------------------
-
-
-def _inverse_cdf(probs: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Index j with cdf_{j-1} <= u < cdf_j, for rows probs (..., J) and uniforms u (...)."""
-    cdf = np.cumsum(probs, axis=-1)[..., :-1]
-    return (u[..., None] >= cdf).sum(axis=-1)
-
-
-def _identity_chunk(sc: IdentityScenario, steps: int, seed: int, chunk: int):
-    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(chunk,)))
-    R, S = chunk_runs(steps), len(sc.sensors)
-    # Draw order is part of the reproducibility contract: classes, then reports.
-    u0 = rng.random(R)
-    u = rng.random((R, steps + 1, S))
-    truth = _inverse_cdf(np.asarray(sc.prior), u0)
-    reports = np.empty((R, steps + 1, S), dtype=np.int64)
-    for s, sensor in enumerate(sc.sensors):
-        rows = sensor.confusion[truth][:, None, :]  # (R, 1, reports)
-        reports[:, :, s] = _inverse_cdf(rows, u[:, :, s])
-    return truth, reports
-
-
-def simulate_identity(
-    sc: IdentityScenario, steps: int, seed: int, run_offset: int, runs: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """True classes (runs,) and report indices (runs, K+1, S) for runs [run_offset, +runs)."""
-    size = chunk_runs(steps)
-    first, last = run_offset // size, (run_offset + runs - 1) // size
-    ts, rs = [], []
-    for c in range(first, last + 1):
-        t, r = _identity_chunk(sc, steps, seed, c)
-        lo, hi = max(run_offset - c * size, 0), min(run_offset + runs - c * size, size)
-        ts.append(t[lo:hi])
-        rs.append(r[lo:hi])
-    return np.concatenate(ts), np.concatenate(rs)
-
-
-def bayes_posteriors(
-    reports: np.ndarray,
-    sensors: Sequence[IdentitySensor],
-    prior: np.ndarray,
-    run_offset: int = 0,
-) -> np.ndarray:
-    """Cumulative Bayes posteriors (B, K+1, N) from report indices (B, K+1, S).
-
-    A report index equal to the sensor's number of reports means "no report" (likelihood 1).
-    posterior_k ∝ prior · prod_{t<=k} prod_s P(r_{s,t} | class): eqs. (36)-(37) recursively;
-    log-likelihoods are summed over sensors and time and scaled so that the largest class has
-    likelihood 1, then :func:`bayes_fusion` applies the prior and normalises.
-    Raises ValueError if the reports of some run have zero likelihood for every class (only
-    possible under a model other than the one that simulated them); `run_offset` numbers the
-    runs in that message.
-    """
-    B, K1, S = reports.shape
-    n = np.asarray(prior).shape[-1]
-    loglik = np.zeros((B, K1, n))
-    with np.errstate(divide="ignore"):
-        for s, sensor in enumerate(sensors):
-            loglik += np.log(sensor.likelihood())[reports[..., s]]
-    cum = np.cumsum(loglik, axis=1)
-    top = cum.max(axis=-1, keepdims=True)
-    if np.isneginf(top).any():
-        b, k = (int(i) for i in np.argwhere(np.isneginf(top[..., 0]))[0])
-        raise ValueError(
-            f"run {run_offset + b}, step {k}: the reports have zero likelihood for every class "
-            "under the model's confusion matrices"
-        )
-    lik = np.exp(cum - top)
-    return bayes_fusion(lik[..., None, :], prior)
-
-
-def ds_combine(
-    reports: np.ndarray, sensors: Sequence[IdentitySensor], n_classes: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Cumulative Dempster-Shafer combination of every report (eq. 47).
-
-    reports: (B, K+1, S) report indices (the sensor's number of reports = no report). Starts
-    from the vacuous mass function; at step k combines the running masses with each sensor's
-    report mass (m(R) = reliability, m(frame) = 1 - reliability) by Dempster's rule.
-    Returns Bel({c}) and Pl({c}) (B, K+1, N), the conflict K of step k's combination (B, K+1)
-    and the accumulated conflict 1 - prod_{t<=k}(1 - K_t) (B, K+1). A run in total conflict
-    (K = 1) has NaN Bel and Pl from then on, conflict 1 at that step and NaN after, and
-    accumulated conflict 1.
-    """
-    B, K1, S = reports.shape
-    size = 1 << n_classes
-    tables = [s.mass_table(n_classes) for s in sensors]
-    vacuous = np.zeros(size)
-    vacuous[-1] = 1.0
-    m = np.tile(vacuous, (B, 1))
-    dead = np.zeros(B, dtype=bool)
-    acc = np.zeros(B)
-    bel = np.full((B, K1, n_classes), np.nan)
-    pl = np.full((B, K1, n_classes), np.nan)
-    conflict = np.full((B, K1), np.nan)
-    accumulated = np.ones((B, K1))
-    for k in range(K1):
-        inputs = [tables[s][reports[:, k, s]] for s in range(S)]
-        res = dempster_combine_array(m, *inputs, on_total_conflict="nan")
-        newly = ~dead & ~np.isfinite(res.masses).all(axis=-1)
-        live = ~dead & ~newly
-        m = np.where(live[:, None], res.masses, vacuous)  # dead runs: a placeholder
-        conflict[live, k] = res.conflict[live]
-        conflict[newly, k] = 1.0
-        acc = np.where(live, 1.0 - (1.0 - acc) * (1.0 - res.conflict), 1.0)
-        accumulated[:, k] = acc
-        dead |= newly
-        if live.any():
-            ml = m[live]
-            for c in range(n_classes):
-                bel[live, k, c] = belief_array(ml, 1 << c)
-                pl[live, k, c] = plausibility_array(ml, 1 << c)
-    return bel, pl, conflict, accumulated
-
-
-def decision_weights(score: np.ndarray, tiebreak: np.ndarray | None = None) -> np.ndarray:
-    """Weights (..., N) of the decided classes: 1/|T| on the tied maxima T of `score`, ties
-    broken by `tiebreak` if given; all zero where `score` is not finite (no decision)."""
-    ok = np.isfinite(score).all(axis=-1, keepdims=True)
-    s = np.where(ok, score, 0.0)
-    tied = s >= s.max(axis=-1, keepdims=True) - TIE_TOL
-    if tiebreak is not None:
-        t = np.where(tied & ok, tiebreak, -np.inf)
-        tied &= t >= t.max(axis=-1, keepdims=True) - TIE_TOL
-    w = tied / tied.sum(axis=-1, keepdims=True)
-    return np.where(ok, w, 0.0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -802,7 +592,7 @@ def run_simulate(
         offsets = range(0, M, B)
         for off in progress(offsets, len(offsets), "simulate"):
             runs = min(B, M - off)
-            truth, reports = simulate_identity(scenario, K, scenario.seed, off, runs)
+            truth, reports = simulate(scenario.system, K, scenario.seed, off, runs)
             t = truth.astype(float)[:, None]
             r = reports.astype(float)
             for k in range(K + 1):
@@ -892,7 +682,7 @@ def run_estimate(
     K, M, n = mf.steps() - 1, mf.runs(), len(model.classes)
     times = mf.times()
     B = _block(K, M, n, block)
-    columns = _columns(model.classes, archs)
+    cols = columns(model.classes, archs)
     meta_prov = provenance(
         command,
         recorded.seed if recorded is not None else None,
@@ -901,7 +691,7 @@ def run_estimate(
         model_source=model_source,
         model=json.dumps(model.to_dict()),
         architectures=json.dumps(archs),
-        columns=json.dumps(columns),
+        columns=json.dumps(cols),
     )
     with McapWriter(out, force=force) as w:
         if SCENARIO_META in mf.metadata:
@@ -912,20 +702,15 @@ def run_estimate(
             try:
                 reports = np.stack(
                     [
-                        _indices(data[t][..., 0], len(s.reports), f"{t}", allow_nan=True)
+                        report_indices(data[t][..., 0], len(s.reports), f"{t}", allow_nan=True)
                         for t, s in zip(topics, model.sensors, strict=True)
                     ],
                     axis=-1,
                 )
             except ValueError as e:
                 raise FusionlogError(f"{sensors_path}: runs from {off}: {e}") from None
-            out_vals: dict[str, np.ndarray] = {}
             try:
-                if "BAYES" in archs:
-                    out_vals["BAYES"] = bayes_posteriors(reports, model.sensors, model.prior, off)
-                if "DS" in archs:
-                    bel, pl, kk, ka = ds_combine(reports, model.sensors, n)
-                    out_vals["DS"] = np.concatenate([bel, pl, kk[..., None], ka[..., None]], -1)
+                out_vals = {a: estimate(model.system, reports, a, off) for a in archs}
             except ValueError as e:
                 raise _library_error(sensors_path, e) from None
             for a in archs:
@@ -939,79 +724,6 @@ def run_estimate(
 # --------------------------------------------------------------------------------------------
 # evaluate
 # --------------------------------------------------------------------------------------------
-
-
-class _Sums:
-    """Per-step sums over runs (and per-run averages for standard errors) of one metric."""
-
-    def __init__(self, steps: int) -> None:
-        self.sum = np.zeros(steps)
-        self.count = np.zeros(steps)
-        self.run_sum = 0.0
-        self.run_sq = 0.0
-        self.runs = 0
-
-    def add(self, values: np.ndarray) -> None:
-        """values (B, K+1), NaN where undefined (left out)."""
-        ok = ~np.isnan(values)
-        self.sum += np.where(ok, values, 0.0).sum(axis=0)
-        self.count += ok.sum(axis=0)
-        has = ok.any(axis=1)
-        if has.any():
-            with np.errstate(invalid="ignore"):
-                per_run = np.where(ok, values, 0.0).sum(axis=1)[has] / ok.sum(axis=1)[has]
-            self.run_sum += float(per_run.sum())
-            self.run_sq += float((per_run * per_run).sum())
-            self.runs += int(has.sum())
-
-    def series(self) -> np.ndarray:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(self.count > 0, self.sum / np.maximum(self.count, 1), np.nan)
-
-    def overall(self) -> float:
-        s = self.series()
-        s = s[~np.isnan(s)]
-        return float(s.mean()) if s.size else math.nan
-
-    def final(self) -> float:
-        return float(self.series()[-1])
-
-    def stderr(self) -> float:
-        n = self.runs
-        if n < 2 or not math.isfinite(self.run_sq):
-            return math.nan
-        mean = self.run_sum / n
-        var = max(self.run_sq / n - mean * mean, 0.0) * n / (n - 1)
-        return math.sqrt(var / n)
-
-
-class _PerClass:
-    """Per step and class c: mean over the runs whose truth is c of a score of class c."""
-
-    def __init__(self, steps: int, n: int) -> None:
-        self.sum = np.zeros((steps, n))
-        self.count = np.zeros((steps, n))
-
-    def add(self, truth: np.ndarray, scores: np.ndarray) -> None:
-        own = np.take_along_axis(scores, truth[:, None, None], axis=-1)[..., 0]  # (B, K+1)
-        ok = ~np.isnan(own)
-        onehot = truth[:, None] == np.arange(scores.shape[-1])[None, :]  # (B, N)
-        self.sum += np.einsum("bk,bn->kn", np.where(ok, own, 0.0), onehot)
-        self.count += np.einsum("bk,bn->kn", ok.astype(float), onehot)
-
-    def series(self) -> np.ndarray:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(self.count > 0, self.sum / np.maximum(self.count, 1), np.nan)
-
-
-def _true(values: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """values (B, K+1, N) at each run's true class: (B, K+1)."""
-    return np.take_along_axis(values, truth[:, None, None], axis=-1)[..., 0]
-
-
-def _neg_log(p: np.ndarray) -> np.ndarray:
-    with np.errstate(divide="ignore"):
-        return -np.log(p)
 
 
 def run_evaluate(
@@ -1034,7 +746,7 @@ def run_evaluate(
     if sc is None:
         raise FusionlogError(f"{sensors_path}: no {SCENARIO_META} metadata (not a simulation)")
     n = len(sc.classes)
-    dims = _dims(n)
+    sizes = dims(n)
     archs = [a for a in ARCHITECTURES if f"/estimates/{a}" in est.topics]
     if not archs:
         have = ", ".join(sorted(est.topics)) or "none"
@@ -1043,103 +755,25 @@ def run_evaluate(
         )
     topics = [f"/estimates/{a}" for a in archs]
     for a, t in zip(archs, topics, strict=True):
-        if est.kind_of(t) != VALUES or est.dim_of(t) != dims[a]:
+        if est.kind_of(t) != VALUES or est.dim_of(t) != sizes[a]:
             raise FusionlogError(
                 f"{estimates_path}: topic {t} is not an identity estimate "
-                f"(fusionlog.Block with {dims[a]} values per run for {n} classes)"
+                f"(fusionlog.Block with {sizes[a]} values per run for {n} classes)"
             )
     K, M = sens.steps() - 1, sens.runs()
     times = sens.times()
     B = _block(K, M, n, block)
-    metrics: dict[str, dict[str, _Sums]] = {}
-    for a in archs:
-        names = ["accuracy", "p_true", "log_loss"]
-        if a == "DS":
-            names += ["belief_true", "plausibility_true", "conflict", "accumulated_conflict"]
-        metrics[a] = {k: _Sums(K + 1) for k in names}
-    per_class = {
-        (a, kind): _PerClass(K + 1, n)
-        for a in archs
-        for kind in (("probability",) if a == "BAYES" else ("belief", "plausibility"))
-    }
-    disagreement = _Sums(K + 1) if len(archs) == 2 else None
-    total_conflict = 0
-    n_samples = min(sc.sample_runs, M)
-    samples: dict[int, tuple[int, dict[str, dict[str, np.ndarray]]]] = {}
+    metrics = IdentityMetrics(K + 1, sc.classes, archs, sample_runs=min(sc.sample_runs, M))
     blocks = zip(sens.iter_run_blocks(["/truth"], B), est.iter_run_blocks(topics, B), strict=True)
-    for (off, runs, tdata), (_, _, edata) in progress(blocks, -(-M // B), "evaluate"):
+    for (off, _runs, tdata), (_, _, edata) in progress(blocks, -(-M // B), "evaluate"):
         try:
-            truth = _indices(tdata["/truth"][:, 0, 0], n, "/truth", allow_nan=False)
+            truth = report_indices(tdata["/truth"][:, 0, 0], n, "/truth", allow_nan=False)
         except ValueError as e:
             raise FusionlogError(f"{sensors_path}: runs from {off}: {e}") from None
         if (tdata["/truth"][..., 0] != tdata["/truth"][:, :1, 0]).any():
             raise FusionlogError(f"{sensors_path}: runs from {off}: the true class changes")
-        weights: dict[str, np.ndarray] = {}
-        for a, t in zip(archs, topics, strict=True):
-            v = edata[t]
-            mt = metrics[a]
-            if a == "BAYES":
-                p = v
-                weights[a] = decision_weights(p)
-                per_class[(a, "probability")].add(truth, p)
-            else:
-                bel, pl = v[..., :n], v[..., n : 2 * n]
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    p = pl / pl.sum(axis=-1, keepdims=True)
-                weights[a] = decision_weights(bel, tiebreak=pl)
-                mt["belief_true"].add(_true(bel, truth))
-                mt["plausibility_true"].add(_true(pl, truth))
-                mt["conflict"].add(v[..., 2 * n])
-                mt["accumulated_conflict"].add(v[..., 2 * n + 1])
-                per_class[(a, "belief")].add(truth, bel)
-                per_class[(a, "plausibility")].add(truth, pl)
-                total_conflict += int(np.isnan(bel[:, -1]).any(axis=-1).sum())
-            p_true = _true(p, truth)
-            mt["accuracy"].add(_true(weights[a], truth))
-            mt["p_true"].add(p_true)
-            mt["log_loss"].add(_neg_log(p_true))
-            for r in range(off, min(off + runs, n_samples)):
-                entry = samples.setdefault(r, (int(truth[r - off]), {}))[1]
-                if a == "BAYES":
-                    entry[a] = {"probability": v[r - off]}
-                else:
-                    entry[a] = {"belief": bel[r - off], "plausibility": pl[r - off]}
-        if disagreement is not None:
-            disagreement.add(1.0 - (weights["BAYES"] * weights["DS"]).sum(axis=-1))
-
-    arch_summary: dict[str, Any] = {}
-    series: dict[str, dict[str, np.ndarray]] = {}
-    for a in archs:
-        mt = metrics[a]
-        entry: dict[str, Any] = {
-            "accuracy": mt["accuracy"].overall(),
-            "log_loss": mt["log_loss"].overall(),
-            "mean_p_true": mt["p_true"].overall(),
-        }
-        final: dict[str, Any] = {
-            "accuracy": mt["accuracy"].final(),
-            "log_loss": mt["log_loss"].final(),
-            "mean_p_true": mt["p_true"].final(),
-        }
-        if a == "DS":
-            entry["mean_belief_true"] = mt["belief_true"].overall()
-            entry["mean_plausibility_true"] = mt["plausibility_true"].overall()
-            entry["mean_conflict"] = mt["conflict"].overall()
-            final["mean_belief_true"] = mt["belief_true"].final()
-            final["mean_plausibility_true"] = mt["plausibility_true"].final()
-            final["accumulated_conflict"] = mt["accumulated_conflict"].final()
-            entry["total_conflict"] = total_conflict / M
-        entry["final"] = final
-        entry["stderr"] = {
-            "accuracy": mt["accuracy"].stderr(),
-            "log_loss": mt["log_loss"].stderr(),
-            "mean_p_true": mt["p_true"].stderr(),
-        }
-        arch_summary[a] = entry
-        series[a] = {k: s.series() for k, s in mt.items()}
-        for (aa, kind), pc in per_class.items():
-            if aa == a:
-                series[a][kind] = pc.series()
+        metrics.add(truth, {a: edata[t] for a, t in zip(archs, topics, strict=True)}, off)
+    res = metrics.finish()
     summary: dict[str, Any] = {
         "kind": KIND,
         "scenario": sc.name,
@@ -1147,13 +781,13 @@ def run_evaluate(
         "runs": M,
         "steps": K,
         "state_names": list(sc.classes),
-        "architectures": arch_summary,
+        "architectures": res.architectures,
     }
-    if disagreement is not None:
-        summary["disagreement"] = disagreement.overall()
-        summary["final_disagreement"] = disagreement.final()
+    if res.disagreement is not None:
+        summary["disagreement"] = res.disagreement_overall
+        summary["final_disagreement"] = res.disagreement_final
     definitions = {
-        "columns": json.dumps(_columns(sc.classes, archs)),
+        "columns": json.dumps(columns(sc.classes, archs)),
         "decision": "BAYES: largest posterior; DS: largest belief, ties by plausibility; "
         "remaining ties split evenly",
         "p_true": "BAYES: posterior; DS: normalised plausibility Pl({c}) / sum Pl",
@@ -1166,10 +800,10 @@ def run_evaluate(
             seed=sc.seed,
             times=times,
             classes=sc.classes,
-            series=series,
-            disagreement=disagreement.series() if disagreement is not None else None,
+            series=res.series,
+            disagreement=res.disagreement,
             summary=summary,
-            sample_runs=samples,
+            sample_runs=res.samples,
             properties={"scenario": sc.source, "provenance": prov, "identity": definitions},
             force=force,
         )
