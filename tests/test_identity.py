@@ -10,7 +10,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from fusionlog.core.identity import _conjunctive
+from fusionlog.core.identity.dempster import conjunctive
 from fusionlog.identity import (
     MASS_TOL,
     array_to_mass,
@@ -456,8 +456,8 @@ def test_array_batch_equals_items(args):
 @given(st.integers(1, 5).flatmap(lambda n: st.tuples(mass_arrays(n, (3,)), mass_arrays(n, (3,)))))
 def test_pairs_and_commonality_paths_agree(pair):
     m1, m2 = pair
-    exact = _conjunctive(m1, m2, "pairs")
-    np.testing.assert_allclose(_conjunctive(m1, m2, "commonality"), exact, atol=1e-13)
+    exact = conjunctive(m1, m2, "pairs")
+    np.testing.assert_allclose(conjunctive(m1, m2, "commonality"), exact, atol=1e-13)
     assert exact.sum(axis=-1) == pytest.approx(1.0, abs=1e-12)
 
 
@@ -469,8 +469,8 @@ def test_commonality_path_large_frame():
     for idx in np.ndindex(2, 3):
         focal = rng.choice(np.arange(1, 1024), 200, replace=False)
         m[idx][focal] = rng.dirichlet(np.ones(200))
-    fast = _conjunctive(m[0], m[1], "commonality")
-    np.testing.assert_allclose(fast, _conjunctive(m[0], m[1], "pairs"), atol=1e-13)
+    fast = conjunctive(m[0], m[1], "commonality")
+    np.testing.assert_allclose(fast, conjunctive(m[0], m[1], "pairs"), atol=1e-13)
     masses, conflict = dempster_combine_array(m[0], m[1])
     np.testing.assert_allclose(masses.sum(-1), 1.0, atol=1e-12)
     np.testing.assert_allclose(conflict, fast[..., 0], atol=1e-13)

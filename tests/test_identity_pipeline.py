@@ -22,16 +22,11 @@ import pytest
 from click.testing import CliRunner, Result
 
 from fusionlog.cli import main
-from fusionlog.core.identity import belief, dempster_combine, plausibility
+from fusionlog.identity import belief, dempster_combine, plausibility
 from fusionlog.io.mcap_io import McapFile, McapWriter
 from fusionlog.io.rrd import read_recording, recording_id_for
 from fusionlog.report import compare_summaries, format_table
-from fusionlog.stages.identity import (
-    decision_weights,
-    ds_combine,
-    identity_scenario_from_text,
-    load_identity_scenario,
-)
+from fusionlog.stages.identity import load_identity_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 AIRCRAFT = ROOT / "pipeline" / "aircraft_identity.toml"
@@ -388,26 +383,6 @@ def test_accuracy_grows_with_time_and_approaches_one(tmp_path: Path) -> None:
         assert (acc[3:] >= acc[:-3] - 0.01).all(), (a, acc)
         ll = series[f"metrics/log_loss/{a}"]
         assert ll[-1] < ll[0] / 10, (a, ll)
-
-
-def test_decision_weights_split_ties() -> None:
-    score = np.array([[0.5, 0.5, 0.0], [0.2, 0.3, 0.5], [0.0, 0.0, 0.0], [np.nan] * 3])
-    tb = np.array([[1.0, 0.4, 0.2], [0.0, 0.0, 0.0], [1.0, 1.0, 0.5], [0.0] * 3])
-    np.testing.assert_array_equal(
-        decision_weights(score), [[0.5, 0.5, 0], [0, 0, 1], [1 / 3] * 3, [0, 0, 0]]
-    )
-    np.testing.assert_array_equal(
-        decision_weights(score, tiebreak=tb), [[1, 0, 0], [0, 0, 1], [0.5, 0.5, 0], [0, 0, 0]]
-    )
-
-
-def test_ds_combine_treats_a_missing_report_as_no_evidence() -> None:
-    sc = identity_scenario_from_text(INFORMATIVE)
-    reports = np.array([[[0, 3], [3, 3], [3, 0]]])  # index 3 = no report for these sensors
-    bel, pl, conflict, acc = ds_combine(reports, sc.sensors, 3)
-    np.testing.assert_allclose(bel[0, 0], bel[0, 1])  # step 1: nothing new
-    assert conflict[0, 1] == 0 and acc[0, 1] == acc[0, 0] == 0
-    np.testing.assert_allclose(bel[0, 2, 0], 1 - 0.2 * 0.2)  # two reports of Learjet, r = 0.8
 
 
 # ------------------------------------------------------------------------------------------

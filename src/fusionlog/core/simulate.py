@@ -4,9 +4,12 @@ Random numbers come from one independent stream per chunk of runs (child c of th
 SeedSequence), so the runs a seed produces do not depend on how a caller splits them into blocks:
 runs [a, b) are the same whether drawn alone or as part of a larger block. A chunk holds at most
 SEED_CHUNK runs and about CHUNK_RUN_STEPS run-steps, so that long horizons stay small in memory.
+:func:`chunked` is that loop, shared with the identity kind (:mod:`fusionlog.core.identity`).
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 
@@ -30,9 +33,11 @@ def psd_sqrt(C: np.ndarray) -> np.ndarray:
         return V * np.sqrt(np.clip(w, 0.0, None))
 
 
-def _chunk(sys: System, steps: int, seed: int, chunk: int) -> tuple[np.ndarray, np.ndarray]:
-    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(chunk,)))
-    R, n, m = chunk_runs(steps), sys.n, sys.m
+def _draw(
+    sys: System, steps: int, rng: np.random.Generator, R: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Truth (R, K+1, n) and measurements (R, K+1, m) of one chunk of R runs."""
+    n, m = sys.n, sys.m
     init = sys.truth_initial
     Q = sys.Q
     G = sys.G if sys.G is not None else np.eye(n)
@@ -48,17 +53,35 @@ def _chunk(sys: System, steps: int, seed: int, chunk: int) -> tuple[np.ndarray, 
     return x, z
 
 
+def chunked(
+    draw: Callable[[np.random.Generator, int], tuple[np.ndarray, ...]],
+    steps: int,
+    seed: int,
+    run_offset: int,
+    runs: int,
+) -> tuple[np.ndarray, ...]:
+    """Runs [run_offset, run_offset + runs) of a chunked Monte Carlo draw, for either kind.
+
+    Chunk c of chunk_runs(steps) runs has its own stream, child c of the seed's SeedSequence;
+    draw(rng, size) returns arrays whose first axis is the chunk's `size` runs. Each wanted
+    chunk is drawn whole and sliced, so a run's numbers never depend on the caller's blocks.
+    """
+    if runs < 1 or run_offset < 0:
+        raise ValueError(f"runs [{run_offset}, {run_offset + runs}) is not a range of runs")
+    size = chunk_runs(steps)
+    first, last = run_offset // size, (run_offset + runs - 1) // size
+    parts = []
+    for c in range(first, last + 1):
+        rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(c,)))
+        lo = max(run_offset - c * size, 0)
+        hi = min(run_offset + runs - c * size, size)
+        parts.append([a[lo:hi] for a in draw(rng, size)])
+    return tuple(np.concatenate(arrays) for arrays in zip(*parts, strict=True))
+
+
 def simulate(
     sys: System, steps: int, seed: int, run_offset: int, runs: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Truth x (runs, K+1, n) and measurements z (runs, K+1, m) for runs [run_offset, +runs)."""
-    size = chunk_runs(steps)
-    first, last = run_offset // size, (run_offset + runs - 1) // size
-    xs, zs = [], []
-    for c in range(first, last + 1):
-        x, z = _chunk(sys, steps, seed, c)
-        lo = max(run_offset - c * size, 0)
-        hi = min(run_offset + runs - c * size, size)
-        xs.append(x[lo:hi])
-        zs.append(z[lo:hi])
-    return np.concatenate(xs), np.concatenate(zs)
+    x, z = chunked(lambda rng, size: _draw(sys, steps, rng, size), steps, seed, run_offset, runs)
+    return x, z
