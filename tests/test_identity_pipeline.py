@@ -26,7 +26,7 @@ from fusionlog.identity import belief, dempster_combine, plausibility
 from fusionlog.io.mcap_io import McapFile, McapWriter
 from fusionlog.io.rrd import read_recording, recording_id_for
 from fusionlog.report import compare_summaries, format_table
-from fusionlog.stages.identity import load_identity_scenario
+from fusionlog.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 AIRCRAFT = ROOT / "pipeline" / "aircraft_identity.toml"
@@ -224,7 +224,7 @@ def test_compare_itself_and_a_regression(aircraft, tmp_path: Path) -> None:
 def test_bayes_equals_a_direct_product(aircraft) -> None:
     """posterior_k(c) ∝ prior(c) prod_{t<=k} prod_s confusion_s[c, r_{s,t}], run by run."""
     d, _ = aircraft
-    sc = load_identity_scenario(AIRCRAFT)
+    sc = load_scenario(AIRCRAFT).system
     sens, est = read(d / "sensors.mcap"), read(d / "estimates.mcap")
     post = est["/estimates/BAYES"]
     for m in range(5):
@@ -247,7 +247,7 @@ def _report_mass(sc, sensor, r: int) -> dict[frozenset, float]:
 def test_ds_equals_the_dict_implementation_of_dempsters_rule(aircraft) -> None:
     """Bel, Pl and the conflicts against dempster_combine on {frozenset: mass} dicts."""
     d, _ = aircraft
-    sc = load_identity_scenario(AIRCRAFT)
+    sc = load_scenario(AIRCRAFT).system
     sens, est = read(d / "sensors.mcap"), read(d / "estimates.mcap")
     ds = est["/estimates/DS"]
     frame = frozenset(sc.classes)
@@ -276,7 +276,7 @@ def test_ds_plausibility_is_bayes_with_uniform_prior_and_contour_likelihoods(air
     for every run and step.
     """
     d, _ = aircraft
-    sc = load_identity_scenario(AIRCRAFT)
+    sc = load_scenario(AIRCRAFT).system
     sens, est = read(d / "sensors.mcap"), read(d / "estimates.mcap")
     lik = np.ones((300, 21, 3))
     for s in sc.sensors:
@@ -502,7 +502,7 @@ def test_missing_reports_in_a_log_are_no_evidence(tmp_path: Path) -> None:
                 w.write_values(t, k, float(k), 0, v[:, k])
     ok("estimate", holes, "-o", tmp_path / "e.mcap")
     post = read(tmp_path / "e.mcap")["/estimates/BAYES"]
-    sc = load_identity_scenario(AIRCRAFT)
+    sc = load_scenario(AIRCRAFT).system
     for m in range(3):
         p = np.array(sc.prior)
         for k in range(7):

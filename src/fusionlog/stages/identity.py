@@ -203,9 +203,9 @@ class _IdentityEvaluator(Evaluator):
                     f"(fusionlog.Block with {d[a]} values per run for {n} classes)"
                 )
         self.K, self.M = est.steps() - 1, est.runs()
-        self.metrics = IdentityMetrics(self.K + 1, n, self.archs)
-        self.n_samples = min(sc.sample_runs, self.M)
-        self.samples: dict[int, tuple[int, dict[str, dict[str, np.ndarray]]]] = {}
+        self.metrics = IdentityMetrics(
+            self.K + 1, sc.system.classes, self.archs, min(sc.sample_runs, self.M)
+        )
 
     def block_runs(self, requested: int | None) -> int:
         return _block(self.K, self.M, self.sc.system.n, requested)
@@ -219,17 +219,7 @@ class _IdentityEvaluator(Evaluator):
         if (truth[..., 0] != truth[:, :1, 0]).any():
             raise FusionlogError(f"{self.path}: runs from {run_offset}: the true class changes")
         ests = {a: estimates[t] for a, t in zip(self.archs, self.topics, strict=True)}
-        self.metrics.add(classes, ests)
-        for r in range(run_offset, min(run_offset + truth.shape[0], self.n_samples)):
-            entry = self.samples.setdefault(r, (int(classes[r - run_offset]), {}))[1]
-            for a, v in ests.items():
-                if a == "BAYES":
-                    entry[a] = {"probability": v[r - run_offset]}
-                else:
-                    entry[a] = {
-                        "belief": v[r - run_offset, :, :n],
-                        "plausibility": v[r - run_offset, :, n : 2 * n],
-                    }
+        self.metrics.add(classes, ests, run_offset)
 
     def summary(self) -> dict[str, Any]:
         res = self.metrics.finish()
@@ -269,7 +259,7 @@ class _IdentityEvaluator(Evaluator):
             series=self._res.series,
             disagreement=self._res.disagreement,
             summary=self._summary,
-            sample_runs=self.samples,
+            sample_runs=self._res.samples,
             properties={
                 "scenario": self.sc.source,
                 "provenance": provenance,
