@@ -18,6 +18,7 @@ from fusionlog.core.names import parse_arch
 from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap_io import McapFile
 from fusionlog.io.rrd import write_recording
+from fusionlog.jsonout import dumps
 from fusionlog.scenario import system_from_dict
 
 from .common import (
@@ -49,7 +50,7 @@ def write_json_atomic(path: Path, data: Any, force: bool) -> None:
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give it the usual permissions
         with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2)
+            f.write(dumps(data, indent=2))  # strict JSON: non-finite -> null + note
             f.write("\n")
         os.replace(tmp, path)
     except BaseException:
