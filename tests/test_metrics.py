@@ -17,6 +17,7 @@ from fusionlog.core.metrics import (
     MetricsResult,
     expected_mahalanobis_consistent,
 )
+from fusionlog.jsonout import dumps
 
 
 def random_spd(rng: np.random.Generator, shape: tuple[int, ...], n: int) -> np.ndarray:
@@ -182,13 +183,23 @@ def test_nan_steps_are_excluded_and_counted() -> None:
 
 
 def test_all_undefined_gives_nulls() -> None:
+    """Undefined metrics are NaN in memory, null plus a `non_finite` note in strict JSON."""
     acc = MetricsAccumulator(3, 2)
     x = np.zeros((4, 3, 2))
     acc.add(x, np.full_like(x, np.nan), np.full((3, 2, 2), np.nan))
     summ = acc.finalize().summary()
-    assert summ["mse"] is None and summ["anees"] is None and summ["dm"] is None
+    assert all(math.isnan(summ[k]) for k in ("mse", "anees", "dm"))
     assert summ["excluded"] == 12
-    json.dumps(summ, allow_nan=False)
+    assert summ["expected"] == {"mse": None, "anees": None, "dm": None}  # no analysis: null
+    doc = json.loads(dumps({"architectures": {"X": summ}}), parse_constant=_no_constant)
+    assert doc["architectures"]["X"]["mse"] is None
+    assert doc["non_finite"]["architectures.X.mse"] == "NaN"
+    assert doc["non_finite"]["architectures.X.mse_per_state[1]"] == "NaN"
+    assert "architectures.X.expected.mse" not in doc["non_finite"]
+
+
+def _no_constant(name: str) -> None:
+    raise AssertionError(f"{name} in strict JSON")
 
 
 def test_singular_covariance_falls_back_to_pseudo_inverse() -> None:

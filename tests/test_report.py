@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import copy
+import json
+import math
 
 import pytest
 
-from fusionlog.report import compare_summaries, format_table
+from fusionlog.jsonout import dumps, resolve_non_finite, to_strict_json
+from fusionlog.report import check_summary, compare_summaries, format_table
 
 
 def summary() -> dict:
@@ -146,3 +149,145 @@ def test_string_leaves() -> None:
     lines = compare_summaries(actual, summary())
     assert "scenario: actual 'other', golden 'ajgl2009'" in lines
     assert "state_names[0]: actual 'p', golden 'x1'" in lines
+
+
+# ------------------------------------------------------------------------------------------
+# strict JSON (fusionlog.jsonout) and what the table and the comparison make of its notes
+# ------------------------------------------------------------------------------------------
+
+
+def _refuse(name: str) -> None:
+    raise AssertionError(f"{name} is not JSON")
+
+
+def test_dumps_replaces_non_finite_values_by_null_and_notes_them() -> None:
+    s = summary()
+    s["architectures"]["MSC"]["anees"] = math.inf
+    s["architectures"]["MSC"]["mse_per_state"][1] = -math.inf
+    s["architectures"]["SKF"]["stderr"]["dm"] = math.nan
+    text = dumps(s, indent=2)
+    doc = json.loads(text, parse_constant=_refuse)
+    assert doc["architectures"]["MSC"]["anees"] is None
+    assert doc["architectures"]["MSC"]["mse_per_state"] == [0.1701, None]
+    assert doc["non_finite"] == {
+        "architectures.MSC.anees": "Infinity",
+        "architectures.MSC.mse_per_state[1]": "-Infinity",
+        "architectures.SKF.stderr.dm": "NaN",
+    }
+    assert list(doc)[:-1] == list(s)  # order kept, the note last
+    # finite documents are written exactly as json.dumps writes them
+    assert dumps(summary(), indent=2) == json.dumps(summary(), indent=2)
+    # the reader puts the values back and drops the note
+    back = resolve_non_finite(doc)
+    assert back["architectures"]["MSC"]["anees"] == math.inf
+    assert back["architectures"]["MSC"]["mse_per_state"][1] == -math.inf
+    assert math.isnan(back["architectures"]["SKF"]["stderr"]["dm"])
+    assert "non_finite" not in back
+    # writing a document read back keeps its note (merged with new ones)
+    doc["architectures"]["CKF"]["dm"] = math.nan
+    again = json.loads(dumps(doc), parse_constant=_refuse)
+    assert again["non_finite"] == {**doc["non_finite"], "architectures.CKF.dm": "NaN"}
+
+
+def test_to_strict_json_and_dumps_edge_cases() -> None:
+    clean, notes = to_strict_json([1.0, math.nan, {"a": (math.inf,)}])
+    assert clean == [1.0, None, {"a": [None]}]
+    assert notes == {"[1]": "NaN", "[2].a[0]": "Infinity"}
+    assert dumps([math.nan]) == "[null]"  # no object to put a note in
+    with pytest.raises(ValueError, match="Out of range float"):  # a slip raises, never NaN
+        dumps({"x": object()}, default=lambda o: math.nan)
+    deep: list = []
+    for _ in range(200):
+        deep = [deep]
+    with pytest.raises(ValueError, match="nested more than 64 levels"):
+        to_strict_json(deep)
+
+
+def test_format_table_shows_noted_values() -> None:
+    s = summary()
+    s["architectures"]["MSC"]["anees"] = None
+    s["architectures"]["SKF"]["dm"] = None
+    s["non_finite"] = {"architectures.MSC.anees": "Infinity"}
+    rows = {ln.split()[0]: ln.split() for ln in format_table(s).splitlines()[2:]}
+    assert rows["MSC"][5] == "inf"
+    assert rows["SKF"][3] == "—"  # a null nothing explains stays a dash
+
+
+def test_check_summary_strict_and_in_memory() -> None:
+    s = summary()
+    s["architectures"]["CKF"]["mse"] = math.inf
+    assert check_summary(s)["architectures"]["CKF"]["mse"] == math.inf  # in memory: a value
+    with pytest.raises(ValueError, match=r"^architectures\.CKF\.mse: Infinity is not JSON"):
+        check_summary(s, strict=True)  # a file: not JSON
+    s = summary()
+    s["architectures"]["CKF"]["mse"] = None
+    s["non_finite"] = {"architectures.CKF.mse": "NaN"}
+    assert math.isnan(check_summary(s, strict=True)["architectures"]["CKF"]["mse"])
+
+
+@pytest.mark.parametrize(
+    ("keys", "value", "message"),
+    [
+        (("architectures", "CKF", "mse"), "0.1", "architectures.CKF.mse: a string ('0.1')"),
+        (("architectures", "CKF", "mse"), None, "architectures.CKF.mse: null where"),
+        (("architectures", "CKF", "anees"), [2.0], "architectures.CKF.anees: a list where"),
+        (("architectures", "CKF", "dm"), False, "architectures.CKF.dm: a boolean (false)"),
+        (("architectures", "CKF", "excluded"), {}, "architectures.CKF.excluded: an object"),
+        (
+            ("architectures", "CKF", "mse_per_state"),
+            0.1,
+            "architectures.CKF.mse_per_state: a number (0.1) where a list",
+        ),
+        (
+            ("architectures", "CKF", "mse_per_state", 0),
+            None,
+            "architectures.CKF.mse_per_state[0]: null",
+        ),
+        (("architectures", "CKF", "stderr", "dm"), "x", "architectures.CKF.stderr.dm: a string"),
+        (
+            ("architectures", "CKF", "expected"),
+            None,
+            "architectures.CKF.expected: null where an object",
+        ),
+        (
+            ("architectures", "CKF", "expected", "dm"),
+            "x",
+            "architectures.CKF.expected.dm: a string",
+        ),
+        (("architectures", "CKF"), 1.0, "architectures.CKF: a number (1.0) where an object"),
+        (("runs",), "10000", "runs: a string ('10000') where a number"),
+        (("seed",), 10**400, "seed: a number too large for a double"),
+        (("state_names",), ["x1", 2], "state_names: a list where a list of strings"),
+        (("scenario",), 1, "scenario: a number (1) where a string"),
+    ],
+)
+def test_malformed_summary_is_bad_input_not_a_regression(keys, value, message) -> None:
+    g = summary()
+    d = g
+    for k in keys[:-1]:
+        d = d[k]
+    d[keys[-1]] = value
+    with pytest.raises(ValueError) as info:
+        check_summary(g)
+    assert str(info.value).startswith(message), str(info.value)
+    with pytest.raises(ValueError, match=r"^golden: "):
+        compare_summaries(summary(), g)
+    with pytest.raises(ValueError, match=r"^actual: "):
+        compare_summaries(g, summary())
+
+
+def test_infinity_matches_only_infinity() -> None:
+    """A golden Infinity once matched anything, because rtol * inf accepts every value."""
+    g = summary()
+    g["architectures"]["CKF"]["mse"] = math.inf
+    assert compare_summaries(summary(), g, rtol=1e-3) == [
+        "CKF: mse: actual 0.101, golden inf (rel. diff inf)"
+    ]
+    assert compare_summaries(copy.deepcopy(g), g, rtol=0, atol=0) == []
+
+
+@pytest.mark.parametrize("tol", [-1e-9, math.inf, math.nan])
+@pytest.mark.parametrize("name", ["rtol", "atol"])
+def test_tolerances_must_be_finite_and_non_negative(name, tol) -> None:
+    with pytest.raises(ValueError, match=f"{name} must be a finite number >= 0"):
+        compare_summaries(summary(), summary(), **{name: tol})

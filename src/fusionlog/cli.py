@@ -276,15 +276,22 @@ def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs) -> None:
 def summary(recording, as_json) -> None:
     """Read EVALUATION.rrd back offline and print its results table."""
     from fusionlog.io.rrd import read_recording
+    from fusionlog.jsonout import dumps
     from fusionlog.report import format_table
 
-    data = read_recording(recording)
+    s = read_recording(recording)["summary"]
+    if not isinstance(s, dict):
+        kind = type(s).__name__ if s is not None else "null"
+        raise FusionlogError(f"{recording}: the summary property is not a JSON object ({kind})")
     if as_json:
-        click.echo(json.dumps(data["summary"], indent=2))
-    else:
-        s = data["summary"]
-        click.echo(f"{s.get('scenario')}: M = {s.get('runs')} runs, K = {s.get('steps')}")
-        click.echo(format_table(s))
+        click.echo(dumps(s, indent=2))  # strict JSON, also from a recording made before it was
+        return
+    try:
+        table = format_table(s)
+    except ValueError as e:
+        raise FusionlogError(f"{recording}: the summary property is not a summary ({e})") from None
+    click.echo(f"{s.get('scenario')}: M = {s.get('runs')} runs, K = {s.get('steps')}")
+    click.echo(table)
 
 
 def _load_json(path: Path) -> Any:
@@ -296,23 +303,49 @@ def _load_json(path: Path) -> Any:
         raise FusionlogError(f"{path}: cannot read ({e})") from e
     except json.JSONDecodeError as e:
         raise FusionlogError(f"{path}: not valid JSON (line {e.lineno}: {e.msg})") from e
+    except RecursionError:
+        raise FusionlogError(f"{path}: nested too deeply to be a summary") from None
+    except ValueError as e:  # Python refuses integers of more than 4300 digits
+        raise FusionlogError(f"{path}: cannot read a number ({str(e).split(';')[0]})") from None
+
+
+def _tolerance(name: str, default: float, text: str):
+    """--rtol / --atol: a finite number >= 0 (else a usage error, exit 2)."""
+
+    def check(ctx: click.Context, param: click.Parameter, value: float) -> float:
+        from fusionlog.report import check_tolerance
+
+        try:
+            return check_tolerance(value, name)
+        except ValueError:
+            raise click.BadParameter(f"must be a finite number >= 0, got {value:g}") from None
+
+    return click.option(
+        name, type=float, default=default, show_default=True, callback=check, help=text
+    )
 
 
 @main.command()
 @click.argument("actual", type=PATH)
 @click.argument("golden", type=PATH)
-@click.option("--rtol", type=float, default=1e-6, show_default=True, help="Relative tolerance.")
-@click.option("--atol", type=float, default=1e-12, show_default=True, help="Absolute tolerance.")
+@_tolerance("--rtol", 1e-6, "Relative tolerance.")
+@_tolerance("--atol", 1e-12, "Absolute tolerance.")
 def compare(actual, golden, rtol, atol) -> None:
-    """Compare SUMMARY.json with GOLDEN.json; exit 1 if any metric moved beyond tolerance."""
-    from fusionlog.report import compare_summaries
+    """Compare SUMMARY.json with GOLDEN.json; exit 1 if any metric moved beyond tolerance.
+
+    A file that is not a well-formed summary (not strict JSON, a metric that is not a number)
+    is bad input (exit 2), not a regression."""
+    from fusionlog.report import check_summary, compare_summaries
 
     docs = []
     for path in (actual, golden):
         doc = _load_json(path)
         if not isinstance(doc, dict) or not isinstance(doc.get("architectures"), dict):
             raise FusionlogError(f"{path}: not a fusionlog summary (no 'architectures' object)")
-        docs.append(doc)
+        try:
+            docs.append(check_summary(doc, strict=True))
+        except ValueError as e:
+            raise FusionlogError(f"{path}: {e}") from None
     diffs = compare_summaries(docs[0], docs[1], rtol=rtol, atol=atol)
     if diffs:
         click.echo(f"{actual} differs from {golden} (rtol={rtol:g}, atol={atol:g}):")

@@ -399,7 +399,8 @@ class MetricsResult:
         expected_dm: np.ndarray | None = None,
     ) -> dict[str, Any]:
         """The per-architecture entry of summary.json (DESIGN.md), plus `expected.dm`, `stderr`
-        and `excluded`. Non-finite values become None (JSON null)."""
+        and `excluded`. An undefined value is NaN (written to JSON as null, listed in the
+        top-level ``non_finite`` note); `expected` values are None without an exact analysis."""
         return {
             "mse": _num(self.mse),
             "mse_per_state": [_num(v) for v in self.mse_per_state],
@@ -444,6 +445,7 @@ def _finite_mean(a: np.ndarray) -> float | None:
     return float(a.mean()) if a.size else None
 
 
-def _num(v: float) -> float | None:
-    v = float(v)
-    return v if math.isfinite(v) else None
+def _num(v: float) -> float:
+    # NaN (undefined) and inf stay: JSON writers (fusionlog.jsonout) turn them into null plus a
+    # note, so that a null in a metric's place is never ambiguous.
+    return float(v)

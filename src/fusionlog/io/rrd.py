@@ -43,6 +43,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from fusionlog.errors import FusionlogError
+from fusionlog.jsonout import dumps
 
 __all__ = [
     "APPLICATION_ID",
@@ -254,7 +255,7 @@ def _property_value(v: Any) -> str:
     `seed` as an int in one property and a string in another would be dropped with a warning."""
     if isinstance(v, str):
         return v
-    return json.dumps(v, sort_keys=True, default=str)
+    return dumps(v, sort_keys=True, default=str)
 
 
 def _send_properties(
@@ -272,7 +273,7 @@ def _send_properties(
             else {"text": _property_value(value)}
         )
         props.setdefault(str(key), {}).update(fields)
-    props["summary"] = {"json": json.dumps(summary, allow_nan=True)}  # keeps the arch order
+    props["summary"] = {"json": dumps(summary)}  # strict JSON; keeps the arch order
     for key in sorted(props):
         rec.send_property(key, rr.AnyValues(**props[key]))
 

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from fusionlog.io.atomic import Outputs
-from fusionlog.jsonout import dumps_strict
+from fusionlog.jsonout import dumps
 
 from .common import open_evaluation_inputs, progress
 from .kinds import kind_of
@@ -46,7 +46,7 @@ def evaluate_into(
         ev.add(off, tdata["/truth"], edata)
     summary = ev.summary()
     # The summary is made first: a recording is never committed beside a summary that failed.
-    text = dumps_strict(summary) if summary_path is not None else None
+    text = dumps(summary, indent=2) + "\n" if summary_path is not None else None
     ev.write_recording(outs.open(out), sens.times(), prov)
     if summary_path is not None:
         outs.open(summary_path).write(text.encode())
