@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -16,6 +14,7 @@ from fusionlog.core.exact import Expected, analyse
 from fusionlog.core.metrics import MetricsAccumulator, chi2_quantile
 from fusionlog.core.names import parse_arch
 from fusionlog.errors import FusionlogError
+from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap_io import McapFile
 from fusionlog.io.rrd import write_recording
 from fusionlog.scenario import system_from_dict
@@ -39,22 +38,9 @@ class EvaluateResult:
     summary: dict[str, Any]
 
 
-def write_json_atomic(path: Path, data: Any, force: bool) -> None:
-    if path.exists() and not force:
-        raise FusionlogError(f"{path}: exists; use --force to overwrite")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give it the usual permissions
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+def summary_json(data: Any) -> bytes:
+    """summary.json as written: indented JSON and a final newline."""
+    return (json.dumps(data, indent=2) + "\n").encode()
 
 
 def _analysable(prov: dict[str, str], filter_sys, truth_sys):
@@ -186,21 +172,23 @@ def run_evaluate(
             "ellipses": {**inputs, **plane_cov},
             "scale": float(np.sqrt(chi2_quantile(sc.confidence, 2))),
         }
-    write_recording(
-        out,
-        scenario_name=sc.name,
-        seed=sc.seed,
-        times=times,
-        state_names=sc.state_names,
-        series=series,
-        summary=summary,
-        nees_bounds=bounds,
-        confidence=sc.confidence,
-        sample_runs=samples,
-        properties={"scenario": sc.source, "provenance": prov},
-        plane=plane,
-        force=force,
-    )
-    if summary_path is not None:
-        write_json_atomic(summary_path, summary, force)
+    targets = [out] + ([summary_path] if summary_path else [])
+    with Outputs(targets, force=force, inputs=[sensors_path, estimates_path]) as outs:
+        write_recording(
+            outs.open(out),
+            scenario_name=sc.name,
+            seed=sc.seed,
+            times=times,
+            state_names=sc.state_names,
+            series=series,
+            summary=summary,
+            nees_bounds=bounds,
+            confidence=sc.confidence,
+            sample_runs=samples,
+            properties={"scenario": sc.source, "provenance": prov},
+            plane=plane,
+        )
+        if summary_path is not None:
+            outs.open(summary_path).write(summary_json(summary))
+        outs.commit()
     return EvaluateResult(out, summary_path, summary)

@@ -1024,9 +1024,10 @@ def run_evaluate(
     block: int | None = None,
 ) -> EvaluateResult:
     """Identity metrics of every architecture of `estimates_path` into a recording (and JSON)."""
-    from fusionlog.io.rrd_identity import write_identity_recording  # rerun: slow to import
+    from fusionlog.io.atomic import Outputs
+    from fusionlog.io.rrd import write_identity_recording  # rerun: slow to import
 
-    from .evaluate import EvaluateResult, write_json_atomic
+    from .evaluate import EvaluateResult, summary_json
 
     outputs = [out] + ([summary_path] if summary_path else [])
     sens, est, prov = open_evaluation_inputs(sensors_path, estimates_path, outputs, force)
@@ -1159,9 +1160,9 @@ def run_evaluate(
         "p_true": "BAYES: posterior; DS: normalised plausibility Pl({c}) / sum Pl",
         "per_class": "identity/<kind>/<class>/<ARCH>: mean over the runs whose truth is <class>",
     }
-    try:
+    with Outputs(outputs, force=force, inputs=[sensors_path, estimates_path]) as outs:
         write_identity_recording(
-            out,
+            outs.open(out),
             scenario_name=sc.name,
             seed=sc.seed,
             times=times,
@@ -1171,10 +1172,8 @@ def run_evaluate(
             summary=summary,
             sample_runs=samples,
             properties={"scenario": sc.source, "provenance": prov, "identity": definitions},
-            force=force,
         )
-    except ValueError as e:  # pragma: no cover - inputs are built above
-        raise FusionlogError(f"{out}: {e}") from None
-    if summary_path is not None:
-        write_json_atomic(summary_path, summary, force)
+        if summary_path is not None:
+            outs.open(summary_path).write(summary_json(summary))
+        outs.commit()
     return EvaluateResult(out, summary_path, summary)
