@@ -1,5 +1,6 @@
-"""The evaluation recording: write, verify with the rerun CLI, read back offline, determinism,
-atomic write and --force behaviour."""
+"""The evaluation recording: write into a file object, verify with the rerun CLI, read back
+offline, determinism, the default blueprint in the same file, refused data, damaged files.
+Values against independent computations: test_rrd_values.py; write faults: test_rrd_faults.py."""
 
 from __future__ import annotations
 
@@ -13,8 +14,16 @@ import numpy as np
 import pytest
 
 from fusionlog.errors import FusionlogError
-from fusionlog.io import rrd
-from fusionlog.io.rrd import entity_path, read_recording, recording_id_for, write_recording
+from fusionlog.io.atomic import Outputs
+from fusionlog.io.rrd import (
+    arch_color,
+    entity_path,
+    read_recording,
+    recording_id_for,
+    write_identity_recording,
+    write_recording,
+)
+from fusionlog.io.rrd.legend import legend_box, place_legend
 
 RERUN = Path(sys.executable).parent / "rerun"
 if not RERUN.exists():  # pragma: no cover - rerun-sdk always ships the CLI next to python
@@ -88,11 +97,18 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
     )
 
 
+def write(path: Path, writer=write_recording, **data) -> Path:
+    """Through the one output path, as the stages do."""
+    with Outputs([path], force=True) as outs:
+        writer(outs.open(path), **data)
+        outs.commit()
+    return path
+
+
 @pytest.fixture(scope="module")
 def written(tmp_path_factory) -> tuple[Path, dict]:
     data = synthetic()
-    path = tmp_path_factory.mktemp("rrd") / "evaluation.rrd"
-    assert write_recording(path, **data) == path
+    path = write(tmp_path_factory.mktemp("rrd") / "evaluation.rrd", **data)
     return path, data
 
 
@@ -164,73 +180,80 @@ def test_escaped_entity_paths(written) -> None:
     assert "metrics/trace/HKF" in keys
 
 
-def test_styling_and_blueprint_present(written) -> None:
+def static_styles(path: Path, prefix: str) -> dict[str, dict]:
+    from rerun.chunk import RrdReader
+
+    return {
+        str(ch.entity_path): ch.to_record_batch().to_pydict()
+        for ch in RrdReader(str(path)).store().stream().to_chunks()
+        if ch.is_static and str(ch.entity_path).startswith(prefix)
+    }
+
+
+def test_styling_and_blueprint_in_the_same_file(written) -> None:
     from rerun.chunk import RrdReader
 
     path, _ = written
     reader = RrdReader(str(path))
-    assert reader.blueprints(), "default blueprint missing"
-    static = {}
-    for ch in reader.store().stream().to_chunks():
-        if ch.is_static and str(ch.entity_path).startswith("/metrics/trace/"):
-            static[str(ch.entity_path)] = ch.to_record_batch().to_pydict()
-    ckf = static["/metrics/trace/CKF"]
+    bps = reader.blueprints()
+    assert len(bps) == 1, "default blueprint missing"
+    assert bps[0].application_id == "fusionlog"
+    ckf = static_styles(path, "/metrics/trace/")["/metrics/trace/CKF"]
     assert ckf["SeriesLines:names"] == [["CKF"]]
-    assert ckf["SeriesLines:colors"][0][0] == int.from_bytes(bytes([*rrd.arch_color("CKF"), 255]))
+    assert ckf["SeriesLines:colors"][0][0] == int.from_bytes(bytes([*arch_color("CKF"), 255]))
+
+
+def test_one_legend_entry_per_architecture(written) -> None:
+    """Expected values (dots) and the ±2σ band share their architecture's legend name, so the
+    legend lists each architecture once (14 entries for 7 architectures covered Fig. 4)."""
+    path, _ = written
+    names = set()
+    for p, st in static_styles(path, "/").items():
+        for key in ("SeriesLines:names", "SeriesPoints:names"):
+            if key in st and (p.startswith("/metrics/expected/mse/") or p.startswith("/runs/")):
+                names.add(st[key][0][0])
+    assert names == {*ARCHS, "truth"}
 
 
 def test_identical_writes_compare_equal(tmp_path: Path) -> None:
     a, b, c = tmp_path / "a.rrd", tmp_path / "b.rrd", tmp_path / "c.rrd"
-    write_recording(a, **synthetic())
-    write_recording(b, **synthetic())
+    write(a, **synthetic())
+    write(b, **synthetic())
     res = run_cli("rrd", "compare", "--unordered", str(a), str(b))
     assert res.returncode == 0, res.stdout + res.stderr
     other = synthetic()
     other["series"]["HKF"]["dm"] = other["series"]["HKF"]["dm"] + 1e-6
-    write_recording(c, **other)
+    write(c, **other)
     assert run_cli("rrd", "compare", "--unordered", str(a), str(c)).returncode != 0
 
 
+def test_plain_binary_file_works_too(tmp_path: Path) -> None:
+    """Any binary file object will do (no path, no Rerun file sink)."""
+    path = tmp_path / "plain.rrd"
+    with open(path, "wb") as f:
+        write_recording(f, **synthetic())
+    assert read_recording(path)["summary"]["scenario"] == "synthetic"
+    assert run_cli("rrd", "verify", str(path)).returncode == 0
+
+
 def test_without_ckf_no_difference_entities(tmp_path: Path) -> None:
-    path = tmp_path / "e.rrd"
-    write_recording(path, **synthetic(archs=["HKF", "MSC"]))
+    path = write(tmp_path / "e.rrd", **synthetic(archs=["HKF", "MSC"]))
     keys = read_recording(path)["series"]
     assert not any(k.startswith("metrics/mse_minus_ckf") for k in keys)
     assert "metrics/mse/pos/MSC" in keys
 
 
-def test_existing_output_needs_force(tmp_path: Path) -> None:
+def test_failure_in_the_writer_leaves_nothing(tmp_path: Path) -> None:
+    """Data that cannot be sent (a non-numeric series) fail inside the stream: nothing is
+    written, the previous output stays, no temporary file is left."""
     path = tmp_path / "out.rrd"
-    path.write_bytes(b"keep me")
-    with pytest.raises(FusionlogError, match="already exists"):
-        write_recording(path, **synthetic())
-    assert path.read_bytes() == b"keep me"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.rrd"]
-    write_recording(path, **synthetic(), force=True)
-    assert read_recording(path)["summary"]["scenario"] == "synthetic"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.rrd"]  # no temp file left
-
-
-def test_failure_mid_write_leaves_nothing(tmp_path: Path, monkeypatch) -> None:
-    path = tmp_path / "sub" / "out.rrd"
-
-    def boom(*args, **kwargs):
-        raise RuntimeError("disk on fire")
-
-    monkeypatch.setattr(rrd._Writer, "write_all", boom)
-    with pytest.raises(RuntimeError, match="disk on fire"):
-        write_recording(path, **synthetic())
-    assert not path.exists()
-    assert list(path.parent.iterdir()) == []
-
-
-def test_failure_keeps_previous_output(tmp_path: Path, monkeypatch) -> None:
-    path = tmp_path / "out.rrd"
-    write_recording(path, **synthetic())
+    write(path, **synthetic())
     before = path.read_bytes()
-    monkeypatch.setattr(rrd._Writer, "write_all", lambda *a, **k: 1 / 0)
-    with pytest.raises(ZeroDivisionError):
-        write_recording(path, **synthetic(), force=True)
+    data = synthetic()
+    data["series"]["HKF"]["dm"] = np.array(["x"] * len(data["times"]), dtype=object)
+    with pytest.raises(ValueError), Outputs([path], force=True) as outs:
+        write_recording(outs.open(path), **data)
+        outs.commit()
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["out.rrd"]
 
@@ -239,21 +262,25 @@ def test_inconsistent_input_rejected_before_writing(tmp_path: Path) -> None:
     data = synthetic()
     data["series"]["HKF"]["nees"] = np.zeros(3)
     path = tmp_path / "bad.rrd"
-    with pytest.raises(FusionlogError, match="HKF: nees has shape"):
-        write_recording(path, **data)
-    assert list(tmp_path.iterdir()) == []
+    with open(path, "wb") as f, pytest.raises(FusionlogError, match="HKF: nees has shape") as e:
+        write_recording(f, **data)
+    assert str(path) in str(e.value)
+    assert path.read_bytes() == b""
 
 
 @pytest.mark.parametrize(
     "content",
-    [None, b"", b"definitely not an rrd file" * 10, "truncated"],
-    ids=["missing", "empty", "garbage", "truncated"],
+    [None, b"", b"definitely not an rrd file" * 10, "truncated", "no footer", "cut header"],
 )
 def test_read_bad_file_is_one_line_error(tmp_path: Path, written, content) -> None:
     path = tmp_path / "bad.rrd"
+    good = written[0].read_bytes()
     if content == "truncated":
-        good = written[0].read_bytes()
         path.write_bytes(good[: len(good) // 3])
+    elif content == "no footer":
+        path.write_bytes(good[:-1])
+    elif content == "cut header":
+        path.write_bytes(good[:10])
     elif content is not None:
         path.write_bytes(content)
     with pytest.raises(FusionlogError) as info:
@@ -262,13 +289,126 @@ def test_read_bad_file_is_one_line_error(tmp_path: Path, written, content) -> No
     assert "\n" not in msg and str(path) in msg
 
 
-def test_read_foreign_recording(tmp_path: Path) -> None:
+def test_read_truncated_anywhere_is_one_line_error(tmp_path: Path, written) -> None:
+    good = written[0].read_bytes()
+    path = tmp_path / "cut.rrd"
+    for cut in np.linspace(1, len(good) - 1, 25).astype(int):
+        path.write_bytes(good[:cut])
+        with pytest.raises(FusionlogError) as info:
+            read_recording(path)
+        assert "\n" not in str(info.value), cut
+
+
+def foreign(path: Path, summary: str | None) -> Path:
     import rerun as rr
 
-    path = tmp_path / "foreign.rrd"
     rec = rr.RecordingStream("someone-else", recording_id="x", send_properties=False)
-    rec.save(path)
+    stream = rec.binary_stream()
     rec.log("a", rr.Scalars(1.0))
+    if summary is not None:
+        rec.send_property("summary", rr.AnyValues(json=summary))
+    path.write_bytes(stream.read(flush=True))
     rec.disconnect()
+    return path
+
+
+def test_read_foreign_recording(tmp_path: Path) -> None:
     with pytest.raises(FusionlogError, match="not a fusionlog recording"):
+        read_recording(foreign(tmp_path / "foreign.rrd", None))
+
+
+@pytest.mark.parametrize("summary", ["[1, 2]", '"text"', "3", "null", "{", "[" * 100_000])
+def test_summary_that_is_not_an_object(tmp_path: Path, summary: str) -> None:
+    """A summary property that is a list (or any non-object, or no JSON at all) is refused
+    with one line, not an AttributeError later."""
+    path = foreign(tmp_path / "odd.rrd", summary)
+    with pytest.raises(FusionlogError, match="corrupt summary property") as info:
         read_recording(path)
+    assert "\n" not in str(info.value)
+
+
+# ---------------------------------------------------------------------------- identity writer
+def identity_data(steps: int = 5) -> dict:
+    rng = np.random.default_rng(3)
+    classes = ["fighter", "airliner", "heli copter"]
+    n = len(classes)
+    p = rng.dirichlet(np.ones(n), size=steps)
+    return {
+        "scenario_name": "ident",
+        "seed": 1,
+        "times": np.arange(steps) * 0.5,
+        "classes": classes,
+        "series": {
+            "BAYES": {
+                "accuracy": rng.random(steps),
+                "p_true": rng.random(steps),
+                "log_loss": rng.random(steps),
+                "probability": p,
+            },
+            "DS": {
+                **{
+                    k: rng.random(steps)
+                    for k in (
+                        "accuracy",
+                        "p_true",
+                        "log_loss",
+                        "belief_true",
+                        "plausibility_true",
+                        "conflict",
+                        "accumulated_conflict",
+                    )
+                },
+                "belief": p * 0.5,
+                "plausibility": np.minimum(p * 1.5, 1.0),
+            },
+        },
+        "disagreement": rng.random(steps),
+        "summary": {"kind": "identity", "scenario": "ident", "architectures": {}},
+        "sample_runs": {0: (2, {"BAYES": {"probability": p}})},
+    }
+
+
+def test_identity_recording_round_trip(tmp_path: Path) -> None:
+    data = identity_data()
+    path = write(tmp_path / "id.rrd", write_identity_recording, **data)
+    assert run_cli("rrd", "verify", str(path)).returncode == 0
+    got = read_recording(path)
+    assert got["recording_id"] == recording_id_for("ident", 1)
+    assert got["summary"] == data["summary"]
+    ser = got["series"]
+    p = data["series"]["BAYES"]["probability"]
+    for i, c in enumerate(data["classes"]):
+        np.testing.assert_array_equal(
+            ser[entity_path("identity", "probability", c, "BAYES")], p[:, i]
+        )
+        np.testing.assert_array_equal(
+            ser[entity_path("runs", 0, "probability", c, "BAYES")], p[:, i]
+        )
+    np.testing.assert_array_equal(ser["metrics/disagreement"], data["disagreement"])
+    from rerun.chunk import RrdReader
+
+    assert len(RrdReader(str(path)).blueprints()) == 1
+
+
+def test_identity_rejects_unknown_architecture(tmp_path: Path) -> None:
+    data = identity_data()
+    data["series"]["XYZ"] = data["series"]["BAYES"]
+    with open(tmp_path / "x.rrd", "wb") as f, pytest.raises(FusionlogError, match="XYZ"):
+        write_identity_recording(f, **data)
+
+
+# ------------------------------------------------------------------------------ legend place
+def test_legend_goes_where_it_hides_nothing() -> None:
+    k = np.arange(21.0)
+    decaying = [np.exp(-k / 2) + 0.1 * j for j in range(3)]  # top-right empty
+    flat_high = [np.full(21, 1.0), np.linspace(0.0, 1.0, 21)]  # top-right occupied
+    box = legend_box(3, 8, 2, 3)
+    assert place_legend([decaying], box) == (0, "RightTop")
+    # the first view has a curve through every corner: the legend goes to the second view
+    crossing = [np.linspace(0, 1, 21), np.linspace(1, 0, 21), np.full(21, 0.5)]
+    assert place_legend([crossing, decaying], box) == (1, "RightTop")
+    # rising curves leave the top-left empty
+    assert place_legend([[1 - c for c in decaying][::-1]], box)[1] in ("LeftTop", "RightBottom")
+    assert place_legend([flat_high], box)[1] != "RightTop"
+    # nothing to look at: first view, default corner
+    assert place_legend([[np.full(3, np.nan)], []], box) == (0, "RightTop")

@@ -1,10 +1,10 @@
 """The evaluation recording (.rrd) of an identity scenario (BAYES and DS identity fusion).
 
-Same conventions as :mod:`fusionlog.io.rrd` (whose helpers it uses): application id
-``fusionlog``, recording id from the scenario name and seed, timelines ``step`` (sequence) and
-``time`` (duration), every series sent with ``send_columns``, written to a temporary file and
-renamed into place, recording properties ``scenario``, ``summary`` (field ``json``) and any
-further ``properties``. :func:`fusionlog.io.rrd.read_recording` reads it back.
+Same conventions as every fusionlog recording (:mod:`.stream`): application id ``fusionlog``,
+recording id from the scenario name and seed, timelines ``step`` (sequence) and ``time``
+(duration), every series sent with ``send_columns``, recording properties ``scenario``,
+``summary`` (field ``json``) and any further ``properties``.
+:func:`fusionlog.io.rrd.read_recording` reads it back.
 
 =================================================  ===========================================
 ``identity/probability/<class>/BAYES``             mean BAYES posterior of <class> over the runs
@@ -32,42 +32,18 @@ disagreement views; a second tab shows the sample runs.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping, Sequence
-from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import rerun.blueprint as rrb
 
-from fusionlog.errors import FusionlogError
-from fusionlog.io.rrd import (
-    _check_target,
-    _recording_file,
-    _send_properties,
-    _ts_view,
-    _Writer,
-    arch_color,
-    entity_path,
-)
+from .stream import entity_path, recording_error, recording_stream
+from .style import arch_color, class_color, lighter
+from .views import query, tabbed_blueprint, time_series_view
 
-__all__ = ["class_color", "write_identity_recording"]
+__all__ = ["write_identity_recording"]
 
-#: Per-class colours in sample-run views (distinct from the architecture colours).
-_CLASS_COLORS = [
-    (228, 26, 28),
-    (55, 126, 184),
-    (77, 175, 74),
-    (152, 78, 163),
-    (255, 127, 0),
-    (166, 86, 40),
-    (247, 129, 191),
-    (153, 153, 153),
-    (255, 217, 47),
-    (102, 194, 165),
-    (141, 160, 203),
-    (231, 138, 195),
-]
 #: Per-architecture series of one value per step.
 _SCALARS = {
     "BAYES": ("accuracy", "p_true", "log_loss"),
@@ -94,28 +70,18 @@ _SCALAR_NAMES = {
 }
 
 
-def class_color(index: int) -> tuple[int, int, int]:
-    """The colour of the class with this index in sample-run views."""
-    return _CLASS_COLORS[index % len(_CLASS_COLORS)]
-
-
-def _lighter(color: Sequence[int], amount: float = 0.5) -> tuple[int, int, int]:
-    r, g, b = (int(round(c + (255 - c) * amount)) for c in color)
-    return r, g, b
-
-
 def _style(arch: str, kind: str) -> tuple[tuple[int, int, int], float]:
     """Colour and width: plausibility is drawn thinner and lighter than belief."""
     col = arch_color(arch)
     if kind in ("plausibility", "plausibility_true", "accumulated_conflict"):
-        return _lighter(col), 1.5
+        return lighter(col), 1.5
     if kind in ("belief_true",):
         return col, 1.5
     return col, 2.5
 
 
 def _check(
-    path: Path,
+    file: IO[bytes],
     times: np.ndarray,
     classes: list[str],
     series: Mapping[str, Mapping[str, np.ndarray]],
@@ -124,8 +90,8 @@ def _check(
 ) -> None:
     s, n = times.shape[0] if times.ndim == 1 else -1, len(classes)
 
-    def bad(msg: str) -> FusionlogError:
-        return FusionlogError(f"{path}: cannot write recording: {msg}")
+    def bad(msg: str) -> Exception:
+        return recording_error(file, msg)
 
     if times.ndim != 1 or s < 1:
         raise bad(f"times must be a non-empty 1-D array, got shape {times.shape}")
@@ -158,7 +124,7 @@ def _check(
 
 
 def write_identity_recording(
-    path: str | os.PathLike[str],
+    file: IO[bytes],
     *,
     scenario_name: str,
     seed: int,
@@ -170,9 +136,8 @@ def write_identity_recording(
     sample_runs: Mapping[int, tuple[int, Mapping[str, Mapping[str, np.ndarray]]]] | None = None,
     properties: Mapping[str, Any] | None = None,
     recording_id: str | None = None,
-    force: bool = False,
-) -> Path:
-    """Write the identity evaluation recording atomically; returns the final path.
+) -> None:
+    """Write the identity evaluation recording into the binary file object `file`.
 
     times: (K+1,) seconds. classes: the frame, in index order. series: {ARCH: {name: array}}
     with ARCH in BAYES, DS; per step (K+1,): ``accuracy``, ``p_true``, ``log_loss`` and for DS
@@ -180,19 +145,25 @@ def write_identity_recording(
     step and class (K+1, N): BAYES ``probability``, DS ``belief`` and ``plausibility`` (means
     over the runs whose truth is that class). disagreement: (K+1,) or None.
     sample_runs: {run: (true class index, {ARCH: {"probability" | "belief" | "plausibility":
-    (K+1, N)}})}. summary, properties, recording_id, force: as
-    :func:`fusionlog.io.rrd.write_recording`.
+    (K+1, N)}})}. summary, properties, recording_id: as
+    :func:`fusionlog.io.rrd.write_recording`. Raises FusionlogError if the data are
+    inconsistent (before anything is written) and OutputError if writing `file` fails.
     """
-    path = Path(path)
-    _check_target(path, force)
     times = np.asarray(times, dtype=float)
     classes = [str(c) for c in classes]
     samples = sample_runs or {}
-    _check(path, times, classes, series, disagreement, samples)
+    _check(file, times, classes, series, disagreement, samples)
     blueprint = _blueprint(classes, list(series), {m: classes[t] for m, (t, _) in samples.items()})
-    with _recording_file(path, scenario_name, seed, recording_id, blueprint) as rec:
-        _send_properties(rec, scenario_name, seed, summary, properties)
-        w = _Writer(rec, times)
+    with recording_stream(
+        file,
+        scenario_name=scenario_name,
+        seed=seed,
+        times=times,
+        summary=summary,
+        blueprint=blueprint,
+        properties=properties,
+        recording_id=recording_id,
+    ) as w:
         for arch, d in series.items():
             for kind in _PER_CLASS[arch]:
                 col, width = _style(arch, kind)
@@ -221,45 +192,46 @@ def write_identity_recording(
                     for i, c in enumerate(classes):
                         col = class_color(i)
                         if kind == "plausibility":
-                            col = _lighter(col, 0.4)
+                            col = lighter(col, 0.4)
                         p = entity_path("runs", m, kind, c, arch)
                         w.line(p, arr[:, i], f"{_LABEL[kind]}({c})", col, width)
-    return path
 
 
 def _blueprint(classes: list[str], archs: list[str], runs: Mapping[int, str]) -> rrb.Blueprint:
-    def q(*parts: str | int) -> str:
-        return "+ /" + entity_path(*parts)
-
     what = []
     if "BAYES" in archs:
         what.append("BAYES P")
     if "DS" in archs:
         what.append("DS Bel (thick), Pl (thin)")
     per_class = [
-        _ts_view(
+        time_series_view(
             f"truth {c}: {', '.join(what)} of {c}, run mean",
-            [q("identity", kind, c) + "/**" for kind in ("probability", "belief", "plausibility")],
+            [
+                query("identity", kind, c) + "/**"
+                for kind in ("probability", "belief", "plausibility")
+            ],
             legend=i == 0,
         )
         for i, c in enumerate(classes)
     ]
-    accuracy = _ts_view(
-        "Accuracy: share of runs classified correctly", [q("metrics", "accuracy") + "/**"]
+    accuracy = time_series_view(
+        "Accuracy: share of runs classified correctly", [query("metrics", "accuracy") + "/**"]
     )
-    log_loss = _ts_view(
-        "Log-loss: −log p(true class), run mean", [q("metrics", "log_loss") + "/**"], legend=False
+    log_loss = time_series_view(
+        "Log-loss: −log p(true class), run mean",
+        [query("metrics", "log_loss") + "/**"],
+        legend=False,
     )
-    p_true = _ts_view(
+    p_true = time_series_view(
         "Probability of the true class (DS: normalised Pl; Bel and Pl thin)",
-        [q("metrics", k) + "/**" for k in ("p_true", "belief_true", "plausibility_true")],
+        [query("metrics", k) + "/**" for k in ("p_true", "belief_true", "plausibility_true")],
     )
-    conflict = _ts_view(
+    conflict = time_series_view(
         "DS conflict (per step; accumulated light) and BAYES ≠ DS",
         [
-            q("metrics", "conflict") + "/**",
-            q("metrics", "accumulated_conflict") + "/**",
-            q("metrics", "disagreement"),
+            query("metrics", "conflict") + "/**",
+            query("metrics", "accumulated_conflict") + "/**",
+            query("metrics", "disagreement"),
         ],
     )
     overview = rrb.Horizontal(
@@ -274,23 +246,22 @@ def _blueprint(classes: list[str], archs: list[str], runs: Mapping[int, str]) ->
         for j, m in enumerate(sorted(runs)):
             if "BAYES" in archs:
                 views.append(
-                    _ts_view(
+                    time_series_view(
                         f"run {m} (truth {runs[m]}): BAYES posterior",
-                        [q("runs", m, "probability") + "/**"],
+                        [query("runs", m, "probability") + "/**"],
                         legend=j == 0,
                     )
                 )
             if "DS" in archs:
                 views.append(
-                    _ts_view(
+                    time_series_view(
                         f"run {m} (truth {runs[m]}): DS Bel (thick), Pl (thin)",
-                        [q("runs", m, "belief") + "/**", q("runs", m, "plausibility") + "/**"],
+                        [
+                            query("runs", m, "belief") + "/**",
+                            query("runs", m, "plausibility") + "/**",
+                        ],
                         legend=j == 0,
                     )
                 )
         tabs.append(rrb.Grid(*views, grid_columns=len(archs), name="Sample runs"))
-    return rrb.Blueprint(
-        rrb.Tabs(*tabs, active_tab=0),
-        rrb.TimePanel(timeline="step", state="collapsed", play_state="paused"),
-        collapse_panels=True,
-    )
+    return tabbed_blueprint(tabs)

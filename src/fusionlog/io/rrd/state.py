@@ -1,0 +1,310 @@
+"""The evaluation recording of a state-estimation scenario: metric time series, sample runs,
+state plane, summary, default layout (the paper's Figs. 4-6 and a consistency view).
+
+Layout of the recording (timelines ``step`` and ``time``; ``<state>`` and ``<ARCH>`` are escaped
+entity-path parts, see :func:`~fusionlog.io.rrd.stream.entity_path`: ``SKF:s2`` becomes
+``SKF\\:s2``):
+
+=============================================  ============================================
+``metrics/mse/<state>/<ARCH>``                  MSE per state and step (eq. 44, Fig. 4)
+``metrics/mse_minus_ckf/<state>/<ARCH>``        MSE minus the CKF's (Fig. 5; only with CKF,
+                                                CKF itself omitted)
+``metrics/trace/<ARCH>``                        run-averaged trace of P (Fig. 6)
+``metrics/nees/<ARCH>``                         run-averaged NEES
+``metrics/nees/bounds/lower``, ``.../upper``    two-sided chi-square band of the averaged NEES
+``metrics/dm/<ARCH>``                           run-averaged Mahalanobis distance (eq. 46)
+``metrics/expected/mse/<state>/<ARCH>``         exact expected MSE (covariance analysis)
+``metrics/expected/nees/<ARCH>``                exact expected NEES
+``metrics/expected/dm/<ARCH>``                  exact expected Mahalanobis distance
+``runs/<m>/<state>/truth``                      true state of sample run m
+``runs/<m>/<state>/<ARCH>/mean``                estimate of sample run m
+``runs/<m>/<state>/<ARCH>/upper``, ``/lower``   mean +- 2 sigma, sigma = sqrt(P_ii)
+``plane/...``                                   the state plane (:mod:`.plane`)
+=============================================  ============================================
+
+Steps where a value is not finite (undefined estimate) are simply not logged. Monte Carlo
+curves are lines (``SeriesLines``), expected curves are markers (``SeriesPoints``) in the same
+colour and under the same legend name, so that the legend lists each architecture once.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import IO, Any
+
+import numpy as np
+import rerun.blueprint as rrb
+
+from .legend import legend_box, place_legend
+from .plane import check_plane, write_plane
+from .stream import SeriesWriter, entity_path, recording_error, recording_stream
+from .style import BOUND_COLOR, CKF, TRUTH_COLOR, arch_color, arch_width
+from .views import query, tabbed_blueprint, time_series_view
+
+__all__ = ["write_recording"]
+
+#: Per-architecture series: name -> shape, with s steps and n states.
+_SHAPES = {
+    "mse": "sn",
+    "trace": "s",
+    "nees": "s",
+    "dm": "s",
+    "expected_mse": "sn",
+    "expected_nees": "s",
+    "expected_dm": "s",
+}
+_REQUIRED = ("mse", "trace", "nees", "dm")
+
+SampleRuns = Mapping[int, tuple[np.ndarray, Mapping[str, tuple[np.ndarray, np.ndarray]]]]
+
+
+def write_recording(
+    file: IO[bytes],
+    *,
+    scenario_name: str,
+    seed: int,
+    times: np.ndarray,
+    state_names: Sequence[str],
+    series: Mapping[str, Mapping[str, np.ndarray]],
+    summary: Mapping[str, Any],
+    nees_bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    confidence: float | None = None,
+    sample_runs: SampleRuns | None = None,
+    properties: Mapping[str, Any] | None = None,
+    recording_id: str | None = None,
+    plane: Mapping[str, Any] | None = None,
+) -> None:
+    """Write the evaluation recording into the binary file object `file`.
+
+    times: (K+1,) seconds. series: {ARCH: {"mse": (K+1, n), "trace": (K+1,), "nees": (K+1,),
+    "dm": (K+1,), optionally "expected_mse" (K+1, n), "expected_nees" (K+1,),
+    "expected_dm" (K+1,)}} in the order the legend should list them.
+    nees_bounds: (lower, upper), each (K+1,), of the run-averaged NEES at `confidence`.
+    sample_runs: {run index: (truth (K+1, n), {ARCH: (mean (K+1, n), std (K+1, n))})}; the
+    band drawn is mean +- 2 std.
+    summary: the summary.json dict, stored as JSON in the property ``summary``.
+    properties: more recording properties, e.g. {"scenario": TOML text, "provenance": {...}};
+    a str value is stored as field ``text``, a mapping field by field (non-scalars as JSON).
+    recording_id: defaults to :func:`~fusionlog.io.rrd.stream.recording_id_for` (name, seed).
+    plane: for a 2-D state, the state-plane view (see :func:`.plane.write_plane`).
+
+    Raises FusionlogError if the data are inconsistent (before anything is written) and
+    OutputError if writing `file` fails.
+    """
+    times = np.asarray(times, dtype=float)
+    state_names = [str(s) for s in state_names]
+    samples = sample_runs or {}
+    _check(file, times, state_names, series, nees_bounds, samples)
+    if plane is not None:
+        check_plane(file, times.shape[0], plane)
+    blueprint = _blueprint(state_names, series, samples, plane is not None)
+    with recording_stream(
+        file,
+        scenario_name=scenario_name,
+        seed=seed,
+        times=times,
+        summary=summary,
+        blueprint=blueprint,
+        properties=properties,
+        recording_id=recording_id,
+    ) as w:
+        _write_metrics(w, state_names, series, nees_bounds, confidence)
+        _write_sample_runs(w, state_names, samples)
+        if plane is not None:
+            write_plane(w, plane)
+
+
+def _check(
+    file: IO[bytes],
+    times: np.ndarray,
+    state_names: list[str],
+    series: Mapping[str, Mapping[str, np.ndarray]],
+    nees_bounds: tuple[np.ndarray, np.ndarray] | None,
+    sample_runs: SampleRuns,
+) -> None:
+    s, n = times.shape[0] if times.ndim == 1 else -1, len(state_names)
+
+    def bad(msg: str) -> Exception:
+        return recording_error(file, msg)
+
+    if times.ndim != 1 or s < 1:
+        raise bad(f"times must be a non-empty 1-D array, got shape {times.shape}")
+    if len(set(state_names)) != n or n == 0:
+        raise bad(f"state names must be unique and non-empty, got {state_names}")
+    if "bounds" in series:
+        raise bad("'bounds' cannot be an architecture name (metrics/nees/bounds is the band)")
+    for arch, d in series.items():
+        for key in _REQUIRED:
+            if key not in d:
+                raise bad(f"architecture {arch}: missing series {key!r}")
+        for key, arr in d.items():
+            if key not in _SHAPES:
+                raise bad(f"architecture {arch}: unknown series {key!r}")
+            want = (s, n) if _SHAPES[key] == "sn" else (s,)
+            if np.shape(arr) != want:
+                raise bad(f"architecture {arch}: {key} has shape {np.shape(arr)}, want {want}")
+    if nees_bounds is not None:
+        for arr in nees_bounds:
+            if np.shape(arr) != (s,):
+                raise bad(f"NEES bounds have shape {np.shape(arr)}, want {(s,)}")
+    for m, (truth, est) in sample_runs.items():
+        if np.shape(truth) != (s, n):
+            raise bad(f"sample run {m}: truth has shape {np.shape(truth)}, want {(s, n)}")
+        for arch, (mean, std) in est.items():
+            if np.shape(mean) != (s, n) or np.shape(std) != (s, n):
+                raise bad(f"sample run {m}, {arch}: mean/std must have shape {(s, n)}")
+
+
+def _write_metrics(
+    w: SeriesWriter,
+    state_names: list[str],
+    series: Mapping[str, Mapping[str, np.ndarray]],
+    nees_bounds: tuple[np.ndarray, np.ndarray] | None,
+    confidence: float | None,
+) -> None:
+    ckf = series.get(CKF)
+    for arch, d in series.items():
+        col, width = arch_color(arch), arch_width(arch)
+        mse = np.asarray(d["mse"], dtype=float)
+        for i, state in enumerate(state_names):
+            w.line(entity_path("metrics", "mse", state, arch), mse[:, i], arch, col, width)
+            if ckf is not None and arch != CKF:
+                diff = mse[:, i] - np.asarray(ckf["mse"], dtype=float)[:, i]
+                p = entity_path("metrics", "mse_minus_ckf", state, arch)
+                w.line(p, diff, f"{arch} − CKF", col, width)
+            if "expected_mse" in d:
+                p = entity_path("metrics", "expected", "mse", state, arch)
+                w.points(p, np.asarray(d["expected_mse"])[:, i], arch, col)
+        w.line(entity_path("metrics", "trace", arch), d["trace"], arch, col, width)
+        w.line(entity_path("metrics", "nees", arch), d["nees"], arch, col, width)
+        w.line(entity_path("metrics", "dm", arch), d["dm"], arch, col, width)
+        for key, metric in (("expected_nees", "nees"), ("expected_dm", "dm")):
+            if key in d:
+                w.points(entity_path("metrics", "expected", metric, arch), d[key], arch, col)
+    if nees_bounds is not None:
+        label = f"χ² {confidence:.0%}" if confidence is not None else "χ²"
+        for side, arr in zip(("lower", "upper"), nees_bounds, strict=True):
+            p = entity_path("metrics", "nees", "bounds", side)
+            w.line(p, arr, f"{label} {side}", BOUND_COLOR, 1.5)
+
+
+def _write_sample_runs(w: SeriesWriter, state_names: list[str], sample_runs: SampleRuns) -> None:
+    """Each sample run: the truth, and per architecture the estimate with its ±2σ band."""
+    for m in sorted(sample_runs):
+        truth, est = sample_runs[m]
+        truth = np.asarray(truth, dtype=float)
+        for i, state in enumerate(state_names):
+            w.line(entity_path("runs", m, state, "truth"), truth[:, i], "truth", TRUTH_COLOR, 2.5)
+            for arch, (mean, std) in est.items():
+                col = arch_color(arch)
+                mu = np.asarray(mean, dtype=float)[:, i]
+                sd = np.asarray(std, dtype=float)[:, i]
+                base = ("runs", m, state, arch)
+                w.line(entity_path(*base, "mean"), mu, arch, col, 2.0)
+                # The band shares the estimate's legend entry (one toggle for both).
+                w.line(entity_path(*base, "upper"), mu + 2 * sd, arch, col, 0.75)
+                w.line(entity_path(*base, "lower"), mu - 2 * sd, arch, col, 0.75)
+
+
+def _blueprint(
+    state_names: list[str],
+    series: Mapping[str, Mapping[str, np.ndarray]],
+    sample_runs: SampleRuns,
+    plane: bool = False,
+) -> rrb.Blueprint:
+    """Tabs: [state plane], Overview (Figs. 4, 5, 6, NEES, DM), [sample runs].
+
+    Colours are the same in every view, so each group of views (Fig. 4, Fig. 5, the sample
+    runs) shows one legend, one entry per architecture (its line, dots and band share the
+    name), on the view and in the corner where it hides the fewest curve points
+    (:mod:`.legend`); the other views stay uncluttered."""
+    archs = list(series)
+    n = len(state_names)
+    with_fig5 = CKF in archs and len(archs) > 1
+    n_columns = 3 if with_fig5 else 2
+
+    def legend(views: list[list[np.ndarray]], names: list[str], rows: int, cols: int):
+        box = legend_box(len(names), max(map(len, names), default=0), rows, cols)
+        return place_legend(views, box)
+
+    def col(d: Mapping[str, np.ndarray], key: str, i: int) -> np.ndarray:
+        return np.asarray(d[key], dtype=float)[:, i]
+
+    mse = [
+        [col(d, k, i) for d in series.values() for k in ("mse", "expected_mse") if k in d]
+        for i in range(n)
+    ]
+    at4 = legend(mse, archs, n, n_columns)
+    fig4 = [
+        time_series_view(
+            f"Fig. 4: MSE of {s} (lines: Monte Carlo, dots: expected)",
+            [query("metrics", "mse", s) + "/**", query("metrics", "expected", "mse", s) + "/**"],
+            legend=i == at4[0],
+            corner=at4[1],
+        )
+        for i, s in enumerate(state_names)
+    ]
+    others = [a for a in archs if a != CKF]
+    diff = (
+        [[col(series[a], "mse", i) - col(series[CKF], "mse", i) for a in others] for i in range(n)]
+        if with_fig5
+        else []
+    )
+    at5 = legend(diff, [f"{a} − CKF" for a in others], n, n_columns)
+    fig5 = [
+        time_series_view(
+            f"Fig. 5: MSE − MSE of CKF, {s}",
+            [query("metrics", "mse_minus_ckf", s) + "/**"],
+            legend=i == at5[0],
+            corner=at5[1],
+        )
+        for i, s in enumerate(state_names)
+    ]
+    fig6 = time_series_view("Fig. 6: trace of P", [query("metrics", "trace") + "/**"], False)
+    nees = time_series_view(
+        "NEES, run average (grey: χ² band)",
+        [query("metrics", "nees") + "/**", query("metrics", "expected", "nees") + "/**"],
+        legend=False,
+    )
+    dm = time_series_view(
+        "Mahalanobis distance, run average",
+        [query("metrics", "dm") + "/**", query("metrics", "expected", "dm") + "/**"],
+        legend=False,
+    )
+    columns: list[rrb.Container] = [rrb.Vertical(*fig4, name="Fig. 4")]
+    if with_fig5:
+        columns.append(rrb.Vertical(*fig5, name="Fig. 5"))
+    columns.append(rrb.Vertical(fig6, nees, dm, name="Fig. 6 and consistency"))
+    tabs: list[rrb.Container | rrb.View] = [rrb.Horizontal(*columns, name="Overview")]
+    run_ids = sorted(sample_runs)
+    if run_ids:
+        cells = [(m, i) for m in run_ids for i in range(n)]
+        curves = []
+        for m, i in cells:
+            truth, est = sample_runs[m]
+            c = [np.asarray(truth, dtype=float)[:, i]]
+            for mean, std in est.values():
+                mu, sd = np.asarray(mean, dtype=float)[:, i], np.asarray(std, dtype=float)[:, i]
+                c += [mu, mu + 2 * sd, mu - 2 * sd]
+            curves.append(c)
+        names = ["truth", *sample_runs[run_ids[0]][1]]
+        at = legend(curves, names, len(run_ids), n)
+        run_views = [
+            time_series_view(
+                f"run {m}: {state_names[i]} (truth, estimate ± 2σ)",
+                [query("runs", m, state_names[i]) + "/**"],
+                legend=k == at[0],
+                corner=at[1],
+            )
+            for k, (m, i) in enumerate(cells)
+        ]
+        tabs.append(rrb.Grid(*run_views, grid_columns=n, name="Sample runs"))
+    if plane:
+        tabs.insert(
+            0,
+            rrb.Spatial2DView(
+                origin="/plane",
+                name=f"State plane ({state_names[0]}, {state_names[1]}): estimates and ellipses",
+            ),
+        )
+    return tabbed_blueprint(tabs)

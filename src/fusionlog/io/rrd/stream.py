@@ -1,0 +1,212 @@
+"""The recording stream every fusionlog recording is written through (state and identity).
+
+What all recordings share: application id ``fusionlog``; a recording id derived from the
+scenario name and the seed (identical inputs give identical data); the recording name; the
+recording properties ``scenario`` (name, seed, and the scenario text if given), ``summary``
+(field ``json``: the summary table as JSON) and any further ``properties``; the default
+blueprint in the same file; timelines ``step`` (sequence) and ``time`` (duration, seconds); and
+series sent with ``send_columns`` (:class:`SeriesWriter`), never point by point.
+
+**How the bytes reach the disk.** Rerun's file sink (``RecordingStream.save``) only *logs* a
+failed write ("No space left on device"), leaves a truncated file and can hang in
+``disconnect()`` on a full disk. So a recording is never given a path: it is encoded into a
+Rerun binary stream in memory (``RecordingStream.binary_stream()``) and the bytes are written
+with Python file I/O into the file object the caller gives (a
+:class:`fusionlog.io.atomic.CheckedFile`), where the first failed write raises
+:class:`fusionlog.errors.OutputError`. The stream is read once, at the end: in rerun-sdk 0.41
+every ``BinaryStream.read`` returns a complete RRD stream (header, messages, footer with its
+own manifest), and concatenated pieces are not one readable recording ("More than one RRD
+manifest", a CRC error in ``RrdReader``). The peak memory is therefore the encoded recording,
+about the size of the series it holds.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import uuid
+from collections.abc import Iterator, Mapping, Sequence
+from typing import IO, Any
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from fusionlog.errors import FusionlogError, OutputError
+from fusionlog.jsonout import dumps
+
+__all__ = [
+    "APPLICATION_ID",
+    "SeriesWriter",
+    "entity_path",
+    "output_name",
+    "recording_error",
+    "recording_id_for",
+    "recording_stream",
+    "write_all",
+]
+
+APPLICATION_ID = "fusionlog"
+
+#: Bytes handed to one ``write`` call: a failing disk is reported after at most this much more.
+_PIECE = 1 << 20
+
+
+def entity_path(*parts: str | int) -> str:
+    """Entity path (no leading slash) from unescaped parts, as keys of `read_recording` series."""
+    return "/".join(rr.escape_entity_path_part(str(p)) for p in parts)
+
+
+def recording_id_for(scenario_name: str, seed: int) -> str:
+    """Deterministic recording id from the scenario name and the seed."""
+    return str(uuid.uuid5(uuid.NAMESPACE_URL, f"fusionlog:{scenario_name}:{seed}"))
+
+
+def output_name(file: IO[bytes]) -> str:
+    """How errors name the output: the target of a CheckedFile, else the file's name."""
+    name = getattr(file, "target", None) or getattr(file, "name", None)
+    return str(name) if name is not None else "recording"
+
+
+def recording_error(file: IO[bytes], msg: str) -> FusionlogError:
+    """The error for data that cannot make a recording (raised before anything is written)."""
+    return FusionlogError(f"{output_name(file)}: cannot write recording: {msg}")
+
+
+def write_all(file: IO[bytes], data: bytes | bytearray | memoryview) -> None:
+    """Write every byte of `data` to `file` and flush it; any failure is an OutputError."""
+    view = memoryview(data)
+    try:
+        while view:
+            n = file.write(view[:_PIECE])
+            if not n:  # a raw file that took nothing: no progress is a failure, not a loop
+                raise OutputError(f"{output_name(file)}: cannot write: nothing was written")
+            view = view[n:]
+        file.flush()
+    except OSError as e:  # a plain file; a CheckedFile raises OutputError itself
+        raise OutputError(f"{output_name(file)}: cannot write: {e.strerror or e}") from None
+
+
+def _property_value(v: Any) -> str:
+    """Every property field is a string: Rerun types a field name once for all properties, so
+    `seed` as an int in one property and a string in another would be dropped with a warning."""
+    if isinstance(v, str):
+        return v
+    return dumps(v, sort_keys=True, default=str)
+
+
+def _send_properties(
+    rec: rr.RecordingStream,
+    scenario_name: str,
+    seed: int,
+    summary: Mapping[str, Any],
+    properties: Mapping[str, Any] | None,
+) -> None:
+    props: dict[str, dict[str, Any]] = {"scenario": {"name": scenario_name, "seed": str(seed)}}
+    for key, value in (properties or {}).items():
+        fields = (
+            {str(k): _property_value(v) for k, v in value.items()}
+            if isinstance(value, Mapping)
+            else {"text": _property_value(value)}
+        )
+        props.setdefault(str(key), {}).update(fields)
+    props["summary"] = {"json": dumps(summary)}  # strict JSON; keeps the arch order
+    for key in sorted(props):
+        rec.send_property(key, rr.AnyValues(**props[key]))
+
+
+@contextlib.contextmanager
+def recording_stream(
+    file: IO[bytes],
+    *,
+    scenario_name: str,
+    seed: int,
+    times: np.ndarray,
+    summary: Mapping[str, Any],
+    blueprint: rrb.Blueprint,
+    properties: Mapping[str, Any] | None = None,
+    recording_id: str | None = None,
+) -> Iterator[SeriesWriter]:
+    """A recording (application id, recording id, name, default blueprint, properties) whose
+    series the block sends through the yielded :class:`SeriesWriter`; when the block completes
+    the encoded recording is written into `file`. If the block raises, nothing is written.
+
+    The default blueprint goes into the same file, as ``save(default_blueprint=...)`` puts it:
+    a blueprint store followed by the activation command "make default, not active".
+    """
+    rec = rr.RecordingStream(
+        APPLICATION_ID,
+        recording_id=recording_id or recording_id_for(scenario_name, seed),
+        send_properties=False,  # no wall-clock start_time: identical inputs give identical data
+    )
+    stream = rec.binary_stream()  # in memory: no sink that only logs its errors
+    try:
+        rec.send_blueprint(blueprint, make_active=False, make_default=True)
+        rec.send_recording_name(scenario_name)
+        _send_properties(rec, scenario_name, seed, summary, properties)
+        yield SeriesWriter(rec, times)
+        data = stream.read(flush=True) or b""
+    finally:
+        rec.disconnect()  # closes the in-memory sink only: nothing here touches a disk
+    write_all(file, data)
+
+
+class SeriesWriter:
+    """Sends styled time series of one recording, one ``send_columns`` call each."""
+
+    def __init__(self, rec: rr.RecordingStream, times: np.ndarray) -> None:
+        self.rec = rec
+        self.times = np.asarray(times, dtype=float)
+        self.steps = np.arange(self.times.shape[0], dtype=np.int64)
+        # Many entities share a style (an architecture's colour and name across states) and
+        # most series are defined at every step: build those column batches once.
+        self._styles: dict[tuple, Any] = {}
+        self._full_index = self.index(np.ones(self.times.shape[0], dtype=bool))
+
+    def index(self, keep: np.ndarray) -> list[rr.TimeColumn]:
+        """The ``step`` and ``time`` columns of the steps where `keep` is true."""
+        return [
+            rr.TimeColumn("step", sequence=self.steps[keep]),
+            rr.TimeColumn("time", duration=self.times[keep]),
+        ]
+
+    # Styling goes out with send_columns and no index (= static), so that it lands in the file
+    # right before its series instead of being batched; one unbatched chunk each, in order.
+    def style_lines(self, path: str, name: str, color: Sequence[int], width: float) -> None:
+        key = ("lines", name, tuple(color), width)
+        if key not in self._styles:
+            self._styles[key] = rr.SeriesLines.columns(
+                names=[name], colors=[list(color)], widths=[width]
+            )
+        self.rec.send_columns(path, indexes=[], columns=self._styles[key], strict=True)
+
+    def style_points(self, path: str, name: str, color: Sequence[int]) -> None:
+        key = ("points", name, tuple(color))
+        if key not in self._styles:
+            self._styles[key] = rr.SeriesPoints.columns(
+                names=[name], colors=[list(color)], markers=["circle"], marker_sizes=[2.5]
+            )
+        self.rec.send_columns(path, indexes=[], columns=self._styles[key], strict=True)
+
+    def send(self, path: str, values: np.ndarray) -> None:
+        """One scalar series; steps where it is not finite are not logged."""
+        values = np.asarray(values, dtype=float)
+        keep = np.isfinite(values)
+        if keep.all():
+            indexes = self._full_index
+        elif keep.any():
+            indexes, values = self.index(keep), values[keep]
+        else:
+            return
+        self.rec.send_columns(
+            path, indexes=indexes, columns=rr.Scalars.columns(scalars=values), strict=True
+        )
+
+    def line(self, path: str, values: np.ndarray, name: str, color: Sequence[int], width: float):
+        """A series drawn as a line (``SeriesLines``)."""
+        self.style_lines(path, name, color, width)
+        self.send(path, values)
+
+    def points(self, path: str, values: np.ndarray, name: str, color: Sequence[int]) -> None:
+        """A series drawn as markers (``SeriesPoints``)."""
+        self.style_points(path, name, color)
+        self.send(path, values)

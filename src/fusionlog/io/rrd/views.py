@@ -1,0 +1,38 @@
+"""Blueprint pieces shared by the recordings' default layouts."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import rerun.blueprint as rrb
+
+from .stream import entity_path
+
+__all__ = ["query", "tabbed_blueprint", "time_series_view"]
+
+
+def query(*parts: str | int) -> str:
+    """An entity-path query ("+ /a/b") from unescaped parts; append "/**" for a subtree."""
+    return "+ /" + entity_path(*parts)
+
+
+def time_series_view(
+    name: str, contents: list[str], legend: bool = True, corner: str = "RightTop"
+) -> rrb.TimeSeriesView:
+    """A time-series view of `contents` (queries), with its legend in `corner` or none."""
+    return rrb.TimeSeriesView(
+        origin="/",
+        contents=contents,
+        name=name,
+        plot_legend=rrb.PlotLegend(corner=corner, visible=legend),
+    )
+
+
+def tabbed_blueprint(tabs: Sequence[rrb.Container | rrb.View]) -> rrb.Blueprint:
+    """The default blueprint: `tabs` with the first one open, side panels collapsed, the time
+    panel on ``step`` and paused (the recordings are results, not a live feed)."""
+    return rrb.Blueprint(
+        rrb.Tabs(*tabs, active_tab=0),
+        rrb.TimePanel(timeline="step", state="collapsed", play_state="paused"),
+        collapse_panels=True,
+    )
