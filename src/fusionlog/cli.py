@@ -18,7 +18,7 @@ from typing import Any
 import click
 
 from fusionlog import __version__
-from fusionlog.errors import FusionlogError
+from fusionlog.errors import DamagedFile, FusionlogError, OutputExists
 
 PATH = click.Path(path_type=Path, dir_okay=False)
 
@@ -33,7 +33,12 @@ class _Group(click.Group):
         except FusionlogError as e:
             if debug:
                 raise
-            click.echo(f"fusionlog: error: {e}", err=True)
+            hint = ""
+            if isinstance(e, DamagedFile) and e.path is not None:
+                hint = f"; `fusionlog inspect --recover {e.path}` shows what is still readable"
+            elif isinstance(e, OutputExists):
+                hint = "; use --force to overwrite"
+            click.echo(f"fusionlog: error: {e}{hint}", err=True)
             ctx.exit(2)
         except KeyboardInterrupt:
             if debug:
@@ -298,10 +303,11 @@ def compare(actual, golden, rtol, atol) -> None:
 @click.option("--recover", is_flag=True, help="Read a damaged file as far as it goes.")
 def inspect(file, recover) -> None:
     """Show what is in an MCAP file: scenario, topics, message counts, runs, steps."""
-    from fusionlog.io import mcap_io
+    from fusionlog.io.mcap import McapFile
+    from fusionlog.io.mcap import recover as recover_file
 
     if recover:
-        info = mcap_io.recover(file)
+        info = recover_file(file)
         click.echo(f"{file}: {'damaged: ' + str(info['error']) if info['error'] else 'intact'}")
         for t, c in sorted(info["topics"].items()):
             click.echo(f"  {t:32s} {c:8d} messages readable")
@@ -311,7 +317,7 @@ def inspect(file, recover) -> None:
         )
         click.echo(f"  metadata: {', '.join(sorted(info['metadata'])) or 'none'}")
         return
-    mf = mcap_io.McapFile(file)
+    mf = McapFile(file)
     sc = mf.metadata.get("fusionlog.scenario", {})
     prov = mf.metadata.get("fusionlog.provenance", {})
     click.echo(f"{file}")

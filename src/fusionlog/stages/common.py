@@ -15,7 +15,7 @@ from tqdm import tqdm
 from fusionlog import __version__
 from fusionlog.core.model import System
 from fusionlog.errors import FusionlogError
-from fusionlog.io.mcap_io import McapFile
+from fusionlog.io.mcap import McapFile
 from fusionlog.scenario import Scenario, scenario_from_text, scenario_with
 
 SCENARIO_META = "fusionlog.scenario"

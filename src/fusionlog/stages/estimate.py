@@ -12,7 +12,8 @@ from fusionlog.core.architectures import Plan, build_plan, estimate, run_plan, s
 from fusionlog.core.model import System
 from fusionlog.core.names import parse_arch
 from fusionlog.errors import FusionlogError
-from fusionlog.io.mcap_io import McapFile, McapWriter
+from fusionlog.io.atomic import Outputs
+from fusionlog.io.mcap import McapFile, McapWriter
 from fusionlog.scenario import load_model, system_to_dict
 
 from .common import (
@@ -114,7 +115,8 @@ def run_estimate(
     )
     pattern: np.ndarray | None = None  # the measurement pattern shared by every run so far
     per_run = False
-    with McapWriter(out, force=force) as w:
+    outs = Outputs([out], force=force, inputs=[Path(sensors_path)])
+    with outs, McapWriter(outs.open(out)) as w:
         if SCENARIO_META in mf.metadata:
             w.add_metadata(SCENARIO_META, mf.metadata[SCENARIO_META])
         blocks = mf.iter_run_blocks(topics, B)
@@ -152,4 +154,6 @@ def run_estimate(
         else:
             meta_prov["measurement_pattern"] = json.dumps(pattern.astype(int).tolist())
         w.add_metadata(PROVENANCE_META, meta_prov)
+        w.close()
+        outs.commit()
     return EstimateResult(Path(out), archs, M, K)

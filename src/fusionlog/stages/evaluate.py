@@ -16,7 +16,7 @@ from fusionlog.core.exact import Expected, analyse
 from fusionlog.core.metrics import MetricsAccumulator, chi2_quantile
 from fusionlog.core.names import parse_arch
 from fusionlog.errors import FusionlogError
-from fusionlog.io.mcap_io import McapFile
+from fusionlog.io.mcap import McapFile
 from fusionlog.io.rrd import write_recording
 from fusionlog.scenario import system_from_dict
 

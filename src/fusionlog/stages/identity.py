@@ -111,7 +111,8 @@ from fusionlog.core.identity import (
 )
 from fusionlog.core.simulate import chunk_runs
 from fusionlog.errors import FusionlogError
-from fusionlog.io.mcap_io import VALUES, McapFile, McapWriter
+from fusionlog.io.atomic import Outputs
+from fusionlog.io.mcap import VALUES, McapFile, McapWriter
 from fusionlog.scenario import (
     _check_int,
     _check_keys,
@@ -796,7 +797,7 @@ def run_simulate(
     times = scenario.times
     topics = [f"/sensors/{s.name}" for s in scenario.sensors]
     messages = 0
-    with McapWriter(out, force=force) as w:
+    with Outputs([out], force=force) as outs, McapWriter(outs.open(out)) as w:
         w.add_metadata(SCENARIO_META, _metadata(scenario))
         w.add_metadata(PROVENANCE_META, provenance(command, scenario.seed))
         offsets = range(0, M, B)
@@ -810,6 +811,8 @@ def run_simulate(
                 for s, topic in enumerate(topics):
                     w.write_values(topic, k, float(times[k]), off, r[:, k, s : s + 1])
             messages += (K + 1) * (1 + len(topics))
+        w.close()
+        outs.commit()
     return SimulateResult(Path(out), M, K, messages)
 
 
@@ -903,7 +906,8 @@ def run_estimate(
         architectures=json.dumps(archs),
         columns=json.dumps(columns),
     )
-    with McapWriter(out, force=force) as w:
+    outs = Outputs([out], force=force, inputs=[Path(sensors_path)])
+    with outs, McapWriter(outs.open(out)) as w:
         if SCENARIO_META in mf.metadata:
             w.add_metadata(SCENARIO_META, mf.metadata[SCENARIO_META])
         w.add_metadata(PROVENANCE_META, meta_prov)
@@ -933,6 +937,8 @@ def run_estimate(
                 vals = out_vals[a]
                 for k in range(K + 1):
                     w.write_values(topic, k, float(times[k]), off, vals[:, k])
+        w.close()
+        outs.commit()
     return EstimateResult(Path(out), archs, M, K)
 
 

@@ -6,7 +6,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from fusionlog.core.simulate import simulate
-from fusionlog.io.mcap_io import McapWriter
+from fusionlog.io.atomic import Outputs
+from fusionlog.io.mcap import McapWriter
 from fusionlog.scenario import Scenario
 
 from .common import (
@@ -43,7 +44,7 @@ def run_simulate(
     slices = sys_.sensor_slices
     topics = [f"/sensors/{s.name}" for s in sys_.sensors]
     messages = 0
-    with McapWriter(out, force=force) as w:
+    with Outputs([out], force=force) as outs, McapWriter(outs.open(out)) as w:
         w.add_metadata(SCENARIO_META, scenario_metadata(scenario))
         w.add_metadata(PROVENANCE_META, provenance(command, scenario.seed))
         offsets = range(0, M, B)
@@ -55,4 +56,6 @@ def run_simulate(
                 for topic, sl in zip(topics, slices, strict=True):
                     w.write_values(topic, k, float(times[k]), off, z[:, k, sl])
             messages += (K + 1) * (1 + len(topics))
+        w.close()
+        outs.commit()
     return SimulateResult(Path(out), M, K, messages)
