@@ -56,7 +56,7 @@ except ImportError:  # running from a checkout without `pip install -e .`
 from bench_core import filterpy_ckf  # noqa: E402
 
 from fusionlog.core.names import PAPER_ARCHITECTURES  # noqa: E402
-from fusionlog.io.mcap_io import McapFile, McapWriter  # noqa: E402
+from fusionlog.io.mcap import McapFile, McapWriter  # noqa: E402
 from fusionlog.stages.common import scenario_from_file  # noqa: E402
 
 SCENARIO = ROOT / "pipeline" / "ajgl2009.toml"

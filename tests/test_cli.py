@@ -27,7 +27,7 @@ import pytest
 from click.testing import CliRunner, Result
 
 from fusionlog.cli import main
-from fusionlog.io.mcap_io import McapFile
+from fusionlog.io.mcap import McapFile
 from fusionlog.io.rrd import read_recording
 from fusionlog.report import compare_summaries
 
@@ -441,7 +441,7 @@ def test_third_party_decoder_gives_the_same_arrays(ajgl_run: Path, tmp_path: Pat
         path = ajgl_run / name
         theirs, meta = third_party_arrays(path, tmp_path)
         assert_same_arrays(theirs, all_arrays(path))
-        assert sorted(meta) == ["fusionlog.provenance", "fusionlog.scenario"]
+        assert sorted(meta) == ["fusionlog.layout", "fusionlog.provenance", "fusionlog.scenario"]
     # the scenario TOML travels inside the file
     _, meta = third_party_arrays(ajgl_run / "sensors.mcap", tmp_path)
     assert meta["fusionlog.scenario"]["toml"] == AJGL.read_text()

@@ -288,7 +288,7 @@ def test_rerun_rrd_compare_same_seed(small: Path, small_again: Path, tmp_path: P
     other = run_small(tmp_path / "c", "--runs", "499")
     assert compare(small / rrd, other / rrd).returncode != 0
     # and the MCAP files of the two same-seed runs hold identical data
-    from fusionlog.io.mcap_io import McapFile
+    from fusionlog.io.mcap import McapFile
 
     for name in ("sensors.mcap", "estimates.mcap"):
         fa, fb = McapFile(small / name), McapFile(small_again / name)

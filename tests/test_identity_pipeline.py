@@ -23,7 +23,8 @@ from click.testing import CliRunner, Result
 
 from fusionlog.cli import main
 from fusionlog.identity import belief, dempster_combine, plausibility
-from fusionlog.io.mcap_io import McapFile, McapWriter
+from fusionlog.io.atomic import Outputs
+from fusionlog.io.mcap import McapFile, McapWriter
 from fusionlog.io.rrd import read_recording, recording_id_for
 from fusionlog.report import check_summary, compare_summaries, format_table
 from fusionlog.scenario import load_scenario
@@ -494,13 +495,15 @@ def test_missing_reports_in_a_log_are_no_evidence(tmp_path: Path) -> None:
     esm = data["/sensors/esm"].copy()
     esm[:, 2:4] = np.nan
     holes = tmp_path / "holes.mcap"
-    with McapWriter(holes) as w:
-        for name, meta in src.metadata.items():
-            w.add_metadata(name, meta)
-        for k in range(7):
-            for t in sorted(data):
-                v = esm if t == "/sensors/esm" else data[t]
-                w.write_values(t, k, float(k), 0, v[:, k])
+    with Outputs([holes]) as outs:
+        with McapWriter(outs.open(holes)) as w:
+            for name, meta in src.metadata.items():  # fusionlog.layout: the writer's own
+                w.add_metadata(name, meta)
+            for k in range(7):
+                for t in sorted(data):
+                    v = esm if t == "/sensors/esm" else data[t]
+                    w.write_values(t, k, float(k), 0, v[:, k])
+        outs.commit()
     ok("estimate", holes, "-o", tmp_path / "e.mcap")
     post = read(tmp_path / "e.mcap")["/estimates/BAYES"]
     sc = load_scenario(AIRCRAFT).system

@@ -1,0 +1,364 @@
+"""McapFile: reading fusionlog's MCAP files (and one-run logs in the same layout) block by
+block of runs.
+
+The file format is the contract in DESIGN.md ("MCAP files"); the writing order the reader
+relies on is in :mod:`.writer`. Opening checks the container and its CRCs (:mod:`.chunks`) and
+finds which topics are fusionlog streams (:mod:`.wire`, by the fields of their schemas). The
+structure (times of the instants, total runs, dims) comes from the writer's
+``fusionlog.layout`` record, checked against the file (:mod:`.layout`), or else from a scan
+of the first block of runs. Blocks of runs are read chunk by chunk: each chunk is decoded into
+columns (:mod:`.columns`) and copied into output blocks (:mod:`.blocks`), so no Python runs
+per message here.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fusionlog.errors import FusionlogError
+
+from .blocks import Assembly, Cursor, Window
+from .chunks import Container, linear_batches, open_container, open_error, read_chunk
+from .columns import BadMessage, Table, decode_table
+from .layout import LAYOUT_META, Layout
+from .schema import ESTIMATE_SCHEMA, SENSOR_SCHEMA
+from .wire import MessageFormat, format_of_schema_record
+
+__all__ = ["McapFile"]
+
+
+@dataclass
+class _TopicInfo:
+    channel_ids: list[int]
+    schema: str
+    message_encoding: str
+    format: MessageFormat | None
+    count: int = 0
+
+
+@dataclass
+class _Structure:
+    """Times of the instants, dims per topic and total runs."""
+
+    times: np.ndarray
+    dims: dict[str, int]
+    runs: int
+
+
+class McapFile:
+    """A fusionlog MCAP file opened for reading; opening validates the container, its CRCs and
+    the schemas.
+
+    Holds no open file handle: every read opens its own, so instances are cheap and need no
+    closing.
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self._structure: _Structure | None = None
+        try:
+            with open(self.path, "rb") as f:
+                c = open_container(f, self.path)
+        except OSError as e:
+            raise open_error(self.path, e) from e
+        self._container = c
+        self.metadata: dict[str, dict[str, str]] = c.metadata
+        self.library = c.library
+        self._topics = self._find_topics(c)
+        self._formats: dict[int, MessageFormat] = {
+            cid: info.format
+            for info in self._topics.values()
+            if info.format is not None
+            for cid in info.channel_ids
+        }
+        self.topics: dict[str, int] = {t: info.count for t, info in self._topics.items()}
+
+    def _find_topics(self, c: Container) -> dict[str, _TopicInfo]:
+        topics: dict[str, _TopicInfo] = {}
+        formats: dict[int, MessageFormat | None] = {}
+        for cid in sorted(c.channels):
+            ch = c.channels[cid]
+            schema = c.schemas.get(ch.schema_id)
+            fmt = None
+            if schema is not None and ch.message_encoding == "protobuf":
+                if schema.id not in formats:
+                    formats[schema.id] = format_of_schema_record(
+                        schema.encoding, schema.name, schema.data
+                    )
+                fmt = formats[schema.id]
+                if fmt is None and schema.name in (SENSOR_SCHEMA, ESTIMATE_SCHEMA):
+                    raise FusionlogError(
+                        f"{self.path}: topic {ch.topic} claims schema {schema.name} but its "
+                        "descriptor lacks the fusionlog fields"
+                    )
+            name = schema.name if schema is not None else ""
+            info = topics.get(ch.topic)
+            if info is None:
+                info = _TopicInfo([], name, ch.message_encoding, fmt)
+                topics[ch.topic] = info
+            elif (info.format and info.format.kind) != (fmt and fmt.kind):
+                raise FusionlogError(
+                    f"{self.path}: topic {ch.topic} has channels with different schemas "
+                    f"({info.schema}, {name})"
+                )
+            info.channel_ids.append(cid)
+            info.count += c.counts.get(cid, 0)
+        return topics
+
+    # -- decoded chunks ------------------------------------------------------------------------
+
+    def _tables(self, cids: set[int], start: int = 0) -> Iterator[tuple[int, Table]]:
+        """(ordinal, table) of every chunk from the ``start``-th that has messages of ``cids``.
+
+        Ordinals count chunks (batches of messages in a file without index), so a block of runs
+        can be read again from where it started without keeping its bytes.
+        """
+        formats = {c: self._formats[c] for c in cids}
+        with open(self.path, "rb") as f:
+            if self._container.linear:
+                for bi, batch in enumerate(linear_batches(f, self.path, cids)):
+                    tab = self._table(batch, formats) if bi >= start else None
+                    if tab is not None:
+                        yield bi, tab
+                return
+            # Few of the file's messages wanted (evaluate reads /truth only, which every chunk
+            # interleaves with the sensors): take them through the chunks' message indexes.
+            wanted = sum(i.count for i in self._topics.values() if set(i.channel_ids) & cids)
+            total = sum(i.count for i in self._topics.values())
+            sparse = 2 * wanted <= total
+            chunks = self._container.chunks
+            for ci in range(start, len(chunks)):
+                index, ids = chunks[ci]
+                if ids is not None and not ids & cids:
+                    continue
+                only = cids & ids if sparse and ids is not None else None
+                tab = self._table(read_chunk(f, self.path, index, only), formats)
+                if tab is not None:
+                    yield ci, tab
+
+    def _table(self, msgs: list[Any], formats: dict[int, MessageFormat]) -> Table | None:
+        try:
+            return decode_table(msgs, formats)
+        except BadMessage as e:
+            topic = self._topic_of()[e.channel_id]
+            raise FusionlogError(f"{self.path}: bad protobuf message on {topic}: {e}") from e
+
+    # -- structure -----------------------------------------------------------------------------
+
+    def _topic_of(self) -> dict[int, str]:
+        return {cid: t for t, i in self._topics.items() for cid in i.channel_ids}
+
+    def _get_structure(self) -> _Structure:
+        """Steps, times and dims from the layout record or the first block of runs; total runs
+        from the last block."""
+        if self._structure is None:
+            cids = set(self._formats)
+            self._structure = self._recorded_structure(cids) or self._scan_structure(cids)
+        return self._structure
+
+    def _recorded_structure(self, cids: set[int]) -> _Structure | None:
+        """The structure the writer recorded (``fusionlog.layout``), checked against the file's
+        topics and message counts, its last block and its first messages, so that a long
+        one-run log is not decoded twice (once to learn its steps, once to read it). None:
+        absent or not matching; scan instead."""
+        meta = self.metadata.get(LAYOUT_META)
+        if meta is None:
+            return None
+        try:
+            lay = Layout.from_metadata(meta)
+        except ValueError:
+            return None
+        ours = {t: i for t, i in self._topics.items() if i.format is not None}
+        if set(lay.dims) != set(ours) or any(
+            i.count != lay.instants * lay.blocks for i in ours.values()
+        ):
+            return None
+        if lay.runs != self._last_run_end(cids):
+            return None
+        # The first table's messages of the first block: steps, times and dims as recorded,
+        # and every step of every topic if the block ends in this table. (The block reader
+        # checks each message's step against 0..K and its dim, and that no step is missing.)
+        topic_of = self._topic_of()
+        for _, tab in self._tables(cids):
+            first = np.flatnonzero(tab.off == 0)
+            if not len(first):
+                return None
+            steps = tab.step[first]
+            if steps.max() >= lay.instants or (tab.time[first] != lay.times[steps]).any():
+                return None
+            for i in first.tolist():
+                if tab.dim[i] != lay.dims[topic_of[int(tab.cid[i])]]:
+                    return None
+            if len(first) < len(tab):  # the first block ends here: all its steps are in
+                cid = tab.cid[first]
+                for c in np.unique(cid).tolist():
+                    if len(np.unique(steps[cid == c])) != lay.instants:
+                        return None
+            break
+        return _Structure(lay.times, dict(lay.dims), lay.runs)
+
+    def _scan_structure(self, cids: set[int]) -> _Structure:
+        """Steps, times and dims from the first block of runs, reduced chunk by chunk to each
+        step's first time and each topic's first dim, since a one-run log's first block is the
+        whole file: memory grows with the steps only."""
+        topic_of = self._topic_of()
+        step_parts: list[np.ndarray] = []
+        time_parts: list[np.ndarray] = []
+        dims: dict[str, int] = {}
+        first: int | None = None
+        for _, tab in self._tables(cids):
+            if first is None:
+                first = int(tab.off[0])
+            other = np.flatnonzero(tab.off != first)
+            j = int(other[0]) if len(other) else len(tab)
+            steps, at = np.unique(tab.step[:j], return_index=True)
+            step_parts.append(steps)
+            time_parts.append(tab.time[at])
+            _, at = np.unique(tab.cid[:j], return_index=True)
+            for i in sorted(at.tolist()):
+                dims.setdefault(topic_of[int(tab.cid[i])], int(tab.dim[i]))
+            if j < len(tab):
+                break
+        times = np.zeros(0)
+        if step_parts:
+            steps, at = np.unique(np.concatenate(step_parts), return_index=True)
+            if steps[-1] != len(steps) - 1:
+                raise FusionlogError(
+                    f"{self.path}: the steps of the first block of runs are not 0..K "
+                    f"(found {len(steps)} distinct steps, largest {steps[-1]})"
+                )
+            times = np.concatenate(time_parts)[at]
+        if first not in (None, 0):
+            raise FusionlogError(f"{self.path}: the first block of runs starts at run {first}")
+        return _Structure(times, dims, self._last_run_end(cids))
+
+    def _last_run_end(self, cids: set[int]) -> int:
+        """End of the last block of runs: the blocks are in order, so read only the last chunk."""
+        chunks, linear = self._container.chunks, self._container.linear
+        candidates = [ci for ci, (_, ids) in enumerate(chunks) if ids is None or ids & cids]
+        start = candidates[-1] if candidates and not linear else 0
+        end = 0
+        for _, tab in self._tables(cids, start):
+            end = max(end, int((tab.off + tab.runs).max()))
+        return end
+
+    def schema_of(self, topic: str) -> str:
+        """Schema name of ``topic`` (e.g. ``fusionlog.Block``)."""
+        return self._info(topic).schema
+
+    def kind_of(self, topic: str) -> str | None:
+        """``"values"``, ``"estimate"``, or None for a topic fusionlog cannot read."""
+        fmt = self._info(topic).format
+        return fmt.kind if fmt is not None else None
+
+    def dim_of(self, topic: str) -> int:
+        """``dim`` of a topic's messages (state size n for estimates)."""
+        self._readable(topic)
+        dims = self._get_structure().dims
+        if topic not in dims:
+            raise FusionlogError(f"{self.path}: topic {topic} has no message in the first block")
+        return dims[topic]
+
+    def steps(self) -> int:
+        """Number of time steps K + 1 (distinct steps of the first block of runs)."""
+        return len(self._get_structure().times)
+
+    def runs(self) -> int:
+        """Total number of Monte Carlo runs in the file."""
+        return self._get_structure().runs
+
+    def times(self) -> np.ndarray:
+        """(K + 1,) time in seconds of each step (first message of that step in the file)."""
+        return self._get_structure().times.copy()
+
+    def _info(self, topic: str) -> _TopicInfo:
+        info = self._topics.get(topic)
+        if info is None:
+            have = ", ".join(sorted(self._topics)) or "none"
+            raise FusionlogError(f"{self.path}: no topic {topic} (topics: {have})")
+        return info
+
+    def _readable(self, topic: str) -> _TopicInfo:
+        info = self._info(topic)
+        if info.format is None:
+            raise FusionlogError(
+                f"{self.path}: topic {topic} has schema {info.schema or '(none)'} "
+                f"({info.message_encoding}), not a fusionlog Block or EstimateBlock"
+            )
+        return info
+
+    # -- blocks of runs ------------------------------------------------------------------------
+
+    def iter_run_blocks(
+        self, topics: Sequence[str], block_runs: int
+    ) -> Iterator[tuple[int, int, dict[str, Any]]]:
+        """Yield (run_offset, runs, {topic: data}) for consecutive blocks of ``block_runs`` runs.
+
+        A values topic gives an array (runs, K+1, dim); an estimate topic gives (mean, cov) with
+        mean (runs, K+1, n) and cov (K+1, n, n) if every message of this block had one shared
+        covariance (the same across the file's blocks), else (runs, K+1, n, n).
+
+        Memory stays around two output blocks plus two chunks, whatever the file's block size:
+        the file is read sequentially, and a file block larger than the output window is read
+        again for each window (where it starts is remembered, its bytes are not).
+        """
+        if block_runs < 1:
+            raise ValueError("block_runs must be >= 1")
+        names = list(dict.fromkeys(topics))
+        if not names:
+            raise ValueError("no topics to read")
+        infos = [self._readable(t) for t in names]
+        st = self._get_structure()
+        total = st.runs
+        tidx = {cid: ti for ti, info in enumerate(infos) for cid in info.channel_ids}
+        cids = set(tidx)
+        topic_index = np.zeros(max(cids) + 1, np.int64)
+        topic_index[list(tidx)] = list(tidx.values())
+        kinds = [i.format.kind for i in infos]  # type: ignore[union-attr]
+        dims = [self.dim_of(t) for t in names]
+        asm = Assembly(self.path, names, dims, kinds, topic_index, len(st.times), total, block_runs)
+        tables = self._tables(cids)
+        try:
+            cur: Cursor = (next(tables, None), 0)
+            expected = 0
+            while cur[0] is not None:
+                (ci, tab), row = cur
+                o, r = int(tab.off[row]), int(tab.runs[row])
+                topic = names[topic_index[tab.cid[row]]]
+                if o != expected:
+                    raise asm.bad(
+                        f"{topic}: block of runs at run {o} where run {expected} was expected"
+                    )
+                if r < 1 or o + r > total:
+                    raise asm.bad(f"{topic}: block at run {o} has {r} runs of {total}")
+                b = asm.add_blocks(o + r)
+                start = (ci, row)
+                cur = asm.read_block(tables, cur, Window(o, r, o, b, True))
+                yield from asm.finished(b)
+                # A file block wider than the window: read it again for each further window.
+                while b < o + r:
+                    a, b = b, asm.add_blocks(o + r)
+                    again = self._tables(cids, start[0])
+                    try:
+                        asm.read_block(again, (next(again), start[1]), Window(o, r, a, b, False))
+                    finally:
+                        again.close()
+                    yield from asm.finished(b)
+                expected = o + r
+        finally:
+            tables.close()
+        if expected != total:
+            raise asm.bad(f"the requested topics cover runs 0..{expected} of {total}")
+
+    def read_all(self, topics: Sequence[str]) -> dict[str, Any]:
+        """All runs of ``topics`` at once (small files, tests); same shapes as iter_run_blocks."""
+        total = self.runs()
+        for _, _, data in self.iter_run_blocks(topics, max(total, 1)):
+            return data
+        return {}

@@ -1,0 +1,77 @@
+"""The ``fusionlog.layout`` metadata record: the structure of a file, written by its writer.
+
+:class:`~.writer.McapWriter` records what the reader needs to know before reading blocks of
+runs — the instants (their times: ``dt`` when they are exactly k·dt, else the list), the total
+number of runs, the number of blocks of runs, and each topic's ``dim`` — so that
+:class:`~.file.McapFile` learns the structure without decoding the file twice (a long one-run
+log's first block of runs is the whole file). The reader checks the record against the file
+(topics, message counts, the last block's end, the first messages' steps, times and dims) and
+scans the file instead where it does not match or is absent (hand-written logs).
+
+Values are strings (MCAP metadata is a string map); times are JSON numbers, which round-trip
+doubles exactly.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["LAYOUT_META", "Layout"]
+
+LAYOUT_META = "fusionlog.layout"
+_FORMAT = "1"
+
+
+@dataclass(frozen=True)
+class Layout:
+    """times (S,) of the instants k = 0..S-1; runs in total; blocks of runs; dims per topic."""
+
+    times: np.ndarray
+    runs: int
+    blocks: int
+    dims: dict[str, int]
+
+    @property
+    def instants(self) -> int:
+        return len(self.times)
+
+    def to_metadata(self) -> dict[str, str]:
+        t = self.times
+        out = {
+            "format": _FORMAT,
+            "instants": str(len(t)),
+            "runs": str(self.runs),
+            "blocks": str(self.blocks),
+            "topics": json.dumps(self.dims, sort_keys=True),
+        }
+        if len(t) >= 2 and np.array_equal(np.arange(len(t)) * t[1], t):
+            out["dt"] = repr(float(t[1]))
+        else:
+            out["times"] = json.dumps([float(x) for x in t])
+        return out
+
+    @staticmethod
+    def from_metadata(meta: dict[str, str]) -> Layout:
+        """Parse a record; ValueError if it is malformed or of another format."""
+        try:
+            if meta.get("format") != _FORMAT:
+                raise ValueError(f"format {meta.get('format')!r}, not {_FORMAT}")
+            instants, runs, blocks = (int(meta[k]) for k in ("instants", "runs", "blocks"))
+            dims = json.loads(meta["topics"])
+            if "dt" in meta:
+                times = np.arange(instants) * float(meta["dt"])
+            else:
+                times = np.array(json.loads(meta["times"]), dtype=float)
+        except (KeyError, TypeError, json.JSONDecodeError) as e:
+            raise ValueError(f"{type(e).__name__}: {e}") from None
+        if (
+            min(instants, runs, blocks) < 0
+            or times.shape != (instants,)
+            or not isinstance(dims, dict)
+            or not all(isinstance(k, str) and type(v) is int for k, v in dims.items())
+        ):
+            raise ValueError("inconsistent fields")
+        return Layout(times, runs, blocks, dims)

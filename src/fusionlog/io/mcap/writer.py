@@ -1,0 +1,367 @@
+"""McapWriter: fusionlog's sensor and estimate streams into an MCAP file object.
+
+**Writing order** (what the reader relies on to read with bounded memory): runs are split into
+contiguous blocks starting at run 0 (``run_offset`` = 0, r0, r0 + r1, ...); for each block of
+runs, for each step k = 0..K, for each topic, exactly one message. All messages of one block
+are thus contiguous in the file, so a reader can assemble a block of runs from one sequential
+pass and then forget it. Inside a block the order of steps and topics does not matter to the
+reader. The writer checks this order cheaply, so a bug in a stage fails here rather than when
+the file is read. ``log_time`` = ``publish_time`` = round(time · 1e9) ns.
+
+The writer writes into a file object it is given (normally a
+:class:`fusionlog.io.atomic.CheckedFile` from ``Outputs.open``, which owns the temporary file,
+the fsync and the commit); it never sees a path, checks no existence and renames nothing.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+import os
+import struct
+from typing import Any
+
+import foxglove
+import numpy as np
+from foxglove.mcap import MCAPCompression, MCAPWriteOptions, MCAPWriter
+from mcap.exceptions import McapError
+from mcap.reader import SeekingReader
+
+from fusionlog.errors import OutputError
+
+from .chunks import one_line
+from .layout import LAYOUT_META, Layout
+from .schema import ESTIMATE, ESTIMATE_SCHEMA, SENSOR_SCHEMA, VALUES, file_descriptor_set
+from .sink import SignalGuard, Sink
+from .wire import (
+    UINT32_MAX,
+    encode_block_fields,
+    encode_payload2_key,
+    encode_step_time,
+)
+
+__all__ = ["McapWriter"]
+
+_F8 = np.dtype("<f8")
+_COMPRESSION = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none": None}
+
+
+class _TopicState:
+    """Per-topic writer state: channel number and its log function (payload, log_time in ns;
+    the SDK sets publish_time = log_time), kind, dim and the cached block fields."""
+
+    __slots__ = ("cid", "log", "kind", "dim", "mid_key", "mid", "mid2")
+
+    def __init__(self, cid: int, log: Any, kind: str, dim: int) -> None:
+        self.cid, self.log, self.kind, self.dim = cid, log, kind, dim
+        self.mid_key: tuple[int, int, int] | None = None
+        self.mid = self.mid2 = b""
+
+    def set_mid(self, run_offset: int, runs: int, cov_len: int) -> None:
+        """Encode run_offset, runs, dim and the payload keys/lengths (fixed within a block)."""
+        self.mid = encode_block_fields(run_offset, runs, self.dim, runs * self.dim * 8)
+        self.mid2 = encode_payload2_key(cov_len)
+        self.mid_key = (run_offset, runs, cov_len)
+
+
+class McapWriter:
+    """Write a fusionlog MCAP file into ``file`` (write, seek and flush; e.g. a CheckedFile).
+
+    The MCAP records are written by the Foxglove SDK's MCAP writer (Rust, ``foxglove-sdk``): the
+    pure-Python ``mcap.writer`` spends ~7 µs per message, which capped a one-run log near 10^5
+    messages/s. Its header names that library (``foxglove-sdk-python/... mcap-rust/...``);
+    which fusionlog wrote the file is in the ``fusionlog.provenance`` metadata.
+
+    Chunks are uncompressed by default: random float64 payloads shrink by only ~7 % under zstd,
+    which cost about a third of the estimate stage and most of the per-message write rate; the
+    chunk and data-section CRCs (checked on reading) still catch corruption.
+
+    Use as a context manager (or call :meth:`close`): leaving the block normally finalises the
+    file and reads its summary back to check that it holds every message handed over; leaving
+    it with an exception stops writing (the owner of ``file`` deletes it). The first failed
+    write raises its OutputError from the call that met it. The file object is not closed.
+
+    The writer owns the ``fusionlog.layout`` metadata record (see :mod:`.layout`), written at
+    the end; a ``fusionlog.layout`` passed to :meth:`add_metadata` (copied from another file)
+    is left out.
+    """
+
+    def __init__(
+        self, file: Any, *, compression: str = "none", chunk_size: int = 1024 * 1024
+    ) -> None:
+        if isinstance(file, (str, bytes, os.PathLike)):
+            raise TypeError(
+                "McapWriter writes into a file object (fusionlog.io.atomic.Outputs.open), "
+                f"not a path: {file!r}"
+            )
+        if not all(callable(getattr(file, m, None)) for m in ("write", "seek", "flush")):
+            raise TypeError("McapWriter needs a binary file object with write, seek and flush")
+        if compression not in _COMPRESSION:
+            raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}")
+        self.file = file
+        name = getattr(file, "target", None) or getattr(file, "name", None) or "MCAP output"
+        self.name = str(name)
+        self._sink = Sink(file, self.name)
+        self._schemas: dict[str, foxglove.Schema] = {}
+        self._topic_states: dict[str, _TopicState] = {}
+        self._messages = 0
+        self._block_offset, self._block_runs = -1, 0  # block of runs being written
+        self._blocks = 0
+        self._seen: set[tuple[int, int]] = set()  # (channel, step) in the current block
+        self._first_times: dict[int, float] = {}  # step -> time, in the first block of runs
+        self._hstep: int = -1  # step and time whose encoded fields are in _head
+        self._htime: float = math.nan
+        self._head = b""
+        self._t_ns = 0
+        # A context of its own per file: channels and sinks do not leak between files.
+        self._ctx = foxglove.Context()
+        options = MCAPWriteOptions(
+            compression=_COMPRESSION[compression],
+            chunk_size=chunk_size,
+            profile="",
+            compression_threads=0,  # same bytes whatever the machine
+        )
+        self._writer: MCAPWriter | None = None
+        self._guarded = SignalGuard.acquire()
+        try:
+            self._writer = foxglove.open_mcap(self._sink, context=self._ctx, writer_options=options)
+            self._check_sink()
+        except BaseException:
+            self.abort()
+            raise
+
+    def __enter__(self) -> McapWriter:
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        if exc_type is not None:
+            self.abort()
+            return
+        self.close()
+
+    def _check_sink(self) -> None:
+        """Raise what the sink kept during the last Rust call: a signal's (its original handler
+        runs now, and usually raises), or the first failed write."""
+        sink = self._sink
+        if sink.pending:
+            sink.deliver_signals()
+        if sink.error is not None:
+            raise sink.error
+
+    def abort(self) -> None:
+        """Stop writing: nothing more reaches the file (which its owner deletes). Raises only
+        what a signal that came meanwhile raises."""
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            if self._sink.error is None:
+                self._sink.error = OutputError(f"{self.name}: writing was abandoned")
+            try:
+                writer.close()  # into the sink, which drops the bytes
+            except Exception:
+                pass
+        if self._guarded:
+            self._guarded = False
+            SignalGuard.release()
+        self._sink.deliver_signals()
+
+    def close(self) -> None:
+        """Write the layout record, finalise the file, and check that it reads back with every
+        message handed over (the SDK only logs, does not raise, a message it failed to
+        record). The file object stays open: its owner fsyncs and commits it."""
+        if self._writer is None:
+            self._check_sink()  # closed already, or aborted: its error again
+            return
+        try:
+            layout = self._layout()
+            if layout is not None:
+                self._writer.write_metadata(LAYOUT_META, layout.to_metadata())
+                self._check_sink()
+            writer, self._writer = self._writer, None
+            try:
+                writer.close()
+            except RuntimeError as e:
+                if not self._sink.alert:
+                    raise OutputError(f"{self.name}: cannot write: {one_line(e)}") from None
+            self._check_sink()
+            if self._guarded:
+                self._guarded = False
+                SignalGuard.release()
+            self.file.flush()  # before reading back through another handle
+            self._check_written()
+        except BaseException:
+            self.abort()
+            raise
+
+    def _layout(self) -> Layout | None:
+        """The file's structure as written; None where the first block of runs does not have
+        steps 0..K (the reader then scans, and says what is wrong)."""
+        steps = len(self._first_times)
+        if set(self._first_times) != set(range(steps)):
+            return None
+        times = np.array([self._first_times[k] for k in range(steps)], dtype=float)
+        dims = {t: st.dim for t, st in self._topic_states.items()}
+        runs = max(0, self._block_offset + self._block_runs)
+        return Layout(times, runs, self._blocks, dims)
+
+    def _check_written(self) -> None:
+        path = getattr(self.file, "tmp", None) or getattr(self.file, "name", None)
+        readable = getattr(self.file, "readable", None)
+        try:
+            if isinstance(path, (str, os.PathLike)) and os.path.isfile(path):
+                with open(path, "rb") as f:
+                    summary = SeekingReader(f).get_summary()
+            elif callable(getattr(self.file, "read", None)) and (readable is None or readable()):
+                self.file.seek(0)
+                summary = SeekingReader(self.file).get_summary()
+            else:
+                return  # write-only and nameless: nothing to read back
+            count = summary.statistics.message_count if summary and summary.statistics else -1
+        except (McapError, OSError, ValueError, struct.error, EOFError) as e:
+            raise OutputError(f"{self.name}: written file does not read back: {e}") from None
+        if count != self._messages:
+            raise OutputError(
+                f"{self.name}: wrote {self._messages} messages, the file holds {count}"
+            )
+
+    def _fail(self) -> None:
+        try:
+            self._check_sink()
+        except BaseException:
+            self.abort()
+            raise
+
+    def _live_writer(self) -> MCAPWriter:
+        if self._writer is None:
+            raise RuntimeError("McapWriter is closed")
+        return self._writer
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """Add a metadata record (e.g. ``fusionlog.scenario``, ``fusionlog.provenance``)."""
+        if not all(isinstance(k, str) and isinstance(v, str) for k, v in data.items()):
+            raise TypeError(f"metadata {name!r} must map str to str")
+        if name == LAYOUT_META:
+            return  # the writer's own, written at the end
+        self._live_writer().write_metadata(name, dict(data))
+        if self._sink.alert:
+            self._fail()
+
+    def _new_topic(self, topic: str, kind: str, dim: int) -> _TopicState:
+        st = self._topic_states.get(topic)
+        if st is not None:
+            if st.kind != kind:
+                raise ValueError(f"topic {topic!r} was written as {st.kind}, not {kind}")
+            raise ValueError(f"topic {topic!r} has dim {st.dim}, got a message with dim {dim}")
+        if not topic or not isinstance(topic, str):
+            raise ValueError(f"bad topic {topic!r}")
+        self._live_writer()
+        schema_name = SENSOR_SCHEMA if kind == VALUES else ESTIMATE_SCHEMA
+        schema = self._schemas.get(schema_name)
+        if schema is None:
+            schema = foxglove.Schema(
+                name=schema_name, encoding="protobuf", data=file_descriptor_set()
+            )
+            self._schemas[schema_name] = schema
+        channel = foxglove.Channel(
+            topic, schema=schema, message_encoding="protobuf", context=self._ctx
+        )
+        st = _TopicState(len(self._topic_states), channel.base.log, kind, dim)
+        self._topic_states[topic] = st
+        return st
+
+    def _new_block(self, topic: str, run_offset: int, runs: int) -> None:
+        run_offset = operator.index(run_offset)
+        if run_offset == self._block_offset:
+            raise ValueError(
+                f"{topic}: block at run {run_offset} has {self._block_runs} runs, got {runs}"
+            )
+        expected = 0 if self._block_offset < 0 else self._block_offset + self._block_runs
+        if run_offset != expected:
+            raise ValueError(
+                f"{topic}: block of runs starts at {run_offset}, expected {expected} "
+                "(blocks of runs must be written in order, contiguously from run 0)"
+            )
+        if run_offset + runs - 1 > UINT32_MAX:
+            raise ValueError("run indices must fit in uint32")
+        self._block_offset, self._block_runs = run_offset, runs
+        self._blocks += 1
+        self._seen.clear()
+
+    def _set_head(self, step: int, time: float) -> None:
+        """Encode the step and time fields once per step: every topic of the step shares them."""
+        step = operator.index(step)
+        time = float(time) + 0.0  # + 0.0 turns -0.0 into 0.0, which proto3 omits
+        if not 0 <= step <= UINT32_MAX:
+            raise ValueError(f"step must fit in uint32, got {step}")
+        if not (time >= 0.0 and math.isfinite(time)):  # log_time is an unsigned ns count
+            raise ValueError(f"time must be finite and >= 0, got {time}")
+        if self._block_offset == 0:  # the layout record's times: the first block's
+            self._first_times.setdefault(step, time)
+        self._hstep, self._htime = step, time
+        self._head, self._t_ns = encode_step_time(step, time), round(time * 1e9)
+
+    def _write(
+        self,
+        topic: str,
+        kind: str,
+        step: int,
+        time: float,
+        run_offset: int,
+        runs: int,
+        dim: int,
+        p1: bytes,
+        p2: bytes,
+    ) -> None:
+        # The hot path: a few dict/set operations and one bytes join per message; everything
+        # that only changes per step, per topic or per block is cached.
+        if self._writer is None:
+            raise RuntimeError("McapWriter is closed")
+        st = self._topic_states.get(topic)
+        if st is None or st.kind != kind or st.dim != dim:
+            st = self._new_topic(topic, kind, dim)
+        if run_offset != self._block_offset or runs != self._block_runs:
+            self._new_block(topic, run_offset, runs)
+        key = (st.cid, step)
+        if key in self._seen:
+            raise ValueError(f"{topic}: step {step} written twice for runs from {run_offset}")
+        self._seen.add(key)
+        if step != self._hstep or time != self._htime:
+            self._set_head(step, time)
+        if st.mid_key != (run_offset, runs, len(p2)):
+            st.set_mid(run_offset, runs, len(p2))
+        st.log(b"".join((self._head, st.mid, p1, st.mid2, p2)), self._t_ns)
+        self._messages += 1
+        if self._sink.alert:  # a write failed or a signal came during this message
+            self._fail()
+
+    def write_values(
+        self, topic: str, step: int, time: float, run_offset: int, values: np.ndarray
+    ) -> None:
+        """Write one ``fusionlog.Block``: ``values`` (runs, dim) at ``step`` for a block of runs."""
+        if type(values) is not np.ndarray or values.dtype != _F8:
+            values = np.asarray(values, dtype=_F8)
+        shape = values.shape
+        if len(shape) != 2 or shape[0] < 1 or shape[1] < 1:
+            raise ValueError(f"values must have shape (runs >= 1, dim >= 1), got {shape}")
+        # tobytes() is C order whatever the strides, so no ascontiguousarray copy is needed.
+        self._write(
+            topic, VALUES, step, time, run_offset, shape[0], shape[1], values.tobytes(), b""
+        )
+
+    def write_estimate(
+        self,
+        topic: str,
+        step: int,
+        time: float,
+        run_offset: int,
+        mean: np.ndarray,
+        cov: np.ndarray,
+    ) -> None:
+        """Write one ``fusionlog.EstimateBlock``: mean (runs, n), cov (n, n) or (runs, n, n)."""
+        m = mean if type(mean) is np.ndarray and mean.dtype == _F8 else np.asarray(mean, _F8)
+        c = cov if type(cov) is np.ndarray and cov.dtype == _F8 else np.asarray(cov, _F8)
+        if m.ndim != 2 or m.shape[0] < 1 or m.shape[1] < 1:
+            raise ValueError(f"mean must have shape (runs >= 1, n >= 1), got {m.shape}")
+        runs, n = m.shape
+        if c.shape != (n, n) and c.shape != (runs, n, n):
+            raise ValueError(f"cov must have shape ({n}, {n}) or ({runs}, {n}, {n}), got {c.shape}")
+        self._write(topic, ESTIMATE, step, time, run_offset, runs, n, m.tobytes(), c.tobytes())
