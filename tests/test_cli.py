@@ -27,6 +27,7 @@ import pytest
 from click.testing import CliRunner, Result
 
 from fusionlog.cli import main
+from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap import McapFile
 from fusionlog.io.rrd import read_recording
 from fusionlog.report import compare_summaries
@@ -188,9 +189,9 @@ def test_run_force_that_fails_leaves_the_old_outputs(ajgl_run: Path, tmp_path: P
     before_bytes = {n: (d / n).read_bytes() for n in OUTPUTS}
 
     def fail(*args, **kwargs):
-        raise evaluate_stage.FusionlogError("disk trouble while evaluating")
+        raise FusionlogError("disk trouble while evaluating")
 
-    monkeypatch.setattr(evaluate_stage, "run_evaluate", fail)
+    monkeypatch.setattr(evaluate_stage, "evaluate_into", fail)
     res = cli("run", AJGL, "--out-dir", d, "--runs", "30", "--steps", "4", "--force")
     assert_one_line_error(res, "disk trouble")
     assert snapshot(d / n for n in OUTPUTS) == before

@@ -53,7 +53,7 @@ class _Group(click.Group):
     """One line and an exit code for every failure; SIGTERM/SIGHUP clean up like Ctrl-C."""
 
     def invoke(self, ctx: click.Context) -> Any:
-        debug = bool(ctx.params.get("debug")) or "--debug" in sys.argv[1:2]
+        debug = bool(ctx.params.get("debug"))
         for sig in (signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, _on_signal)
         try:

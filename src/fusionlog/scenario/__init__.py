@@ -79,8 +79,9 @@ def model_from_text(text: str, source: str = "<string>", kind: str | None = None
     doc = toml.parse_toml(text, source)
     own = "identity" if is_identity_doc(doc) else "state"
     if kind is not None and own != kind:
+        what = "no [identity] section" if own == "state" else "it has [identity]"
         raise FusionlogError(
-            f"{source}: a {own} model, but the sensors file holds a {kind} scenario"
+            f"{source}: a {own} model ({what}), but the sensors file holds a {kind} scenario"
         )
     if own == "identity":
         return identity_from_doc(doc, source, text, source, model=True)

@@ -120,7 +120,7 @@ def _summary(path: Path, properties: dict[str, dict[str, Any]]) -> dict[str, Any
         raise FusionlogError(f"{path}: corrupt summary property ({_first_line(exc)})") from None
     if not isinstance(summary, dict):
         raise FusionlogError(
-            f"{path}: corrupt summary property (a JSON {type(summary).__name__}, not an object)"
+            f"{path}: corrupt summary property (not a JSON object ({_json_type(summary)}))"
         )
     return summary
 
@@ -142,3 +142,16 @@ def _align(raw: dict[str, list]) -> tuple[np.ndarray, np.ndarray, dict[str, np.n
             times[idx] = t
         series[ent] = out
     return all_steps, times, dict(sorted(series.items()))
+
+
+def _json_type(v: Any) -> str:
+    """A parsed JSON value's type in JSON's words."""
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return "boolean"
+    if isinstance(v, list):
+        return "list"
+    if isinstance(v, str):
+        return "str"
+    return "number"
