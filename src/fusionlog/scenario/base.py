@@ -64,6 +64,20 @@ class Scenario:
         """t_k = k dt for k = 0..K."""
         return np.arange(self.steps + 1) * self.dt
 
+    @classmethod
+    def of(cls, kind: str, h: Header, system: Any, **fields: Any) -> Scenario:
+        """A scenario of `kind` from its ``[scenario]`` header, system and remaining fields."""
+        return cls(
+            kind=kind,
+            name=h.name,
+            description=h.description,
+            steps=h.steps,
+            runs=h.runs,
+            seed=h.seed,
+            system=system,
+            **fields,
+        )
+
 
 @dataclass(frozen=True)
 class Header:

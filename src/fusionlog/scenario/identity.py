@@ -48,7 +48,6 @@ _TOP_KEYS = ("scenario", "identity", "identity_sensors", "estimate", "evaluate")
 _SCENARIO_KEYS = ("name", "description", "steps", "runs", "seed", "dt")
 _IDENTITY_KEYS = ("classes", "prior", "sets")
 _SENSOR_KEYS = ("name", "reports", "confusion", "reliability")
-_ESTIMATE_KEYS = ("architectures",)
 _EVALUATE_KEYS = ("sample_runs",)
 
 
@@ -84,16 +83,12 @@ def identity_from_doc(
     sample_runs = DEFAULT_SAMPLE_RUNS
     if "sample_runs" in ev:
         sample_runs = toml.integer(ctx, ev["sample_runs"], "evaluate.sample_runs", minimum=0)
-    return Scenario(
-        kind="identity",
-        name=h.name,
-        description=h.description,
-        steps=h.steps,
-        runs=h.runs,
-        seed=h.seed,
+    return Scenario.of(
+        "identity",
+        h,
+        IdentitySystem(classes=classes, prior=prior, sets=sets, sensors=sensors),
         dt=1.0 if h.dt is None else h.dt,
         state_names=classes,
-        system=IdentitySystem(classes=classes, prior=prior, sets=sets, sensors=sensors),
         architectures=archs,
         sample_runs=sample_runs,
         source=source,
@@ -170,18 +165,6 @@ def _sets(ctx: Ctx, v: Any, classes: tuple[str, ...]) -> dict[str, tuple[str, ..
 def _sensors(
     ctx: Ctx, doc: dict[str, Any], classes: tuple[str, ...], sets: dict[str, tuple[str, ...]]
 ) -> tuple[IdentitySensor, ...]:
-    key = "identity_sensors"
-    if key not in doc:
-        raise ctx.err(key, "missing: give at least one [[identity_sensors]] table")
-    items = doc[key]
-    if isinstance(items, dict):
-        raise ctx.err(key, "expected an array of tables ([[identity_sensors]]), got one table")
-    if not isinstance(items, list) or not all(isinstance(t, dict) for t in items):
-        raise ctx.err(
-            key, f"expected an array of tables ([[identity_sensors]]), got {toml.tname(items)}"
-        )
-    if not items:
-        raise ctx.err(key, "empty: give at least one sensor")
     n = len(classes)
     bit = {c: 1 << j for j, c in enumerate(classes)}
     named = {c: bit[c] for c in classes}
@@ -189,16 +172,7 @@ def _sensors(
         named[s] = sum(bit[c] for c in members)
     named[UNKNOWN] = (1 << n) - 1
     out: list[IdentitySensor] = []
-    seen: dict[str, int] = {}
-    for j, t in enumerate(items):
-        where = f"{key}[{j}]"
-        toml.check_keys(ctx, t, where, _SENSOR_KEYS, required=_SENSOR_KEYS)
-        name = toml.name(ctx, t["name"], f"{where}.name")
-        if name in seen:
-            raise ctx.err(
-                f"{where}.name", f"duplicate sensor name {name!r} (also {key}[{seen[name]}])"
-            )
-        seen[name] = j
+    for where, t, name in toml.named_tables(ctx, doc, "identity_sensors", _SENSOR_KEYS, ""):
         reports = t["reports"]
         if not isinstance(reports, list):
             raise ctx.err(
@@ -245,29 +219,11 @@ def _sensors(
 
 
 def _architectures(ctx: Ctx, doc: dict[str, Any]) -> tuple[str, ...]:
-    est = toml.table(ctx, doc, "estimate", required=False)
-    if est is None:
-        return ARCHITECTURES
-    toml.check_keys(ctx, est, "estimate", _ESTIMATE_KEYS)
-    if "architectures" not in est:
-        return ARCHITECTURES
-    archs = est["architectures"]
-    if not isinstance(archs, list):
-        raise ctx.err(
-            "estimate.architectures", f"expected a list of names, got {toml.tname(archs)}"
-        )
-    if not archs:
-        raise ctx.err("estimate.architectures", "empty: name at least one architecture")
-    out: list[str] = []
-    for i, a in enumerate(archs):
-        where = f"estimate.architectures[{i}]"
-        a = toml.string(ctx, a, where)
+    def check(a: str) -> None:
         if a not in ARCHITECTURES:
-            raise ctx.err(where, _arch_msg(a))
-        if a in out:
-            raise ctx.err(where, f"duplicate architecture {a!r}")
-        out.append(a)
-    return tuple(out)
+            raise ValueError(_arch_msg(a))
+
+    return toml.architectures(ctx, doc, ARCHITECTURES, check)
 
 
 def _arch_msg(a: str) -> str:

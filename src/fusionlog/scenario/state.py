@@ -65,7 +65,6 @@ _PRIOR_KEYS = ("mean", "cov")
 _TRUTH_KEYS = ("initial_mean", "initial_cov")
 _SENSOR_KEYS = ("name", "H", "R")
 _CORRELATION_KEYS = ("sensors", "cov")
-_ESTIMATE_KEYS = ("architectures",)
 _EVALUATE_KEYS = ("confidence", "sample_runs", "plane_view")
 
 
@@ -124,16 +123,12 @@ def state_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None
     confidence, sample_runs, plane_view = _evaluate(ctx, doc)
     if plane_view and system.n != 2:
         raise ctx.err("evaluate.plane_view", f"needs a 2-D state, this one has {system.n}")
-    return Scenario(
-        kind="state",
-        name=h.name,
-        description=h.description,
-        steps=h.steps,
-        runs=h.runs,
-        seed=h.seed,
+    return Scenario.of(
+        "state",
+        h,
+        system,
         dt=system.dt,
         state_names=system.state_names,
-        system=system,
         architectures=architectures,
         confidence=confidence,
         sample_runs=sample_runs,
@@ -300,28 +295,8 @@ def _model(
 
 
 def _sensors(ctx: Ctx, doc: dict[str, Any], n: int) -> tuple[Sensor, ...]:
-    if "sensors" not in doc:
-        raise ctx.err("sensors", "missing: give at least one [[sensors]] table (name, H, R)")
-    items = doc["sensors"]
-    if isinstance(items, dict):
-        raise ctx.err("sensors", "expected an array of tables ([[sensors]]), got one table")
-    if not isinstance(items, list) or not all(isinstance(t, dict) for t in items):
-        raise ctx.err(
-            "sensors", f"expected an array of tables ([[sensors]]), got {toml.tname(items)}"
-        )
-    if not items:
-        raise ctx.err("sensors", "empty: give at least one sensor")
     sensors: list[Sensor] = []
-    seen: dict[str, int] = {}
-    for j, t in enumerate(items):
-        where = f"sensors[{j}]"
-        toml.check_keys(ctx, t, where, _SENSOR_KEYS, required=_SENSOR_KEYS)
-        name = toml.name(ctx, t["name"], f"{where}.name")
-        if name in seen:
-            raise ctx.err(
-                f"{where}.name", f"duplicate sensor name {name!r} (also sensors[{seen[name]}])"
-            )
-        seen[name] = j
+    for where, t, name in toml.named_tables(ctx, doc, "sensors", _SENSOR_KEYS, " (name, H, R)"):
         H = toml.matrix(ctx, t["H"], f"{where}.H", scalar=n == 1, row=True)
         if H.shape[1] != n:
             raise ctx.err(f"{where}.H", f"shape {toml.shape(H)}, expected {H.shape[0]}x{n} (m x n)")
@@ -420,32 +395,8 @@ def _correlations(
 
 
 def _architectures(ctx: Ctx, doc: dict[str, Any], system: System) -> tuple[str, ...]:
-    est = toml.table(ctx, doc, "estimate", required=False)
-    if est is None:
-        return STATE_ARCHITECTURES
-    toml.check_keys(ctx, est, "estimate", _ESTIMATE_KEYS)
-    if "architectures" not in est:
-        return STATE_ARCHITECTURES
-    archs = est["architectures"]
-    if not isinstance(archs, list):
-        raise ctx.err(
-            "estimate.architectures", f"expected a list of names, got {toml.tname(archs)}"
-        )
-    if not archs:
-        raise ctx.err("estimate.architectures", "empty: name at least one architecture")
     names = tuple(s.name for s in system.sensors)
-    seen: set[str] = set()
-    for i, a in enumerate(archs):
-        where = f"estimate.architectures[{i}]"
-        a = toml.string(ctx, a, where)
-        try:
-            parse_arch(a, names)
-        except ValueError as e:
-            raise ctx.err(where, str(e)) from None
-        if a in seen:
-            raise ctx.err(where, f"duplicate architecture {a!r}")
-        seen.add(a)
-    return tuple(archs)
+    return toml.architectures(ctx, doc, STATE_ARCHITECTURES, lambda a: parse_arch(a, names))
 
 
 def _evaluate(ctx: Ctx, doc: dict[str, Any]) -> tuple[float, int, bool]:

@@ -262,3 +262,64 @@ def unknown_msg(what: str, name: str, known: list[str] | tuple[str, ...]) -> str
     hint = difflib.get_close_matches(name, list(known), n=1)
     mean = f"; did you mean {hint[0]!r}?" if hint else ""
     return f"unknown {what} {show(name)} (known: {', '.join(known)}){mean}"
+
+
+def architectures(
+    ctx: Ctx,
+    doc: dict[str, Any],
+    default: tuple[str, ...],
+    check: Any,
+) -> tuple[str, ...]:
+    """``[estimate] architectures``: a non-empty list of distinct names, each accepted by
+    ``check(name)`` (which raises ValueError with the reason); `default` when absent."""
+    est = table(ctx, doc, "estimate", required=False)
+    if est is None:
+        return default
+    check_keys(ctx, est, "estimate", ("architectures",))
+    if "architectures" not in est:
+        return default
+    archs = est["architectures"]
+    if not isinstance(archs, list):
+        raise ctx.err("estimate.architectures", f"expected a list of names, got {tname(archs)}")
+    if not archs:
+        raise ctx.err("estimate.architectures", "empty: name at least one architecture")
+    out: list[str] = []
+    for i, a in enumerate(archs):
+        where = f"estimate.architectures[{i}]"
+        a = string(ctx, a, where)
+        try:
+            check(a)
+        except ValueError as e:
+            raise ctx.err(where, str(e)) from None
+        if a in out:
+            raise ctx.err(where, f"duplicate architecture {a!r}")
+        out.append(a)
+    return tuple(out)
+
+
+def named_tables(
+    ctx: Ctx, doc: dict[str, Any], key: str, keys: tuple[str, ...], missing: str
+) -> list[tuple[str, dict[str, Any], str]]:
+    """A required, non-empty array of tables ``[[key]]`` with the given (all required) keys and
+    distinct ``name`` values: (key path, table, name) of each. `missing` ends the message when
+    the array is absent (what to give)."""
+    if key not in doc:
+        raise ctx.err(key, f"missing: give at least one [[{key}]] table{missing}")
+    items = doc[key]
+    if isinstance(items, dict):
+        raise ctx.err(key, f"expected an array of tables ([[{key}]]), got one table")
+    if not isinstance(items, list) or not all(isinstance(t, dict) for t in items):
+        raise ctx.err(key, f"expected an array of tables ([[{key}]]), got {tname(items)}")
+    if not items:
+        raise ctx.err(key, "empty: give at least one sensor")
+    out: list[tuple[str, dict[str, Any], str]] = []
+    seen: dict[str, int] = {}
+    for j, t in enumerate(items):
+        where = f"{key}[{j}]"
+        check_keys(ctx, t, where, keys, required=keys)
+        nm = name(ctx, t["name"], f"{where}.name")
+        if nm in seen:
+            raise ctx.err(f"{where}.name", f"duplicate sensor name {nm!r} (also {key}[{seen[nm]}])")
+        seen[nm] = j
+        out.append((where, t, nm))
+    return out

@@ -35,7 +35,7 @@ from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap import VALUES, McapFile, McapWriter
 from fusionlog.scenario import Scenario, check_identity_architectures, load_model
 
-from .common import SCENARIO_META, block_runs
+from .common import block_runs
 from .kind import Estimator, Evaluator, Kind, Model, StepWriter
 
 #: Default bound on masses held at once by DS (runs x 2^N), as RUN_STEPS_PER_BLOCK for steps.
@@ -77,11 +77,7 @@ class IdentityKind(Kind):
 
     def model(self, sensors: McapFile, recorded: Scenario | None, model_path: Path | None) -> Model:
         if model_path is None:
-            if recorded is None:
-                raise FusionlogError(
-                    f"{sensors.path}: no {SCENARIO_META} metadata to take the model from; "
-                    "pass --model MODEL.toml"
-                )
+            recorded = self.recorded(sensors, recorded)
             return Model(
                 recorded.system,
                 "scenario",
@@ -107,22 +103,8 @@ class IdentityKind(Kind):
         archs = list(recorded.architectures if recorded is not None else model.architectures)
         return Model(system, str(model_path), json.dumps(_with_archs(model)), archs)
 
-    def check_sensor_topics(self, sensors: McapFile, system: IdentitySystem) -> list[str]:
-        topics = []
-        for s in system.sensors:
-            t = f"/sensors/{s.name}"
-            if t not in sensors.topics:
-                have = ", ".join(sorted(sensors.topics)) or "none"
-                raise FusionlogError(
-                    f"{sensors.path}: no topic {t} for identity sensor {s.name!r} (topics: {have})"
-                )
-            if sensors.kind_of(t) != VALUES or sensors.dim_of(t) != 1:
-                raise FusionlogError(
-                    f"{sensors.path}: topic {t} is not a stream of report indices "
-                    "(fusionlog.Block, dim 1)"
-                )
-            topics.append(t)
-        return topics
+    def sensor_dims(self, system: IdentitySystem) -> list[tuple[str, int]]:
+        return [(s.name, 1) for s in system.sensors]  # a report index
 
     def estimator(
         self, system: IdentitySystem, steps: int, runs: int, archs: list[str], sensors: McapFile

@@ -17,7 +17,8 @@ from typing import Any, BinaryIO, NamedTuple
 
 import numpy as np
 
-from fusionlog.io.mcap import McapFile, McapWriter
+from fusionlog.errors import FusionlogError
+from fusionlog.io.mcap import VALUES, McapFile, McapWriter
 from fusionlog.scenario import Scenario
 
 
@@ -105,9 +106,40 @@ class Kind(ABC):
     def model(self, sensors: McapFile, recorded: Scenario | None, model_path: Path | None) -> Model:
         """The filter's model: the recorded scenario's system, or the ``--model`` file's."""
 
+    @staticmethod
+    def recorded(sensors: McapFile, recorded: Scenario | None) -> Scenario:
+        """The scenario recorded in the sensors file, which must have one when there is no
+        ``--model``."""
+        if recorded is None:
+            raise FusionlogError(
+                f"{sensors.path}: no fusionlog.scenario metadata to take the model from; "
+                "pass --model MODEL.toml"
+            )
+        return recorded
+
     @abstractmethod
+    def sensor_dims(self, system: Any) -> list[tuple[str, int]]:
+        """(sensor name, values per reading) in the system's order."""
+
     def check_sensor_topics(self, sensors: McapFile, system: Any) -> list[str]:
-        """The sensor topics the model needs, checked against the file."""
+        """The sensor topics ``/sensors/<name>`` the model needs, checked against the file:
+        each present, a ``fusionlog.Block`` stream with the sensor's number of values."""
+        topics = []
+        for name, dim in self.sensor_dims(system):
+            t = f"/sensors/{name}"
+            if t not in sensors.topics:
+                have = ", ".join(sorted(sensors.topics)) or "none"
+                raise FusionlogError(
+                    f"{sensors.path}: no topic {t} for sensor {name!r} of the model "
+                    f"(topics: {have})"
+                )
+            if sensors.kind_of(t) != VALUES or sensors.dim_of(t) != dim:
+                raise FusionlogError(
+                    f"{sensors.path}: topic {t} has {sensors.dim_of(t)} values per step "
+                    f"({sensors.schema_of(t)}), the model's sensor {name!r} has {dim}"
+                )
+            topics.append(t)
+        return topics
 
     @abstractmethod
     def estimator(

@@ -27,7 +27,7 @@ from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap import McapFile, McapWriter
 from fusionlog.scenario import Scenario, load_model, system_from_dict, system_to_dict
 
-from .common import SCENARIO_META, block_runs
+from .common import block_runs
 from .kind import Estimator, Evaluator, Kind, Model, StepWriter
 
 #: Sample estimates per architecture drawn in the state-plane view.
@@ -64,11 +64,7 @@ class StateKind(Kind):
 
     def model(self, sensors: McapFile, recorded: Scenario | None, model_path: Path | None) -> Model:
         if model_path is None:
-            if recorded is None:
-                raise FusionlogError(
-                    f"{sensors.path}: no {SCENARIO_META} metadata to take the model from; "
-                    "pass --model MODEL.toml"
-                )
+            recorded = self.recorded(sensors, recorded)
             system, source = recorded.system, "scenario"
         else:
             system, source = load_model(model_path, "state"), str(model_path)
@@ -80,23 +76,8 @@ class StateKind(Kind):
         archs = list(recorded.architectures) if recorded is not None else ["CKF"]
         return Model(system, source, json.dumps(system_to_dict(system)), archs)
 
-    def check_sensor_topics(self, sensors: McapFile, system: System) -> list[str]:
-        topics = []
-        for s in system.sensors:
-            t = f"/sensors/{s.name}"
-            if t not in sensors.topics:
-                have = ", ".join(sorted(sensors.topics)) or "none"
-                raise FusionlogError(
-                    f"{sensors.path}: no topic {t} for sensor {s.name!r} of the model "
-                    f"(topics: {have})"
-                )
-            if sensors.dim_of(t) != s.dim:
-                raise FusionlogError(
-                    f"{sensors.path}: topic {t} has {sensors.dim_of(t)} values per step, "
-                    f"the model's sensor {s.name!r} has {s.dim}"
-                )
-            topics.append(t)
-        return topics
+    def sensor_dims(self, system: System) -> list[tuple[str, int]]:
+        return [(s.name, s.dim) for s in system.sensors]
 
     def estimator(
         self, system: System, steps: int, runs: int, archs: list[str], sensors: McapFile

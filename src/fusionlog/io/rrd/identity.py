@@ -33,12 +33,13 @@ disagreement views; a second tab shows the sample runs.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from functools import partial
 from typing import IO, Any
 
 import numpy as np
 import rerun.blueprint as rrb
 
-from .stream import entity_path, recording_error, recording_stream
+from .stream import check_axes, entity_path, recording_error, recording_stream
 from .style import arch_color, class_color, lighter
 from .views import query, tabbed_blueprint, time_series_view
 
@@ -88,15 +89,8 @@ def _check(
     disagreement: np.ndarray | None,
     sample_runs: Mapping[int, tuple[int, Mapping[str, Mapping[str, np.ndarray]]]],
 ) -> None:
-    s, n = times.shape[0] if times.ndim == 1 else -1, len(classes)
-
-    def bad(msg: str) -> Exception:
-        return recording_error(file, msg)
-
-    if times.ndim != 1 or s < 1:
-        raise bad(f"times must be a non-empty 1-D array, got shape {times.shape}")
-    if len(set(classes)) != n or n < 2:
-        raise bad(f"classes must be unique, at least two, got {classes}")
+    s, n = check_axes(file, times, classes, least=2, what="classes")
+    bad = partial(recording_error, file)
     for arch, d in series.items():
         if arch not in _SCALARS:
             raise bad(f"unknown identity architecture {arch!r}")
@@ -126,12 +120,12 @@ def _check(
 def write_identity_recording(
     file: IO[bytes],
     *,
-    scenario_name: str,
-    seed: int,
-    times: np.ndarray,
     classes: Sequence[str],
     series: Mapping[str, Mapping[str, np.ndarray]],
     summary: Mapping[str, Any],
+    times: np.ndarray,
+    scenario_name: str,
+    seed: int,
     disagreement: np.ndarray | None = None,
     sample_runs: Mapping[int, tuple[int, Mapping[str, Mapping[str, np.ndarray]]]] | None = None,
     properties: Mapping[str, Any] | None = None,
@@ -154,16 +148,8 @@ def write_identity_recording(
     samples = sample_runs or {}
     _check(file, times, classes, series, disagreement, samples)
     blueprint = _blueprint(classes, list(series), {m: classes[t] for m, (t, _) in samples.items()})
-    with recording_stream(
-        file,
-        scenario_name=scenario_name,
-        seed=seed,
-        times=times,
-        summary=summary,
-        blueprint=blueprint,
-        properties=properties,
-        recording_id=recording_id,
-    ) as w:
+    args = (scenario_name, seed, times, summary, properties, recording_id)
+    with recording_stream(file, blueprint, *args) as w:
         for arch, d in series.items():
             for kind in _PER_CLASS[arch]:
                 col, width = _style(arch, kind)

@@ -30,6 +30,7 @@ colour and under the same legend name, so that the legend lists each architectur
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from functools import partial
 from typing import IO, Any
 
 import numpy as np
@@ -37,7 +38,7 @@ import rerun.blueprint as rrb
 
 from .legend import legend_box, place_legend
 from .plane import check_plane, write_plane
-from .stream import SeriesWriter, entity_path, recording_error, recording_stream
+from .stream import SeriesWriter, check_axes, entity_path, recording_error, recording_stream
 from .style import BOUND_COLOR, CKF, TRUTH_COLOR, arch_color, arch_width
 from .views import query, tabbed_blueprint, time_series_view
 
@@ -98,16 +99,8 @@ def write_recording(
     if plane is not None:
         check_plane(file, times.shape[0], plane)
     blueprint = _blueprint(state_names, series, samples, plane is not None)
-    with recording_stream(
-        file,
-        scenario_name=scenario_name,
-        seed=seed,
-        times=times,
-        summary=summary,
-        blueprint=blueprint,
-        properties=properties,
-        recording_id=recording_id,
-    ) as w:
+    args = (scenario_name, seed, times, summary, properties, recording_id)
+    with recording_stream(file, blueprint, *args) as w:
         _write_metrics(w, state_names, series, nees_bounds, confidence)
         _write_sample_runs(w, state_names, samples)
         if plane is not None:
@@ -122,15 +115,8 @@ def _check(
     nees_bounds: tuple[np.ndarray, np.ndarray] | None,
     sample_runs: SampleRuns,
 ) -> None:
-    s, n = times.shape[0] if times.ndim == 1 else -1, len(state_names)
-
-    def bad(msg: str) -> Exception:
-        return recording_error(file, msg)
-
-    if times.ndim != 1 or s < 1:
-        raise bad(f"times must be a non-empty 1-D array, got shape {times.shape}")
-    if len(set(state_names)) != n or n == 0:
-        raise bad(f"state names must be unique and non-empty, got {state_names}")
+    s, n = check_axes(file, times, state_names, least=1, what="state names")
+    bad = partial(recording_error, file)
     if "bounds" in series:
         raise bad("'bounds' cannot be an architecture name (metrics/nees/bounds is the band)")
     for arch, d in series.items():

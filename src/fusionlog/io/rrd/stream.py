@@ -72,6 +72,18 @@ def recording_error(file: IO[bytes], msg: str) -> FusionlogError:
     return FusionlogError(f"{output_name(file)}: cannot write recording: {msg}")
 
 
+def check_axes(
+    file: IO[bytes], times: np.ndarray, names: Sequence[str], *, least: int, what: str
+) -> tuple[int, int]:
+    """The recording's axes: `times` a non-empty 1-D array, `names` (states or classes) unique
+    and at least `least`. Returns (steps, names)."""
+    if times.ndim != 1 or times.shape[0] < 1:
+        raise recording_error(file, f"times must be a non-empty 1-D array, got shape {times.shape}")
+    if len(set(names)) != len(names) or len(names) < least:
+        raise recording_error(file, f"{what} must be unique, at least {least}, got {list(names)}")
+    return times.shape[0], len(names)
+
+
 def write_all(file: IO[bytes], data: bytes | bytearray | memoryview) -> None:
     """Write every byte of `data` to `file` and flush it; any failure is an OutputError."""
     view = memoryview(data)
@@ -117,12 +129,11 @@ def _send_properties(
 @contextlib.contextmanager
 def recording_stream(
     file: IO[bytes],
-    *,
+    blueprint: rrb.Blueprint,
     scenario_name: str,
     seed: int,
     times: np.ndarray,
     summary: Mapping[str, Any],
-    blueprint: rrb.Blueprint,
     properties: Mapping[str, Any] | None = None,
     recording_id: str | None = None,
 ) -> Iterator[SeriesWriter]:
