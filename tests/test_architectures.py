@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from conftest import random_spd, random_system
 
-from fusionlog.core.architectures import build_plan, estimate, run_plan
+from fusionlog.core.architectures import STEADY_BLOCK, build_plan, estimate, run_plan
 from fusionlog.core.exact import analyse
 from fusionlog.core.kalman import update_joseph, update_millman
 from fusionlog.core.model import Prior, Sensor, System, ajgl2009
@@ -217,18 +217,15 @@ def test_dense_path_keeps_precision_with_a_large_prior_mean():
     )
     _, z = simulate(sys, 100, 1, 0, 50)
     plan = build_plan(sys, "CKF", 100)
-    from fusionlog.core.architectures import _recursion
-
-    np.testing.assert_allclose(run_plan(plan, z).mean, _recursion(plan, z), rtol=1e-13, atol=1e-7)
+    dense, steps = run_plan(plan, z).mean, run_plan(plan, z, route="steps").mean
+    np.testing.assert_allclose(dense, steps, rtol=1e-13, atol=1e-7)
 
 
 @pytest.mark.parametrize("arch", STATE_ARCHITECTURES)
 @pytest.mark.parametrize("prior", [True, False])
-def test_steady_tail_in_blocks_equals_step_recursion(arch, prior, monkeypatch):
+def test_steady_tail_in_blocks_equals_step_recursion(arch, prior):
     """A long log with few runs runs its steady tail (and FBS's steady middle) in blocks of
     steps; the numbers are those of the plain step recursion, also far from the origin."""
-    import fusionlog.core.architectures as archs
-
     sys0 = ajgl2009()  # every local filter observable: all plans reach a steady state
     far = Prior(np.array([5e4, -1.0]), np.eye(2))
     sys = System(
@@ -241,10 +238,9 @@ def test_steady_tail_in_blocks_equals_step_recursion(arch, prior, monkeypatch):
     K = 1000 + 7  # not a multiple of the block
     _, z = simulate(sys, K, 2, 3, 50)
     plan = build_plan(sys, arch, K)
-    assert archs._steady_from(plan.steps) < K + 1 - 2 * archs._BLOCK  # the blocked path runs
+    assert plan.steady_from < K + 1 - 2 * STEADY_BLOCK  # the blocked path runs
     blocked = run_plan(plan, z).mean
-    monkeypatch.setattr(archs, "_FEW_RUNS", 0)
-    stepwise = run_plan(plan, z).mean
+    stepwise = run_plan(plan, z, route="steps").mean
     np.testing.assert_allclose(blocked, stepwise, rtol=1e-11, atol=1e-9)
 
 
