@@ -6,6 +6,9 @@ code serves the shared-gain path (no batch) and the per-run path (batch = runs).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
 import numpy as np
 
 from ..errors import NumericalError
@@ -23,53 +26,77 @@ def mT(A: np.ndarray) -> np.ndarray:
     return A.swapaxes(-1, -2)
 
 
-def spd_inv(A: np.ndarray) -> np.ndarray:
-    """Inverse of a symmetric positive definite matrix via a solve, symmetrised.
+def spd_inv(A: np.ndarray, spread: float = 1e8) -> np.ndarray:
+    """Inverse of a symmetric positive definite matrix (batched), symmetrised; through the Jacobi
+    scaling D^-1/2 A D^-1/2 (D = diag A) for the matrices whose diagonal spans more than
+    `spread`: A^-1 = D^-1/2 (D^-1/2 A D^-1/2)^-1 D^-1/2.
 
-    np.linalg.inv is LAPACK's gesv with the identity as right-hand side, i.e. the same solve,
-    without building and broadcasting the identity first.
+    np.linalg.inv is LAPACK's gesv with the identity as right-hand side, i.e. a solve, without
+    building and broadcasting the identity first. On a covariance such as
+    [[1e-300, 1e-300], [1e-300, 0.05]] (a position measured with R = 1e-300) it returns an
+    inverse whose off-diagonal entries are not even close to symmetric; the scaled matrix is
+    well conditioned and inverts to full accuracy. Matrices of comparable diagonal take the
+    plain route (the test is a few Python comparisons: plan building calls this thousands of
+    times on 2 x 2 matrices).
     """
-    return sym(np.linalg.inv(A))
+    d = A.diagonal(0, -2, -1)
+    if d.size <= 64:
+        dl = d.ravel().tolist()
+        lo, hi = min(dl), max(dl)
+    else:
+        lo, hi = float(d.min()), float(d.max())
+    if not (lo > 0 and hi > spread * lo):  # also NaN: the plain route
+        return sym(np.linalg.inv(A))
+    lo_m, hi_m = d.min(axis=-1), d.max(axis=-1)
+    wide = (lo_m > 0) & (hi_m > spread * lo_m)
+    s = 1.0 / np.sqrt(np.where(wide[..., None], d, 1.0))
+    S = s[..., :, None] * s[..., None, :]
+    scaled = sym(np.linalg.inv(A * S) * S)
+    if wide.all():
+        return scaled
+    wide = wide[..., None, None]
+    return np.where(wide, scaled, sym(np.linalg.inv(np.where(wide, np.eye(A.shape[-1]), A))))
 
 
 def is_invertible(Y: np.ndarray, rtol: float = 1e-13) -> np.ndarray:
-    """Whether each symmetric PSD matrix has full rank (smallest eigenvalue above rtol * largest).
+    """Whether each symmetric PSD matrix has full rank: its smallest eigenvalue above rtol times
+    its largest, or that of its Jacobi scaling D^-1/2 Y D^-1/2 (D = diag Y) is.
 
     Used to decide when an information-form filter that started without a prior has gathered
-    enough information for a covariance to exist. A matrix with a NaN (e.g. the information of
-    a fusion with no weights because nothing was observed yet) is not invertible.
+    enough information for a covariance to exist. The scaled test accepts information that is
+    badly scaled but regular, e.g. 3e16 on a position measured with R = 1e-16 beside 6 on a
+    velocity, which the plain test would call singular forever; an unobserved direction keeps
+    a zero diagonal (or a scaled eigenvalue at rounding level) and stays singular. A matrix
+    with a NaN (e.g. the information of a fusion with no weights because nothing was observed
+    yet) is not invertible.
     """
     finite = np.isfinite(Y).all(axis=(-2, -1))
     if not finite.all():  # LAPACK's eigensolver does not converge on NaN
         Y = np.where(finite[..., None, None], Y, 0.0)
     w = np.linalg.eigvalsh(Y)
-    return finite & (w[..., 0] > rtol * np.maximum(w[..., -1], np.finfo(float).tiny))
+    ok = finite & (w[..., 0] > rtol * np.maximum(w[..., -1], np.finfo(float).tiny))
+    if ok.all():
+        return ok
+    d = Y.diagonal(0, -2, -1)
+    scalable = finite & (d > 0).all(axis=-1)
+    s = 1.0 / np.sqrt(np.where(scalable[..., None], d, 1.0))
+    Ys = np.where(scalable[..., None, None], Y * s[..., :, None] * s[..., None, :], 0.0)
+    ws = np.linalg.eigvalsh(Ys)
+    return ok | (scalable & (ws[..., 0] > rtol * ws[..., -1]))
 
 
-def inv_or_nan(Y: np.ndarray, axes: tuple[int, ...] = ()) -> np.ndarray:
+def inv_or_nan(Y: np.ndarray) -> np.ndarray:
     """Covariance from an information matrix: Y^-1 where Y is invertible, NaN elsewhere (an
     estimate that does not exist yet, e.g. a filter started without a prior).
 
-    When every matrix is invertible the inverse comes from a solve (`spd_inv`), otherwise the
-    invertible ones from the pseudo-inverse. With `axes` (batch axes of Y, e.g. the local
-    filters of a stack or the steps of a plan) that choice is made separately for each index
-    along them, so the result equals calling this on each of those slices alone.
+    Each matrix is inverted on its own (`spd_inv`, the others replaced by I for the
+    batched call), so a result does not depend on the other matrices of the batch.
     """
     ok = is_invertible(Y)
     if np.all(ok):
         return spd_inv(Y)
-    if not axes:
-        Y = np.where(ok[..., None, None], Y, 0.0)  # the others are NaN anyway; no NaN in SVD
-        return sym(np.where(ok[..., None, None], np.linalg.pinv(Y, hermitian=True), np.nan))
-    # The slices along `axes` first, each one either wholly invertible or not.
-    axes = tuple(a % ok.ndim for a in axes)  # batch axes: the same in Y and in ok
-    front = tuple(range(len(axes)))
-    Yf, okf = np.moveaxis(Y, axes, front), np.moveaxis(ok, axes, front)
-    whole = okf.reshape(okf.shape[: len(axes)] + (-1,)).all(axis=-1)
-    out = np.empty_like(Yf)
-    out[whole] = spd_inv(Yf[whole])
-    out[~whole] = inv_or_nan(Yf[~whole])  # not wholly invertible: each alone, pinv and NaN
-    return np.moveaxis(out, front, axes)
+    ok = ok[..., None, None]
+    return np.where(ok, spd_inv(np.where(ok, Y, np.eye(Y.shape[-1]))), np.nan)
 
 
 def apply(A: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -97,17 +124,45 @@ def solve(A: np.ndarray, B: np.ndarray, *, hermitian: bool = False) -> np.ndarra
         return np.linalg.pinv(A, hermitian=hermitian) @ B
 
 
-def require_finite(A: np.ndarray, what: str) -> None:
-    """Raise NumericalError ("<what> overflows ...") unless every entry of A is finite.
+#: What numpy and Python raise when numbers cannot be computed with.
+NUMERICAL_FAILURES = (np.linalg.LinAlgError, FloatingPointError, OverflowError, ZeroDivisionError)
+
+
+@contextmanager
+def numerical_errors(where: Callable[[], str]) -> Iterator[None]:
+    """Run a computation without numpy's overflow warnings (overflows are checked explicitly,
+    `require_finite`) and turn its numerical failures into one NumericalError prefixed by
+    `where()` (called only on failure: it names the architecture and the step)."""
+    try:
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            yield
+    except NumericalError as e:
+        raise NumericalError(f"{where()}: {e}") from None
+    except NUMERICAL_FAILURES as e:
+        raise NumericalError(
+            f"{where()}: a matrix is singular or overflows to working precision "
+            f"({type(e).__name__}: {e})"
+        ) from e
+
+
+def require_finite(A: np.ndarray, what: str, *, per_step: bool = False) -> None:
+    """Raise NumericalError ("<what> overflows ...") unless every entry of A is finite; with
+    `per_step`, A's first axis runs over the steps and the message names the first bad one.
 
     Checked where a recursion produces a new covariance, so that an overflow is reported at
     the step where it happens, and never handed to LAPACK, which answers non-finite input
     with convergence failures (and prints to the terminal).
     """
-    if not np.isfinite(A).all():
-        raise NumericalError(
-            f"{what} overflows (entries beyond the float range, about 1.8e308, or inf - inf)"
-        )
+    finite = np.isfinite(A)
+    if finite.all():
+        return
+    where = ""
+    if per_step:
+        bad = ~finite.reshape(len(A), -1).all(axis=1)
+        where = f"step {int(np.argmax(bad))}: "
+    raise NumericalError(
+        f"{where}{what} overflows (entries beyond the float range, about 1.8e308, or inf - inf)"
+    )
 
 
 def bc(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:

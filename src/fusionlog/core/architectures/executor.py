@@ -15,6 +15,7 @@ from typing import Literal
 
 import numpy as np
 
+from ...errors import NumericalError
 from ..linalg import apply, bc, mT
 from .plan import DenseMap, Estimate, Plan, SmootherMaps
 
@@ -40,23 +41,47 @@ def run_plan(plan: Plan, z: np.ndarray, *, route: Route = "auto") -> Estimate:
     plain step recursion whatever the plan (the reference the faster routes are checked with).
     """
     M, K1, m = z.shape
+    cov = plan.reported_cov
     if route == "steps" or plan.per_run or K1 > DENSE_MAX_STEPS:
-        mean = _recursion(plan, np.where(np.isnan(z), 0.0, z), blocks=route != "steps")
-        return Estimate(mean, plan.reported_cov)
+        with np.errstate(over="ignore", invalid="ignore"):
+            mean = _recursion(plan, np.where(np.isnan(z), 0.0, z), blocks=route != "steps")
+        _require_defined(plan, mean, cov)
+        return Estimate(mean, cov)
     if plan.dense is None:
         # The linear part from unit measurements with a zero initial state, the constant from
         # the initial state with no data: no subtraction, so a large prior mean (UTM metres)
         # cannot cancel the small gains away.
         basis = np.eye(K1 * m).reshape(K1 * m, K1, m)
-        W = _recursion(plan, basis, np.zeros_like(plan.s0))
-        c = _recursion(plan, np.zeros((1, K1, m)))
+        with np.errstate(over="ignore", invalid="ignore"):
+            W = _recursion(plan, basis, np.zeros_like(plan.s0))
+            c = _recursion(plan, np.zeros((1, K1, m)))
         plan.dense = DenseMap(W.reshape(K1 * m, -1), c.reshape(-1))
     W, c = plan.dense.W, plan.dense.c
     if np.isnan(z).any():  # absent in the plan's own mask: W has zero weight there
         z = np.where(np.isnan(z), 0.0, z)
-    mean = np.ascontiguousarray(z).reshape(M, K1 * m) @ W
-    mean += c
-    return Estimate(mean.reshape(M, K1, -1), plan.reported_cov)
+    with np.errstate(over="ignore", invalid="ignore"):
+        mean = np.ascontiguousarray(z).reshape(M, K1 * m) @ W
+        mean += c
+    mean = mean.reshape(M, K1, -1)
+    _require_defined(plan, mean, cov)
+    return Estimate(mean, cov)
+
+
+def _require_defined(plan: Plan, mean: np.ndarray, cov: np.ndarray) -> None:
+    """Refuse estimates that are not finite where the plan reports a covariance (mean
+    (M, K+1, n); cov (K+1, n, n) or (M, K+1, n, n)): the gains of a badly conditioned model,
+    or measurements of ~1e300, overflowed. Undefined estimates (NaN covariance) may be NaN.
+    The usual all-finite case costs one pass over the means."""
+    if np.isfinite(mean).all():
+        return
+    defined = np.isfinite(cov).all(axis=(-2, -1))  # (K+1,) or (M, K+1)
+    bad = defined & ~np.isfinite(mean).all(axis=-1)
+    if bad.any():
+        k = int(np.flatnonzero(bad.any(axis=0))[0])
+        raise NumericalError(
+            f"architecture {plan.name}, step {k}: the estimate overflows (gains or "
+            "measurements beyond the float range, about 1.8e308)"
+        )
 
 
 def _recursion(

@@ -245,7 +245,7 @@ class KalmanStack:
             P = spd_inv(Y)
             step = FilterStep(P @ A, P @ Ue, part.I, P, A, Gam, -P, -(P @ Ue), part.I)
             return step, P, ~switch
-        Pinv = inv_or_nan(Y, axes=tuple(range(-self.n_local, 0)))  # per filter, as alone
+        Pinv = inv_or_nan(Y)  # per filter, as alone
         step = FilterStep(A, Ue, Pinv, Pinv, A, Gam, bc(self.eye, Y.shape), Ue, Y)
         if not switch.any():
             return step, Y, ~switch

@@ -111,7 +111,8 @@ class BuildRequest:
     uses and `criterion` covariance intersection's cost.
 
     `step` is the step being built, kept up to date by the builders so that a numerical
-    failure can name it (None while the whole horizon is processed at once).
+    failure can name it (None before the first step and while the whole horizon is processed
+    at once).
     """
 
     system: System
@@ -119,7 +120,7 @@ class BuildRequest:
     present: np.ndarray
     sensor: str | None = None
     criterion: str = "trace"
-    step: int | None = 0
+    step: int | None = None
 
     @property
     def batch(self) -> tuple[int, ...]:

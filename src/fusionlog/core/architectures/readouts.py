@@ -14,7 +14,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..fusion import ci_omegas, gmf_weight_matrix
-from ..linalg import bc, inv_or_nan, mT, spd_inv, stack_cols, sym
+from ..linalg import bc, inv_or_nan, mT, require_finite, spd_inv, stack_cols, sym
 from .plan import StepMap
 
 
@@ -37,12 +37,14 @@ def local_infos(forms: np.ndarray, mats: np.ndarray) -> tuple[np.ndarray, np.nda
     filter carries and W_j = I."""
     if not forms.any():
         Y = spd_inv(mats)
+        require_finite(Y, "the local information P_j^-1", per_step=True)
         return Y, Y
     # Steps and locals side by side, (L, S) + batch + (n, n), to pick them by their form.
     M = np.moveaxis(mats, -3, 1)
     Y = np.empty_like(M)
     Y[~forms] = spd_inv(M[~forms])
     Y[forms] = M[forms]
+    require_finite(Y, "the local information P_j^-1", per_step=True)
     W = Y.copy()
     W[forms] = np.eye(mats.shape[-1])
     return np.moveaxis(Y, 1, -3), np.moveaxis(W, 1, -3)
@@ -53,7 +55,9 @@ def msc_readouts(steps: list[StepMap], forms: np.ndarray, mats: np.ndarray) -> N
     Y_j x_j is the information vector itself for a local still in information form. O is
     (L,) + batch + (n, S n), P (L,) + batch + (n, n)."""
     Ys, Ws = local_infos(forms, mats)
-    P = inv_or_nan(Ys.sum(axis=-3), axes=(0,))  # each step on its own
+    Y = Ys.sum(axis=-3)
+    require_finite(Y, "the fused information sum_j P_j^-1", per_step=True)
+    P = inv_or_nan(Y)  # each step on its own
     set_readouts(steps, stack_cols(P[..., None, :, :] @ Ws), P)
 
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import NumericalError
+from ..linalg import numerical_errors
 from ..model import System
 from .executor import run_plan
 from .fbs import build_fbs
@@ -80,10 +81,6 @@ def parse_arch(name: str, sensor_names: list[str] | tuple[str, ...]) -> tuple[st
     return base, sensor
 
 
-#: What numpy raises when the numbers of an accepted model cannot be computed with.
-_NUMERICAL = (np.linalg.LinAlgError, FloatingPointError, OverflowError, ZeroDivisionError)
-
-
 def build_plan(
     system: System,
     arch: str,
@@ -101,24 +98,30 @@ def build_plan(
     base, sensor = parse_arch(arch, [s.name for s in system.sensors])
     if present is None:
         present = np.ones((steps + 1, system.m), dtype=bool)
-    request = BuildRequest(system, arch, present, sensor, criterion)
-    try:
+    request = BuildRequest(system, arch, present, sensor, criterion, step=None)
+    with numerical_errors(lambda: _where(request)):
+        check_model(system)
         plan = REGISTRY[base].build(request)
-    except NumericalError as e:
-        raise NumericalError(f"{_where(request)}: {e}") from None
-    except _NUMERICAL as e:
-        raise NumericalError(
-            f"{_where(request)}: a matrix is singular or overflows to working precision "
-            f"({type(e).__name__}: {e})"
-        ) from e
     plan.system = system
     return plan
 
 
+def check_model(system: System) -> None:
+    """Refuse a model whose matrices are not finite (an accepted entry of 1e308 can overflow
+    where the model is assembled, e.g. in G Q G')."""
+    mats = {"the model's F": system.F, "the model's G Q G'": system.GQG, "R": system.R}
+    if system.prior is not None:
+        mats |= {"the prior mean": system.prior.mean, "the prior covariance": system.prior.cov}
+    for what, a in mats.items():
+        if not np.isfinite(a).all():
+            raise NumericalError(f"{what} is not finite (beyond the float range, about 1.8e308)")
+
+
 def _where(request: BuildRequest) -> str:
-    if request.step is None:
-        return f"architecture {request.name}, fusing the local estimates"
-    return f"architecture {request.name}, step {request.step}"
+    """ "architecture X, step k" (without the step for the model check and for fusion rules
+    evaluated over all steps at once)."""
+    step = "" if request.step is None else f", step {request.step}"
+    return f"architecture {request.name}{step}"
 
 
 def shared_pattern(z: np.ndarray) -> np.ndarray | None:
