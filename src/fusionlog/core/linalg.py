@@ -6,6 +6,7 @@ code serves the shared-gain path (no batch) and the per-run path (batch = runs).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
@@ -26,36 +27,41 @@ def mT(A: np.ndarray) -> np.ndarray:
     return A.swapaxes(-1, -2)
 
 
-def spd_inv(A: np.ndarray, spread: float = 1e8) -> np.ndarray:
-    """Inverse of a symmetric positive definite matrix (batched), symmetrised; through the Jacobi
-    scaling D^-1/2 A D^-1/2 (D = diag A) for the matrices whose diagonal spans more than
-    `spread`: A^-1 = D^-1/2 (D^-1/2 A D^-1/2)^-1 D^-1/2.
+def spd_inv(A: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive definite matrix via a solve, symmetrised.
 
-    np.linalg.inv is LAPACK's gesv with the identity as right-hand side, i.e. a solve, without
-    building and broadcasting the identity first. On a covariance such as
-    [[1e-300, 1e-300], [1e-300, 0.05]] (a position measured with R = 1e-300) it returns an
-    inverse whose off-diagonal entries are not even close to symmetric; the scaled matrix is
-    well conditioned and inverts to full accuracy. Matrices of comparable diagonal take the
-    plain route (the test is a few Python comparisons: plan building calls this thousands of
-    times on 2 x 2 matrices).
+    np.linalg.inv is LAPACK's gesv with the identity as right-hand side, i.e. the same solve,
+    without building and broadcasting the identity first.
+    """
+    return sym(np.linalg.inv(A))
+
+
+def spd_inv_scaled(A: np.ndarray, spread: float = 1e8) -> np.ndarray:
+    """`spd_inv`, through the Jacobi scaling D^-1/2 A D^-1/2 (D = diag A) for the matrices
+    whose diagonal spans more than `spread`: A^-1 = D^-1/2 (D^-1/2 A D^-1/2)^-1 D^-1/2.
+
+    LU on a covariance such as [[1e-300, 1e-300], [1e-300, 0.05]] (a position measured with
+    R = 1e-300) returns an inverse whose off-diagonal entries are not even close to symmetric;
+    the scaled matrix is well conditioned and inverts to full accuracy. Matrices of comparable
+    diagonal take `spd_inv` (the same numbers to the last bit), after a test that costs about
+    a microsecond on the few matrices of a step.
     """
     d = A.diagonal(0, -2, -1)
-    if d.size <= 64:
+    if d.size <= 16:  # one step's matrices: Python compares faster than numpy reduces
         dl = d.ravel().tolist()
-        lo, hi = min(dl), max(dl)
-    else:
-        lo, hi = float(d.min()), float(d.max())
-    if not (lo > 0 and hi > spread * lo):  # also NaN: the plain route
-        return sym(np.linalg.inv(A))
-    lo_m, hi_m = d.min(axis=-1), d.max(axis=-1)
-    wide = (lo_m > 0) & (hi_m > spread * lo_m)
+        if not min(dl) > 0 or max(dl) <= spread * min(dl):
+            return spd_inv(A)
+    lo, hi = d.min(axis=-1), d.max(axis=-1)
+    wide = (lo > 0) & (hi > spread * lo)
+    if not wide.any():
+        return spd_inv(A)
     s = 1.0 / np.sqrt(np.where(wide[..., None], d, 1.0))
     S = s[..., :, None] * s[..., None, :]
     scaled = sym(np.linalg.inv(A * S) * S)
     if wide.all():
         return scaled
     wide = wide[..., None, None]
-    return np.where(wide, scaled, sym(np.linalg.inv(np.where(wide, np.eye(A.shape[-1]), A))))
+    return np.where(wide, scaled, spd_inv(np.where(wide, np.eye(A.shape[-1]), A)))
 
 
 def is_invertible(Y: np.ndarray, rtol: float = 1e-13) -> np.ndarray:
@@ -89,14 +95,14 @@ def inv_or_nan(Y: np.ndarray) -> np.ndarray:
     """Covariance from an information matrix: Y^-1 where Y is invertible, NaN elsewhere (an
     estimate that does not exist yet, e.g. a filter started without a prior).
 
-    Each matrix is inverted on its own (`spd_inv`, the others replaced by I for the
+    Each matrix is inverted on its own (`spd_inv_scaled`, the others replaced by I for the
     batched call), so a result does not depend on the other matrices of the batch.
     """
     ok = is_invertible(Y)
     if np.all(ok):
-        return spd_inv(Y)
+        return spd_inv_scaled(Y)
     ok = ok[..., None, None]
-    return np.where(ok, spd_inv(np.where(ok, Y, np.eye(Y.shape[-1]))), np.nan)
+    return np.where(ok, spd_inv_scaled(np.where(ok, Y, np.eye(Y.shape[-1]))), np.nan)
 
 
 def apply(A: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -145,6 +151,16 @@ def numerical_errors(where: Callable[[], str]) -> Iterator[None]:
         ) from e
 
 
+def all_finite(A: np.ndarray) -> bool:
+    """Whether every entry of A is finite. Small arrays (a step's covariance, checked at every
+    step of plan building) are summed in Python, several times cheaper than np.isfinite on a
+    2 x 2 matrix; a sum beyond the float range (entries near 1e308) counts as not finite,
+    which is where the next product would overflow anyway."""
+    if A.size <= 16:
+        return math.isfinite(sum(A.ravel().tolist()))
+    return bool(np.isfinite(A).all())
+
+
 def require_finite(A: np.ndarray, what: str, *, per_step: bool = False) -> None:
     """Raise NumericalError ("<what> overflows ...") unless every entry of A is finite; with
     `per_step`, A's first axis runs over the steps and the message names the first bad one.
@@ -153,12 +169,11 @@ def require_finite(A: np.ndarray, what: str, *, per_step: bool = False) -> None:
     the step where it happens, and never handed to LAPACK, which answers non-finite input
     with convergence failures (and prints to the terminal).
     """
-    finite = np.isfinite(A)
-    if finite.all():
+    if all_finite(A):
         return
     where = ""
     if per_step:
-        bad = ~finite.reshape(len(A), -1).all(axis=1)
+        bad = ~np.isfinite(A).reshape(len(A), -1).all(axis=1)
         where = f"step {int(np.argmax(bad))}: "
     raise NumericalError(
         f"{where}{what} overflows (entries beyond the float range, about 1.8e308, or inf - inf)"

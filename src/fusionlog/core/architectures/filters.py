@@ -10,12 +10,23 @@ in information form from zero information, exactly, until its information matrix
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
+from operator import sub
 
 import numpy as np
 
 from ...errors import NumericalError
 from ..kalman import gain, joseph
-from ..linalg import bc, inv_or_nan, is_invertible, mT, require_finite, solve, spd_inv, sym
+from ..linalg import (
+    all_finite,
+    bc,
+    inv_or_nan,
+    is_invertible,
+    mT,
+    require_finite,
+    solve,
+    spd_inv,
+    sym,
+)
 from ..model import System
 
 
@@ -177,12 +188,15 @@ class KalmanStack:
         part = Part(self.mat, Hk, Rk, self.rows.E, self.I, self.Z)
         if not self.any_info:  # the usual case: all in covariance form, and they stay so
             st, mat, _ = self.step_cov(part, first)
-            self.mat = self._checked(mat, first)
+            if not all_finite(mat):
+                self._overflow(mat, first)
+            self.mat = mat
             return st
         if self.info.all():  # all in information form: one batched step
-            st, mat, self.info = self.step_info(part, first)
-            self.mat = self._checked(mat, first)
-            self.any_info = bool(self.info.any())
+            st, mat, info = self.step_info(part, first)
+            if not all_finite(mat):
+                self._overflow(mat, first)
+            self.mat, self.info, self.any_info = mat, info, bool(info.any())
             return st
         # Local filters in different forms (no prior, and one local could invert its
         # information earlier than another): each group in its own form, then put together.
@@ -191,17 +205,17 @@ class KalmanStack:
             j = np.flatnonzero(self.info == form)
             st, mat[..., j, :, :], info[j] = self.step_form(form, part.take(j), first)
             parts.append((j, st))
-        self.mat, self.info, self.any_info = self._checked(mat, first), info, bool(info.any())
+        if not all_finite(mat):
+            self._overflow(mat, first)
+        self.mat, self.info, self.any_info = mat, info, bool(info.any())
         return merge_steps(parts, mat.shape[:-2])
 
-    def _checked(self, mat: np.ndarray, first: bool) -> np.ndarray:
-        """The filters' new matrices, refused when an entry overflowed: the predicted
-        covariance F P F' + G Q G' first (the usual culprit), else the update."""
-        if not np.isfinite(mat).all():
-            if not first and not self.any_info:
-                require_finite(self.F @ self.mat @ self.F.T + self.GQG, "the predicted covariance")
-            require_finite(mat, "the filter's covariance (or information) matrix")
-        return mat
+    def _overflow(self, mat: np.ndarray, first: bool) -> None:
+        """Report the filters' new matrices `mat`, which overflowed: the predicted covariance
+        F P F' + G Q G' when it is the culprit (the usual case), else the update."""
+        if not first and not self.any_info:
+            require_finite(self.F @ self.mat @ self.F.T + self.GQG, "the predicted covariance")
+        require_finite(mat, "the filter's covariance (or information) matrix")
 
     def step_form(self, info: bool, part: Part, first: bool):
         """One step of filters all in information form (`info`) or all in covariance form:
@@ -276,9 +290,15 @@ class Steady:
         if not self.enabled:
             return False
         cur = mats[0].ravel() if len(mats) == 1 else np.concatenate([m.ravel() for m in mats])
-        hit = self.prev is not None and np.abs(cur - self.prev).max() <= 1e-15 * np.abs(cur).max()
-        self.prev = cur
-        return bool(hit)
+        prev, self.prev = self.prev, cur
+        if prev is None:
+            return False
+        if cur.size <= 16:
+            # A step's few numbers compare faster in Python than through numpy's calls, with
+            # the same IEEE operations: the same decision to the last bit.
+            c = cur.tolist()
+            return max(map(abs, map(sub, c, prev.tolist()))) <= 1e-15 * max(map(abs, c))
+        return bool(np.abs(cur - prev).max() <= 1e-15 * np.abs(cur).max())
 
 
 def fill(steps: list, total: int) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..kalman import gain, joseph
-from ..linalg import bc, block_diag, require_finite, spd_inv, sum_after, sym
+from ..linalg import bc, block_diag, require_finite, spd_inv_scaled, sum_after, sym
 from ..model import System
 from .filters import KalmanStack, Rows, Steady, fill
 from .plan import BuildRequest, Plan, StepMap
@@ -23,6 +23,8 @@ def build_hkf(request: BuildRequest) -> Plan:
     Each local KF j restarts from the fused prediction (38), updates with its own sensor, and the
     fusion centre adds the equivalent measurements P_j^-1 x_j - P^-1_pred x_pred (36)-(37). The
     S local updates are one batched computation on the stacked sensors (`Rows.per_sensor`).
+    The fusion inverts covariances and informations at every step: `spd_inv_scaled` keeps
+    them accurate when sensors are far more precise than the prediction (R = 1e-300).
     """
     system, present, batch = request.system, request.present, request.batch
     n, m = system.n, system.m
@@ -50,17 +52,17 @@ def build_hkf(request: BuildRequest) -> Plan:
         else:
             Pp, Tp = sym(F @ P @ F.T + GQG), F
             require_finite(Pp, "the predicted covariance")
-        Yp = spd_inv(Pp)
+        Yp = spd_inv_scaled(Pp)
         Hj, Rj = sensors.masked(present[..., k, :])  # batch + (S, r, .)
         Ppj = Pp[..., None, :, :]  # every local starts from the fused prediction
         Kj = gain(Ppj, Hj, Rj)
         IKH = eye - Kj @ Hj
-        Yj = spd_inv(joseph(Ppj, Kj, Hj, Rj, IKH))
+        Yj = spd_inv_scaled(joseph(Ppj, Kj, Hj, Rj, IKH))
         Yf = sum_after((1 - S) * Yp, Yj)
         Tacc = sum_after((1 - S) * Yp, Yj @ IKH)
         # Each sensor's gain sits in its own columns of z_k, zero elsewhere: the sum is exact.
         U = (Yj @ Kj @ sensors.E).sum(axis=-3)
-        P = spd_inv(Yf)
+        P = spd_inv_scaled(Yf)
         require_finite(P, "the fused covariance")
         steps.append(StepMap(P @ Tacc @ Tp, P @ U, bc(eye, P.shape), P, eye))
         if steady.reached(P):

@@ -14,7 +14,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..fusion import ci_omegas, gmf_weight_matrix
-from ..linalg import bc, inv_or_nan, mT, require_finite, spd_inv, stack_cols, sym
+from ..linalg import bc, inv_or_nan, mT, require_finite, spd_inv_scaled, stack_cols, sym
 from .plan import StepMap
 
 
@@ -36,13 +36,13 @@ def local_infos(forms: np.ndarray, mats: np.ndarray) -> tuple[np.ndarray, np.nda
     in information form the state is the information vector itself: Y_j is the matrix the
     filter carries and W_j = I."""
     if not forms.any():
-        Y = spd_inv(mats)
+        Y = spd_inv_scaled(mats)
         require_finite(Y, "the local information P_j^-1", per_step=True)
         return Y, Y
     # Steps and locals side by side, (L, S) + batch + (n, n), to pick them by their form.
     M = np.moveaxis(mats, -3, 1)
     Y = np.empty_like(M)
-    Y[~forms] = spd_inv(M[~forms])
+    Y[~forms] = spd_inv_scaled(M[~forms])
     Y[forms] = M[forms]
     require_finite(Y, "the local information P_j^-1", per_step=True)
     W = Y.copy()

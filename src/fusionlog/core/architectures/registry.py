@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import NumericalError
-from ..linalg import numerical_errors
+from ..linalg import all_finite, numerical_errors
 from ..model import System
 from .executor import run_plan
 from .fbs import build_fbs
@@ -113,7 +113,7 @@ def check_model(system: System) -> None:
     if system.prior is not None:
         mats |= {"the prior mean": system.prior.mean, "the prior covariance": system.prior.cov}
     for what, a in mats.items():
-        if not np.isfinite(a).all():
+        if not all_finite(a):
             raise NumericalError(f"{what} is not finite (beyond the float range, about 1.8e308)")
 
 
@@ -128,9 +128,14 @@ def shared_pattern(z: np.ndarray) -> np.ndarray | None:
     """The (K+1, m) mask of present measurements when every run has the same one, else None.
 
     A pattern shared by all runs (a sensor at half rate, a gap in every run) keeps the
-    shared-gain path: one plan built with that mask serves all runs.
+    shared-gain path: one plan built with that mask serves all runs. The usual case, nothing
+    missing, is answered by one pass over z (comparing every run's mask with the first costs
+    seven times that).
     """
-    present = ~np.isnan(z)
+    missing = np.isnan(z)
+    if not missing.any():
+        return np.ones(z.shape[1:], dtype=bool)
+    present = ~missing
     return present[0] if (present == present[:1]).all() else None
 
 

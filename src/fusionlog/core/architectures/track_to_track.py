@@ -83,7 +83,6 @@ def local_filters(request: BuildRequest, joint: bool) -> LocalHistory:
             Lam = stack_rows(st.Lam)
             _, Rk = everything.masked(present[..., k, :])
             J = sym(Psi @ J @ mT(Psi) + Lam @ Rk @ mT(Lam))
-            require_finite(J, "the local filters' joint error covariance, eq. (35),")
         T = stack_diag(bc(st.T, stack))
         # A local's state s_j is D_j x + sigma_j with sigma_j = -g_j (mean form: s = x_hat,
         # g = x - x_hat) or +g_j (information form: s = y, g = y - Y x); J is cov(g).
@@ -112,9 +111,18 @@ def build_msc(request: BuildRequest) -> Plan:
     return _plan(request, hist)
 
 
+def _checked_joints(hist: LocalHistory) -> None:
+    """J of eq. (35) is only multiplied in the recursion, so an overflow there (once non-finite,
+    it stays so) is looked for once, before a fusion rule solves with it."""
+    require_finite(
+        np.stack(hist.joints), "the local filters' joint error covariance", per_step=True
+    )
+
+
 def build_msc_gmf(request: BuildRequest) -> Plan:
     """The generalised Millman formula with the exact cross-covariances, eqs. (6)-(7), (35)."""
     hist = local_filters(request, joint=True)
+    _checked_joints(hist)
     gmf_readouts(hist.computed, hist.forms, hist.joints, request.system.n)
     return _plan(request, hist)
 
@@ -122,6 +130,7 @@ def build_msc_gmf(request: BuildRequest) -> Plan:
 def build_avg(request: BuildRequest) -> Plan:
     """The plain average of the local means and its true covariance, eq. (4)."""
     hist = local_filters(request, joint=True)
+    _checked_joints(hist)
     avg_readouts(hist.computed, hist.forms, hist.joints, hist.readouts, request.batch)
     return _plan(request, hist)
 
