@@ -301,6 +301,16 @@ class Steady:
         return bool(np.abs(cur - prev).max() <= 1e-15 * np.abs(cur).max())
 
 
+def wide_range(system: System, spread: float = 1e8) -> bool:
+    """Whether the model's noise and prior variances (diagonals of R, G Q G', P0) span more than
+    `spread`: then covariances and informations are badly scaled and plain LU inverses lose
+    accuracy (see `linalg.spd_inv_scaled`)."""
+    mats = [system.R, system.GQG] + ([system.prior.cov] if system.prior is not None else [])
+    d = np.concatenate([np.diagonal(m) for m in mats])
+    d = d[d > 0]
+    return bool(d.size) and float(d.max()) > spread * float(d.min())
+
+
 def fill(steps: list, total: int) -> None:
     """Repeat the last (steady-state) element until the list has `total` entries."""
     steps.extend([steps[-1]] * (total - len(steps)))

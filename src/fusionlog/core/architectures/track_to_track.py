@@ -29,16 +29,21 @@ class LocalHistory:
     """The local filters' recursion: the plan's steps (readouts O, P still to be set) and,
     after each computed step (L of them; the steps after repeat the last), the locals' forms
     (L, S) (True: information form), their matrices (covariance, or information in information
-    form) (L,) + batch + (S, n, n), their joint error covariance J of eq. (35) (when asked
-    for), and their readouts x_j = O_j s_j."""
+    form), their joint error covariance J of eq. (35) (when asked for), and their readouts
+    x_j = O_j s_j."""
 
     steps: list[StepMap]
     forms: np.ndarray
-    mats: np.ndarray
+    matrices: list[np.ndarray]
     joints: list[np.ndarray]
     readouts: list[np.ndarray]
     s0: np.ndarray
     D0: np.ndarray
+
+    @property
+    def mats(self) -> np.ndarray:
+        """The locals' matrices, (L,) + batch + (S, n, n)."""
+        return np.stack(self.matrices)
 
     @property
     def computed(self) -> list[StepMap]:
