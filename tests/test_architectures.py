@@ -6,11 +6,20 @@ import numpy as np
 import pytest
 from conftest import random_spd, random_system
 
-from fusionlog.core.architectures import STEADY_BLOCK, build_plan, estimate, run_plan
+from fusionlog.core import names
+from fusionlog.core.architectures import (
+    REGISTRY,
+    STATE_ARCHITECTURES,
+    STEADY_BLOCK,
+    build_plan,
+    estimate,
+    parse_arch,
+    run_plan,
+)
 from fusionlog.core.exact import analyse
+from fusionlog.core.fusion import ci_omega
 from fusionlog.core.kalman import update_joseph, update_millman
 from fusionlog.core.model import Prior, Sensor, System, ajgl2009
-from fusionlog.core.names import STATE_ARCHITECTURES
 from fusionlog.core.simulate import simulate
 
 
@@ -314,3 +323,36 @@ def test_no_prior_run_that_sees_nothing_at_first(arch):
     if arch != "FBS":  # the smoother has the later measurements at k = 0
         assert np.isnan(e.mean[2, 0]).all()
     assert np.isfinite(e.mean[:, -1]).all()
+
+
+def test_registry_is_the_list_of_names():
+    """One list: core.names takes its names and parse_arch from the registry, every name has a
+    builder, and only SKF takes a sensor."""
+    assert names.STATE_ARCHITECTURES == STATE_ARCHITECTURES == tuple(REGISTRY)
+    assert names.parse_arch is parse_arch
+    assert set(names.PAPER_ARCHITECTURES) <= set(REGISTRY)
+    assert [a.name for a in REGISTRY.values() if a.takes_sensor] == ["SKF"]
+    sys = ajgl2009()
+    for name in STATE_ARCHITECTURES:
+        assert build_plan(sys, name, 3).name == name
+    with pytest.raises(ValueError, match="unknown architecture 'EKF'"):
+        build_plan(sys, "EKF", 3)
+    with pytest.raises(ValueError, match="only SKF takes a sensor suffix"):
+        parse_arch("CKF:s1", ["s1"])
+
+
+def test_ci_plan_records_the_omega_of_every_step():
+    """CI's typed `omega` field: per step, the covariance-intersection weights of the local
+    filters' covariances (those of the SKF on each sensor)."""
+    rng = np.random.default_rng(5)
+    sys = random_system(rng, 2, [1, 2, 1])
+    K = 8
+    plan = build_plan(sys, "CI", K)
+    assert plan.omega.shape == (K + 1, 3)
+    assert build_plan(sys, "MSC", K).omega is None
+    local = [build_plan(sys, f"SKF:{s.name}", K).reported_cov for s in sys.sensors]
+    for k in range(K + 1):
+        om = ci_omega([P[k] for P in local])
+        np.testing.assert_allclose(plan.omega[k], om, atol=1e-6)
+        P = np.linalg.inv(sum(w * np.linalg.inv(Pj[k]) for w, Pj in zip(om, local, strict=True)))
+        np.testing.assert_allclose(plan.reported_cov[k], P, rtol=1e-5)

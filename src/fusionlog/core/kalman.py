@@ -12,7 +12,7 @@ def gain(P: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
     (its pseudo-inverse where it is singular to working precision, see `linalg.solve`)."""
     HP = H @ P
     S = sym(HP @ mT(H) + R)
-    return mT(solve(S, HP, hermitian=True))
+    return mT(solve(S, HP, hermitian=True, what="the innovation covariance H P H' + R"))
 
 
 def joseph(

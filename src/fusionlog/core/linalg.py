@@ -112,7 +112,9 @@ def apply(A: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.einsum("...ij,...j->...i", A, v)
 
 
-def solve(A: np.ndarray, B: np.ndarray, *, hermitian: bool = False) -> np.ndarray:
+def solve(
+    A: np.ndarray, B: np.ndarray, *, hermitian: bool = False, what: str = "a matrix to solve with"
+) -> np.ndarray:
     """A^-1 B (batched) by LU; where A is singular to working precision, the minimum-norm
     least-squares solution A^+ B (`hermitian`: A is symmetric, e.g. a covariance).
 
@@ -121,12 +123,13 @@ def solve(A: np.ndarray, B: np.ndarray, *, hermitian: bool = False) -> np.ndarra
     p 1 1' + r I, whose small eigenvalues drown in the rounding of the large one. The
     pseudo-inverse drops exactly those directions, which is the limit of the exact solution
     (for a gain, P H' S^+ is the gain of the noise-free limit). Only singular systems take the
-    slower route, so regular ones keep LU's numbers to the last bit.
+    slower route, so regular ones keep LU's numbers to the last bit. `what` names A in the
+    NumericalError raised when A is not finite.
     """
     try:
         return np.linalg.solve(A, B)
     except np.linalg.LinAlgError:
-        require_finite(A, "a matrix to be solved with")
+        require_finite(A, what)
         return np.linalg.pinv(A, hermitian=hermitian) @ B
 
 

@@ -37,13 +37,13 @@ def _chunk(system: System, steps: int, seed: int, chunk: int) -> tuple[np.ndarra
     init = system.truth_initial
     Q = system.Q
     G = system.G if system.G is not None else np.eye(n)
-    # Draw order is part of the reproducibility contract: x0, then w, then v.
-    e0 = rng.standard_normal((R, n))
-    w = rng.standard_normal((R, steps, Q.shape[0])) @ psd_sqrt(Q).T @ G.T
-    v = rng.standard_normal((R, steps + 1, m)) @ psd_sqrt(system.R).T
-    x = np.empty((R, steps + 1, n))
     # An overflow is reported below, as one error rather than numpy's warnings.
     with np.errstate(over="ignore", invalid="ignore"):
+        # Draw order is part of the reproducibility contract: x0, then w, then v.
+        e0 = rng.standard_normal((R, n))
+        w = rng.standard_normal((R, steps, Q.shape[0])) @ psd_sqrt(Q).T @ G.T
+        v = rng.standard_normal((R, steps + 1, m)) @ psd_sqrt(system.R).T
+        x = np.empty((R, steps + 1, n))
         x[:, 0] = init.mean + e0 @ psd_sqrt(init.cov).T
         for k in range(steps):
             x[:, k + 1] = x[:, k] @ system.F.T + w[:, k]
