@@ -223,6 +223,13 @@ def _analyse(plan: Plan, truth: System) -> Expected:
     ok = ~np.isnan(P[:m]).any(axis=(-1, -2))
     if ok.any():
         Pk, bk, mk = P[:m][ok], bias[:m][ok], mse[:m][ok]
+        definite = np.isfinite(_whitening(Pk)).all(axis=(-2, -1))
+        if not definite.all():
+            k = int(np.flatnonzero(ok)[np.argmin(definite)])
+            raise NumericalError(
+                f"step {k}: the reported covariance is not positive definite to working "
+                "precision (no NEES or DM)"
+            )
         nees[:m][ok] = np.einsum("kij,kji->k", np.linalg.inv(Pk), mk)
         cov = mk - np.einsum("ki,kj->kij", bk, bk)
         # Steady-state steps repeat the same statistics: integrate each distinct one once.

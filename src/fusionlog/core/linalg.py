@@ -27,16 +27,22 @@ def mT(A: np.ndarray) -> np.ndarray:
     return A.swapaxes(-1, -2)
 
 
-def spd_inv(A: np.ndarray) -> np.ndarray:
+def spd_inv(A: np.ndarray, what: str = "a covariance or information matrix") -> np.ndarray:
     """Inverse of a symmetric positive definite matrix via a solve, symmetrised.
 
     np.linalg.inv is LAPACK's gesv with the identity as right-hand side, i.e. the same solve,
-    without building and broadcasting the identity first.
+    without building and broadcasting the identity first. A matrix singular to working
+    precision raises NumericalError naming it (`what`).
     """
-    return sym(np.linalg.inv(A))
+    try:
+        return sym(np.linalg.inv(A))
+    except np.linalg.LinAlgError:
+        raise NumericalError(f"{what} is singular to working precision") from None
 
 
-def spd_inv_scaled(A: np.ndarray, spread: float = 1e8) -> np.ndarray:
+def spd_inv_scaled(
+    A: np.ndarray, spread: float = 1e8, what: str = "a covariance or information matrix"
+) -> np.ndarray:
     """`spd_inv`, through the Jacobi scaling D^-1/2 A D^-1/2 (D = diag A) for the matrices
     whose diagonal spans more than `spread`: A^-1 = D^-1/2 (D^-1/2 A D^-1/2)^-1 D^-1/2.
 
@@ -49,19 +55,19 @@ def spd_inv_scaled(A: np.ndarray, spread: float = 1e8) -> np.ndarray:
     d = A.diagonal(0, -2, -1)
     if d.size <= 16:  # one step's matrices: Python compares faster than numpy reduces
         dl = d.ravel().tolist()
-        if not min(dl) > 0 or max(dl) <= spread * min(dl):
-            return spd_inv(A)
+        if min(dl) > 0 and max(dl) <= spread * min(dl):  # none of them is wide
+            return spd_inv(A, what)
     lo, hi = d.min(axis=-1), d.max(axis=-1)
     wide = (lo > 0) & (hi > spread * lo)
     if not wide.any():
-        return spd_inv(A)
+        return spd_inv(A, what)
     s = 1.0 / np.sqrt(np.where(wide[..., None], d, 1.0))
     S = s[..., :, None] * s[..., None, :]
-    scaled = sym(np.linalg.inv(A * S) * S)
+    scaled = spd_inv(A * S, what) * S
     if wide.all():
         return scaled
     wide = wide[..., None, None]
-    return np.where(wide, scaled, spd_inv(np.where(wide, np.eye(A.shape[-1]), A)))
+    return np.where(wide, scaled, spd_inv(np.where(wide, np.eye(A.shape[-1]), A), what))
 
 
 def is_invertible(Y: np.ndarray, rtol: float = 1e-13) -> np.ndarray:
@@ -141,12 +147,14 @@ NUMERICAL_FAILURES = (np.linalg.LinAlgError, FloatingPointError, OverflowError, 
 def numerical_errors(where: Callable[[], str]) -> Iterator[None]:
     """Run a computation without numpy's overflow warnings (overflows are checked explicitly,
     `require_finite`) and turn its numerical failures into one NumericalError prefixed by
-    `where()` (called only on failure: it names the architecture and the step)."""
+    `where()` (called only on failure: it names the architecture and the step; a message
+    that names the step itself, "step k: ...", follows it after a comma)."""
     try:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             yield
     except NumericalError as e:
-        raise NumericalError(f"{where()}: {e}") from None
+        sep = ", " if str(e).startswith("step ") else ": "
+        raise NumericalError(f"{where()}{sep}{e}") from None
     except NUMERICAL_FAILURES as e:
         raise NumericalError(
             f"{where()}: a matrix is singular or overflows to working precision "

@@ -63,17 +63,17 @@ def build_hkf(request: BuildRequest) -> Plan:
             Pp, Tp = front.mat, eye
         else:
             Pp, Tp = sym(F @ P @ F.T + GQG), F
-        Yp = inv(Pp)
+        Yp = inv(Pp, what="the predicted covariance")
         Hj, Rj = sensors.masked(present[..., k, :])  # batch + (S, r, .)
         Ppj = Pp[..., None, :, :]  # every local starts from the fused prediction
         Kj = gain(Ppj, Hj, Rj)
         IKH = eye - Kj @ Hj
-        Yj = inv(joseph(Ppj, Kj, Hj, Rj, IKH))
+        Yj = inv(joseph(Ppj, Kj, Hj, Rj, IKH), what="a local covariance")
         Yf = sum_after((1 - S) * Yp, Yj)
         Tacc = sum_after((1 - S) * Yp, Yj @ IKH)
         # Each sensor's gain sits in its own columns of z_k, zero elsewhere: the sum is exact.
         U = (Yj @ Kj @ sensors.E).sum(axis=-3)
-        P = inv(Yf)
+        P = inv(Yf, what="the fused information")
         if not all_finite(P):
             require_finite(Pp, "the predicted covariance")
             require_finite(P, "the fused covariance")

@@ -35,14 +35,15 @@ def local_infos(forms: np.ndarray, mats: np.ndarray) -> tuple[np.ndarray, np.nda
     at once: forms (L, S), mats (L,) + batch + (S, n, n). In covariance form Y_j = P_j^-1 = W_j;
     in information form the state is the information vector itself: Y_j is the matrix the
     filter carries and W_j = I."""
+    what = "a local filter's covariance"
     if not forms.any():
-        Y = spd_inv_scaled(mats)
+        Y = spd_inv_scaled(mats, what=what)
         require_finite(Y, "the local information P_j^-1", per_step=True)
         return Y, Y
     # Steps and locals side by side, (L, S) + batch + (n, n), to pick them by their form.
     M = np.moveaxis(mats, -3, 1)
     Y = np.empty_like(M)
-    Y[~forms] = spd_inv_scaled(M[~forms])
+    Y[~forms] = spd_inv_scaled(M[~forms], what=what)
     Y[forms] = M[forms]
     require_finite(Y, "the local information P_j^-1", per_step=True)
     W = Y.copy()
