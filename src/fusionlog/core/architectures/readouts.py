@@ -13,9 +13,23 @@ from functools import lru_cache
 
 import numpy as np
 
+from ...errors import NumericalError
 from ..fusion import ci_omegas, gmf_weight_matrix
 from ..linalg import bc, inv_or_nan, mT, require_finite, spd_inv_scaled, stack_cols, sym
 from .plan import StepMap
+
+
+def require_fused(forms: np.ndarray, P: np.ndarray, rule: str) -> None:
+    """Refuse a fused covariance P ((L,) + batch + (n, n)) that is undefined at a step where
+    every local filter has an estimate of its own (forms (L, S) all False): the rule has an
+    answer there, so NaN means its numbers left the float range."""
+    every = ~forms.any(axis=1)
+    bad = every & ~np.isfinite(P).reshape(len(P), -1).all(axis=1)
+    if bad.any():
+        raise NumericalError(
+            f"step {int(np.argmax(bad))}: {rule} gives no estimate although every local filter "
+            "has one (their informations are beyond the float range)"
+        )
 
 
 def set_readouts(steps: list[StepMap], O: np.ndarray, P: np.ndarray) -> None:
@@ -59,6 +73,7 @@ def msc_readouts(steps: list[StepMap], forms: np.ndarray, mats: np.ndarray) -> N
     Y = Ys.sum(axis=-3)
     require_finite(Y, "the fused information sum_j P_j^-1", per_step=True)
     P = inv_or_nan(Y)  # each step on its own
+    require_fused(forms, P, "Millman's formula")
     set_readouts(steps, stack_cols(P[..., None, :, :] @ Ws), P)
 
 
@@ -108,6 +123,7 @@ def ci_readouts(
     L, S, n = Ys.shape[0], Ys.shape[-3], Ys.shape[-1]
     om = ci_omegas(Ys.reshape((-1, S, n, n)), criterion).reshape(Ys.shape[:-2])
     P = inv_or_nan(np.einsum("...j,...jab->...ab", om, Ys))
+    require_fused(forms, P, "covariance intersection")
     O = np.concatenate([om[..., j, None, None] * (P @ Ws[..., j, :, :]) for j in range(S)], -1)
     by_id = {}
     for i in range(L):
