@@ -57,14 +57,27 @@ def run_plan(plan: Plan, z: np.ndarray, *, route: Route = "auto") -> Estimate:
             c = _recursion(plan, np.zeros((1, K1, m)))
         plan.dense = DenseMap(W.reshape(K1 * m, -1), c.reshape(-1))
     W, c = plan.dense.W, plan.dense.c
-    if np.isnan(z).any():  # absent in the plan's own mask: W has zero weight there
-        z = np.where(np.isnan(z), 0.0, z)
+    nan_zeroed = False
+    if not plan.complete and np.isnan(z).any():  # absent in the plan's mask: zero weight there
+        z, nan_zeroed = np.where(np.isnan(z), 0.0, z), True
+    mean = _dense(z, W, c)
+    # One pass over the means finds an overflow, and NaN measurements that a plan without
+    # absent components was given after all (the old contract: they count as absent, i.e. as
+    # 0 -- looked for only now, which saves complete plans a pass over z).
+    if not np.isfinite(mean).all():
+        if not nan_zeroed and np.isnan(z).any():
+            mean = _dense(np.where(np.isnan(z), 0.0, z), W, c)
+        _require_defined(plan, mean, cov)
+    return Estimate(mean, cov)
+
+
+def _dense(z: np.ndarray, W: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """vec(z) W + c for each run, as one GEMM on the contiguous (M, (K+1) m) view of z."""
+    M, K1, m = z.shape
     with np.errstate(over="ignore", invalid="ignore"):
         mean = np.ascontiguousarray(z).reshape(M, K1 * m) @ W
         mean += c
-    mean = mean.reshape(M, K1, -1)
-    _require_defined(plan, mean, cov)
-    return Estimate(mean, cov)
+    return mean.reshape(M, K1, -1)
 
 
 def _require_defined(plan: Plan, mean: np.ndarray, cov: np.ndarray) -> None:

@@ -70,6 +70,8 @@ class Plan:
     per_run: bool = False
     D0: np.ndarray | None = None  # (d0, n): D of the initial state s0
     system: System | None = None  # the model the plan was built for
+    #: Whether the plan's mask has every measurement component present at every step.
+    complete: bool = True
     #: Covariance intersection's weights, batch + (K+1, S) (NaN at steps without a fusion);
     #: None for the other architectures.
     omega: np.ndarray | None = None

@@ -103,6 +103,7 @@ def build_plan(
         check_model(system)
         plan = REGISTRY[base].build(request)
     plan.system = system
+    plan.complete = bool(present.all())
     return plan
 
 
