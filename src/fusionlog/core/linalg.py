@@ -53,10 +53,13 @@ def spd_inv_scaled(
     a microsecond on the few matrices of a step.
     """
     d = A.diagonal(0, -2, -1)
-    if d.size <= 16:  # one step's matrices: Python compares faster than numpy reduces
+    if d.size <= 64:  # a few matrices: Python compares faster than numpy reduces
         dl = d.ravel().tolist()
-        if min(dl) > 0 and max(dl) <= spread * min(dl):  # none of them is wide
-            return spd_inv(A, what)
+        lo, hi = min(dl), max(dl)
+    else:
+        lo, hi = float(d.min()), float(d.max())
+    if lo > 0 and hi <= spread * lo:  # none of them is wide
+        return spd_inv(A, what)
     lo, hi = d.min(axis=-1), d.max(axis=-1)
     wide = (lo > 0) & (hi > spread * lo)
     if not wide.any():
@@ -213,9 +216,14 @@ def block_diag(mats: list[np.ndarray]) -> np.ndarray:
 def stack_diag(X: np.ndarray) -> np.ndarray:
     """Block-diagonal matrix of a stack: (..., S, a, b) -> (..., S a, S b)."""
     *lead, S, a, b = X.shape
+    if not lead:  # a few slice copies beat one fancy-indexed assignment (every plan step)
+        out = np.zeros((S * a, S * b))
+        for j in range(S):
+            out[j * a : (j + 1) * a, j * b : (j + 1) * b] = X[j]
+        return out
     out = np.zeros((*lead, S, a, S, b))
     i = np.arange(S)
-    out[..., i, :, i, :] = np.moveaxis(X, -3, 0) if lead else X  # the index puts S first
+    out[..., i, :, i, :] = np.moveaxis(X, -3, 0)  # the index puts S first
     return out.reshape((*lead, S * a, S * b))
 
 

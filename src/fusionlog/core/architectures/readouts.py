@@ -15,7 +15,7 @@ import numpy as np
 
 from ...errors import NumericalError
 from ..fusion import ci_omegas, gmf_weight_matrix
-from ..linalg import bc, inv_or_nan, mT, require_finite, spd_inv_scaled, stack_cols, sym
+from ..linalg import all_finite, bc, inv_or_nan, mT, require_finite, spd_inv_scaled, stack_cols, sym
 from .plan import StepMap
 
 
@@ -23,6 +23,8 @@ def require_fused(forms: np.ndarray, P: np.ndarray, rule: str) -> None:
     """Refuse a fused covariance P ((L,) + batch + (n, n)) that is undefined at a step where
     every local filter has an estimate of its own (forms (L, S) all False): the rule has an
     answer there, so NaN means its numbers left the float range."""
+    if all_finite(P):
+        return
     every = ~forms.any(axis=1)
     bad = every & ~np.isfinite(P).reshape(len(P), -1).all(axis=1)
     if bad.any():

@@ -110,9 +110,15 @@ def build_plan(
 def check_model(system: System) -> None:
     """Refuse a model whose matrices are not finite (an accepted entry of 1e308 can overflow
     where the model is assembled, e.g. in G Q G')."""
-    mats = {"the model's F": system.F, "the model's G Q G'": system.GQG, "R": system.R}
+    mats = {"the model's F": system.F, "the model's G Q G'": system.GQG}
     if system.prior is not None:
         mats |= {"the prior mean": system.prior.mean, "the prior covariance": system.prior.cov}
+    mats |= {f"sensor {s.name}'s R": s.R for s in system.sensors}
+    names = [s.name for s in system.sensors]
+    mats |= {
+        f"the noise cross-covariance of {names[i]} and {names[j]}": c
+        for (i, j), c in system.cross_R.items()
+    }
     for what, a in mats.items():
         if not all_finite(a):
             raise NumericalError(f"{what} is not finite (beyond the float range, about 1.8e308)")
