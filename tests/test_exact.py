@@ -41,8 +41,8 @@ def test_expected_dm_general_gaussian_by_sampling():
 def test_optimal_architectures_report_their_true_covariance(arch):
     """A filter (or smoother) optimal for its own data reports exactly its error covariance."""
     rng = np.random.default_rng(11)
-    sys = random_system(rng, 3, [1, 2, 1])
-    ex = analyse(build_plan(sys, arch, 30), sys)
+    system = random_system(rng, 3, [1, 2, 1])
+    ex = analyse(build_plan(system, arch, 30), system)
     np.testing.assert_allclose(ex.mse, ex.P, rtol=1e-8, atol=1e-12)
     np.testing.assert_allclose(ex.nees, 3.0, rtol=1e-9)
     np.testing.assert_allclose(ex.bias, 0.0, atol=1e-12)
@@ -63,26 +63,26 @@ def _mc_stats(x, est):
 
 @pytest.fixture(scope="module")
 def paper_mc():
-    sys = ajgl2009()
-    x, z = simulate(sys, 20, 2009, 0, 10_000)
-    return sys, x, z
+    system = ajgl2009()
+    x, z = simulate(system, 20, 2009, 0, 10_000)
+    return system, x, z
 
 
 @pytest.mark.parametrize("arch", STATE_ARCHITECTURES)
 def test_monte_carlo_within_four_standard_errors_of_exact(paper_mc, arch):
-    sys, x, z = paper_mc
-    mc = _mc_stats(x, estimate(sys, z, arch))
-    ex = analyse(build_plan(sys, arch, 20), sys)
+    system, x, z = paper_mc
+    mc = _mc_stats(x, estimate(system, z, arch))
+    ex = analyse(build_plan(system, arch, 20), system)
     exact = {"mse": ex.mse_per_state.mean(), "anees": ex.nees.mean(), "dm": ex.dm.mean()}
     for key, (mean, se) in mc.items():
         assert abs(mean - exact[key]) < 4 * se, (key, mean, exact[key], se)
 
 
 def test_paper_consistency_structure():
-    sys = ajgl2009()
+    system = ajgl2009()
     M, n = 10_000, 2
     upper = stats.chi2.ppf(0.975, M * n) / M
-    ex = {a: analyse(build_plan(sys, a, 20), sys) for a in STATE_ARCHITECTURES}
+    ex = {a: analyse(build_plan(system, a, 20), system) for a in STATE_ARCHITECTURES}
     for a in ("CKF", "HKF", "MSC-GMF", "SKF", "FBS"):
         np.testing.assert_allclose(ex[a].nees, n, rtol=1e-9)
         np.testing.assert_allclose(ex[a].dm, np.sqrt(np.pi / 2), rtol=1e-9)
@@ -126,10 +126,10 @@ def test_model_mismatch_against_monte_carlo():
 def test_long_horizon_stays_accurate():
     """10^5 steps of a random walk: the truth's variance grows like k^3, the error's does not;
     the analysis must not lose the error in the cancellation."""
-    sys = ajgl2009()
-    ex = analyse(build_plan(sys, "MSC-GMF", 100_000), sys)
+    system = ajgl2009()
+    ex = analyse(build_plan(system, "MSC-GMF", 100_000), system)
     np.testing.assert_allclose(ex.nees, 2.0, rtol=1e-8)
-    plan = build_plan(sys, "CKF", 100_000)
+    plan = build_plan(system, "CKF", 100_000)
     P = plan.reported_cov
     np.testing.assert_array_equal(P, np.swapaxes(P, 1, 2))
     assert np.linalg.eigvalsh(P).min() > 0
@@ -140,9 +140,9 @@ def test_correlated_sensor_noise_is_accounted_for(arch):
     """With cross-covariances between sensor noises (block R of eq. 31), the CKF and the
     GMF's joint recursion (35) with the K_i R_ij K_j^T term stay exact: reported = true."""
     rng = np.random.default_rng(21)
-    sys = random_system(rng, 2, [1, 2, 1], correlated=True)
-    assert sys.cross_R
-    ex = analyse(build_plan(sys, arch, 25), sys)
+    system = random_system(rng, 2, [1, 2, 1], correlated=True)
+    assert system.cross_R
+    ex = analyse(build_plan(system, arch, 25), system)
     np.testing.assert_allclose(ex.mse, ex.P, rtol=1e-8, atol=1e-12)
 
 
@@ -150,16 +150,16 @@ def test_hkf_ignores_sensor_correlation_and_pays_for_it():
     """HKF's equivalent measurements assume independent sensors: with correlated noise it is no
     longer the CKF, and the exact analysis shows it (true MSE above the CKF's)."""
     rng = np.random.default_rng(22)
-    sys = random_system(rng, 2, [1, 1], correlated=True)
-    ckf = analyse(build_plan(sys, "CKF", 25), sys)
-    hkf = analyse(build_plan(sys, "HKF", 25), sys)
+    system = random_system(rng, 2, [1, 1], correlated=True)
+    ckf = analyse(build_plan(system, "CKF", 25), system)
+    hkf = analyse(build_plan(system, "HKF", 25), system)
     assert np.trace(hkf.mse[-1]) > np.trace(ckf.mse[-1]) * (1 + 1e-6)
 
 
 @pytest.mark.parametrize("arch", STATE_ARCHITECTURES)
 def test_hundred_thousand_steps_stay_symmetric_positive_definite(arch):
-    sys = ajgl2009()
-    P = build_plan(sys, arch, 100_000).reported_cov
+    system = ajgl2009()
+    P = build_plan(system, arch, 100_000).reported_cov
     assert P.shape == (100_001, 2, 2)
     np.testing.assert_array_equal(P, np.swapaxes(P, 1, 2))
     assert np.linalg.eigvalsh(P).min() > 0
