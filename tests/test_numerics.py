@@ -117,6 +117,9 @@ def _outcomes(text: str, name: str) -> dict[tuple[str, str], str]:
                         ex = analyse(plan, system)
                         for a in (ex.mse, ex.nees, ex.dm):
                             assert np.isfinite(a[defined[0]]).all(), (arch, "exact analysis")
+                        # Jensen: E sqrt(q) <= sqrt(E q), whatever the scale of P
+                        dm, nees = ex.dm[defined[0]], ex.nees[defined[0]]
+                        assert np.all(dm <= np.sqrt(nees) * (1 + 1e-6)), (arch, dm, nees)
                 out[arch, path] = "finite"
             except NumericalError as e:
                 msg = str(e)

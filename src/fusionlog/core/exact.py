@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import NumericalError
 from .architectures import Plan
-from .linalg import mT, numerical_errors, sym
+from .linalg import mT, numerical_errors, sym, wide_diagonal
 from .model import System
 
 
@@ -230,7 +230,10 @@ def _analyse(plan: Plan, truth: System) -> Expected:
                 f"step {k}: the reported covariance is not positive definite to working "
                 "precision (no NEES or DM)"
             )
-        nees[:m][ok] = np.einsum("kij,kji->k", np.linalg.inv(Pk), mk)
+        # For badly scaled P (see _whitening) P^-1 = W^T W; otherwise LU's inverse, as ever.
+        Linv = _whitening(Pk) if wide_diagonal(Pk) else None
+        Pinv = np.linalg.inv(Pk) if Linv is None else mT(Linv) @ Linv
+        nees[:m][ok] = np.einsum("kij,kji->k", Pinv, mk)
         cov = mk - np.einsum("ki,kj->kij", bk, bk)
         # Steady-state steps repeat the same statistics: integrate each distinct one once.
         key = np.concatenate([Pk.reshape(len(Pk), -1), bk, cov.reshape(len(cov), -1)], 1)
@@ -280,7 +283,19 @@ def _whitening(P: np.ndarray) -> np.ndarray:
     """W with W^T W = P^-1 for each P of a batch: the inverse Cholesky factor, or, where the
     factorisation fails on a matrix that rounding left barely definite, diag(w)^-1/2 V^T from
     its eigen-decomposition (any such W gives the same quadratic form); NaN where P is not
-    positive definite."""
+    positive definite.
+
+    A P whose diagonal spans more than 1e8 (a position known to 1e-150 beside a velocity known
+    to 0.1) is Jacobi-scaled first, P = D^1/2 Ps D^1/2 and W = chol(Ps)^-1 D^-1/2: the LU
+    inverse of its own Cholesky factor would put rounding garbage of 1e134 where a zero is.
+    The others are scaled by 1, which leaves their numbers as they were.
+    """
+    d = P.diagonal(0, -2, -1)
+    lo, hi = d.min(axis=-1), d.max(axis=-1)
+    wide = (lo > 0) & (hi > 1e8 * lo)
+    if wide.any():
+        s = 1.0 / np.sqrt(np.where(wide[..., None], d, 1.0))
+        return _whitening(P * (s[..., :, None] * s[..., None, :])) * s[..., None, :]
     try:
         return np.linalg.inv(np.linalg.cholesky(P))
     except np.linalg.LinAlgError:

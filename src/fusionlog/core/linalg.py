@@ -40,6 +40,14 @@ def spd_inv(A: np.ndarray, what: str = "a covariance or information matrix") -> 
         raise NumericalError(f"{what} is singular to working precision") from None
 
 
+def wide_diagonal(A: np.ndarray, spread: float = 1e8) -> bool:
+    """Whether some matrix of the batch has a positive diagonal spanning more than `spread`:
+    badly scaled, where LU inverses lose the small entries (see `spd_inv_scaled`)."""
+    d = A.diagonal(0, -2, -1)
+    lo, hi = d.min(axis=-1), d.max(axis=-1)
+    return bool(((lo > 0) & (hi > spread * lo)).any())
+
+
 def spd_inv_scaled(
     A: np.ndarray, spread: float = 1e8, what: str = "a covariance or information matrix"
 ) -> np.ndarray:

@@ -38,6 +38,9 @@ from typing import Any
 import numpy as np
 from scipy import special
 
+from ..errors import NumericalError
+from .linalg import spd_inv_scaled, wide_diagonal
+
 __all__ = [
     "MetricsAccumulator",
     "MetricsResult",
@@ -334,8 +337,10 @@ def _cov_terms(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
         cov_ok = np.isfinite(cov).all(axis=(-2, -1))
         p_safe = np.where(cov_ok[..., None, None], cov, np.eye(cov.shape[-1]))
     try:
-        p_inv = np.linalg.inv(p_safe)
-    except np.linalg.LinAlgError:
+        # Badly scaled P (a position known to 1e-150 beside a velocity known to 0.1) loses its
+        # small entries in LU's inverse: those go through their Jacobi scaling.
+        p_inv = spd_inv_scaled(p_safe) if wide_diagonal(p_safe) else np.linalg.inv(p_safe)
+    except (np.linalg.LinAlgError, NumericalError):
         p_inv = np.linalg.pinv(p_safe, hermitian=True)
     return p_inv, np.trace(p_safe, axis1=-2, axis2=-1), cov_ok
 
