@@ -6,11 +6,20 @@ import numpy as np
 import pytest
 from conftest import random_spd, random_system
 
-from fusionlog.core.architectures import build_plan, estimate, run_plan
+from fusionlog.core import names
+from fusionlog.core.architectures import (
+    REGISTRY,
+    STATE_ARCHITECTURES,
+    STEADY_BLOCK,
+    build_plan,
+    estimate,
+    parse_arch,
+    run_plan,
+)
 from fusionlog.core.exact import analyse
+from fusionlog.core.fusion import ci_omega
 from fusionlog.core.kalman import update_joseph, update_millman
 from fusionlog.core.model import Prior, Sensor, System, ajgl2009
-from fusionlog.core.names import STATE_ARCHITECTURES
 from fusionlog.core.simulate import simulate
 
 
@@ -35,18 +44,18 @@ def test_hkf_equals_ckf(seed):
     rng = np.random.default_rng(seed)
     n = int(rng.integers(1, 5))
     dims = [int(d) for d in rng.integers(1, 4, size=int(rng.integers(1, 6)))]
-    sys = random_system(rng, n, dims)
-    _, z = simulate(sys, 25, seed, 0, 4)
-    ckf, hkf = estimate(sys, z, "CKF"), estimate(sys, z, "HKF")
+    system = random_system(rng, n, dims)
+    _, z = simulate(system, 25, seed, 0, 4)
+    ckf, hkf = estimate(system, z, "CKF"), estimate(system, z, "HKF")
     scale = np.abs(ckf.mean).max()
     np.testing.assert_allclose(hkf.mean, ckf.mean, rtol=1e-9, atol=1e-9 * scale)
     np.testing.assert_allclose(hkf.cov, ckf.cov, rtol=1e-9, atol=1e-12)
 
 
 def test_paper_structure_ckf_hkf_and_msc_gmf():
-    sys = ajgl2009()
-    x, z = simulate(sys, 20, 1, 0, 500)
-    ests = {a: estimate(sys, z, a) for a in STATE_ARCHITECTURES}
+    system = ajgl2009()
+    x, z = simulate(system, 20, 1, 0, 500)
+    ests = {a: estimate(system, z, a) for a in STATE_ARCHITECTURES}
     np.testing.assert_allclose(ests["HKF"].mean, ests["CKF"].mean, atol=1e-9)
     # Identical sensors: the optimal GMF weights are the plain average, as are Millman's.
     np.testing.assert_allclose(ests["MSC-GMF"].mean, ests["MSC"].mean, atol=1e-9)
@@ -72,10 +81,10 @@ def _tol(arch: str) -> float:
 def test_per_run_path_equals_shared_path(arch):
     """The batched per-run path with nothing missing gives the shared-gain numbers."""
     rng = np.random.default_rng(1)
-    sys = random_system(rng, 3, [1, 2, 1])
-    _, z = simulate(sys, 12, 3, 0, 5)
-    shared = run_plan(build_plan(sys, arch, 12), z)
-    per_run = run_plan(build_plan(sys, arch, 12, np.ones(z.shape, bool)), z)
+    system = random_system(rng, 3, [1, 2, 1])
+    _, z = simulate(system, 12, 3, 0, 5)
+    shared = run_plan(build_plan(system, arch, 12), z)
+    per_run = run_plan(build_plan(system, arch, 12, np.ones(z.shape, bool)), z)
     assert per_run.cov.ndim == 4 and shared.cov.ndim == 3
     np.testing.assert_allclose(per_run.mean, shared.mean, rtol=_tol(arch), atol=_tol(arch) / 10)
     np.testing.assert_allclose(
@@ -88,18 +97,18 @@ def test_missing_measurements_per_run(arch):
     """Runs with different NaN patterns: each run equals a shared plan built for its own mask,
     which in turn equals dropping the missing sensor from that step."""
     rng = np.random.default_rng(2)
-    sys = random_system(rng, 2, [1, 1, 2])
-    _, z = simulate(sys, 10, 4, 0, 4)
+    system = random_system(rng, 2, [1, 1, 2])
+    _, z = simulate(system, 10, 4, 0, 4)
     z = z.copy()
     z[0, 3, 0] = np.nan
     z[1, 5:7, 1] = np.nan
     z[2, 0, 2:4] = np.nan
     z[3, 8, 3] = np.nan  # one component of a 2-D sensor
-    est = estimate(sys, z, arch)
+    est = estimate(system, z, arch)
     assert est.cov.ndim == 4
     for r in range(z.shape[0]):
         mask = ~np.isnan(z[r])
-        single = run_plan(build_plan(sys, arch, 10, mask), z[r : r + 1])
+        single = run_plan(build_plan(system, arch, 10, mask), z[r : r + 1])
         np.testing.assert_allclose(
             est.mean[r], single.mean[0], rtol=_tol(arch), atol=_tol(arch) / 10
         )
@@ -111,27 +120,27 @@ def test_identical_sensors_with_different_gaps_keep_their_own_history(per_run):
     """Local filters of identical sensors that missed different measurements have different
     covariances from then on, even when their sensors report together again: MSC's P is
     Millman's fusion, eq. (33), of the single-sensor filters run with the same mask."""
-    sys = ajgl2009()
+    system = ajgl2009()
     K = 12
     present = np.ones((K + 1, 3), dtype=bool)
     present[0, 1] = False
     present[3:5, 0] = False
     if per_run:
         present = np.stack([present, np.ones_like(present), present[:, ::-1]])
-    msc = build_plan(sys, "MSC", K, present).reported_cov
-    local = [build_plan(sys, f"SKF:s{j + 1}", K, present).reported_cov for j in range(3)]
+    msc = build_plan(system, "MSC", K, present).reported_cov
+    local = [build_plan(system, f"SKF:s{j + 1}", K, present).reported_cov for j in range(3)]
     millman = np.linalg.inv(sum(np.linalg.inv(P) for P in local))
     np.testing.assert_allclose(msc, millman, rtol=1e-12, atol=1e-14)
 
 
 def test_missing_sensor_equals_filter_without_it():
     rng = np.random.default_rng(3)
-    sys = random_system(rng, 2, [1, 1])
-    _, z = simulate(sys, 6, 5, 0, 1)
+    system = random_system(rng, 2, [1, 1])
+    _, z = simulate(system, 6, 5, 0, 1)
     zz = z.copy()
     zz[:, :, 1] = np.nan
-    only_first = estimate(sys, zz, "CKF")
-    skf = estimate(sys, z, "SKF:s1")
+    only_first = estimate(system, zz, "CKF")
+    skf = estimate(system, z, "SKF:s1")
     np.testing.assert_allclose(only_first.mean, skf.mean, atol=1e-10)
     assert only_first.cov.ndim == 3  # the same pattern in every run keeps the shared path
     np.testing.assert_allclose(only_first.cov, skf.cov, atol=1e-12)
@@ -152,14 +161,14 @@ def _static_two_sensor_system(prior: bool) -> System:
 
 def test_no_prior_information_form_is_wls():
     """Without a prior the first estimate is exactly the WLS / fusion formula of the slides."""
-    sys = _static_two_sensor_system(prior=False)
-    _, z = simulate(sys, 0, 1, 0, 50)
-    R1, R2 = sys.sensors[0].R, sys.sensors[1].R
+    system = _static_two_sensor_system(prior=False)
+    _, z = simulate(system, 0, 1, 0, 50)
+    R1, R2 = system.sensors[0].R, system.sensors[1].R
     P = np.linalg.inv(np.linalg.inv(R1) + np.linalg.inv(R2))
     x = (np.linalg.solve(R1, z[:, 0, :2].T) + np.linalg.solve(R2, z[:, 0, 2:].T)).T @ P
     np.testing.assert_allclose(P, np.diag([0.018, 0.018]), atol=1e-15)
     for arch in ("CKF", "HKF", "MSC", "MSC-GMF", "FBS"):
-        est = estimate(sys, z, arch)
+        est = estimate(system, z, arch)
         np.testing.assert_allclose(est.cov[0], P, rtol=1e-12, atol=1e-15)
         np.testing.assert_allclose(est.mean[:, 0], x, rtol=1e-12, atol=1e-12)
 
@@ -167,18 +176,20 @@ def test_no_prior_information_form_is_wls():
 def test_no_prior_unobservable_then_defined():
     """Position-only sensors on a constant-velocity state: undefined at k = 0, exact after, and
     the limit of an ever vaguer prior."""
-    sys0 = ajgl2009()
-    sys = System(F=sys0.F, Q=sys0.Q, sensors=sys0.sensors, prior=None, initial=sys0.prior)
-    vague = System(
-        F=sys0.F,
-        Q=sys0.Q,
-        sensors=sys0.sensors,
-        prior=Prior(np.zeros(2), 1e7 * np.eye(2)),
-        initial=sys0.prior,
+    system0 = ajgl2009()
+    system = System(
+        F=system0.F, Q=system0.Q, sensors=system0.sensors, prior=None, initial=system0.prior
     )
-    _, z = simulate(sys, 8, 2, 0, 3)
+    vague = System(
+        F=system0.F,
+        Q=system0.Q,
+        sensors=system0.sensors,
+        prior=Prior(np.zeros(2), 1e7 * np.eye(2)),
+        initial=system0.prior,
+    )
+    _, z = simulate(system, 8, 2, 0, 3)
     for arch in ("CKF", "HKF", "MSC", "FBS", "SKF"):
-        est = estimate(sys, z, arch)
+        est = estimate(system, z, arch)
         ref = estimate(vague, z, arch)
         assert np.isnan(est.cov[0]).all() and np.isnan(est.mean[:, 0]).all() or arch == "FBS"
         np.testing.assert_allclose(est.mean[:, 1:], ref.mean[:, 1:], rtol=1e-5, atol=1e-4)
@@ -194,14 +205,14 @@ def _assert_spd(P: np.ndarray) -> None:
 @pytest.mark.parametrize("arch", STATE_ARCHITECTURES)
 def test_extreme_noise_scales(arch):
     """R spanning 1e-8 .. 1e8 breaks no architecture."""
-    sys0 = ajgl2009()
+    system0 = ajgl2009()
     sensors = tuple(
         Sensor(f"s{j}", np.array([[1.0, 0.0]]), np.array([[r]]))
         for j, r in enumerate([1e-8, 1.0, 1e8])
     )
-    sys = System(F=sys0.F, Q=sys0.Q, sensors=sensors, prior=sys0.prior)
-    x, z = simulate(sys, 30, 1, 0, 200)
-    est = estimate(sys, z, arch)
+    system = System(F=system0.F, Q=system0.Q, sensors=sensors, prior=system0.prior)
+    x, z = simulate(system, 30, 1, 0, 200)
+    est = estimate(system, z, arch)
     _assert_spd(est.cov)
     assert np.isfinite(est.mean).all()
     err = x - est.mean
@@ -211,55 +222,54 @@ def test_extreme_noise_scales(arch):
 
 def test_dense_path_keeps_precision_with_a_large_prior_mean():
     """UTM-sized coordinates: the dense map must not cancel the gains against the prior mean."""
-    sys0 = ajgl2009()
-    sys = System(
-        F=sys0.F, Q=sys0.Q, sensors=sys0.sensors, prior=Prior(np.array([5e6, -1.0]), np.eye(2))
+    system0 = ajgl2009()
+    system = System(
+        F=system0.F,
+        Q=system0.Q,
+        sensors=system0.sensors,
+        prior=Prior(np.array([5e6, -1.0]), np.eye(2)),
     )
-    _, z = simulate(sys, 100, 1, 0, 50)
-    plan = build_plan(sys, "CKF", 100)
-    from fusionlog.core.architectures import _recursion
-
-    np.testing.assert_allclose(run_plan(plan, z).mean, _recursion(plan, z), rtol=1e-13, atol=1e-7)
+    _, z = simulate(system, 100, 1, 0, 50)
+    plan = build_plan(system, "CKF", 100)
+    dense, steps = run_plan(plan, z).mean, run_plan(plan, z, route="steps").mean
+    np.testing.assert_allclose(dense, steps, rtol=1e-13, atol=1e-7)
 
 
 @pytest.mark.parametrize("arch", STATE_ARCHITECTURES)
 @pytest.mark.parametrize("prior", [True, False])
-def test_steady_tail_in_blocks_equals_step_recursion(arch, prior, monkeypatch):
+def test_steady_tail_in_blocks_equals_step_recursion(arch, prior):
     """A long log with few runs runs its steady tail (and FBS's steady middle) in blocks of
     steps; the numbers are those of the plain step recursion, also far from the origin."""
-    import fusionlog.core.architectures as archs
-
-    sys0 = ajgl2009()  # every local filter observable: all plans reach a steady state
+    system0 = ajgl2009()  # every local filter observable: all plans reach a steady state
     far = Prior(np.array([5e4, -1.0]), np.eye(2))
-    sys = System(
-        F=sys0.F,
-        Q=sys0.Q,
-        sensors=sys0.sensors,
+    system = System(
+        F=system0.F,
+        Q=system0.Q,
+        sensors=system0.sensors,
         prior=far if prior else None,
         initial=None if prior else far,
     )
     K = 1000 + 7  # not a multiple of the block
-    _, z = simulate(sys, K, 2, 3, 50)
-    plan = build_plan(sys, arch, K)
-    assert archs._steady_from(plan.steps) < K + 1 - 2 * archs._BLOCK  # the blocked path runs
+    _, z = simulate(system, K, 2, 3, 50)
+    plan = build_plan(system, arch, K)
+    assert plan.steady_from < K + 1 - 2 * STEADY_BLOCK  # the blocked path runs
     blocked = run_plan(plan, z).mean
-    monkeypatch.setattr(archs, "_FEW_RUNS", 0)
-    stepwise = run_plan(plan, z).mean
+    stepwise = run_plan(plan, z, route="steps").mean
     np.testing.assert_allclose(blocked, stepwise, rtol=1e-11, atol=1e-9)
 
 
 def _position_and_velocity_sensors(prior: bool) -> System:
-    sys0 = ajgl2009()
+    system0 = ajgl2009()
     sensors = (
         Sensor("pos", np.array([[1.0, 0.0]]), np.array([[1.0]])),
         Sensor("vel", np.array([[0.0, 1.0]]), np.array([[0.2]])),
     )
     return System(
-        F=sys0.F,
-        Q=sys0.Q,
+        F=system0.F,
+        Q=system0.Q,
         sensors=sensors,
-        prior=sys0.prior if prior else None,
-        initial=sys0.prior,
+        prior=system0.prior if prior else None,
+        initial=system0.prior,
     )
 
 
@@ -268,11 +278,11 @@ def test_track_to_track_without_prior_when_no_local_is_observable_alone(arch):
     """A position-only and a velocity-only local filter, no prior: neither has a mean of its
     own for a while, but together they determine the state from k = 0 on. The information-form
     GMF (constraint sum c_j D_j = I) and CI still fuse them."""
-    sys = _position_and_velocity_sensors(prior=False)
-    x, z = simulate(sys, 15, 3, 0, 4000)
-    est = estimate(sys, z, arch)
+    system = _position_and_velocity_sensors(prior=False)
+    x, z = simulate(system, 15, 3, 0, 4000)
+    est = estimate(system, z, arch)
     assert np.isfinite(est.mean).all() and np.isfinite(est.cov).all()
-    ex = analyse(build_plan(sys, arch, 15), sys)
+    ex = analyse(build_plan(system, arch, 15), system)
     if arch == "MSC-GMF":
         np.testing.assert_allclose(ex.mse, ex.P, rtol=1e-8, atol=1e-12)  # optimal given J
     err = x - est.mean
@@ -285,13 +295,13 @@ def test_track_to_track_without_prior_when_no_local_is_observable_alone(arch):
 def test_per_run_results_do_not_depend_on_other_runs(arch):
     """A run whose velocity sensor never reports must not make another run's estimate undefined
     (the block switches representation only when every run can; readouts are per run)."""
-    sys = _position_and_velocity_sensors(prior=False)
-    _, z = simulate(sys, 10, 4, 0, 2)
+    system = _position_and_velocity_sensors(prior=False)
+    _, z = simulate(system, 10, 4, 0, 2)
     z = z.copy()
     z[1, :, 1] = np.nan
     z[0, 3, 0] = np.nan  # make the patterns differ so the per-run path is taken
-    both = estimate(sys, z, arch)
-    alone = estimate(sys, z[:1], arch)
+    both = estimate(system, z, arch)
+    alone = estimate(system, z[:1], arch)
     tol = _tol(arch)
     np.testing.assert_allclose(both.mean[0], alone.mean[0], rtol=tol, atol=tol)
     if arch == "AVG":  # the velocity-only local never has a position: nothing to average
@@ -305,16 +315,49 @@ def test_no_prior_run_that_sees_nothing_at_first(arch):
     """Without a prior, a run with no measurement at k = 0 has no estimate there (NaN), and
     once its information suffices, finite ones. CI once raised LinAlgError here: its fusion of
     no weights is NaN, and the invertibility test ran LAPACK's eigensolver on NaN."""
-    sys = random_system(np.random.default_rng(4), 3, [2, 2, 1], prior=False, correlated=True)
+    system = random_system(np.random.default_rng(4), 3, [2, 2, 1], prior=False, correlated=True)
     K = 12
-    present = np.ones((3, K + 1, sys.m), bool)
+    present = np.ones((3, K + 1, system.m), bool)
     present[0, 2, 0] = False
-    present[1, 4:7, sys.m - 1] = False
+    present[1, 4:7, system.m - 1] = False
     present[2, 0, :] = False
-    present[2, 8, 1 % sys.m] = False
-    _, z = simulate(sys, K, 5, 0, 3)
+    present[2, 8, 1 % system.m] = False
+    _, z = simulate(system, K, 5, 0, 3)
     z[~present] = np.nan
-    e = estimate(sys, z, arch)
+    e = estimate(system, z, arch)
     if arch != "FBS":  # the smoother has the later measurements at k = 0
         assert np.isnan(e.mean[2, 0]).all()
     assert np.isfinite(e.mean[:, -1]).all()
+
+
+def test_registry_is_the_list_of_names():
+    """One list: core.names takes its names and parse_arch from the registry, every name has a
+    builder, and only SKF takes a sensor."""
+    assert names.STATE_ARCHITECTURES == STATE_ARCHITECTURES == tuple(REGISTRY)
+    assert names.parse_arch is parse_arch
+    assert set(names.PAPER_ARCHITECTURES) <= set(REGISTRY)
+    assert [a.name for a in REGISTRY.values() if a.takes_sensor] == ["SKF"]
+    system = ajgl2009()
+    for name in STATE_ARCHITECTURES:
+        assert build_plan(system, name, 3).name == name
+    with pytest.raises(ValueError, match="unknown architecture 'EKF'"):
+        build_plan(system, "EKF", 3)
+    with pytest.raises(ValueError, match="only SKF takes a sensor suffix"):
+        parse_arch("CKF:s1", ["s1"])
+
+
+def test_ci_plan_records_the_omega_of_every_step():
+    """CI's typed `omega` field: per step, the covariance-intersection weights of the local
+    filters' covariances (those of the SKF on each sensor)."""
+    rng = np.random.default_rng(5)
+    system = random_system(rng, 2, [1, 2, 1])
+    K = 8
+    plan = build_plan(system, "CI", K)
+    assert plan.omega.shape == (K + 1, 3)
+    assert build_plan(system, "MSC", K).omega is None
+    local = [build_plan(system, f"SKF:{s.name}", K).reported_cov for s in system.sensors]
+    for k in range(K + 1):
+        om = ci_omega([P[k] for P in local])
+        np.testing.assert_allclose(plan.omega[k], om, atol=1e-6)
+        P = np.linalg.inv(sum(w * np.linalg.inv(Pj[k]) for w, Pj in zip(om, local, strict=True)))
+        np.testing.assert_allclose(plan.reported_cov[k], P, rtol=1e-5)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from conftest import random_spd
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -153,3 +154,69 @@ def test_ci_three_estimates():
     _, P = ci_weights(covs, om)
     for i in range(3):  # never worse than the best single input
         assert np.trace(P) <= np.trace(covs[i]) + 1e-9
+
+
+def _ci_costs_on(omegas: np.ndarray, covs: list[np.ndarray], criterion: str) -> np.ndarray:
+    """tr(P) or log det(P) of P = (sum_i w_i P_i^-1)^-1 for each row w of `omegas`, written out
+    here with plain numpy (no fusionlog code)."""
+    infos = np.stack([np.linalg.inv(P) for P in covs])
+    Y = np.einsum("gi,iab->gab", omegas, infos)
+    if criterion == "trace":
+        return np.trace(np.linalg.inv(Y), axis1=-2, axis2=-1)
+    return -np.linalg.slogdet(Y)[1]
+
+
+def _elongated(rng: np.random.Generator, n: int) -> np.ndarray:
+    """A covariance with eigenvalues spread over e^-2..e^2 along random directions: inputs that
+    are each good in some direction, so that CI's optimum is usually interior."""
+    V, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    return V @ np.diag(np.exp(rng.uniform(-2.0, 2.0, n))) @ V.T
+
+
+def _simplex_grid(N: int, steps: int) -> np.ndarray:
+    """Every omega on the simplex with coordinates in multiples of 1/steps (N = 2 or 3)."""
+    if N == 2:
+        w = np.linspace(0.0, 1.0, steps + 1)
+        return np.stack([w, 1.0 - w], axis=1)
+    i, j = np.meshgrid(np.arange(steps + 1), np.arange(steps + 1), indexing="ij")
+    keep = i + j <= steps
+    a, b = i[keep] / steps, j[keep] / steps
+    return np.stack([a, b, 1.0 - a - b], axis=1)
+
+
+@pytest.mark.parametrize("criterion", ["trace", "det"])
+@pytest.mark.parametrize("N", [2, 3])
+def test_ci_omega_is_the_optimum_of_a_brute_force_search(N, criterion):
+    """On random unequal covariances, ci_omega's weights cost no more than the best point of a
+    fine grid on the simplex (the cost is convex, so that is the optimum up to the grid). A
+    uniform omega or an end point would fail: the cases are checked to tell them apart."""
+    rng = np.random.default_rng(100 * N + len(criterion))
+    steps = 4000 if N == 2 else 300
+    grid = _simplex_grid(N, steps)
+    told_apart = 0
+    for _ in range(12):
+        n = int(rng.integers(2, 4))
+        covs = [_elongated(rng, n) for _ in range(N)]
+        om = ci_omega(covs, criterion)
+        assert om.shape == (N,) and np.all(om >= 0) and abs(om.sum() - 1) < 1e-12
+        costs = _ci_costs_on(grid, covs, criterion)
+        best = costs.min()
+        got = _ci_costs_on(om[None], covs, criterion)[0]
+        assert got <= best + 1e-10 * abs(best), (om, grid[costs.argmin()], got, best)
+        # The answers of the mutations: a uniform omega and each end point.
+        others = _ci_costs_on(np.vstack([np.full(N, 1.0 / N), np.eye(N)]), covs, criterion)
+        told_apart += bool(np.all(others > best + 1e-6 * abs(best)))
+    assert told_apart >= 3  # cases where a uniform omega and every end point would fail
+
+
+def test_ci_omega_matches_the_grid_optimum_of_two_inputs():
+    """Two inputs: the optimal omega itself (not only its cost) is the grid's, to its step."""
+    rng = np.random.default_rng(7)
+    grid = _simplex_grid(2, 20000)
+    for _ in range(10):
+        covs = [_elongated(rng, 2) for _ in range(2)]
+        om = ci_omega(covs, "trace")
+        costs = _ci_costs_on(grid, covs, "trace")
+        k = costs.argmin()
+        if 0 < k < len(grid) - 1:  # interior: a flat minimum is located to about its curvature
+            assert abs(om[0] - grid[k, 0]) < 2e-3, (om, grid[k])

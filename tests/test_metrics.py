@@ -15,6 +15,7 @@ from scipy import stats
 from fusionlog.core.metrics import (
     MetricsAccumulator,
     MetricsResult,
+    MetricsWorkspace,
     expected_mahalanobis_consistent,
 )
 from fusionlog.jsonout import dumps
@@ -311,3 +312,30 @@ def test_block_split_invariance(seed, m, s, n, per_run, cuts, nan_rate) -> None:
     ref = whole.finalize(0.9)
     _results_close(seq.finalize(0.9), ref)
     _results_close(merged.finalize(0.9), ref)
+
+
+@pytest.mark.parametrize("per_run", [False, True])
+def test_workspace_chunks_and_sharing_do_not_change_results(per_run: bool) -> None:
+    """`add` works through a block in chunks of runs, in scratch arrays of a MetricsWorkspace:
+    chunks of any size (here 1 to 5 runs, down to one run of more elements than a chunk holds),
+    and a workspace shared by several accumulators, give the one-chunk result."""
+    rng = np.random.default_rng(11)
+    m, s, n = 23, 6, 2
+    x = rng.normal(size=(m, s, n))
+    mean = x + rng.normal(size=(m, s, n))
+    mean[rng.random((m, s)) < 0.1] = np.nan
+    cov = random_spd(rng, (m, s) if per_run else (s,), n)
+    whole = MetricsAccumulator(s, n)
+    whole.add(x, mean, cov)
+    ref = whole.finalize()
+    shared = MetricsWorkspace()
+    for elements in (1, 12, 30, 60):
+        ws = MetricsWorkspace()
+        ws.CHUNK_ELEMENTS = elements
+        assert ws.runs_per_chunk(s * n) == max(1, elements // (s * n))
+        acc = MetricsAccumulator(s, n, workspace=ws)
+        acc.add(x, mean, cov)
+        _results_close(acc.finalize(), ref)
+        other = MetricsAccumulator(s, n, workspace=shared)
+        other.add(x[::-1], mean[::-1], cov[::-1] if per_run else cov)
+        _results_close(other.finalize(), ref)

@@ -20,8 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import NumericalError
 from .architectures import Plan
-from .linalg import mT, sym
+from .linalg import mT, numerical_errors, sym, wide_diagonal
 from .model import System
 
 
@@ -111,11 +112,39 @@ def _forward_moments(plan: Plan, truth: System) -> tuple[list, list, int, int]:
         mus.append(mu)
         Cs.append(C)
         D_prev = st.D
+    # A non-finite entry stays non-finite (inf * 0 and inf - inf are NaN): the last step tells.
+    if not (np.isfinite(C).all() and np.isfinite(mu).all()):
+        k = next(
+            k
+            for k, (m, c) in enumerate(zip(mus, Cs, strict=True))
+            if not np.isfinite(c).all() or not np.isfinite(m).all()
+        )
+        raise NumericalError(f"step {k}: the true error covariance overflows")
     return mus, Cs, nx, K1
 
 
 def analyse(plan: Plan, truth: System) -> Expected:
-    """Exact error mean, MSE matrix, expected NEES and expected DM of a shared plan."""
+    """Exact error mean, MSE matrix, expected NEES and expected DM of a shared plan.
+
+    Raises NumericalError (naming the architecture and the step) when the true error
+    covariance overflows or the reported covariance is not positive definite where the
+    architecture reports one, i.e. when the expected values cannot be computed.
+    """
+    with numerical_errors(lambda: f"architecture {plan.name}, exact analysis"):
+        ex = _analyse(plan, truth)
+        defined = np.isfinite(ex.P).all(axis=(-2, -1))
+        finite = np.isfinite(ex.mse).all(axis=(-2, -1)) & np.isfinite(ex.nees) & np.isfinite(ex.dm)
+        if not finite[defined].all():
+            k = int(np.flatnonzero(defined & ~finite)[0])
+            raise NumericalError(
+                f"step {k}: the expected MSE, NEES or DM is not finite (the reported "
+                "covariance is not positive definite to working precision, or the error "
+                "covariance overflows)"
+            )
+    return ex
+
+
+def _analyse(plan: Plan, truth: System) -> Expected:
     n = truth.n
     mus, Cs, nx, settled = _forward_moments(plan, truth)
     K1 = len(plan.steps)
@@ -168,8 +197,11 @@ def analyse(plan: Plan, truth: System) -> Expected:
             if k < K1 - 1 and not steady:
                 Bplus = Bk + sm.V[k + 1] @ Ht
                 Cplus = Ceta + sm.V[k + 1] @ Rt @ sm.V[k + 1].T
-                B_new = sm.L[k] @ Bplus @ Ft
-                C_new = sym(sm.L[k] @ (Bplus @ Qt @ Bplus.T + Cplus) @ sm.L[k].T)
+                # L is about the inverse of the information in B+ and C+: multiplying it in
+                # first keeps B+ Q B+' (the square of an information) from overflowing.
+                LB = sm.L[k] @ Bplus
+                B_new = LB @ Ft
+                C_new = sym(LB @ Qt @ LB.T + sm.L[k] @ Cplus @ sm.L[k].T)
                 steady = repeated[k] and all(
                     np.abs(new - old).max() <= 1e-15 * max(np.abs(new).max(), 1e-300)
                     for new, old in ((B_new, Bk), (C_new, Ceta))
@@ -191,7 +223,17 @@ def analyse(plan: Plan, truth: System) -> Expected:
     ok = ~np.isnan(P[:m]).any(axis=(-1, -2))
     if ok.any():
         Pk, bk, mk = P[:m][ok], bias[:m][ok], mse[:m][ok]
-        nees[:m][ok] = np.einsum("kij,kji->k", np.linalg.inv(Pk), mk)
+        definite = np.isfinite(_whitening(Pk)).all(axis=(-2, -1))
+        if not definite.all():
+            k = int(np.flatnonzero(ok)[np.argmin(definite)])
+            raise NumericalError(
+                f"step {k}: the reported covariance is not positive definite to working "
+                "precision (no NEES or DM)"
+            )
+        # For badly scaled P (see _whitening) P^-1 = W^T W; otherwise LU's inverse, as ever.
+        Linv = _whitening(Pk) if wide_diagonal(Pk) else None
+        Pinv = np.linalg.inv(Pk) if Linv is None else mT(Linv) @ Linv
+        nees[:m][ok] = np.einsum("kij,kji->k", Pinv, mk)
         cov = mk - np.einsum("ki,kj->kij", bk, bk)
         # Steady-state steps repeat the same statistics: integrate each distinct one once.
         key = np.concatenate([Pk.reshape(len(Pk), -1), bk, cov.reshape(len(cov), -1)], 1)
@@ -214,20 +256,51 @@ def expected_sqrt_quadratic(
     at both ends, so the trapezoidal rule on a wide uniform grid is accurate to rounding.
     For a consistent filter (mean 0, cov = P) this is the chi mean sqrt(2) G((n+1)/2) / G(n/2).
     """
-    Lc = np.linalg.cholesky(P)
-    Linv = np.linalg.inv(Lc)
+    out = np.full(P.shape[0], np.nan)
+    Linv = _whitening(P)
+    good = np.isfinite(Linv).all(axis=(-2, -1))
+    if not good.all():  # P not positive definite (to working precision): DM undefined (NaN)
+        Linv, mean, cov, P = Linv[good], mean[good], cov[good], P[good]
     W = Linv @ cov @ mT(Linv)
     lam, V = np.linalg.eigh(sym(W))
     lam = np.clip(lam, 0.0, None)
     b = np.einsum("kji,kj->ki", V, np.einsum("kij,kj->ki", Linv, mean))
     u = np.linspace(-60.0, 60.0, nodes)
     t = np.exp(u)
-    out = np.empty(P.shape[0])
+    res = np.empty(P.shape[0])
     for k0 in range(0, P.shape[0], 256):
         sl = slice(k0, k0 + 256)
         tl = t[None, :, None] * lam[sl, None, :]
         log_mgf = -0.5 * np.log1p(2.0 * tl) - t[None, :, None] * b[sl, None, :] ** 2 / (1 + 2 * tl)
         one_minus = -np.expm1(log_mgf.sum(axis=-1))
         integrand = one_minus * np.exp(-0.5 * u)[None, :]
-        out[sl] = np.trapezoid(integrand, u, axis=-1) / (2.0 * np.sqrt(np.pi))
+        res[sl] = np.trapezoid(integrand, u, axis=-1) / (2.0 * np.sqrt(np.pi))
+    out[good] = res
     return out
+
+
+def _whitening(P: np.ndarray) -> np.ndarray:
+    """W with W^T W = P^-1 for each P of a batch: the inverse Cholesky factor, or, where the
+    factorisation fails on a matrix that rounding left barely definite, diag(w)^-1/2 V^T from
+    its eigen-decomposition (any such W gives the same quadratic form); NaN where P is not
+    positive definite.
+
+    A P whose diagonal spans more than 1e8 (a position known to 1e-150 beside a velocity known
+    to 0.1) is Jacobi-scaled first, P = D^1/2 Ps D^1/2 and W = chol(Ps)^-1 D^-1/2: the LU
+    inverse of its own Cholesky factor would put rounding garbage of 1e134 where a zero is.
+    The others are scaled by 1, which leaves their numbers as they were.
+    """
+    d = P.diagonal(0, -2, -1)
+    lo, hi = d.min(axis=-1), d.max(axis=-1)
+    wide = (lo > 0) & (hi > 1e8 * lo)
+    if wide.any():
+        s = 1.0 / np.sqrt(np.where(wide[..., None], d, 1.0))
+        return _whitening(P * (s[..., :, None] * s[..., None, :])) * s[..., None, :]
+    try:
+        return np.linalg.inv(np.linalg.cholesky(P))
+    except np.linalg.LinAlgError:
+        finite = np.isfinite(P).all(axis=(-2, -1))
+        w, V = np.linalg.eigh(np.where(finite[..., None, None], P, np.eye(P.shape[-1])))
+        pd = finite & (w[..., 0] > 0)
+        s = 1.0 / np.sqrt(np.where(pd[..., None], w, 1.0))
+        return np.where(pd[..., None, None], s[..., :, None] * mT(V), np.nan)

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from .linalg import mT, spd_inv, sym
+from .linalg import mT, solve, spd_inv, sym
 
 
 def gain(P: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """Kalman gain K = P H^T (H P H^T + R)^-1, eq. (17), solved with the innovation covariance."""
+    """Kalman gain K = P H^T (H P H^T + R)^-1, eq. (17), solved with the innovation covariance
+    (its pseudo-inverse where it is singular to working precision, see `linalg.solve`)."""
     HP = H @ P
     S = sym(HP @ mT(H) + R)
-    return mT(np.linalg.solve(S, HP))
+    return mT(solve(S, HP, hermitian=True, what="the innovation covariance H P H' + R"))
 
 
 def joseph(

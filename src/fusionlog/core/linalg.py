@@ -6,7 +6,13 @@ code serves the shared-gain path (no batch) and the per-run path (batch = runs).
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
 import numpy as np
+
+from ..errors import NumericalError
 
 
 def sym(A: np.ndarray) -> np.ndarray:
@@ -21,53 +27,99 @@ def mT(A: np.ndarray) -> np.ndarray:
     return A.swapaxes(-1, -2)
 
 
-def spd_inv(A: np.ndarray) -> np.ndarray:
+def spd_inv(A: np.ndarray, what: str = "a covariance or information matrix") -> np.ndarray:
     """Inverse of a symmetric positive definite matrix via a solve, symmetrised.
 
     np.linalg.inv is LAPACK's gesv with the identity as right-hand side, i.e. the same solve,
-    without building and broadcasting the identity first.
+    without building and broadcasting the identity first. A matrix singular to working
+    precision raises NumericalError naming it (`what`).
     """
-    return sym(np.linalg.inv(A))
+    try:
+        return sym(np.linalg.inv(A))
+    except np.linalg.LinAlgError:
+        raise NumericalError(f"{what} is singular to working precision") from None
+
+
+def wide_diagonal(A: np.ndarray, spread: float = 1e8) -> bool:
+    """Whether some matrix of the batch has a positive diagonal spanning more than `spread`:
+    badly scaled, where LU inverses lose the small entries (see `spd_inv_scaled`)."""
+    d = A.diagonal(0, -2, -1)
+    lo, hi = d.min(axis=-1), d.max(axis=-1)
+    return bool(((lo > 0) & (hi > spread * lo)).any())
+
+
+def spd_inv_scaled(
+    A: np.ndarray, spread: float = 1e8, what: str = "a covariance or information matrix"
+) -> np.ndarray:
+    """`spd_inv`, through the Jacobi scaling D^-1/2 A D^-1/2 (D = diag A) for the matrices
+    whose diagonal spans more than `spread`: A^-1 = D^-1/2 (D^-1/2 A D^-1/2)^-1 D^-1/2.
+
+    LU on a covariance such as [[1e-300, 1e-300], [1e-300, 0.05]] (a position measured with
+    R = 1e-300) returns an inverse whose off-diagonal entries are not even close to symmetric;
+    the scaled matrix is well conditioned and inverts to full accuracy. Matrices of comparable
+    diagonal take `spd_inv` (the same numbers to the last bit), after a test that costs about
+    a microsecond on the few matrices of a step.
+    """
+    d = A.diagonal(0, -2, -1)
+    if d.size <= 64:  # a few matrices: Python compares faster than numpy reduces
+        dl = d.ravel().tolist()
+        lo, hi = min(dl), max(dl)
+    else:
+        lo, hi = float(d.min()), float(d.max())
+    if lo > 0 and hi <= spread * lo:  # none of them is wide
+        return spd_inv(A, what)
+    lo, hi = d.min(axis=-1), d.max(axis=-1)
+    wide = (lo > 0) & (hi > spread * lo)
+    if not wide.any():
+        return spd_inv(A, what)
+    s = 1.0 / np.sqrt(np.where(wide[..., None], d, 1.0))
+    S = s[..., :, None] * s[..., None, :]
+    scaled = spd_inv(A * S, what) * S
+    if wide.all():
+        return scaled
+    wide = wide[..., None, None]
+    return np.where(wide, scaled, spd_inv(np.where(wide, np.eye(A.shape[-1]), A), what))
 
 
 def is_invertible(Y: np.ndarray, rtol: float = 1e-13) -> np.ndarray:
-    """Whether each symmetric PSD matrix has full rank (smallest eigenvalue above rtol * largest).
+    """Whether each symmetric PSD matrix has full rank: its smallest eigenvalue above rtol times
+    its largest, or that of its Jacobi scaling D^-1/2 Y D^-1/2 (D = diag Y) is.
 
     Used to decide when an information-form filter that started without a prior has gathered
-    enough information for a covariance to exist. A matrix with a NaN (e.g. the information of
-    a fusion with no weights because nothing was observed yet) is not invertible.
+    enough information for a covariance to exist. The scaled test accepts information that is
+    badly scaled but regular, e.g. 3e16 on a position measured with R = 1e-16 beside 6 on a
+    velocity, which the plain test would call singular forever; an unobserved direction keeps
+    a zero diagonal (or a scaled eigenvalue at rounding level) and stays singular. A matrix
+    with a NaN (e.g. the information of a fusion with no weights because nothing was observed
+    yet) is not invertible.
     """
     finite = np.isfinite(Y).all(axis=(-2, -1))
     if not finite.all():  # LAPACK's eigensolver does not converge on NaN
         Y = np.where(finite[..., None, None], Y, 0.0)
     w = np.linalg.eigvalsh(Y)
-    return finite & (w[..., 0] > rtol * np.maximum(w[..., -1], np.finfo(float).tiny))
+    ok = finite & (w[..., 0] > rtol * np.maximum(w[..., -1], np.finfo(float).tiny))
+    if ok.all():
+        return ok
+    d = Y.diagonal(0, -2, -1)
+    scalable = finite & (d > 0).all(axis=-1)
+    s = 1.0 / np.sqrt(np.where(scalable[..., None], d, 1.0))
+    Ys = np.where(scalable[..., None, None], Y * s[..., :, None] * s[..., None, :], 0.0)
+    ws = np.linalg.eigvalsh(Ys)
+    return ok | (scalable & (ws[..., 0] > rtol * ws[..., -1]))
 
 
-def inv_or_nan(Y: np.ndarray, axes: tuple[int, ...] = ()) -> np.ndarray:
+def inv_or_nan(Y: np.ndarray) -> np.ndarray:
     """Covariance from an information matrix: Y^-1 where Y is invertible, NaN elsewhere (an
     estimate that does not exist yet, e.g. a filter started without a prior).
 
-    When every matrix is invertible the inverse comes from a solve (`spd_inv`), otherwise the
-    invertible ones from the pseudo-inverse. With `axes` (batch axes of Y, e.g. the local
-    filters of a stack or the steps of a plan) that choice is made separately for each index
-    along them, so the result equals calling this on each of those slices alone.
+    Each matrix is inverted on its own (`spd_inv_scaled`, the others replaced by I for the
+    batched call), so a result does not depend on the other matrices of the batch.
     """
     ok = is_invertible(Y)
     if np.all(ok):
-        return spd_inv(Y)
-    if not axes:
-        Y = np.where(ok[..., None, None], Y, 0.0)  # the others are NaN anyway; no NaN in SVD
-        return sym(np.where(ok[..., None, None], np.linalg.pinv(Y, hermitian=True), np.nan))
-    # The slices along `axes` first, each one either wholly invertible or not.
-    axes = tuple(a % ok.ndim for a in axes)  # batch axes: the same in Y and in ok
-    front = tuple(range(len(axes)))
-    Yf, okf = np.moveaxis(Y, axes, front), np.moveaxis(ok, axes, front)
-    whole = okf.reshape(okf.shape[: len(axes)] + (-1,)).all(axis=-1)
-    out = np.empty_like(Yf)
-    out[whole] = spd_inv(Yf[whole])
-    out[~whole] = inv_or_nan(Yf[~whole])  # not wholly invertible: each alone, pinv and NaN
-    return np.moveaxis(out, front, axes)
+        return spd_inv_scaled(Y)
+    ok = ok[..., None, None]
+    return np.where(ok, spd_inv_scaled(np.where(ok, Y, np.eye(Y.shape[-1]))), np.nan)
 
 
 def apply(A: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -75,3 +127,127 @@ def apply(A: np.ndarray, v: np.ndarray) -> np.ndarray:
     if A.ndim == 2:
         return v @ A.T
     return np.einsum("...ij,...j->...i", A, v)
+
+
+def solve(
+    A: np.ndarray, B: np.ndarray, *, hermitian: bool = False, what: str = "a matrix to solve with"
+) -> np.ndarray:
+    """A^-1 B (batched) by LU; where A is singular to working precision, the minimum-norm
+    least-squares solution A^+ B (`hermitian`: A is symmetric, e.g. a covariance).
+
+    A singular A is a tolerance question, not an error: the innovation covariance
+    H P H' + R of identical sensors with tiny noise (R = 1e-16 against P = 0.05) is
+    p 1 1' + r I, whose small eigenvalues drown in the rounding of the large one. The
+    pseudo-inverse drops exactly those directions, which is the limit of the exact solution
+    (for a gain, P H' S^+ is the gain of the noise-free limit). Only singular systems take the
+    slower route, so regular ones keep LU's numbers to the last bit. `what` names A in the
+    NumericalError raised when A is not finite.
+    """
+    try:
+        return np.linalg.solve(A, B)
+    except np.linalg.LinAlgError:
+        require_finite(A, what)
+        return np.linalg.pinv(A, hermitian=hermitian) @ B
+
+
+#: What numpy and Python raise when numbers cannot be computed with.
+NUMERICAL_FAILURES = (np.linalg.LinAlgError, FloatingPointError, OverflowError, ZeroDivisionError)
+
+
+@contextmanager
+def numerical_errors(where: Callable[[], str]) -> Iterator[None]:
+    """Run a computation without numpy's overflow warnings (overflows are checked explicitly,
+    `require_finite`) and turn its numerical failures into one NumericalError prefixed by
+    `where()` (called only on failure: it names the architecture and the step; a message
+    that names the step itself, "step k: ...", follows it after a comma)."""
+    try:
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            yield
+    except NumericalError as e:
+        sep = ", " if str(e).startswith("step ") else ": "
+        raise NumericalError(f"{where()}{sep}{e}") from None
+    except NUMERICAL_FAILURES as e:
+        raise NumericalError(
+            f"{where()}: a matrix is singular or overflows to working precision "
+            f"({type(e).__name__}: {e})"
+        ) from e
+
+
+def all_finite(A: np.ndarray) -> bool:
+    """Whether every entry of A is finite. Small arrays (a step's covariance, checked at every
+    step of plan building) are summed in Python, several times cheaper than np.isfinite on a
+    2 x 2 matrix; a sum beyond the float range (entries near 1e308) counts as not finite,
+    which is where the next product would overflow anyway."""
+    if A.size <= 16:
+        return math.isfinite(sum(A.ravel().tolist()))
+    return bool(np.isfinite(A).all())
+
+
+def require_finite(A: np.ndarray, what: str, *, per_step: bool = False) -> None:
+    """Raise NumericalError ("<what> overflows ...") unless every entry of A is finite; with
+    `per_step`, A's first axis runs over the steps and the message names the first bad one.
+
+    Checked where a recursion produces a new covariance, so that an overflow is reported at
+    the step where it happens, and never handed to LAPACK, which answers non-finite input
+    with convergence failures (and prints to the terminal).
+    """
+    if all_finite(A):
+        return
+    where = ""
+    if per_step:
+        bad = ~np.isfinite(A).reshape(len(A), -1).all(axis=1)
+        where = f"step {int(np.argmax(bad))}: "
+    raise NumericalError(
+        f"{where}{what} overflows (entries beyond the float range, about 1.8e308, or inf - inf)"
+    )
+
+
+def bc(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """np.broadcast_to, skipped when nothing is to be done (it costs microseconds per call, and
+    plan building calls it a dozen times a step)."""
+    return a if a.shape == shape else np.broadcast_to(a, shape)
+
+
+def block_diag(mats: list[np.ndarray]) -> np.ndarray:
+    """Block-diagonal matrix of matrices with broadcastable batch dimensions."""
+    batch = np.broadcast_shapes(*(m.shape[:-2] for m in mats))
+    rows = sum(m.shape[-2] for m in mats)
+    cols = sum(m.shape[-1] for m in mats)
+    out = np.zeros(batch + (rows, cols))
+    r = c = 0
+    for m in mats:
+        out[..., r : r + m.shape[-2], c : c + m.shape[-1]] = m
+        r, c = r + m.shape[-2], c + m.shape[-1]
+    return out
+
+
+def stack_diag(X: np.ndarray) -> np.ndarray:
+    """Block-diagonal matrix of a stack: (..., S, a, b) -> (..., S a, S b)."""
+    *lead, S, a, b = X.shape
+    if not lead:  # a few slice copies beat one fancy-indexed assignment (every plan step)
+        out = np.zeros((S * a, S * b))
+        for j in range(S):
+            out[j * a : (j + 1) * a, j * b : (j + 1) * b] = X[j]
+        return out
+    out = np.zeros((*lead, S, a, S, b))
+    i = np.arange(S)
+    out[..., i, :, i, :] = np.moveaxis(X, -3, 0)  # the index puts S first
+    return out.reshape((*lead, S * a, S * b))
+
+
+def stack_rows(X: np.ndarray) -> np.ndarray:
+    """A stack's matrices one above the other: (..., S, a, b) -> (..., S a, b)."""
+    *lead, S, a, b = X.shape
+    return X.reshape((*lead, S * a, b))
+
+
+def stack_cols(X: np.ndarray) -> np.ndarray:
+    """A stack's matrices side by side: (..., S, a, b) -> (..., a, S b)."""
+    *lead, S, a, b = X.shape
+    return X.swapaxes(-3, -2).reshape((*lead, a, S * b))
+
+
+def sum_after(a: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """a + X_1 + ... + X_S for a stack X (..., S, p, q), added in that order (a numpy sum over
+    a leading axis adds sequentially), as a sum over the sensors written out would."""
+    return np.concatenate([a[..., None, :, :], X], axis=-3).sum(axis=-3)

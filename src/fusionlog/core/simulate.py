@@ -13,6 +13,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..errors import NumericalError
 from .model import System
 
 SEED_CHUNK = 1024
@@ -34,22 +35,32 @@ def psd_sqrt(C: np.ndarray) -> np.ndarray:
 
 
 def _draw(
-    sys: System, steps: int, rng: np.random.Generator, R: int
+    system: System, steps: int, rng: np.random.Generator, R: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Truth (R, K+1, n) and measurements (R, K+1, m) of one chunk of R runs."""
-    n, m = sys.n, sys.m
-    init = sys.truth_initial
-    Q = sys.Q
-    G = sys.G if sys.G is not None else np.eye(n)
-    # Draw order is part of the reproducibility contract: x0, then w, then v.
-    e0 = rng.standard_normal((R, n))
-    w = rng.standard_normal((R, steps, Q.shape[0])) @ psd_sqrt(Q).T @ G.T
-    v = rng.standard_normal((R, steps + 1, m)) @ psd_sqrt(sys.R).T
-    x = np.empty((R, steps + 1, n))
-    x[:, 0] = init.mean + e0 @ psd_sqrt(init.cov).T
-    for k in range(steps):
-        x[:, k + 1] = x[:, k] @ sys.F.T + w[:, k]
-    z = x @ sys.H.T + v
+    n, m = system.n, system.m
+    init = system.truth_initial
+    Q = system.Q
+    G = system.G if system.G is not None else np.eye(n)
+    # An overflow is reported below, as one error rather than numpy's warnings.
+    with np.errstate(over="ignore", invalid="ignore"):
+        # Draw order is part of the reproducibility contract: x0, then w, then v.
+        e0 = rng.standard_normal((R, n))
+        w = rng.standard_normal((R, steps, Q.shape[0])) @ psd_sqrt(Q).T @ G.T
+        v = rng.standard_normal((R, steps + 1, m)) @ psd_sqrt(system.R).T
+        x = np.empty((R, steps + 1, n))
+        x[:, 0] = init.mean + e0 @ psd_sqrt(init.cov).T
+        for k in range(steps):
+            x[:, k + 1] = x[:, k] @ system.F.T + w[:, k]
+        z = x @ system.H.T + v
+    for what, a in (("the true state", x), ("the measurement", z)):
+        if not np.isfinite(a).all():
+            # Non-finite values would be read as missing measurements downstream: refuse them.
+            finite = np.isfinite(a).all(axis=(0, 2))
+            raise NumericalError(
+                f"simulation: {what} overflows at step {int(np.argmin(finite))} "
+                "(beyond the float range, about 1.8e308)"
+            )
     return x, z
 
 
@@ -80,8 +91,10 @@ def chunked(
 
 
 def simulate(
-    sys: System, steps: int, seed: int, run_offset: int, runs: int
+    system: System, steps: int, seed: int, run_offset: int, runs: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Truth x (runs, K+1, n) and measurements z (runs, K+1, m) for runs [run_offset, +runs)."""
-    x, z = chunked(lambda rng, size: _draw(sys, steps, rng, size), steps, seed, run_offset, runs)
+    x, z = chunked(
+        lambda rng, size: _draw(system, steps, rng, size), steps, seed, run_offset, runs
+    )
     return x, z

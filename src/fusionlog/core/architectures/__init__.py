@@ -1,0 +1,51 @@
+"""The fusion architectures of Ajgl-Simandl-Dunik (Sec. V) as per-step linear maps.
+
+Every architecture here is linear in the data once its gains are fixed, and its gains depend only
+on the model and on which measurements are present, not on the measured values. So each one is
+compiled into a *plan*: for every step k an affine map on the estimator's internal state s,
+
+    s_k = T_k s_{k-1} + U_k z_k,        x_hat_k = O_k s_k,        P_k (the covariance it reports)
+
+where z_k is the stacked measurement of eq. (30). Applying a plan to M runs is one matrix product
+per step (the shared-gain fast path). When runs differ in which measurements are present (NaN =
+missing), the same code builds the maps with a leading run dimension (the per-run path). And because
+the maps are explicit, `core.exact` propagates the true error covariance through them exactly.
+
+The internal state s is the mean of each filter, or, while a filter started without a prior has not
+yet gathered enough information for a covariance to exist, its information vector y = P^-1 x.
+
+Modules: `plan` (the plan types), `registry` (names -> builders, `build_plan`), `executor`
+(`run_plan`), the builders by family: `filters` (the Kalman-filter machinery), `single` (CKF,
+SKF), `hkf`, `track_to_track` with `readouts` (MSC, MSC-GMF, CI, AVG), `fbs`.
+"""
+
+from .executor import DENSE_MAX_STEPS, STEADY_BLOCK, run_plan
+from .plan import BuildRequest, DenseMap, Estimate, Plan, SmootherMaps, StepMap
+from .registry import (
+    REGISTRY,
+    STATE_ARCHITECTURES,
+    Architecture,
+    build_plan,
+    estimate,
+    parse_arch,
+    shared_pattern,
+)
+
+__all__ = [
+    "DENSE_MAX_STEPS",
+    "REGISTRY",
+    "STATE_ARCHITECTURES",
+    "STEADY_BLOCK",
+    "Architecture",
+    "BuildRequest",
+    "DenseMap",
+    "Estimate",
+    "Plan",
+    "SmootherMaps",
+    "StepMap",
+    "build_plan",
+    "estimate",
+    "parse_arch",
+    "run_plan",
+    "shared_pattern",
+]

@@ -1,0 +1,162 @@
+"""The architectures by name (the DESIGN.md contract: CLI, MCAP topics, summaries) and the one
+place that compiles a name into a plan.
+
+`REGISTRY` is the list of architecture names: `core.names` takes `STATE_ARCHITECTURES` and
+`parse_arch` from here, so a name is known exactly when there is a builder for it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...errors import NumericalError
+from ..linalg import all_finite, numerical_errors
+from ..model import System
+from .executor import run_plan
+from .fbs import build_fbs
+from .hkf import build_hkf
+from .plan import BuildRequest, Estimate, Plan
+from .single import build_ckf, build_skf
+from .track_to_track import build_avg, build_ci, build_msc, build_msc_gmf
+
+
+@dataclass(frozen=True)
+class Architecture:
+    """A registered architecture: its name, its builder, and whether it takes a sensor suffix
+    (`SKF:<sensor>`, the first sensor without one)."""
+
+    name: str
+    build: Callable[[BuildRequest], Plan]
+    summary: str
+    takes_sensor: bool = False
+
+
+#: In the order of the default `[estimate] architectures` list: the paper's Table I, then
+#: covariance intersection, the smoother and the plain average (Gustafsson-Hendeby's "LS").
+REGISTRY: dict[str, Architecture] = {
+    a.name: a
+    for a in (
+        Architecture("CKF", build_ckf, "centralised KF on all sensors, eqs. (29)-(31)"),
+        Architecture("HKF", build_hkf, "hierarchical KF with feedback, eqs. (36)-(40)"),
+        Architecture(
+            "MSC-GMF", build_msc_gmf, "local KFs, generalised Millman formula, eqs. (6)-(7), (35)"
+        ),
+        Architecture("MSC", build_msc, "local KFs, Millman's formula, eqs. (32)-(34)"),
+        Architecture("SKF", build_skf, "KF on one sensor", takes_sensor=True),
+        Architecture("CI", build_ci, "local KFs, covariance intersection"),
+        Architecture("FBS", build_fbs, "fixed-interval smoother, eqs. (25)-(28)"),
+        Architecture("AVG", build_avg, "local KFs, plain average with its true covariance"),
+    )
+}
+
+#: The names, in registry order.
+STATE_ARCHITECTURES: tuple[str, ...] = tuple(REGISTRY)
+
+
+def parse_arch(name: str, sensor_names: list[str] | tuple[str, ...]) -> tuple[str, str | None]:
+    """Split an architecture name into (base, sensor); `SKF:<sensor>` picks the SKF's sensor.
+
+    Raises ValueError with a readable reason for an unknown name or sensor.
+    """
+    base, _, sensor = name.partition(":")
+    if base not in REGISTRY:
+        known = ", ".join(STATE_ARCHITECTURES)
+        raise ValueError(f"unknown architecture {name!r} (known: {known}, SKF:<sensor>)")
+    if not REGISTRY[base].takes_sensor:
+        if sensor:
+            takers = ", ".join(a.name for a in REGISTRY.values() if a.takes_sensor)
+            raise ValueError(f"architecture {name!r}: only {takers} takes a sensor suffix")
+        return base, None
+    if not sensor_names:
+        raise ValueError(f"{base} needs at least one sensor")
+    if not sensor:
+        return base, sensor_names[0]
+    if sensor not in sensor_names:
+        raise ValueError(
+            f"architecture {name!r}: no sensor {sensor!r} (sensors: {', '.join(sensor_names)})"
+        )
+    return base, sensor
+
+
+def build_plan(
+    system: System,
+    arch: str,
+    steps: int,
+    present: np.ndarray | None = None,
+    criterion: str = "trace",
+) -> Plan:
+    """Compile architecture `arch` for instants k = 0..steps.
+
+    `present` is a boolean mask of measurement components, (K+1, m) shared by all runs or
+    (M, K+1, m) per run; None means every measurement is present. A model whose numbers
+    overflow or leave a matrix singular beyond what the filters can work around raises
+    NumericalError naming the architecture, the step and the matrix.
+    """
+    base, sensor = parse_arch(arch, [s.name for s in system.sensors])
+    if present is None:
+        present = np.ones((steps + 1, system.m), dtype=bool)
+    request = BuildRequest(system, arch, present, sensor, criterion, step=None)
+    with numerical_errors(lambda: _where(request)):
+        check_model(system)
+        plan = REGISTRY[base].build(request)
+    plan.system = system
+    plan.complete = bool(present.all())
+    return plan
+
+
+def check_model(system: System) -> None:
+    """Refuse a model whose matrices are not finite (an accepted entry of 1e308 can overflow
+    where the model is assembled, e.g. in G Q G')."""
+    mats = {"the model's F": system.F, "the model's G Q G'": system.GQG}
+    if system.prior is not None:
+        mats |= {"the prior mean": system.prior.mean, "the prior covariance": system.prior.cov}
+    mats |= {f"sensor {s.name}'s R": s.R for s in system.sensors}
+    names = [s.name for s in system.sensors]
+    mats |= {
+        f"the noise cross-covariance of {names[i]} and {names[j]}": c
+        for (i, j), c in system.cross_R.items()
+    }
+    for what, a in mats.items():
+        if not all_finite(a):
+            raise NumericalError(f"{what} is not finite (beyond the float range, about 1.8e308)")
+
+
+def _where(request: BuildRequest) -> str:
+    """ "architecture X, step k" (without the step for the model check and for fusion rules
+    evaluated over all steps at once)."""
+    step = "" if request.step is None else f", step {request.step}"
+    return f"architecture {request.name}{step}"
+
+
+def shared_pattern(z: np.ndarray) -> np.ndarray | None:
+    """The (K+1, m) mask of present measurements when every run has the same one, else None.
+
+    A pattern shared by all runs (a sensor at half rate, a gap in every run) keeps the
+    shared-gain path: one plan built with that mask serves all runs. The usual case, nothing
+    missing, is answered by one pass over z (comparing every run's mask with the first costs
+    seven times that).
+    """
+    missing = np.isnan(z)
+    if not missing.any():
+        return np.ones(z.shape[1:], dtype=bool)
+    present = ~missing
+    return present[0] if (present == present[:1]).all() else None
+
+
+def estimate(system: System, z: np.ndarray, arch: str, criterion: str = "trace") -> Estimate:
+    """Run architecture `arch` on measurements z (M, K+1, m).
+
+    When every run has the same measurement pattern (usually: all present) the runs share gains
+    and covariances (one plan, applied to all runs at once); when runs differ in which
+    measurements are missing (NaN), the plan is built per run.
+    """
+    K = z.shape[1] - 1
+    pattern = shared_pattern(z)
+    if pattern is not None:
+        plan = build_plan(system, arch, K, None if pattern.all() else pattern, criterion)
+    else:
+        plan = build_plan(system, arch, K, ~np.isnan(z), criterion)
+    return run_plan(plan, z)
