@@ -94,7 +94,5 @@ def simulate(
     system: System, steps: int, seed: int, run_offset: int, runs: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Truth x (runs, K+1, n) and measurements z (runs, K+1, m) for runs [run_offset, +runs)."""
-    x, z = chunked(
-        lambda rng, size: _draw(system, steps, rng, size), steps, seed, run_offset, runs
-    )
+    x, z = chunked(lambda rng, size: _draw(system, steps, rng, size), steps, seed, run_offset, runs)
     return x, z
