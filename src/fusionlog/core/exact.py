@@ -54,7 +54,10 @@ def _coupling(plan: Plan, truth: System) -> bool:
     model = plan.system
     if model is None:
         return True
-    return not (np.array_equal(model.F, truth.F) and np.array_equal(model.H, truth.H))
+    same_F = np.array_equal(model.F, truth.F) and (
+        model.Fs is truth.Fs or (model.Fs is not None and np.array_equal(model.Fs, truth.Fs))
+    )
+    return not (same_F and np.array_equal(model.H, truth.H))
 
 
 def _forward_moments(plan: Plan, truth: System) -> tuple[list, list, int, int]:
@@ -68,7 +71,7 @@ def _forward_moments(plan: Plan, truth: System) -> tuple[list, list, int, int]:
     if plan.per_run:
         raise ValueError("exact analysis needs a plan shared by all runs (no missing data)")
     n = truth.n
-    Ht, Rt, Ft, Qt = truth.H, truth.R, truth.F, truth.GQG
+    Ht, Rt = truth.H, truth.R
     init = truth.truth_initial
     nx = n if _coupling(plan, truth) else 0
     D0 = plan.D0
@@ -82,7 +85,7 @@ def _forward_moments(plan: Plan, truth: System) -> tuple[list, list, int, int]:
     for k, st in enumerate(plan.steps):
         d_prev = mu.size - nx
         d = st.T.shape[0]
-        F = Ft if k > 0 else np.eye(n)
+        F = truth.F_at(k) if k > 0 else np.eye(n)
         UHD = st.U @ Ht - st.D
         A = np.zeros((nx + d, nx + d_prev))
         A[nx:, nx:] = st.T
@@ -96,7 +99,7 @@ def _forward_moments(plan: Plan, truth: System) -> tuple[list, list, int, int]:
         mu_new = A @ mu
         C_new = A @ C @ A.T + Bv @ Rt @ Bv.T
         if k > 0:
-            C_new += Bw @ Qt @ Bw.T
+            C_new += Bw @ truth.GQG_at(k) @ Bw.T
         C_new = sym(C_new)
         if (
             not nx
@@ -166,7 +169,7 @@ def _analyse(plan: Plan, truth: System) -> Expected:
             bias[settled + 1 :], mse[settled + 1 :] = bias[settled], mse[settled]
     else:
         sm = plan.smoother
-        Ht, Rt, Ft, Qt = truth.H, truth.R, truth.F, truth.GQG
+        Ht, Rt = truth.H, truth.R
         Bk = np.zeros((n, n))
         Ceta = np.zeros((n, n))
         steady = False  # backward statistics stopped changing under a repeated map
@@ -200,8 +203,8 @@ def _analyse(plan: Plan, truth: System) -> Expected:
                 # L is about the inverse of the information in B+ and C+: multiplying it in
                 # first keeps B+ Q B+' (the square of an information) from overflowing.
                 LB = sm.L[k] @ Bplus
-                B_new = LB @ Ft
-                C_new = sym(LB @ Qt @ LB.T + sm.L[k] @ Cplus @ sm.L[k].T)
+                B_new = LB @ truth.F_at(k + 1)
+                C_new = sym(LB @ truth.GQG_at(k + 1) @ LB.T + sm.L[k] @ Cplus @ sm.L[k].T)
                 steady = repeated[k] and all(
                     np.abs(new - old).max() <= 1e-15 * max(np.abs(new).max(), 1e-300)
                     for new, old in ((B_new, Bk), (C_new, Ceta))

@@ -7,6 +7,7 @@ off-diagonal blocks hold the cross-covariances between sensors (the paper allows
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,6 +42,11 @@ class System:
     start exactly in information form with zero information. `initial` is the distribution the
     truth x_0 is drawn from; it defaults to the prior (the paper uses one for both).
     `cross_R[(i, j)]` (i < j) is E[v^(i) v^(j)^T].
+
+    `continuous` is the model in continuous time, (A, Qc), when it has one (the
+    constant-velocity and continuous kinds); F and Q are then its discretisation over dt.
+    On irregular instants (`on_times`) the transition from instant k-1 to k is `Fs[k-1]`, its
+    process noise (in state space, G Q G^T) `Qs[k-1]`; None: the same F, G Q G^T every step.
     """
 
     F: np.ndarray
@@ -52,6 +58,9 @@ class System:
     initial: Prior | None = None
     dt: float = 1.0
     state_names: tuple[str, ...] = ()
+    continuous: tuple[np.ndarray, np.ndarray] | None = None
+    Fs: np.ndarray | None = None  # (K, n, n)
+    Qs: np.ndarray | None = None  # (K, n, n)
 
     def __post_init__(self) -> None:
         if not self.state_names:
@@ -67,6 +76,42 @@ class System:
         if self.G is None:
             return self.Q
         return self.G @ self.Q @ self.G.T
+
+    @property
+    def time_invariant(self) -> bool:
+        """The same F and G Q G^T between every two instants."""
+        return self.Fs is None
+
+    def F_at(self, k: int) -> np.ndarray:
+        """Transition from instant k-1 to instant k (k >= 1)."""
+        return self.F if self.Fs is None else self.Fs[k - 1]
+
+    def GQG_at(self, k: int) -> np.ndarray:
+        """Process noise covariance (state space) from instant k-1 to instant k (k >= 1)."""
+        return self.GQG if self.Qs is None else self.Qs[k - 1]
+
+    def on_times(self, times: np.ndarray) -> System:
+        """The system on the instants `times` (K+1,): itself when they are k dt, else with the
+        continuous model discretised for every interval (`timing.van_loan`, one
+        matrix exponential per distinct interval). ValueError for a model that has no
+        continuous form (explicit F, Q), which holds for its dt only."""
+        times = np.asarray(times, dtype=float)
+        if np.array_equal(times, np.arange(len(times)) * self.dt):
+            return self if self.Fs is None else dataclasses.replace(self, Fs=None, Qs=None)
+        if self.continuous is None:
+            raise ValueError(
+                "the instants are irregular and the model has only F, Q for dt = "
+                f"{self.dt:g} s: give [model] kind = 'constant-velocity' or 'continuous' (A, Qc)"
+            )
+        from .timing import van_loan
+
+        A, Qc = self.continuous
+        deltas = np.diff(times)
+        uniq, where = np.unique(deltas, return_inverse=True)
+        pairs = [van_loan(A, Qc, float(d)) for d in uniq]
+        Fu = np.array([f for f, _ in pairs]).reshape(len(uniq), self.n, self.n)
+        Qu = np.array([q for _, q in pairs]).reshape(len(uniq), self.n, self.n)
+        return dataclasses.replace(self, Fs=Fu[where], Qs=Qu[where])
 
     @property
     def truth_initial(self) -> Prior:
@@ -122,6 +167,9 @@ class System:
             initial=self.initial,
             dt=self.dt,
             state_names=self.state_names,
+            continuous=self.continuous,
+            Fs=self.Fs,
+            Qs=self.Qs,
         )
 
     def sensor_index(self, name: str) -> int:

@@ -46,12 +46,17 @@ def _draw(
     with np.errstate(over="ignore", invalid="ignore"):
         # Draw order is part of the reproducibility contract: x0, then w, then v.
         e0 = rng.standard_normal((R, n))
-        w = rng.standard_normal((R, steps, Q.shape[0])) @ psd_sqrt(Q).T @ G.T
+        if system.time_invariant:
+            w = rng.standard_normal((R, steps, Q.shape[0])) @ psd_sqrt(Q).T @ G.T
+        else:  # irregular instants: the noise of each interval (in state space, Qs)
+            w = rng.standard_normal((R, steps, n))
+            for k in range(steps):
+                w[:, k] = w[:, k] @ psd_sqrt(system.GQG_at(k + 1)).T
         v = rng.standard_normal((R, steps + 1, m)) @ psd_sqrt(system.R).T
         x = np.empty((R, steps + 1, n))
         x[:, 0] = init.mean + e0 @ psd_sqrt(init.cov).T
         for k in range(steps):
-            x[:, k + 1] = x[:, k] @ system.F.T + w[:, k]
+            x[:, k + 1] = x[:, k] @ system.F_at(k + 1).T + w[:, k]
         z = x @ system.H.T + v
     for what, a in (("the true state", x), ("the measurement", z)):
         if not np.isfinite(a).all():

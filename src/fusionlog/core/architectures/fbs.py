@@ -27,9 +27,8 @@ def build_fbs(request: BuildRequest) -> Plan:
     V: list[np.ndarray] = [np.zeros(0)] * K1
     L: list[np.ndarray] = [np.zeros(0)] * (K1 - 1)
     Smat = [np.zeros(batch + (n, n)) for _ in range(K1)]
-    steady = Steady(present)
+    steady = Steady(present, system)
     everything = Rows.of(system, np.arange(system.m), system.R)
-    GQG = system.GQG
     for k in range(K1 - 1, -1, -1):
         request.step = k
         if steady.enabled and k < K1 - 3 and Smat[k + 1] is Smat[k + 2]:
@@ -41,10 +40,11 @@ def build_fbs(request: BuildRequest) -> Plan:
         if k < K1 - 1:
             Hn = everything.masked(present[..., k + 1, :])[0]
             Splus = sym(Smat[k + 1] + mT(Hn) @ mT(V[k + 1]))
+            F, GQG = system.F_at(k + 1), system.GQG_at(k + 1)  # from instant k to k+1
             Bm = eye + Splus @ GQG
             # L = F^T (I + S^+ GQG)^-1, computed as a solve with the transpose.
-            L[k] = mT(solve(mT(Bm), bc(system.F, Bm.shape)))
-            Smat[k] = sym(L[k] @ Splus @ system.F)
+            L[k] = mT(solve(mT(Bm), bc(F, Bm.shape)))
+            Smat[k] = sym(L[k] @ Splus @ F)
             require_finite(Smat[k], "the backward filter's information matrix")
             if steady.reached(Smat[k]):
                 Smat[k] = Smat[k + 1]

@@ -153,6 +153,9 @@ class KalmanStack:
 
     def __init__(self, system: System, rows: Rows, batch: tuple[int, ...]):
         n = system.n
+        self.system = system
+        # The transition of the step being computed (`step` replaces them on irregular
+        # instants); the same objects at every step otherwise, which callers test with `is`.
         self.F, self.GQG = system.F, system.GQG
         self.rows = rows
         self.eye = np.eye(n)
@@ -182,8 +185,13 @@ class KalmanStack:
             self.Finv = np.linalg.inv(system.F)
         self.any_info = bool(self.info.any())
 
-    def step(self, present: np.ndarray, first: bool) -> FilterStep:
+    def step(self, present: np.ndarray, k: int) -> FilterStep:
         """Step k of every filter, with the components `present` (batch + (m,)) of z_k."""
+        first = k == 0
+        if not first and not self.system.time_invariant:
+            self.F, self.GQG = self.system.F_at(k), self.system.GQG_at(k)
+            if self.any_info:
+                self.Finv = np.linalg.inv(self.F)
         Hk, Rk = self.rows.masked(present)
         part = Part(self.mat, Hk, Rk, self.rows.E, self.I, self.Z)
         if not self.any_info:  # the usual case: all in covariance form, and they stay so
@@ -277,13 +285,13 @@ class KalmanStack:
 class Steady:
     """Detects the steady state of a Riccati recursion so that long horizons reuse one map.
 
-    With every measurement present and a time-invariant model, once the covariance state after
+    With every measurement present and a time-invariant model (regular instants), once the covariance state after
     step k equals the one after step k-1 (to rounding, 1e-15 relative), every later step's map is
     the same as step k's: the plan repeats it instead of recomputing 10^5 identical gains.
     """
 
-    def __init__(self, present: np.ndarray):
-        self.enabled = present.ndim == 2 and bool(present.all())
+    def __init__(self, present: np.ndarray, system: System):
+        self.enabled = present.ndim == 2 and bool(present.all()) and system.time_invariant
         self.prev: np.ndarray | None = None
 
     def reached(self, *mats: np.ndarray) -> bool:

@@ -40,7 +40,6 @@ def build_hkf(request: BuildRequest) -> Plan:
     system, present, batch = request.system, request.present, request.batch
     n, m = system.n, system.m
     S = len(system.sensors)
-    F, GQG = system.F, system.GQG
     eye = np.eye(n)
     inv = spd_inv_scaled if wide_range(system) else spd_inv
     # Before a covariance exists (no prior), local equivalent measurements are just
@@ -49,19 +48,20 @@ def build_hkf(request: BuildRequest) -> Plan:
     sensors = Rows.per_sensor(system)
     steps = []
     P = None
-    steady = Steady(present)
+    steady = Steady(present, system)
     K1 = request.horizon
     for k in range(K1):
         request.step = k
         first = k == 0
         if front.any_info:
-            st = front.step(present[..., k, :], first)
+            st = front.step(present[..., k, :], k)
             steps.append(StepMap(st.T, st.U, st.O, st.P, st.D))
             P = front.mat
             continue
         if first:
             Pp, Tp = front.mat, eye
         else:
+            F, GQG = system.F_at(k), system.GQG_at(k)
             Pp, Tp = sym(F @ P @ F.T + GQG), F
         Yp = inv(Pp, what="the predicted covariance")
         Hj, Rj = sensors.masked(present[..., k, :])  # batch + (S, r, .)

@@ -21,11 +21,11 @@ def filter_plan(
     kf = KalmanStack(system, Rows.of(system, rows, system.R[np.ix_(rows, rows)]), batch)
     steps = []
     infos: list[np.ndarray | None] = []
-    steady = Steady(present)
+    steady = Steady(present, system)
     K1 = request.horizon
     for k in range(K1):
         request.step = k
-        st = kf.step(present[..., k, :], first=(k == 0))
+        st = kf.step(present[..., k, :], k)
         steps.append(StepMap(st.T, st.U, st.O, st.P, st.D))
         infos.append(kf.mat if kf.any_info else None)
         if not kf.any_info and steady.reached(kf.mat):

@@ -71,13 +71,18 @@ def local_filters(request: BuildRequest, joint: bool) -> LocalHistory:
     GQG_cov = Gam_cov @ GQG @ mT(Gam_cov)
     steps: list[StepMap] = []
     forms, mats, joints, readouts = [], [], [], []
-    steady = Steady(present)
+    steady = Steady(present, system)
     K1 = request.horizon
     for k in range(K1):
         request.step = k
         first = k == 0
-        st = locs.step(present[..., k, :], first)
+        st = locs.step(present[..., k, :], k)
         if joint:
+            if not first and not system.time_invariant:
+                GQG = system.GQG_at(k)
+                if st.Phi is locs.F:
+                    Phi_cov = stack_diag(bc(locs.F, (S, n, n)))
+                    GQG_cov = Gam_cov @ GQG @ mT(Gam_cov)
             if not first and st.Phi is locs.F:  # every local predicted in covariance form
                 J = Phi_cov @ J @ mT(Phi_cov) + GQG_cov
             elif not first:

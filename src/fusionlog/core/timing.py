@@ -1,0 +1,121 @@
+"""Real timing: when each sensor measures, and the model between irregular instants.
+
+A sensor j measures at offset_j, offset_j + period_j, ... within [0, K dt] and loses each
+measurement independently with probability dropout_j (DESIGN.md, "Scenario TOML", Timing).
+
+* When every period and offset is a whole number of dt, the instants stay t_k = k dt and a
+  sensor's schedule is every period/dt-th instant from offset/dt on (the shared grid of the
+  paper, with some sensors silent at some instants).
+* Otherwise the instants are the sorted union of t = 0 and every sensor's sampling times, on
+  a grid of whole nanoseconds (the resolution of an MCAP log_time, so that two sensors'
+  times that agree in the log are one instant), and the intervals between them are irregular.
+  The model is then discretised for each interval: for a continuous-time model
+  dx = A x dt + dw, E[dw dw'] = Qc dt,
+
+      F(Δ) = expm(A Δ),   Q(Δ) = ∫_0^Δ expm(A s) Qc expm(A s)' ds,
+
+  computed together by Van Loan's method (C. F. Van Loan, "Computing integrals involving the
+  matrix exponential", IEEE TAC 23(3), 1978): expm([[-A, Qc], [0, A']] Δ) = [[., M12], [0, M22]]
+  gives F = M22' and Q = F M12.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "SensorTiming",
+    "Schedule",
+    "constant_velocity_continuous",
+    "schedule",
+    "van_loan",
+]
+
+#: Times are whole nanoseconds (an MCAP log_time).
+NS = 1_000_000_000
+#: A period or offset within this relative distance of a whole number of dt is that number.
+GRID_RTOL = 1e-9
+
+
+@dataclass(frozen=True)
+class SensorTiming:
+    """When one sensor measures: period and offset in seconds (period None: every instant),
+    and the probability that a measurement is lost."""
+
+    period: float | None = None
+    offset: float = 0.0
+    dropout: float = 0.0
+
+    @property
+    def default(self) -> bool:
+        return self.period is None and self.offset == 0.0 and self.dropout == 0.0
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """The instants t_k (K+1,) in seconds, and which sensor measures at which instant
+    (K+1, S); `regular`: t_k = k dt exactly."""
+
+    times: np.ndarray
+    measures: np.ndarray
+    regular: bool
+
+    @property
+    def steps(self) -> int:
+        """K: instants k = 0..K."""
+        return len(self.times) - 1
+
+
+def _whole(x: float, dt: float) -> int | None:
+    """x / dt when it is a whole number (to GRID_RTOL), else None."""
+    q = x / dt
+    r = round(q)
+    return int(r) if abs(q - r) <= GRID_RTOL * max(1.0, abs(q)) else None
+
+
+def schedule(dt: float, steps: int, timings: tuple[SensorTiming, ...]) -> Schedule:
+    """The instants of a horizon of `steps` dt and each sensor's measuring instants."""
+    S = len(timings)
+    periods = [dt if t.period is None else t.period for t in timings]
+    grid = [(_whole(p, dt), _whole(t.offset, dt)) for p, t in zip(periods, timings, strict=True)]
+    if all(p is not None and o is not None for p, o in grid):
+        k = np.arange(steps + 1)
+        measures = np.zeros((steps + 1, S), dtype=bool)
+        for j, (p, o) in enumerate(grid):
+            measures[:, j] = (k >= o) & ((k - o) % p == 0)
+        return Schedule(k * dt, measures, True)
+    # Irregular: sampling times in whole nanoseconds, their union with t = 0.
+    end = round(steps * dt * NS)
+    per_sensor = []
+    for p, t in zip(periods, timings, strict=True):
+        count = int(np.floor((steps * dt - t.offset) / p * (1 + GRID_RTOL))) + 1
+        ns = np.rint((t.offset + np.arange(max(count, 0)) * p) * NS).astype(np.int64)
+        per_sensor.append(ns[ns <= end])
+    all_ns = np.unique(np.concatenate([np.zeros(1, np.int64), *per_sensor]))
+    measures = np.zeros((len(all_ns), S), dtype=bool)
+    for j, ns in enumerate(per_sensor):
+        measures[np.searchsorted(all_ns, ns), j] = True
+    return Schedule(all_ns / NS, measures, False)
+
+
+def van_loan(A: np.ndarray, Qc: np.ndarray, delta: float) -> tuple[np.ndarray, np.ndarray]:
+    """F = expm(A Δ) and Q = ∫_0^Δ expm(A s) Qc expm(A s)' ds by Van Loan's method."""
+    from scipy.linalg import expm  # here: only irregular instants need it
+
+    n = A.shape[0]
+    C = np.zeros((2 * n, 2 * n))
+    C[:n, :n], C[:n, n:], C[n:, n:] = -A, Qc, A.T
+    E = expm(C * delta)
+    F = E[n:, n:].T
+    Q = F @ E[:n, n:]
+    return F, 0.5 * (Q + Q.T)
+
+
+def constant_velocity_continuous(axes: int, q: float) -> tuple[np.ndarray, np.ndarray]:
+    """A and Qc of the constant-velocity model (eqs. 41-42 in continuous time) on `axes`
+    independent axes, state per axis [p, v], white acceleration of spectral density q."""
+    A = np.kron(np.eye(axes), np.array([[0.0, 1.0], [0.0, 0.0]]))
+    Qc = np.kron(np.eye(axes), np.array([[0.0, 0.0], [0.0, q]]))
+    return A, Qc
