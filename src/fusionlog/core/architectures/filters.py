@@ -285,9 +285,10 @@ class KalmanStack:
 class Steady:
     """Detects the steady state of a Riccati recursion so that long horizons reuse one map.
 
-    With every measurement present and a time-invariant model (regular instants), once the covariance state after
-    step k equals the one after step k-1 (to rounding, 1e-15 relative), every later step's map is
-    the same as step k's: the plan repeats it instead of recomputing 10^5 identical gains.
+    With every measurement present and a time-invariant model (regular instants), once the
+    covariance state after step k equals the one after step k-1 (to rounding, 1e-15 relative),
+    every later step's map is the same as step k's: the plan repeats it instead of recomputing
+    10^5 identical gains.
     """
 
     def __init__(self, present: np.ndarray, system: System):
