@@ -179,7 +179,7 @@ def test_missing_file() -> None:
     ("old", "new", "where", "key", "allowed"),
     [
         ("[model]", "colour = 1\n[model]", "scenario", "colour", "name, description, steps"),
-        ("n0 = 0.16", "n0 = 0.16\nNO = 1", "model", "NO", "kind, n0, F, Q, G"),
+        ("n0 = 0.16", "n0 = 0.16\nNO = 1", "model", "NO", "kind, n0, axes, A, Qc, F, Q, G"),
         (
             "cov = [[1.0, 0.0], [0.0, 1.0]]",
             "cov = [[1.0, 0.0], [0.0, 1.0]]\nmu = 1",
@@ -382,7 +382,7 @@ def test_explicit_model_loads() -> None:
         (
             edit('state_names = ["position", "velocity"]', 'state_names = ["x", "y", "z"]'),
             "scenario.state_names",
-            "kind = 'constant-velocity' has 2 states (position, velocity), got 3 names",
+            "kind = 'constant-velocity' with 1 axis has 2 states ([p, v] per axis), got 3 names",
         ),
         (
             BASE + '[[correlations]]\nsensors = ["a", "b"]\ncov = 0.1\n',

@@ -12,14 +12,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .timing import Schedule, SensorTiming, schedule
+
 
 @dataclass(frozen=True)
 class Sensor:
-    """One sensor of eq. (13): z = H x + v, v ~ N(0, R)."""
+    """One sensor of eq. (13): z = H x + v, v ~ N(0, R), measuring when `timing` says."""
 
     name: str
     H: np.ndarray  # (m, n)
     R: np.ndarray  # (m, m)
+    timing: SensorTiming = SensorTiming()
 
     @property
     def dim(self) -> int:
@@ -90,19 +93,19 @@ class System:
         """Process noise covariance (state space) from instant k-1 to instant k (k >= 1)."""
         return self.GQG if self.Qs is None else self.Qs[k - 1]
 
+    def schedule(self, steps: int) -> Schedule:
+        """The instants of a horizon of `steps` dt and when each sensor measures."""
+        return schedule(self.dt, steps, tuple(s.timing for s in self.sensors))
+
     def on_times(self, times: np.ndarray) -> System:
         """The system on the instants `times` (K+1,): itself when they are k dt, else with the
-        continuous model discretised for every interval (`timing.van_loan`, one
-        matrix exponential per distinct interval). ValueError for a model that has no
-        continuous form (explicit F, Q), which holds for its dt only."""
+        continuous model discretised for every interval (`timing.van_loan`, one matrix
+        exponential per distinct interval). A model given by F and Q alone has no other
+        discretisation: its F and Q apply between every two instants, whatever their times
+        (a scenario with irregular instants refuses such a model when it is loaded)."""
         times = np.asarray(times, dtype=float)
-        if np.array_equal(times, np.arange(len(times)) * self.dt):
+        if self.continuous is None or np.array_equal(times, np.arange(len(times)) * self.dt):
             return self if self.Fs is None else dataclasses.replace(self, Fs=None, Qs=None)
-        if self.continuous is None:
-            raise ValueError(
-                "the instants are irregular and the model has only F, Q for dt = "
-                f"{self.dt:g} s: give [model] kind = 'constant-velocity' or 'continuous' (A, Qc)"
-            )
         from .timing import van_loan
 
         A, Qc = self.continuous

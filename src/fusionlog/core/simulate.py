@@ -35,9 +35,10 @@ def psd_sqrt(C: np.ndarray) -> np.ndarray:
 
 
 def _draw(
-    system: System, steps: int, rng: np.random.Generator, R: int
+    system: System, steps: int, rng: np.random.Generator, R: int, measures: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Truth (R, K+1, n) and measurements (R, K+1, m) of one chunk of R runs."""
+    """Truth (R, K+1, n) and measurements (R, K+1, m) of one chunk of R runs; NaN where a
+    sensor does not measure (`measures`, (K+1, S)) or its measurement was lost."""
     n, m = system.n, system.m
     init = system.truth_initial
     Q = system.Q
@@ -66,6 +67,17 @@ def _draw(
                 f"simulation: {what} overflows at step {int(np.argmin(finite))} "
                 "(beyond the float range, about 1.8e308)"
             )
+    dropout = np.array([s.timing.dropout for s in system.sensors])
+    if measures is not None or dropout.any():
+        present = np.ones((R, steps + 1, len(system.sensors)), dtype=bool)
+        if measures is not None:
+            present &= measures
+        if dropout.any():
+            # Drawn last, and only when some sensor drops: scenarios without dropouts keep
+            # the numbers they always had.
+            present &= rng.random((R, steps + 1, len(dropout))) >= dropout
+        for j, sl in enumerate(system.sensor_slices):
+            z[:, :, sl][~present[:, :, j]] = np.nan
     return x, z
 
 
@@ -96,8 +108,21 @@ def chunked(
 
 
 def simulate(
-    system: System, steps: int, seed: int, run_offset: int, runs: int
+    system: System,
+    steps: int,
+    seed: int,
+    run_offset: int,
+    runs: int,
+    measures: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Truth x (runs, K+1, n) and measurements z (runs, K+1, m) for runs [run_offset, +runs)."""
-    x, z = chunked(lambda rng, size: _draw(system, steps, rng, size), steps, seed, run_offset, runs)
-    return x, z
+    """Truth x (runs, K+1, n) and measurements z (runs, K+1, m) for runs [run_offset, +runs).
+
+    `system` is on its instants (`System.on_times`); `measures` (K+1, S) says which sensor
+    measures at which instant (None: all, always). A measurement that is not made, or lost
+    (each independently with its sensor's `timing.dropout`, drawn from the same stream), is
+    NaN."""
+
+    def draw(rng: np.random.Generator, size: int) -> tuple[np.ndarray, np.ndarray]:
+        return _draw(system, steps, rng, size, measures)
+
+    return chunked(draw, steps, seed, run_offset, runs)

@@ -16,10 +16,12 @@ from __future__ import annotations
 import dataclasses
 import os
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 
+from fusionlog.core.timing import Schedule
 from fusionlog.errors import ValidationError
 
 from . import toml
@@ -59,10 +61,25 @@ class Scenario:
     source: str = ""  # the TOML text as loaded (overrides are not written back into it)
     path: str | None = None
 
+    @cached_property
+    def schedule(self) -> Schedule:
+        """The instants of the horizon [0, steps dt] and which sensor measures when: t_k = k dt
+        unless the state kind's sensor timing makes them irregular (`core.timing`)."""
+        own = getattr(self.system, "schedule", None)
+        if own is not None:
+            return own(self.steps)
+        k = np.arange(self.steps + 1)
+        return Schedule(k * self.dt, np.ones((self.steps + 1, 0), dtype=bool), True)
+
     @property
     def times(self) -> np.ndarray:
-        """t_k = k dt for k = 0..K."""
-        return np.arange(self.steps + 1) * self.dt
+        """t_k for k = 0..K (k dt unless the sensors' timing makes the instants irregular)."""
+        return self.schedule.times
+
+    @property
+    def instants(self) -> int:
+        """K + 1, the number of instants (steps + 1 on the regular grid)."""
+        return len(self.schedule.times)
 
     @classmethod
     def of(cls, kind: str, h: Header, system: Any, **fields: Any) -> Scenario:
@@ -135,11 +152,11 @@ def check_budget(scenario: Scenario, bytes_per_run_step: int, what: str) -> None
     run): one run of K+1 instants, ``bytes_per_run_step`` each, must fit in half of the
     machine's memory, or the stage would end in a MemoryError far into the work.
     """
-    need = (scenario.steps + 1) * bytes_per_run_step
+    need = scenario.instants * bytes_per_run_step
     have = _memory_bytes()
     if have and need > have // 2:
         raise ValidationError(
-            f"{scenario.path or scenario.name}: {what} of {scenario.steps + 1} instants needs "
+            f"{scenario.path or scenario.name}: {what} of {scenario.instants} instants needs "
             f"about {need / 2**30:.1f} GiB for a single run, this machine has "
             f"{have / 2**30:.1f} GiB: use fewer steps"
         )
@@ -171,12 +188,17 @@ def scenario_with(
     if not changes:
         return scenario
     new = dataclasses.replace(scenario, **changes)
+    steps_key = "--steps" if steps is not None else "scenario.steps"
     _check_ranges(
         ctx,
         new.steps,
         new.runs,
         new.dt,
-        "--steps" if steps is not None else "scenario.steps",
+        steps_key,
         "--runs" if runs is not None else "scenario.runs",
     )
+    if steps is not None and hasattr(new.system, "schedule"):
+        from .state import check_schedule  # the state kind's sensors: timing on the new horizon
+
+        check_schedule(ctx, new.system, new.steps, steps_key)
     return new

@@ -298,11 +298,16 @@ def architectures(
 
 
 def named_tables(
-    ctx: Ctx, doc: dict[str, Any], key: str, keys: tuple[str, ...], missing: str
+    ctx: Ctx,
+    doc: dict[str, Any],
+    key: str,
+    keys: tuple[str, ...],
+    missing: str,
+    optional: tuple[str, ...] = (),
 ) -> list[tuple[str, dict[str, Any], str]]:
-    """A required, non-empty array of tables ``[[key]]`` with the given (all required) keys and
-    distinct ``name`` values: (key path, table, name) of each. `missing` ends the message when
-    the array is absent (what to give)."""
+    """A required, non-empty array of tables ``[[key]]`` with the given (required) keys, the
+    `optional` ones, and distinct ``name`` values: (key path, table, name) of each. `missing`
+    ends the message when the array is absent (what to give)."""
     if key not in doc:
         raise ctx.err(key, f"missing: give at least one [[{key}]] table{missing}")
     items = doc[key]
@@ -316,7 +321,7 @@ def named_tables(
     seen: dict[str, int] = {}
     for j, t in enumerate(items):
         where = f"{key}[{j}]"
-        check_keys(ctx, t, where, keys, required=keys)
+        check_keys(ctx, t, where, keys + optional, required=keys)
         nm = name(ctx, t["name"], f"{where}.name")
         if nm in seen:
             raise ctx.err(f"{where}.name", f"duplicate sensor name {nm!r} (also {key}[{seen[nm]}])")

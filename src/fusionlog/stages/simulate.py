@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapWriter
 from fusionlog.scenario import Scenario, check_budget
@@ -34,11 +36,16 @@ def simulate_to(
     """Simulate `scenario` block by block of runs into an open writer; returns the message
     count. /truth and /sensors/<name> get one message per step per block of runs."""
     kind = kind_of(scenario.kind)
-    K, M = scenario.steps, scenario.runs
+    K, M = scenario.instants - 1, scenario.runs
     check_budget(scenario, kind.bytes_per_run_step(scenario), "simulating")
     B = block_runs(K, M, block)
     times = scenario.times  # the reader relies on exactly these
     topics = [f"/sensors/{name}" for name in kind.sensor_names(scenario.system)]
+    # A sensor's topic has a message only at the instants it measures (its own rate).
+    measures = scenario.schedule.measures
+    if measures.shape[1] != len(topics):  # a kind without sensor timing: every instant
+        measures = np.ones((K + 1, len(topics)), dtype=bool)
+    per_step = [np.flatnonzero(measures[k]).tolist() for k in range(K + 1)]
     w.add_metadata(SCENARIO_META, scenario_metadata(scenario, kind.system_fields(scenario)))
     w.add_metadata(PROVENANCE_META, provenance(command, scenario.seed))
     messages = 0
@@ -49,9 +56,9 @@ def simulate_to(
         for k in range(K + 1):
             t = float(times[k])
             w.write_values("/truth", k, t, off, x[:, k])
-            for topic, zs in zip(topics, z, strict=True):
-                w.write_values(topic, k, t, off, zs[:, k])
-        messages += (K + 1) * (1 + len(topics))
+            for j in per_step[k]:
+                w.write_values(topics[j], k, t, off, z[j][:, k])
+        messages += (K + 1) + int(measures.sum())
     return messages
 
 
@@ -70,4 +77,4 @@ def run_simulate(
         with McapWriter(outs.open(out)) as w:
             messages = simulate_to(scenario, w, block=block, command=command)
         outs.commit()
-    return SimulateResult(out, scenario.runs, scenario.steps, messages)
+    return SimulateResult(out, scenario.runs, scenario.instants - 1, messages)

@@ -19,7 +19,6 @@ import numpy as np
 
 from fusionlog.core.architectures import Plan, build_plan, estimate, run_plan, shared_pattern
 from fusionlog.core.exact import Expected, analyse
-from fusionlog.core.metrics import MetricsAccumulator, chi2_quantile
 from fusionlog.core.model import System
 from fusionlog.core.names import parse_arch
 from fusionlog.core.simulate import simulate
@@ -59,8 +58,11 @@ class StateKind(Kind):
     def simulate(
         self, scenario: Scenario, run_offset: int, runs: int
     ) -> tuple[np.ndarray, list[np.ndarray]]:
-        x, z = simulate(scenario.system, scenario.steps, scenario.seed, run_offset, runs)
-        return x, [z[..., sl] for sl in scenario.system.sensor_slices]
+        sched = scenario.schedule
+        system = scenario.system.on_times(sched.times)
+        measures = None if sched.measures.all() else sched.measures
+        x, z = simulate(system, sched.steps, scenario.seed, run_offset, runs, measures)
+        return x, [z[..., sl] for sl in system.sensor_slices]
 
     def model(self, sensors: McapFile, recorded: Scenario | None, model_path: Path | None) -> Model:
         if model_path is None:
@@ -83,7 +85,7 @@ class StateKind(Kind):
         self, system: System, steps: int, runs: int, archs: list[str], sensors: McapFile
     ) -> Estimator:
         topics = [f"/sensors/{s.name}" for s in system.sensors]
-        return _StateEstimator(system, steps, runs, archs, topics)
+        return _StateEstimator(on_times(system, sensors), steps, runs, archs, topics)
 
     def evaluator(
         self, scenario: Scenario, estimates: McapFile, provenance: dict[str, str]
@@ -135,6 +137,11 @@ class _StateEstimator(Estimator):
         return {"measurement_pattern": json.dumps(self.pattern.astype(int).tolist())}
 
 
+def on_times(system: System, file: McapFile) -> System:
+    """The system on the instants of a log (`System.on_times`)."""
+    return system.on_times(file.times())
+
+
 def _estimate_writer(mean: np.ndarray, cov: np.ndarray, shared: bool) -> StepWriter:
     def write(w: McapWriter, topic: str, k: int, t: float, off: int) -> None:
         w.write_estimate(topic, k, t, off, mean[:, k], cov[k] if shared else cov[:, k])
@@ -174,23 +181,29 @@ class _StateEvaluator(Evaluator):
     """MSE, NEES, DM per architecture with exact expected values; sample runs; state plane."""
 
     def __init__(self, sc: Scenario, est: McapFile, prov: dict[str, str]) -> None:
+        # here, not at the top: core.metrics imports scipy.special (~0.25 s), which only an
+        # evaluation needs, and this module is loaded by simulate and estimate too
+        from fusionlog.core.metrics import MetricsAccumulator
+
         self.topics = [t for t in est.topics if t.startswith("/estimates/")]
         if not self.topics:
             have = ", ".join(sorted(est.topics)) or "none"
             raise FusionlogError(f"{est.path}: no /estimates/<ARCH> topics (topics: {have})")
         self.archs = [t.removeprefix("/estimates/") for t in self.topics]
         self.sc, self.prov = sc, prov
-        truth_sys = sc.system
-        self.filter_sys = (
+        truth_sys = on_times(sc.system, est)
+        filter_sys = (
             system_from_dict(json.loads(prov["model"]), f"{est.path}: provenance model")
             if "model" in prov
-            else truth_sys
+            else sc.system
         )
+        self.filter_sys = on_times(filter_sys, est)
         if self.filter_sys.n != truth_sys.n:
             raise FusionlogError(
                 f"{est.path}: estimates of {self.filter_sys.n} states, the truth has {truth_sys.n}"
             )
         self.K, self.M = est.steps() - 1, est.runs()
+        self.truth_sys = truth_sys
         self.analysable = _analysable(prov, self.filter_sys, truth_sys)
         n = truth_sys.n
         self.accs = {a: MetricsAccumulator(self.K + 1, n) for a in self.archs}
@@ -256,6 +269,8 @@ class _StateEvaluator(Evaluator):
     def _plane(self) -> dict[str, Any] | None:
         if not self.sc.plane_view or self.plane_truth is None:
             return None
+        from fusionlog.core.metrics import chi2_quantile  # loaded by __init__ (see there)
+
         inputs = {
             f"input {s.name}": build_plan(self.filter_sys, f"SKF:{s.name}", self.K).reported_cov
             for s in self.filter_sys.sensors

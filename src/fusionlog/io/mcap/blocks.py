@@ -82,12 +82,16 @@ class Assembly:
         dims: list[int],
         kinds: list[str],
         topic_index: np.ndarray,
-        steps: int,
+        masks: list[np.ndarray],
         total: int,
         block_runs: int,
     ) -> None:
         self.path, self.names, self.dims, self.kinds = path, names, dims, kinds
         self.topic_index = topic_index  # channel id -> index into names
+        # masks[ti]: the instants at which topic ti has a message (a sensor at its own rate
+        # has some); the others are NaN in its output arrays.
+        steps = len(masks[0]) if masks else 0
+        self.masks = masks
         self.S, self.total, self.block_runs = steps, total, block_runs
         self.pending: list[_OutBlock] = []
         self.next_lo = 0
@@ -114,9 +118,12 @@ class Assembly:
             blk = _OutBlock(lo, hi)
             for ti, d in enumerate(self.dims):
                 shape = (hi - lo, self.S, d)
-                blk.arrays[ti] = (
-                    np.empty(shape) if self.kinds[ti] == VALUES else _Est(np.empty(shape))
-                )
+                if self.kinds[ti] != VALUES:
+                    blk.arrays[ti] = _Est(np.empty(shape))
+                elif self.masks[ti].all():
+                    blk.arrays[ti] = np.empty(shape)
+                else:  # no message at some instants: NaN there, the mark of a missing value
+                    blk.arrays[ti] = np.full(shape, np.nan)
             pending.append(blk)
             self.next_lo = hi
         return min(upto, pending[-1].hi)
@@ -224,9 +231,10 @@ class Assembly:
         """Every step of every topic came; place the block's shared covariances; reset."""
         for ti, name in enumerate(self.names):
             seen = self.seen[ti]
-            if w.check and not seen.all():
+            if w.check and not np.array_equal(seen, self.masks[ti]):
                 raise self.bad(
-                    f"{name}: {seen.sum()} of {self.S} steps for the block of runs at run {w.o}"
+                    f"{name}: {seen.sum()} of {self.masks[ti].sum()} steps for the block of runs "
+                    f"at run {w.o}"
                 )
             seen[:] = False
             cov, some = self.shared[ti], self.has_shared[ti]

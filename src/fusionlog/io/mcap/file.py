@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +49,11 @@ class _Structure:
     times: np.ndarray
     dims: dict[str, int]
     runs: int
+    sparse: dict[str, list[int]] = field(default_factory=dict)  # see Layout.sparse
+
+    def steps_of(self, topic: str) -> np.ndarray:
+        """(K+1,) bool: the instants at which `topic` has a message."""
+        return Layout(self.times, self.runs, 0, self.dims, self.sparse).steps_of(topic)
 
 
 class McapFile:
@@ -176,7 +181,7 @@ class McapFile:
             return None
         ours = {t: i for t, i in self._topics.items() if i.format is not None}
         if set(lay.dims) != set(ours) or any(
-            i.count != lay.instants * lay.blocks for i in ours.values()
+            i.count != int(lay.steps_of(t).sum()) * lay.blocks for t, i in ours.items()
         ):
             return None
         if lay.runs != self._last_run_end(cids):
@@ -198,10 +203,11 @@ class McapFile:
             if len(first) < len(tab):  # the first block ends here: all its steps are in
                 cid = tab.cid[first]
                 for c in np.unique(cid).tolist():
-                    if len(np.unique(steps[cid == c])) != lay.instants:
+                    have = np.unique(steps[cid == c])
+                    if not np.array_equal(have, np.flatnonzero(lay.steps_of(topic_of[c]))):
                         return None
             break
-        return _Structure(lay.times, dict(lay.dims), lay.runs)
+        return _Structure(lay.times, dict(lay.dims), lay.runs, dict(lay.sparse))
 
     def _scan_structure(self, cids: set[int]) -> _Structure:
         """Steps, times and dims from the first block of runs, reduced chunk by chunk to each
@@ -269,6 +275,23 @@ class McapFile:
         """Number of time steps K + 1 (distinct steps of the first block of runs)."""
         return len(self._get_structure().times)
 
+    def topic_steps(self, topic: str) -> np.ndarray:
+        """(K+1,) bool: the instants at which `topic` has a message (a sensor measuring at its
+        own rate has some only; its readings are NaN at the others)."""
+        self._info(topic)
+        return self._get_structure().steps_of(topic)
+
+    def lost_share(self, topic: str, block_runs: int = 1 << 14) -> float:
+        """Share of a values topic's readings that are NaN (lost: a dropout) over the runs and
+        the instants at which the topic has a message."""
+        at = self.topic_steps(topic)
+        lost = total = 0
+        for _, _, data in self.iter_run_blocks([topic], block_runs):
+            v = data[topic][:, at]
+            lost += int(np.isnan(v).any(axis=-1).sum())
+            total += v.shape[0] * v.shape[1]
+        return lost / total if total else 0.0
+
     def runs(self) -> int:
         """Total number of Monte Carlo runs in the file."""
         return self._get_structure().runs
@@ -322,7 +345,8 @@ class McapFile:
         topic_index[list(tidx)] = list(tidx.values())
         kinds = [i.format.kind for i in infos]  # type: ignore[union-attr]
         dims = [self.dim_of(t) for t in names]
-        asm = Assembly(self.path, names, dims, kinds, topic_index, len(st.times), total, block_runs)
+        masks = [st.steps_of(t) for t in names]
+        asm = Assembly(self.path, names, dims, kinds, topic_index, masks, total, block_runs)
         tables = self._tables(cids)
         try:
             cur: Cursor = (next(tables, None), 0)

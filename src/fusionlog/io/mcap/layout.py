@@ -2,7 +2,8 @@
 
 :class:`~.writer.McapWriter` records what the reader needs to know before reading blocks of
 runs — the instants (their times: ``dt`` when they are exactly k·dt, else the list), the total
-number of runs, the number of blocks of runs, and each topic's ``dim`` — so that
+number of runs, the number of blocks of runs, each topic's ``dim``, and for a topic that has a
+message only at some instants (a sensor at its own rate) the steps it has — so that
 :class:`~.file.McapFile` learns the structure without decoding the file twice (a long one-run
 log's first block of runs is the whole file). The reader checks the record against the file
 (topics, message counts, the last block's end, the first messages' steps, times and dims) and
@@ -15,7 +16,7 @@ doubles exactly.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -27,16 +28,27 @@ _FORMAT = "1"
 
 @dataclass(frozen=True)
 class Layout:
-    """times (S,) of the instants k = 0..S-1; runs in total; blocks of runs; dims per topic."""
+    """times (S,) of the instants k = 0..S-1; runs in total; blocks of runs; dims per topic;
+    the steps of the topics that do not have a message at every instant."""
 
     times: np.ndarray
     runs: int
     blocks: int
     dims: dict[str, int]
+    sparse: dict[str, list[int]] = field(default_factory=dict)
 
     @property
     def instants(self) -> int:
         return len(self.times)
+
+    def steps_of(self, topic: str) -> np.ndarray:
+        """(S,) bool: the instants at which `topic` has a message (in every block of runs)."""
+        mask = np.zeros(self.instants, dtype=bool)
+        if topic in self.sparse:
+            mask[self.sparse[topic]] = True
+        else:
+            mask[:] = True
+        return mask
 
     def to_metadata(self) -> dict[str, str]:
         t = self.times
@@ -47,6 +59,8 @@ class Layout:
             "blocks": str(self.blocks),
             "topics": json.dumps(self.dims, sort_keys=True),
         }
+        if self.sparse:
+            out["sparse"] = json.dumps(self.sparse, sort_keys=True)
         if len(t) >= 2 and np.array_equal(np.arange(len(t)) * t[1], t):
             out["dt"] = repr(float(t[1]))
         else:
@@ -61,6 +75,7 @@ class Layout:
                 raise ValueError(f"format {meta.get('format')!r}, not {_FORMAT}")
             instants, runs, blocks = (int(meta[k]) for k in ("instants", "runs", "blocks"))
             dims = json.loads(meta["topics"])
+            sparse = json.loads(meta.get("sparse", "{}"))
             if "dt" in meta:
                 times = np.arange(instants) * float(meta["dt"])
             else:
@@ -72,6 +87,14 @@ class Layout:
             or times.shape != (instants,)
             or not isinstance(dims, dict)
             or not all(isinstance(k, str) and type(v) is int for k, v in dims.items())
+            or not isinstance(sparse, dict)
+            or not all(
+                k in dims
+                and isinstance(v, list)
+                and all(type(i) is int and 0 <= i < instants for i in v)
+                and v == sorted(set(v))
+                for k, v in sparse.items()
+            )
         ):
             raise ValueError("inconsistent fields")
-        return Layout(times, runs, blocks, dims)
+        return Layout(times, runs, blocks, dims, sparse)

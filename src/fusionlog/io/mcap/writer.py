@@ -109,6 +109,7 @@ class McapWriter:
         self._blocks = 0
         self._seen: set[tuple[int, int]] = set()  # (channel, step) in the current block
         self._first_times: dict[int, float] = {}  # step -> time, in the first block of runs
+        self._first_steps: dict[str, list[int]] = {}  # topic -> its steps in the first block
         self._hstep: int = -1  # step and time whose encoded fields are in _head
         self._htime: float = math.nan
         self._head = b""
@@ -201,7 +202,10 @@ class McapWriter:
         times = np.array([self._first_times[k] for k in range(steps)], dtype=float)
         dims = {t: st.dim for t, st in self._topic_states.items()}
         runs = max(0, self._block_offset + self._block_runs)
-        return Layout(times, runs, self._blocks, dims)
+        sparse = {
+            t: sorted(s) for t, s in self._first_steps.items() if len(s) != steps and t in dims
+        }
+        return Layout(times, runs, self._blocks, dims, sparse)
 
     def _check_written(self) -> None:
         path = getattr(self.file, "tmp", None) or getattr(self.file, "name", None)
@@ -324,6 +328,8 @@ class McapWriter:
         if key in self._seen:
             raise ValueError(f"{topic}: step {step} written twice for runs from {run_offset}")
         self._seen.add(key)
+        if run_offset == 0:  # the steps a topic has (every instant, or its own: layout record)
+            self._first_steps.setdefault(topic, []).append(step)
         if step != self._hstep or time != self._htime:
             self._set_head(step, time)
         if st.mid_key != (run_offset, runs, len(p2)):
