@@ -20,7 +20,13 @@ entity-path parts, see :func:`~fusionlog.io.rrd.stream.entity_path`: ``SKF:s2`` 
 ``runs/<m>/<state>/<ARCH>/mean``                estimate of sample run m
 ``runs/<m>/<state>/<ARCH>/upper``, ``/lower``   mean +- 2 sigma, sigma = sqrt(P_ii)
 ``plane/...``                                   the state plane (:mod:`.plane`)
+``sensors/<sensor>/measured``                   share of the runs whose measurement arrived,
+                                                at each instant the sensor measures (1 without
+                                                dropouts; dots, so its rate shows)
 =============================================  ============================================
+
+When the instants are not whole seconds apart (multi-rate sensors, irregular instants) the
+views open on the ``time`` timeline, so that every instant is plotted where it is.
 
 Steps where a value is not finite (undefined estimate) are simply not logged. Monte Carlo
 curves are lines (``SeriesLines``), expected curves are markers (``SeriesPoints``) in the same
@@ -39,7 +45,7 @@ import rerun.blueprint as rrb
 from .legend import legend_box, place_legend
 from .plane import check_plane, write_plane
 from .stream import SeriesWriter, check_axes, entity_path, recording_error, recording_stream
-from .style import BOUND_COLOR, CKF, TRUTH_COLOR, arch_color, arch_width
+from .style import BOUND_COLOR, CKF, TRUTH_COLOR, arch_color, arch_width, class_color
 from .views import query, tabbed_blueprint, time_series_view
 
 __all__ = ["write_recording"]
@@ -74,6 +80,7 @@ def write_recording(
     properties: Mapping[str, Any] | None = None,
     recording_id: str | None = None,
     plane: Mapping[str, Any] | None = None,
+    availability: Mapping[str, np.ndarray] | None = None,
 ) -> None:
     """Write the evaluation recording into the binary file object `file`.
 
@@ -88,6 +95,8 @@ def write_recording(
     a str value is stored as field ``text``, a mapping field by field (non-scalars as JSON).
     recording_id: defaults to :func:`~fusionlog.io.rrd.stream.recording_id_for` (name, seed).
     plane: for a 2-D state, the state-plane view (see :func:`.plane.write_plane`).
+    availability: {sensor: (K+1,) share of runs measured, NaN where the sensor does not
+    measure}, drawn in a "Sensors" tab.
 
     Raises FusionlogError if the data are inconsistent (before anything is written) and
     OutputError if writing `file` fails.
@@ -98,11 +107,21 @@ def write_recording(
     _check(file, times, state_names, series, nees_bounds, samples)
     if plane is not None:
         check_plane(file, times.shape[0], plane)
-    blueprint = _blueprint(state_names, series, samples, plane is not None)
+    avail = {k: np.asarray(v, dtype=float) for k, v in (availability or {}).items()}
+    for name, v in avail.items():
+        if v.shape != times.shape:
+            raise recording_error(
+                file, f"availability of {name}: shape {v.shape}, want {times.shape}"
+            )
+    # Instants k dt with dt = 1 read the same on both timelines; otherwise time is the axis.
+    timeline = "step" if np.array_equal(times, np.arange(len(times))) else "time"
+    blueprint = _blueprint(state_names, series, samples, plane is not None, avail, timeline)
     args = (scenario_name, seed, times, summary, properties, recording_id)
     with recording_stream(file, blueprint, *args) as w:
         _write_metrics(w, state_names, series, nees_bounds, confidence)
         _write_sample_runs(w, state_names, samples)
+        for i, (name, v) in enumerate(avail.items()):
+            w.points(entity_path("sensors", name, "measured"), v, name, class_color(i))
         if plane is not None:
             write_plane(w, plane)
 
@@ -197,6 +216,8 @@ def _blueprint(
     series: Mapping[str, Mapping[str, np.ndarray]],
     sample_runs: SampleRuns,
     plane: bool = False,
+    availability: Mapping[str, np.ndarray] | None = None,
+    timeline: str = "step",
 ) -> rrb.Blueprint:
     """Tabs: [state plane], Overview (Figs. 4, 5, 6, NEES, DM), [sample runs].
 
@@ -285,6 +306,13 @@ def _blueprint(
             for k, (m, i) in enumerate(cells)
         ]
         tabs.append(rrb.Grid(*run_views, grid_columns=n, name="Sample runs"))
+    if availability:
+        tabs.append(
+            time_series_view(
+                "Sensors: share of runs measured at each of its instants (1 = none lost)",
+                [query("sensors") + "/**"],
+            )
+        )
     if plane:
         tabs.insert(
             0,
@@ -293,4 +321,4 @@ def _blueprint(
                 name=f"State plane ({state_names[0]}, {state_names[1]}): estimates and ellipses",
             ),
         )
-    return tabbed_blueprint(tabs)
+    return tabbed_blueprint(tabs, timeline)

@@ -28,11 +28,14 @@ def time_series_view(
     )
 
 
-def tabbed_blueprint(tabs: Sequence[rrb.Container | rrb.View]) -> rrb.Blueprint:
+def tabbed_blueprint(
+    tabs: Sequence[rrb.Container | rrb.View], timeline: str = "step"
+) -> rrb.Blueprint:
     """The default blueprint: `tabs` with the first one open, side panels collapsed, the time
-    panel on ``step`` and paused (the recordings are results, not a live feed)."""
+    panel on `timeline` (``step``, or ``time`` for instants at irregular times) and paused
+    (the recordings are results, not a live feed)."""
     return rrb.Blueprint(
         rrb.Tabs(*tabs, active_tab=0),
-        rrb.TimePanel(timeline="step", state="collapsed", play_state="paused"),
+        rrb.TimePanel(timeline=timeline, state="collapsed", play_state="paused"),
         collapse_panels=True,
     )
