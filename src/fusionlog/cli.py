@@ -7,6 +7,7 @@ stderr naming the file and the problem; a traceback only with --debug), 130 inte
 from __future__ import annotations
 
 import json
+import shlex
 import signal
 import sys
 import time
@@ -19,6 +20,9 @@ from fusionlog import __version__
 from fusionlog.errors import DamagedFile, FusionlogError, OutputExists
 
 PATH = click.Path(path_type=Path, dir_okay=False)
+#: An output file: whatever is at the path (a directory, a device) is refused by io/atomic.py
+#: with the one line every other unsuitable target gets, not by click's usage message.
+OUTPUT = click.Path(path_type=Path)
 
 
 #: Exit codes (DESIGN.md): 0 success, 1 a regression found by `compare`, 2 bad usage, bad
@@ -126,7 +130,7 @@ def _warn_stale(targets: list[Path]) -> None:
         for p in stale_temporaries(t):
             click.echo(
                 f"fusionlog: warning: {p} is a temporary file left by a killed fusionlog run "
-                f"(its process is gone); remove it with: rm {p}",
+                f"(its process is gone); remove it with: rm -- {shlex.quote(str(p))}",
                 err=True,
             )
 
@@ -149,7 +153,7 @@ _arch = click.option(
 
 @main.command()
 @click.argument("scenario", type=PATH)
-@click.option("-o", "--output", type=PATH, required=True, help="Sensors MCAP file to write.")
+@click.option("-o", "--output", type=OUTPUT, required=True, help="Sensors MCAP file to write.")
 @_runs
 @_steps
 @_seed
@@ -166,7 +170,7 @@ def simulate(scenario, output, runs, steps, seed, force, block_runs) -> None:
 
 @main.command()
 @click.argument("sensors", type=PATH)
-@click.option("-o", "--output", type=PATH, required=True, help="Estimates MCAP file to write.")
+@click.option("-o", "--output", type=OUTPUT, required=True, help="Estimates MCAP file to write.")
 @_arch
 @click.option("--model", type=PATH, help="Filter model TOML replacing the recorded scenario's.")
 @_force
@@ -190,8 +194,8 @@ def estimate(sensors, output, archs, model, force, block_runs) -> None:
 @main.command()
 @click.argument("sensors", type=PATH)
 @click.argument("estimates", type=PATH)
-@click.option("-o", "--output", type=PATH, required=True, help="Rerun recording (.rrd).")
-@click.option("--summary", "summary_path", type=PATH, help="Also write summary.json here.")
+@click.option("-o", "--output", type=OUTPUT, required=True, help="Rerun recording (.rrd).")
+@click.option("--summary", "summary_path", type=OUTPUT, help="Also write summary.json here.")
 @_force
 @_block
 def evaluate(sensors, estimates, output, summary_path, force, block_runs) -> None:
