@@ -458,3 +458,45 @@ def test_layout_record_is_checked_against_the_file(tmp_path, layout):
     assert f.dim_of("/truth") == 1
     got = f.read_all(["/truth"])["/truth"]
     assert got[:, :, 0].tolist() == [[0, 1], [1, 2], [2, 3]]
+
+
+# ------------------------------------------------------------------------------------------
+# per-message covariance of a values topic (a one-run log that carries its own R)
+# ------------------------------------------------------------------------------------------
+
+
+def test_per_message_covariance_round_trip(tmp_path: Path) -> None:
+    """A Block's optional covariance: written for some messages, read back where it is, NaN
+    where it is not; the readings are unaffected; the plain protobuf class decodes it."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    path = tmp_path / "c.mcap"
+    rng = np.random.default_rng(4)
+    vals = rng.normal(size=(6, 1, 2))
+    covs = {1: np.array([[[2.0, 0.1], [0.1, 3.0]]]), 4: np.array([[[0.5, 0.0], [0.0, 0.7]]])}
+    with mcap_writer(path) as w:
+        for k in range(6):
+            w.write_values("/truth", k, 0.1 * k, 0, vals[k])
+            if k % 2 == 0 or k in covs:
+                w.write_values("/sensors/a", k, 0.1 * k, 0, vals[k], covs.get(k))
+    f = McapFile(path)
+    got = f.message_covariances("/sensors/a")
+    assert got.shape == (6, 2, 2)
+    for k in range(6):
+        if k in covs:
+            np.testing.assert_array_equal(got[k], covs[k][0])
+        else:
+            assert np.isnan(got[k]).all()
+    assert f.message_covariances("/truth") is None
+    data = f.read_all(["/sensors/a"])["/sensors/a"]
+    np.testing.assert_array_equal(data[0, [0, 1, 2, 4]], vals[[0, 1, 2, 4], 0])
+    assert np.isnan(data[0, [3, 5]]).all()
+    with open(path, "rb") as fh:
+        seen = {
+            msg.log_time: list(dec.covariance)
+            for _, ch, msg, dec in make_reader(
+                fh, decoder_factories=[DecoderFactory()]
+            ).iter_decoded_messages(topics=["/sensors/a"])
+        }
+    assert seen[100_000_000] == [2.0, 0.1, 0.1, 3.0] and seen[0] == []

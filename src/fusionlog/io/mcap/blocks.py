@@ -179,6 +179,14 @@ class Assembly:
                 f"{tab.n1[i] // 8} doubles does not match runs={r}, dim={tab.dim[i]} "
                 f"(topic dim {d})"
             )
+        if self.kinds[ti] == VALUES:  # an optional per-message covariance of one run
+            wrong = np.flatnonzero((tab.n2[sel] != 0) & (tab.n2[sel] != r * d * d * 8))
+            if len(wrong):
+                i = sel[wrong[0]]
+                raise FusionlogError(
+                    f"{self.path}: {name}: step {tab.step[i]} runs from {o}: covariance of "
+                    f"{tab.n2[i] // 8} doubles is not runs*dim*dim"
+                )
         if self.kinds[ti] == ESTIMATE:
             n2 = tab.n2[sel]
             wrong = np.flatnonzero((n2 != d * d * 8) & (n2 != r * d * d * 8))

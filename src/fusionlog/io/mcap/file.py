@@ -25,9 +25,9 @@ from fusionlog.errors import FusionlogError
 
 from .blocks import Assembly, Cursor, Window
 from .chunks import Container, linear_batches, open_container, open_error, read_chunk
-from .columns import BadMessage, Table, decode_table
+from .columns import BadMessage, Table, decode_table, gather
 from .layout import LAYOUT_META, Layout
-from .schema import ESTIMATE_SCHEMA, SENSOR_SCHEMA
+from .schema import ESTIMATE_SCHEMA, SENSOR_SCHEMA, VALUES
 from .wire import MessageFormat, format_of_schema_record
 
 __all__ = ["McapFile"]
@@ -280,6 +280,31 @@ class McapFile:
         own rate has some only; its readings are NaN at the others)."""
         self._info(topic)
         return self._get_structure().steps_of(topic)
+
+    def message_covariances(self, topic: str) -> np.ndarray | None:
+        """(K+1, dim, dim): the per-message measurement covariance of a values topic of a
+        one-run log (the Block's optional ``covariance``), NaN at instants without one; None
+        when no message of the topic carries one."""
+        info = self._readable(topic)
+        if info.format.kind != VALUES:  # type: ignore[union-attr]
+            raise ValueError(f"{topic} is not a values topic")
+        st = self._get_structure()
+        d = self.dim_of(topic)
+        out: np.ndarray | None = None
+        for _, tab in self._tables(set(info.channel_ids)):
+            rows = np.flatnonzero(np.isin(tab.cid, info.channel_ids) & (tab.n2 > 0))
+            if not len(rows):
+                continue
+            if (tab.runs[rows] != 1).any() or (tab.n2[rows] != d * d * 8).any():
+                raise FusionlogError(
+                    f"{self.path}: {topic}: a message covariance of {tab.n2[rows[0]] // 8} "
+                    f"doubles, not {d}x{d} of one run (per-message covariances are for "
+                    "one-run logs)"
+                )
+            if out is None:
+                out = np.full((len(st.times), d, d), np.nan)
+            out[tab.step[rows]] = gather(tab.raw, tab.p2[rows], d * d).reshape(-1, d, d)
+        return out
 
     def lost_share(self, topic: str, block_runs: int = 1 << 14) -> float:
         """Share of a values topic's readings that are NaN (lost: a dropout) over the runs and

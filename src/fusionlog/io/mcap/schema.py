@@ -3,13 +3,17 @@
 Both live in the proto3 package ``fusionlog`` of the file ``fusionlog/blocks.proto``::
 
     message Block         { uint32 step = 1; double time = 2; uint32 run_offset = 3;
-                            uint32 runs = 4; uint32 dim = 5; repeated double values = 6; }
+                            uint32 runs = 4; uint32 dim = 5; repeated double values = 6;
+                            repeated double covariance = 7; }
     message EstimateBlock { uint32 step = 1; double time = 2; uint32 run_offset = 3;
                             uint32 runs = 4; uint32 dim = 5; repeated double mean = 6;
                             repeated double covariance = 7; }
 
 ``values`` is (runs, dim) and ``mean`` is (runs, n), row-major; ``covariance`` is (n, n) when it
-is the same for every run of the message and (runs, n, n) otherwise. The field numbers are
+is the same for every run of the message and (runs, n, n) otherwise. A Block's ``covariance``
+is optional: the measurement noise covariance (dim, dim) of a reading whose R varies from
+message to message (a recorded log that carries its own covariances); absent, the sensor's R
+applies. Files written before the field existed decode the same. The field numbers are
 defined here once; the wire codec (:mod:`.wire`) derives its tags from them. The schema is
 embedded in every file as a FileDescriptorSet built at run time (no protoc), so any MCAP +
 protobuf reader decodes the files without fusionlog.
@@ -25,6 +29,7 @@ __all__ = [
     "ESTIMATE",
     "ESTIMATE_SCHEMA",
     "HEADER_FIELDS",
+    "OPTIONAL_PAYLOADS",
     "PAYLOAD_FIELDS",
     "PROTO_FILE",
     "SENSOR_SCHEMA",
@@ -54,9 +59,11 @@ HEADER_FIELDS: tuple[tuple[str, int, int], ...] = (
 
 #: Per kind: (name, field number) of its packed ``repeated double`` payloads, in order.
 PAYLOAD_FIELDS: dict[str, tuple[tuple[str, int], ...]] = {
-    VALUES: (("values", 6),),
+    VALUES: (("values", 6), ("covariance", 7)),
     ESTIMATE: (("mean", 6), ("covariance", 7)),
 }
+#: The payloads a schema of the kind may lack (older Blocks have no covariance).
+OPTIONAL_PAYLOADS: dict[str, tuple[str, ...]] = {VALUES: ("covariance",), ESTIMATE: ()}
 
 _MESSAGES = ((SENSOR_SCHEMA, VALUES), (ESTIMATE_SCHEMA, ESTIMATE))
 

@@ -34,6 +34,7 @@ from .schema import (
     ESTIMATE,
     ESTIMATE_SCHEMA,
     HEADER_FIELDS,
+    OPTIONAL_PAYLOADS,
     PAYLOAD_FIELDS,
     SENSOR_SCHEMA,
     VALUES,
@@ -425,11 +426,16 @@ def format_of_schema_record(encoding: str, name: str, data: bytes) -> MessageFor
         return None
     keys[_key(f.number, _FIXED64)] = _A_TIME
     kind = next(
-        (k for k in (VALUES, ESTIMATE) if all(p in fields for p, _ in PAYLOAD_FIELDS[k])), None
+        (
+            k
+            for k in (VALUES, ESTIMATE)
+            if all(p in fields or p in OPTIONAL_PAYLOADS[k] for p, _ in PAYLOAD_FIELDS[k])
+        ),
+        None,
     )
     if kind is None:
         return None
-    payload = [p for p, _ in PAYLOAD_FIELDS[kind]]
+    payload = [p for p, _ in PAYLOAD_FIELDS[kind] if p in fields]
     for action, pname in zip((_A_P1, _A_P2), payload, strict=False):
         f = fields[pname]
         if f.type != F.TYPE_DOUBLE or f.label != F.LABEL_REPEATED:
@@ -464,6 +470,8 @@ def decode_message(data: bytes, schema_name: str = SENSOR_SCHEMA) -> dict[str, A
     a1 = np.frombuffer(p1, dtype="<f8")
     if fmt.kind == VALUES:
         out["values"] = a1.reshape(runs, dim)
+        if p2:
+            out["covariance"] = np.frombuffer(p2, dtype="<f8").reshape(runs, dim, dim)
     else:
         a2 = np.frombuffer(p2, dtype="<f8")
         out["mean"] = a1.reshape(runs, dim)

@@ -340,18 +340,29 @@ class McapWriter:
             self._fail()
 
     def write_values(
-        self, topic: str, step: int, time: float, run_offset: int, values: np.ndarray
+        self,
+        topic: str,
+        step: int,
+        time: float,
+        run_offset: int,
+        values: np.ndarray,
+        covariance: np.ndarray | None = None,
     ) -> None:
-        """Write one ``fusionlog.Block``: ``values`` (runs, dim) at ``step`` for a block of runs."""
+        """Write one ``fusionlog.Block``: ``values`` (runs, dim) at ``step`` for a block of runs,
+        with the optional per-message measurement ``covariance`` (runs, dim, dim)."""
         if type(values) is not np.ndarray or values.dtype != _F8:
             values = np.asarray(values, dtype=_F8)
         shape = values.shape
         if len(shape) != 2 or shape[0] < 1 or shape[1] < 1:
             raise ValueError(f"values must have shape (runs >= 1, dim >= 1), got {shape}")
+        p2 = b""
+        if covariance is not None:
+            c = np.asarray(covariance, dtype=_F8)
+            if c.shape != (shape[0], shape[1], shape[1]):
+                raise ValueError(f"covariance must have shape {(shape[0], shape[1], shape[1])}")
+            p2 = c.tobytes()
         # tobytes() is C order whatever the strides, so no ascontiguousarray copy is needed.
-        self._write(
-            topic, VALUES, step, time, run_offset, shape[0], shape[1], values.tobytes(), b""
-        )
+        self._write(topic, VALUES, step, time, run_offset, shape[0], shape[1], values.tobytes(), p2)
 
     def write_estimate(
         self,
