@@ -29,6 +29,7 @@ __all__ = [
     "load_model",
     "load_scenario",
     "model_from_text",
+    "scenario_from_doc",
     "scenario_from_metadata",
     "scenario_from_text",
     "scenario_with",
@@ -38,7 +39,15 @@ __all__ = [
 
 
 def _from_text(text: str, file: str, path: str | None) -> Scenario:
-    doc = toml.parse_toml(text, file)
+    return scenario_from_doc(toml.parse_toml(text, file), file, text, path)
+
+
+def scenario_from_doc(
+    doc: dict[str, Any], file: str, text: str = "", path: str | None = None
+) -> Scenario:
+    """Validate a scenario of either kind from a parsed TOML document: the one validation path
+    of files, texts and documents edited after parsing (a sweep's grid points). `file` names
+    it in errors, `text` is the TOML as written (recorded in outputs), `path` its file."""
     if is_identity_doc(doc):
         return identity_from_doc(doc, file, text, path)
     return state_from_doc(doc, file, text, path)

@@ -198,7 +198,7 @@ def scenario_with(
         "--runs" if runs is not None else "scenario.runs",
     )
     if steps is not None and hasattr(new.system, "schedule"):
-        from .state import check_schedule  # the state kind's sensors: timing on the new horizon
+        from .model import check_schedule  # the state kind's sensors: timing on the new horizon
 
         check_schedule(ctx, new.system, new.steps, steps_key)
     return new

@@ -1,0 +1,205 @@
+"""The [model] section of a state scenario (and of a replay or model file), and the sensors'
+timing keys: which discrete model a scenario has, and whether it can be discretised for any
+interval (irregular instants, `core.timing`).
+
+    [model]   kind = "constant-velocity" with n0 (N0 = n0 * dt, eqs. 41-42) and optionally
+              axes (N independent axes, state per axis [p, v]);
+              kind = "continuous" with A, Qc (F = expm(A dt), Q by Van Loan's method);
+              or explicit F, Q and optionally G (default identity), for dt only.
+    [[sensors]] period, offset (s), dropout (probability): see `core.timing`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from fusionlog.core.model import System, constant_velocity
+from fusionlog.core.timing import SensorTiming, constant_velocity_continuous, van_loan
+
+from . import toml
+from .base import MAX_INDEX
+from .toml import Ctx
+
+__all__ = [
+    "MODEL_KEYS",
+    "MODEL_KINDS",
+    "TIMING_KEYS",
+    "Model",
+    "check_schedule",
+    "model_section",
+    "sensor_timing",
+]
+
+#: Values of [model].kind.
+MODEL_KINDS: tuple[str, ...] = ("constant-velocity", "continuous")
+MODEL_KEYS = ("kind", "n0", "axes", "A", "Qc", "F", "Q", "G")
+TIMING_KEYS = ("period", "offset", "dropout")
+
+#: F, Q, G, state names, dt, and the continuous model (A, Qc) or None.
+Model = tuple[np.ndarray, np.ndarray, np.ndarray | None, tuple[str, ...], float, Any]
+
+
+def model_section(
+    ctx: Ctx, doc: dict[str, Any], state_names: tuple[str, ...] | None, dt: float | None
+) -> Model:
+    """The [model] section: F, Q (at dt), G, the state names, dt and the continuous model."""
+    md = toml.table(ctx, doc, "model", required=True)
+    toml.check_keys(ctx, md, "model", MODEL_KEYS)
+    if "kind" in md:
+        kind = toml.string(ctx, md["kind"], "model.kind")
+        if kind not in MODEL_KINDS:
+            raise ctx.err("model.kind", f"unknown kind {kind!r} (known: {', '.join(MODEL_KINDS)})")
+        own = {"constant-velocity": ("n0", "axes"), "continuous": ("A", "Qc")}[kind]
+        for key in ("F", "Q", "G", "n0", "axes", "A", "Qc"):
+            if key in md and key not in own:
+                raise ctx.err(
+                    f"model.{key}",
+                    f"not allowed with kind = {kind!r} (it takes {', '.join(own)})",
+                )
+        if dt is None:
+            raise ctx.err("scenario.dt", f"missing required key (kind = {kind!r} needs it)")
+        if kind == "constant-velocity":
+            return _constant_velocity(ctx, md, state_names, dt)
+        return _continuous(ctx, md, state_names, dt)
+
+    for key in ("n0", "axes", "A", "Qc"):
+        if key in md:
+            raise ctx.err(
+                f"model.{key}", "only used with kind = 'constant-velocity' or 'continuous'"
+            )
+    for key in ("F", "Q"):
+        if key not in md:
+            raise ctx.err(
+                f"model.{key}", "missing required key (give kind = 'constant-velocity' or F and Q)"
+            )
+    F = toml.matrix(ctx, md["F"], "model.F", scalar=True)
+    if F.shape[0] != F.shape[1]:
+        raise ctx.err("model.F", f"must be square, got {toml.shape(F)}")
+    n = F.shape[0]
+    if state_names is None:
+        state_names = tuple(f"x{i + 1}" for i in range(n))
+    elif len(state_names) != n:
+        raise ctx.err(
+            "model.F",
+            f"shape {toml.shape(F)} does not match the {len(state_names)} "
+            f"scenario.state_names (expected {len(state_names)}x{len(state_names)})",
+        )
+    G = None
+    q = n
+    if "G" in md:
+        G = toml.matrix(ctx, md["G"], "model.G", scalar=True, row=n == 1)
+        if G.shape[0] != n:
+            raise ctx.err("model.G", f"shape {toml.shape(G)}, expected {n} rows (n, as F)")
+        q = G.shape[1]
+        G = toml.readonly(G)
+    Q = toml.matrix(ctx, md["Q"], "model.Q", scalar=True)
+    if Q.shape != (q, q):
+        why = f"q x q, q = {q} columns of G" if G is not None else "n x n, as F"
+        raise ctx.err("model.Q", f"shape {toml.shape(Q)}, expected {q}x{q} ({why})")
+    Q = toml.covariance_checks(ctx, Q, "model.Q", strict=False)
+    return toml.readonly(F), Q, G, state_names, 1.0 if dt is None else dt, None
+
+
+def _constant_velocity(
+    ctx: Ctx, md: dict[str, Any], state_names: tuple[str, ...] | None, dt: float
+) -> Model:
+    """Eqs. (41)-(42) with N0 = n0 dt, on `axes` independent axes (state per axis [p, v])."""
+    if "n0" not in md:
+        raise ctx.err("model.n0", "missing required key (kind = 'constant-velocity' needs it)")
+    n0 = toml.number(ctx, md["n0"], "model.n0")
+    if n0 < 0:
+        raise ctx.err("model.n0", f"must be >= 0, got {toml.fmt(n0)}")
+    axes = toml.integer(ctx, md.get("axes", 1), "model.axes", minimum=1)
+    if axes > 64:
+        raise ctx.err("model.axes", f"must be <= 64, got {axes}")
+    if state_names is None:
+        if axes == 1:
+            state_names = ("position", "velocity")
+        else:
+            names = "xyz"[:axes] if axes <= 3 else [f"p{i + 1}" for i in range(axes)]
+            state_names = tuple(x for a in names for x in (a, f"v{a}"))
+    elif len(state_names) != 2 * axes:
+        raise ctx.err(
+            "scenario.state_names",
+            f"kind = 'constant-velocity' with {axes} ax{'es' if axes > 1 else 'is'} has "
+            f"{2 * axes} states ([p, v] per axis), got {len(state_names)} names",
+        )
+    F1, Q1 = constant_velocity(dt, n0 * dt)
+    F, Q = np.kron(np.eye(axes), F1), np.kron(np.eye(axes), Q1)
+    continuous = constant_velocity_continuous(axes, n0 * dt)
+    return toml.readonly(F), toml.readonly(Q), None, state_names, dt, continuous
+
+
+def _continuous(
+    ctx: Ctx, md: dict[str, Any], state_names: tuple[str, ...] | None, dt: float
+) -> Model:
+    """dx = A x dt + dw, E[dw dw'] = Qc dt: F = expm(A dt) and Q by Van Loan's method."""
+    for key in ("A", "Qc"):
+        if key not in md:
+            raise ctx.err(f"model.{key}", "missing required key (kind = 'continuous' needs it)")
+    A = toml.matrix(ctx, md["A"], "model.A", scalar=True)
+    if A.shape[0] != A.shape[1]:
+        raise ctx.err("model.A", f"must be square, got {toml.shape(A)}")
+    n = A.shape[0]
+    if state_names is None:
+        state_names = tuple(f"x{i + 1}" for i in range(n))
+    elif len(state_names) != n:
+        raise ctx.err(
+            "model.A",
+            f"shape {toml.shape(A)} does not match the {len(state_names)} scenario.state_names",
+        )
+    Qc = toml.covariance(ctx, md["Qc"], "model.Qc", n, strict=False)
+    with np.errstate(all="ignore"):
+        F, Q = van_loan(A, Qc, dt)
+    if not (np.isfinite(F).all() and np.isfinite(Q).all()):
+        raise ctx.err("model.A", f"expm(A dt) overflows for dt = {toml.fmt(dt)}")
+    A = toml.readonly(np.array(A))
+    return toml.readonly(F), toml.readonly(Q), None, state_names, dt, (A, Qc)
+
+
+def sensor_timing(ctx: Ctx, t: dict[str, Any], where: str) -> SensorTiming:
+    """A sensor's period, offset (s) and dropout probability; the horizon is checked later,
+    when the instants are known (`check_schedule`)."""
+    period = None
+    if "period" in t:
+        period = toml.number(ctx, t["period"], f"{where}.period")
+        if not period > 0:
+            raise ctx.err(f"{where}.period", f"must be > 0, got {toml.fmt(period)}")
+    offset = toml.number(ctx, t.get("offset", 0.0), f"{where}.offset")
+    if offset < 0:
+        raise ctx.err(f"{where}.offset", f"must be >= 0, got {toml.fmt(offset)}")
+    if period is not None and not offset < period:
+        raise ctx.err(
+            f"{where}.offset",
+            f"must be < period ({toml.fmt(period)} s), got {toml.fmt(offset)}",
+        )
+    dropout = toml.number(ctx, t.get("dropout", 0.0), f"{where}.dropout")
+    if not 0.0 <= dropout < 1.0:
+        raise ctx.err(f"{where}.dropout", f"must be in [0, 1), got {toml.fmt(dropout)}")
+    return SensorTiming(period, offset, dropout)
+
+
+def check_schedule(ctx: Ctx, system: System, steps: int, steps_key: str) -> None:
+    """The sensors' timing on a horizon of `steps` dt: every sensor measures at least once,
+    irregular instants have a model that can be discretised for any interval, and the
+    instants fit a log's uint32 step index."""
+    sched = system.schedule(steps)
+    horizon = toml.fmt(steps * system.dt)
+    for j, sen in enumerate(system.sensors):
+        if not sched.measures[:, j].any():
+            raise ctx.err(
+                f"sensors[{j}].offset",
+                f"sensor {sen.name!r} never measures within [0, {horizon}] s "
+                f"(offset {toml.fmt(sen.timing.offset)} s, {steps_key} = {steps})",
+            )
+    if not sched.regular and system.continuous is None:
+        raise ctx.err(
+            "model.F",
+            "explicit F, Q hold for dt only, but the sensors' periods and offsets are not "
+            "multiples of dt (irregular instants): give kind = 'constant-velocity' (n0, axes) "
+            "or kind = 'continuous' (A, Qc)",
+        )
+    if len(sched.times) > MAX_INDEX:
+        raise ctx.err(steps_key, f"{len(sched.times)} instants exceed a uint32 step index")
