@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from .linalg import mT, solve, spd_inv, sym
+from .linalg import mm, mT, solve, spd_inv, sym
 
 
 def gain(P: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Kalman gain K = P H^T (H P H^T + R)^-1, eq. (17), solved with the innovation covariance
     (its pseudo-inverse where it is singular to working precision, see `linalg.solve`)."""
-    HP = H @ P
-    S = sym(HP @ mT(H) + R)
+    HP = mm(H, P)
+    S = sym(mm(HP, mT(H)) + R)
     return mT(solve(S, HP, hermitian=True, what="the innovation covariance H P H' + R"))
 
 
@@ -23,8 +23,8 @@ def joseph(
     A = I - K H may be passed by a caller that needs it anyway.
     """
     if A is None:
-        A = np.eye(P.shape[-1]) - K @ H
-    return sym(A @ P @ mT(A) + K @ R @ mT(K))
+        A = np.eye(P.shape[-1]) - mm(K, H)
+    return sym(mm(mm(A, P), mT(A)) + mm(mm(K, R), mT(K)))
 
 
 def update_joseph(

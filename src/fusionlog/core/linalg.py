@@ -2,6 +2,18 @@
 
 Every function accepts arrays with optional leading batch dimensions (..., n, n), so the same
 code serves the shared-gain path (no batch) and the per-run path (batch = runs).
+
+Large batches of small matrices (the per-run path: 10^4 runs of 2 x 2 covariances) do not go
+through numpy's stacked routines, which cost about a microsecond per matrix (np.matmul,
+np.linalg.solve, inv, eigvalsh loop over the matrices), but through the *batch kernels* at the
+end of this module: the same products, Cholesky and LU factorisations written entry by entry,
+each entry one elementwise numpy operation over the whole batch. They work on the batch-last
+("lanes") memory layout: an array still has the shape batch + (p, q), but its memory is
+(p, q) + batch, so that every entry A[..., i, j] is one contiguous vector over the runs. The
+kernels return arrays in that layout and numpy's elementwise operations keep it, so a builder
+written with `mm`, `solve`, `spd_inv` and `sym` runs on lanes from step to step. Small batches
+(below `KERNEL_MIN_BATCH`, e.g. the shared path's stack of a few local filters) keep numpy's
+routines and their numbers to the last bit.
 """
 
 from __future__ import annotations
@@ -9,6 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from functools import partial
 
 import numpy as np
 
@@ -32,8 +45,15 @@ def spd_inv(A: np.ndarray, what: str = "a covariance or information matrix") -> 
 
     np.linalg.inv is LAPACK's gesv with the identity as right-hand side, i.e. the same solve,
     without building and broadcasting the identity first. A matrix singular to working
-    precision raises NumericalError naming it (`what`).
+    precision raises NumericalError naming it (`what`). A large batch goes through the
+    Cholesky kernel (exactly symmetric inverses).
     """
+    if kernels_for(A):
+        return _spd_inv_kernel(A, lambda a: _spd_inv_lapack(a, what))[0]
+    return _spd_inv_lapack(A, what)
+
+
+def _spd_inv_lapack(A: np.ndarray, what: str) -> np.ndarray:
     try:
         return sym(np.linalg.inv(A))
     except np.linalg.LinAlgError:
@@ -59,7 +79,16 @@ def spd_inv_scaled(
     the scaled matrix is well conditioned and inverts to full accuracy. Matrices of comparable
     diagonal take `spd_inv` (the same numbers to the last bit), after a test that costs about
     a microsecond on the few matrices of a step.
+
+    A large batch goes through the Cholesky kernel without the scaling: Cholesky's accuracy
+    does not depend on the scaling of the matrix (van der Sluis), only LU's does.
     """
+    if kernels_for(A):
+        return _spd_inv_kernel(A, lambda a: _spd_inv_scaled_lapack(a, spread, what))[0]
+    return _spd_inv_scaled_lapack(A, spread, what)
+
+
+def _spd_inv_scaled_lapack(A: np.ndarray, spread: float, what: str) -> np.ndarray:
     d = A.diagonal(0, -2, -1)
     if d.size <= 64:  # a few matrices: Python compares faster than numpy reduces
         dl = d.ravel().tolist()
@@ -92,7 +121,39 @@ def is_invertible(Y: np.ndarray, rtol: float = 1e-13) -> np.ndarray:
     a zero diagonal (or a scaled eigenvalue at rounding level) and stays singular. A matrix
     with a NaN (e.g. the information of a fusion with no weights because nothing was observed
     yet) is not invertible.
+
+    A large batch is first tested through its Cholesky inverse X: lambda_max <= tr Y and
+    lambda_min >= 1 / ||X||_F, so tr Y ||X||_F < 0.1 / rtol proves the test above (with a
+    margin for rounding); only the matrices it does not settle get the eigenvalues.
     """
+    if kernels_for(Y):
+        return _inverse_if_invertible(Y, rtol)[1]
+    return _is_invertible_lapack(Y, rtol)
+
+
+def _inverse_if_invertible(Y: np.ndarray, rtol: float = 1e-13) -> tuple[np.ndarray, np.ndarray]:
+    """For a large batch: the Cholesky inverses (NaN where a matrix is not invertible) and
+    `is_invertible`; the matrices the bound does not settle by the reference routines."""
+    with np.errstate(all="ignore"):
+        Yl = lanes(Y)
+        L, ok = _cholesky(Yl)
+        X = _cholesky_inverse(L)
+        n = Yl.shape[0]
+        tr = Yl[0, 0] if n == 1 else sum(Yl[i, i] for i in range(n))
+        fro2 = (X * X).sum(axis=(0, 1))
+        ok &= fro2 * (10.0 * rtol * tr) ** 2 < 1.0  # False where anything is not finite
+    out = unlanes(X)
+    undecided = ~ok
+    if undecided.any():
+        idx = np.nonzero(undecided)
+        sub = Y[idx]
+        good = _is_invertible_lapack(sub, rtol)
+        ok[idx] = good
+        out[idx] = _inv_or_nan_lapack(sub, good)
+    return out, ok
+
+
+def _is_invertible_lapack(Y: np.ndarray, rtol: float) -> np.ndarray:
     finite = np.isfinite(Y).all(axis=(-2, -1))
     if not finite.all():  # LAPACK's eigensolver does not converge on NaN
         Y = np.where(finite[..., None, None], Y, 0.0)
@@ -115,11 +176,17 @@ def inv_or_nan(Y: np.ndarray) -> np.ndarray:
     Each matrix is inverted on its own (`spd_inv_scaled`, the others replaced by I for the
     batched call), so a result does not depend on the other matrices of the batch.
     """
-    ok = is_invertible(Y)
+    if kernels_for(Y):
+        return _inverse_if_invertible(Y)[0]
+    return _inv_or_nan_lapack(Y, is_invertible(Y))
+
+
+def _inv_or_nan_lapack(Y: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    inv = partial(_spd_inv_scaled_lapack, spread=1e8, what="a covariance or information matrix")
     if np.all(ok):
-        return spd_inv_scaled(Y)
+        return inv(Y)
     ok = ok[..., None, None]
-    return np.where(ok, spd_inv_scaled(np.where(ok, Y, np.eye(Y.shape[-1]))), np.nan)
+    return np.where(ok, inv(np.where(ok, Y, np.eye(Y.shape[-1]))), np.nan)
 
 
 def apply(A: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -142,7 +209,16 @@ def solve(
     (for a gain, P H' S^+ is the gain of the noise-free limit). Only singular systems take the
     slower route, so regular ones keep LU's numbers to the last bit. `what` names A in the
     NumericalError raised when A is not finite.
+
+    A large batch goes through the kernels: Cholesky (`hermitian`) or LU with partial
+    pivoting; the matrices with a pivot that small are solved as above, each on its own.
     """
+    if kernels_for(A, B):
+        return _solve_kernel(A, B, hermitian, what)
+    return _solve_lapack(A, B, hermitian, what)
+
+
+def _solve_lapack(A: np.ndarray, B: np.ndarray, hermitian: bool, what: str) -> np.ndarray:
     try:
         return np.linalg.solve(A, B)
     except np.linalg.LinAlgError:
@@ -221,9 +297,20 @@ def block_diag(mats: list[np.ndarray]) -> np.ndarray:
     return out
 
 
+def many_matrices(batch: list[int] | tuple[int, ...]) -> bool:
+    """Whether a batch shape holds enough matrices for the lanes layout (see `kernels_for`)."""
+    return bool(batch) and math.prod(batch) >= KERNEL_MIN_BATCH
+
+
 def stack_diag(X: np.ndarray) -> np.ndarray:
     """Block-diagonal matrix of a stack: (..., S, a, b) -> (..., S a, S b)."""
     *lead, S, a, b = X.shape
+    if many_matrices(lead):  # lanes in, lanes out
+        out = buffer((S * a, S * b), tuple(lead), zeros=True)
+        Xl = lanes(X)
+        for j in range(S):
+            out[j * a : (j + 1) * a, j * b : (j + 1) * b] = Xl[..., j]
+        return unlanes(out)
     if not lead:  # a few slice copies beat one fancy-indexed assignment (every plan step)
         out = np.zeros((S * a, S * b))
         for j in range(S):
@@ -238,16 +325,390 @@ def stack_diag(X: np.ndarray) -> np.ndarray:
 def stack_rows(X: np.ndarray) -> np.ndarray:
     """A stack's matrices one above the other: (..., S, a, b) -> (..., S a, b)."""
     *lead, S, a, b = X.shape
+    if many_matrices(lead):
+        out = buffer((S * a, b), tuple(lead))
+        Xl = lanes(X)
+        for j in range(S):
+            out[j * a : (j + 1) * a] = Xl[..., j]
+        return unlanes(out)
     return X.reshape((*lead, S * a, b))
 
 
 def stack_cols(X: np.ndarray) -> np.ndarray:
     """A stack's matrices side by side: (..., S, a, b) -> (..., a, S b)."""
     *lead, S, a, b = X.shape
+    if many_matrices(lead):
+        out = buffer((a, S * b), tuple(lead))
+        Xl = lanes(X)
+        for j in range(S):
+            out[:, j * b : (j + 1) * b] = Xl[..., j]
+        return unlanes(out)
     return X.swapaxes(-3, -2).reshape((*lead, a, S * b))
 
 
 def sum_after(a: np.ndarray, X: np.ndarray) -> np.ndarray:
     """a + X_1 + ... + X_S for a stack X (..., S, p, q), added in that order (a numpy sum over
-    a leading axis adds sequentially), as a sum over the sensors written out would."""
+    a leading axis adds sequentially), as a sum over the sensors written out would. A large
+    batch is added up term by term in that order (the same numbers), keeping its layout."""
+    if kernels_for(X):
+        out = a + X[..., 0, :, :]
+        for j in range(1, X.shape[-3]):
+            out += X[..., j, :, :]
+        return out
     return np.concatenate([a[..., None, :, :], X], axis=-3).sum(axis=-3)
+
+
+# ---------------------------------------------------------------------------------------------
+# Batch kernels: large batches of small matrices, one elementwise numpy operation per entry.
+#
+# numpy's stacked routines cost about a microsecond per matrix, an elementwise operation on a
+# contiguous vector of 10^4 doubles a few microseconds in all: a 2 x 2 product of 10^4 runs is
+# 1.4 ms as np.matmul and ~0.07 ms as eight multiplications and four additions over the runs.
+# The kernels below take and return arrays of the usual shape batch + (p, q) in the batch-last
+# ("lanes") memory layout, see the module docstring; inputs in any layout work, lanes are the
+# fast case. A matrix the kernels cannot factor safely (a pivot below PIVOT_RTOL of its scale,
+# a non-finite entry) is recomputed on its own by the LAPACK routine the shared path uses, so
+# a (nearly) singular matrix gets exactly the shared path's treatment.
+
+#: Batches of at least this many matrices go through the kernels (tests lower it to send small
+#: batches through them as well).
+KERNEL_MIN_BATCH = 64
+#: Matrices with a side above this keep numpy's routines (a kernel makes ~n^3 numpy calls).
+KERNEL_MAX_DIM = 8
+#: A Cholesky pivot below PIVOT_RTOL times its diagonal entry, or an LU pivot below PIVOT_RTOL
+#: times the largest entry of its matrix, sends that matrix to LAPACK.
+PIVOT_RTOL = 1e-8
+
+_TINY = np.finfo(float).tiny
+_LANES: dict[int, tuple[int, ...]] = {}
+_UNLANES: dict[int, tuple[int, ...]] = {}
+
+
+def lanes(A: np.ndarray) -> np.ndarray:
+    """The (p, q) + batch view of a batch + (p, q) array: lanes(A)[i, j] is A[..., i, j]."""
+    nd = A.ndim
+    ax = _LANES.get(nd)
+    if ax is None:
+        ax = _LANES[nd] = (nd - 2, nd - 1, *range(nd - 2))
+    return A.transpose(ax)
+
+
+def unlanes(X: np.ndarray) -> np.ndarray:
+    """The batch + (p, q) view of a (p, q) + batch array (the inverse of `lanes`)."""
+    nd = X.ndim
+    ax = _UNLANES.get(nd)
+    if ax is None:
+        ax = _UNLANES[nd] = (*range(2, nd), 0, 1)
+    return X.transpose(ax)
+
+
+def buffer(
+    lead: tuple[int, ...], batch: tuple[int, ...], zeros: bool = False, dtype: type = float
+) -> np.ndarray:
+    """An uninitialised (or zero) array of shape lead + batch in the lanes memory order: the
+    lead axes outermost, then the batch axes in reverse, so that the first batch axis (the
+    runs) is the contiguous one even when a stack of local filters follows it."""
+    nl, nb = len(lead), len(batch)
+    mem = (np.zeros if zeros else np.empty)(lead + batch[::-1], dtype=dtype)
+    if nb < 2:
+        return mem
+    return mem.transpose((*range(nl), *range(nl + nb - 1, nl - 1, -1)))
+
+
+def stack_matrices(arrays: list[np.ndarray]) -> np.ndarray:
+    """np.stack(arrays) of matrices batch + (p, q); a large batch in the lanes memory order,
+    the new (step) axis outside the batch axes, the runs still the contiguous axis."""
+    first = arrays[0]
+    if not kernels_for(first):
+        return np.stack(arrays)
+    *batch, p, q = first.shape
+    nb = len(batch)
+    mem = np.empty((p, q, len(arrays), *batch[::-1]))
+    out = mem.transpose((2, *range(nb + 2, 2, -1), 0, 1))
+    for j, a in enumerate(arrays):
+        out[j] = a
+    return out
+
+
+def _all_true(batch: tuple[int, ...]) -> np.ndarray:
+    ok = buffer((), batch, dtype=bool)
+    ok.fill(True)
+    return ok
+
+
+def lanes_empty(batch: tuple[int, ...], p: int, q: int) -> np.ndarray:
+    """An uninitialised batch + (p, q) array in the lanes layout."""
+    return unlanes(buffer((p, q), batch))
+
+
+def lanes_copy(A: np.ndarray) -> np.ndarray:
+    """A copy of A (broadcast or not) in the lanes layout."""
+    X = lanes_empty(A.shape[:-2], *A.shape[-2:])
+    X[...] = A
+    return X
+
+
+def kernels_for(*arrays: np.ndarray) -> bool:
+    """Whether the batch kernels do the work for these operands: one of them a batch of at
+    least KERNEL_MIN_BATCH matrices, and no matrix side beyond KERNEL_MAX_DIM (nor empty)."""
+    big = False
+    for a in arrays:
+        if a.ndim > 2:
+            p, q = a.shape[-2:]
+            if not 0 < p <= KERNEL_MAX_DIM or not 0 < q <= KERNEL_MAX_DIM:
+                return False
+            if math.prod(a.shape[:-2]) >= KERNEL_MIN_BATCH:
+                big = True
+    return big
+
+
+def _batch_shape(a: tuple[int, ...], b: tuple[int, ...]) -> tuple[int, ...]:
+    """Broadcast of two batch shapes (numpy's rules; a mismatch is left to the operation)."""
+    if a == b or not b:
+        return a
+    if not a:
+        return b
+    n = max(len(a), len(b))
+    a, b = (1,) * (n - len(a)) + a, (1,) * (n - len(b)) + b
+    return tuple(y if x == 1 else x for x, y in zip(a, b, strict=True))
+
+
+def lanes_of(A: np.ndarray, nb: int) -> np.ndarray:
+    """lanes(A) with the batch padded to `nb` dimensions (leading ones), so that lanes of
+    operands with different batch dimensions broadcast like the matrices do."""
+    if A.ndim - 2 < nb:
+        A = A.reshape((1,) * (nb - A.ndim + 2) + A.shape)
+    return lanes(A)
+
+
+def _lincomb(out: np.ndarray, coefs: list[float], rows: np.ndarray) -> None:
+    """out = sum_l coefs[l] rows[l] for Python numbers coefs (a shared matrix's entries): zero
+    terms are skipped and unit ones added without a multiplication (exact either way)."""
+    first = True
+    for c, v in zip(coefs, rows, strict=True):
+        if c == 0.0:
+            continue
+        if first:
+            if c == 1.0:
+                np.copyto(out, v)
+            elif c == -1.0:
+                np.negative(v, out=out)
+            else:
+                np.multiply(v, c, out=out)
+            first = False
+        elif c == 1.0:
+            out += v
+        elif c == -1.0:
+            out -= v
+        else:
+            out += c * v
+    if first:
+        out.fill(0.0)
+
+
+def mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A @ B with matmul's broadcasting; large batches of small matrices by the batch kernel
+    (result in the lanes layout): einsum's sum-of-products loops over the contiguous batch, or,
+    for a shared factor of zeros and ones (a placement, F of constant velocity), only the
+    additions and copies it makes."""
+    if (A.ndim == 2 and B.ndim == 2) or not kernels_for(A, B):
+        return A @ B
+    batch = _batch_shape(A.shape[:-2], B.shape[:-2])
+    nb = len(batch)
+    X = buffer((A.shape[-2], B.shape[-1]), batch)
+    if A.ndim == 2 and _unit_entries(A):  # X[i] = sum_l A[i, l] B[l]
+        Bl = lanes_of(B, nb)
+        for i, row in enumerate(A.tolist()):
+            _lincomb(X[i], row, Bl)
+    elif B.ndim == 2 and _unit_entries(B):  # X[:, j] = sum_l A[:, l] B[l, j]
+        Al = lanes_of(A, nb).swapaxes(0, 1)
+        for j, col in enumerate(B.T.tolist()):
+            _lincomb(X[:, j], col, Al)
+    elif A.ndim == 2:
+        np.einsum("il,lj...->ij...", A, lanes_of(B, nb), out=X)
+    elif B.ndim == 2:
+        np.einsum("il...,lj->ij...", lanes_of(A, nb), B, out=X)
+    else:
+        np.einsum("il...,lj...->ij...", lanes_of(A, nb), lanes_of(B, nb), out=X)
+    return unlanes(X)
+
+
+def _unit_entries(A: np.ndarray) -> bool:
+    """Whether every entry of a small matrix is 0, 1 or -1."""
+    return A.size <= 64 and all(v in (0.0, 1.0, -1.0) for v in A.ravel().tolist())
+
+
+def mv(A: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """A v on lanes: A (d, e) + batch (or a shared (d, e) matrix), v (e,) + batch; the result
+    (d,) + batch. The executor's per-run step."""
+    if A.ndim == 2 and _unit_entries(A):
+        out = buffer((A.shape[0],), v.shape[1:])
+        for i, row in enumerate(A.tolist()):
+            _lincomb(out[i], row, v)
+        return out
+    if A.ndim == 2:
+        return np.einsum("ij,j...->i...", A, v)
+    return np.einsum("ij...,j...->i...", A, v)
+
+
+def _cholesky(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lower Cholesky factor of lanes A (n, n) + batch (entries i >= j set) and whether each
+    matrix's pivots are all above PIVOT_RTOL times their diagonal entries (False for NaN)."""
+    n = A.shape[0]
+    L = buffer(A.shape[:2], A.shape[2:])
+    ok = _all_true(A.shape[2:])
+    for j in range(n):
+        d = A[j, j]
+        for k in range(j):
+            d = d - L[j, k] * L[j, k]
+        least = PIVOT_RTOL * A[j, j]
+        np.maximum(least, _TINY, out=least)  # a subnormal pivot has lost its digits
+        ok &= d > least
+        Ljj = L[j, j]
+        np.sqrt(d, out=Ljj)  # NaN where d < 0: that matrix is redone by LAPACK
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for k in range(j):
+                s = s - L[i, k] * L[j, k]
+            np.divide(s, Ljj, out=L[i, j])
+    return L, ok
+
+
+def _cholesky_solve(L: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """X with L L^T X = B, lanes: L (n, n) + batch, B (n, r) + batch."""
+    n = L.shape[0]
+    shape = B.shape[:2] + _batch_shape(L.shape[2:], B.shape[2:])
+    X = buffer(shape[:2], shape[2:])
+    for i in range(n):
+        s = B[i]
+        for k in range(i):
+            s = s - L[i, k] * X[k]
+        np.divide(s, L[i, i], out=X[i])
+    for i in range(n - 1, -1, -1):
+        s = X[i]
+        for k in range(i + 1, n):
+            s = s - L[k, i] * X[k]
+        np.divide(s, L[i, i], out=X[i])
+    return X
+
+
+def _cholesky_inverse(L: np.ndarray) -> np.ndarray:
+    """(L L^T)^-1 = W^T W with W = L^-1, lanes; computed on and above the diagonal and
+    mirrored, so it is exactly symmetric."""
+    n = L.shape[0]
+    W = buffer(L.shape[:2], L.shape[2:], zeros=True)
+    for i in range(n):
+        np.divide(1.0, L[i, i], out=W[i, i])
+        for j in range(i):
+            s = L[i, j] * W[j, j]
+            for k in range(j + 1, i):
+                s = s + L[i, k] * W[k, j]
+            np.divide(s, L[i, i], out=W[i, j])
+            np.negative(W[i, j], out=W[i, j])
+    X = buffer(L.shape[:2], L.shape[2:])
+    for i in range(n):
+        for j in range(i, n):
+            s = W[j, i] * W[j, j]
+            for k in range(j + 1, n):
+                s = s + W[k, i] * W[k, j]
+            X[i, j] = s
+            if j > i:
+                X[j, i] = s
+    return X
+
+
+def _lu_solve(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """X with A X = B by Gaussian elimination with partial pivoting (the row of the largest
+    entry, the first of equals, as LAPACK's getrf), lanes: A (n, n) + batch, B (n, r) + batch.
+    Also whether every pivot is above PIVOT_RTOL times the largest entry of its matrix."""
+    n, r = A.shape[0], B.shape[1]
+    batch = _batch_shape(A.shape[2:], B.shape[2:])
+    W = buffer((n, n + r), batch)
+    W[:, :n] = A
+    W[:, n:] = B
+    scale = np.abs(A[0, 0])
+    for i in range(n):
+        for j in range(n):
+            if i or j:
+                np.maximum(scale, np.abs(A[i, j]), out=scale)
+    scale *= PIVOT_RTOL
+    ok = _all_true(batch)
+    for c in range(n):
+        best = np.abs(W[c, c])
+        for t in range(c + 1, n):  # the first largest |entry| of the column becomes the pivot
+            a = np.abs(W[t, c])
+            swap = a > best
+            if swap.any():
+                np.maximum(best, a, out=best)
+                top = np.where(swap, W[t], W[c])
+                W[t] = np.where(swap, W[c], W[t])
+                W[c] = top
+        ok &= best > scale
+        ok &= best > _TINY
+        p = W[c, c]
+        for i in range(c + 1, n):
+            W[i, c + 1 :] -= (W[i, c] / p) * W[c, c + 1 :]
+    X = W[:, n:]
+    for i in range(n - 1, -1, -1):
+        s = X[i]
+        for k in range(i + 1, n):
+            s = s - W[i, k] * X[k]
+        np.divide(s, W[i, i], out=X[i])
+    return X, ok
+
+
+def _finite(X: np.ndarray) -> np.ndarray:
+    """Whether each matrix of lanes X is finite (a sum beyond the float range counts as not)."""
+    return np.isfinite(X.sum(axis=(0, 1)))
+
+
+def _redo(out: np.ndarray, bad: np.ndarray, compute: Callable[..., np.ndarray], *args) -> None:
+    """out[bad] = compute(*(a[bad] for a in args)): the matrices a kernel could not do safely,
+    by the reference routine, each array broadcast to the batch of `out` first."""
+    if not bad.any():
+        return
+    batch = out.shape[:-2]
+    idx = np.nonzero(np.broadcast_to(bad, batch))
+    subs = [np.broadcast_to(a, batch + a.shape[-2:])[idx] for a in args]
+    out[idx] = compute(*subs)
+
+
+def _solve_kernel(A: np.ndarray, B: np.ndarray, hermitian: bool, what: str) -> np.ndarray:
+    nb = len(_batch_shape(A.shape[:-2], B.shape[:-2]))
+    Al, Bl = lanes_of(A, nb), lanes_of(B, nb)
+    with np.errstate(all="ignore"):
+        if hermitian:
+            L, ok = _cholesky(Al)
+            X = _cholesky_solve(L, Bl)
+        else:
+            X, ok = _lu_solve(Al, Bl)
+        ok &= _finite(X)
+    out = unlanes(X)
+    _redo(out, ~ok, lambda a, b: _solve_lapack(a, b, hermitian, what), A, B)
+    return out
+
+
+def solve_spd_or_flag(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A^-1 B for a large batch of symmetric positive definite A (`kernels_for`) by the
+    Cholesky kernel, and whether each A could be factored safely: where not, the result is
+    not a solution and the caller computes that matrix its own way."""
+    nb = len(_batch_shape(A.shape[:-2], B.shape[:-2]))
+    with np.errstate(all="ignore"):
+        L, ok = _cholesky(lanes_of(A, nb))
+        X = _cholesky_solve(L, lanes_of(B, nb))
+        ok &= _finite(X)
+    return unlanes(X), ok
+
+
+def _spd_inv_kernel(
+    A: np.ndarray, reference: Callable[[np.ndarray], np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Inverses of a batch of SPD matrices by Cholesky, the unsafe ones by `reference`; also
+    whether each matrix went through the kernel."""
+    with np.errstate(all="ignore"):
+        L, ok = _cholesky(lanes(A))
+        X = _cholesky_inverse(L)
+        ok &= _finite(X)
+    out = unlanes(X)
+    _redo(out, ~ok, reference, A)
+    return out, ok

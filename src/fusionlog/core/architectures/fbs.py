@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..linalg import bc, inv_or_nan, mT, require_finite, solve, sym
+from ..linalg import bc, inv_or_nan, mm, mT, require_finite, solve, sym
 from .filters import Rows, Steady
 from .plan import BuildRequest, Plan, SmootherMaps
 from .single import filter_plan
@@ -29,25 +29,28 @@ def build_fbs(request: BuildRequest) -> Plan:
     Smat = [np.zeros(batch + (n, n)) for _ in range(K1)]
     steady = Steady(present, system)
     everything = Rows.of(system, np.arange(system.m), system.R)
+    Hn = None  # the masked H of instant k + 1
     for k in range(K1 - 1, -1, -1):
         request.step = k
         if steady.enabled and k < K1 - 3 and Smat[k + 1] is Smat[k + 2]:
-            V[k], L[k], Smat[k] = V[k + 1], L[k + 1], Smat[k + 1]
+            V[k], L[k], Smat[k], Hn = V[k + 1], L[k + 1], Smat[k + 1], None
             continue
         Hk, Rk = everything.masked(present[..., k, :])
         RiH = solve(Rk, Hk, hermitian=True)
         V[k] = mT(RiH)
         if k < K1 - 1:
-            Hn = everything.masked(present[..., k + 1, :])[0]
-            Splus = sym(Smat[k + 1] + mT(Hn) @ mT(V[k + 1]))
+            if Hn is None:
+                Hn = everything.masked(present[..., k + 1, :])[0]
+            Splus = sym(Smat[k + 1] + mm(mT(Hn), mT(V[k + 1])))
             F, GQG = system.F_at(k + 1), system.GQG_at(k + 1)  # from instant k to k+1
-            Bm = eye + Splus @ GQG
+            Bm = eye + mm(Splus, GQG)
             # L = F^T (I + S^+ GQG)^-1, computed as a solve with the transpose.
             L[k] = mT(solve(mT(Bm), bc(F, Bm.shape)))
-            Smat[k] = sym(L[k] @ Splus @ F)
+            Smat[k] = sym(mm(mm(L[k], Splus), F))
             require_finite(Smat[k], "the backward filter's information matrix")
             if steady.reached(Smat[k]):
                 Smat[k] = Smat[k + 1]
+        Hn = Hk
     A, B, Ps = [], [], []
     for k, st in enumerate(fwd.steps):
         request.step = k
@@ -59,9 +62,9 @@ def build_fbs(request: BuildRequest) -> Plan:
             Ps.append(Ps[-1])
             continue
         if Yf is None:
-            PS = st.P @ Sk
+            PS = mm(st.P, Sk)
             Ks = mT(solve(mT(eye + PS), mT(PS)))  # eq. (26)
-            Pk = sym((eye - Ks) @ st.P)  # eq. (27)
+            Pk = sym(mm(eye - Ks, st.P))  # eq. (27)
             A.append(eye - Ks)  # eq. (28)
             B.append(Pk)
         else:

@@ -19,13 +19,19 @@ from ..kalman import gain, joseph
 from ..linalg import (
     all_finite,
     bc,
+    buffer,
     inv_or_nan,
     is_invertible,
+    lanes_copy,
+    lanes_of,
+    many_matrices,
+    mm,
     mT,
     require_finite,
     solve,
     spd_inv,
     sym,
+    unlanes,
 )
 from ..model import System
 
@@ -35,6 +41,14 @@ def masked(H: np.ndarray, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.
     component decoupled with unit variance, so its gain column is exactly zero."""
     if p.shape == H.shape[:-1] and p.all():  # nothing absent, and no per-run pattern
         return H, R
+    if p.ndim > H.ndim - 1 and many_matrices(p.shape[:-1]):  # per run: lanes for the kernels
+        nb = p.ndim - 1
+        pf = buffer((p.shape[-1],), p.shape[:-1])  # (r,) + batch, runs contiguous
+        pf[...] = np.moveaxis(p, -1, 0)
+        Hm = lanes_of(H, nb) * pf[:, None]
+        Rm = lanes_of(R, nb) * (pf[:, None] * pf[None, :])
+        Rm += np.eye(R.shape[-1]).reshape(Rm.shape[:2] + (1,) * nb) * (1.0 - pf)
+        return unlanes(Hm), unlanes(Rm)
     pf = p.astype(float)
     Hm = H * pf[..., :, None]
     Rm = R * (pf[..., :, None] * pf[..., None, :]) + np.eye(R.shape[-1]) * (1.0 - pf)[..., None, :]
@@ -167,14 +181,16 @@ class KalmanStack:
         shape = batch + local + (n, n)
         # `info` (a flag per filter: still in information form, no covariance yet) and `mat`
         # (see Part) are replaced at every step, never modified in place.
+        per_run = many_matrices(batch + local)  # the kernels' lanes layout from the start
         if system.prior is not None:
             self.info = np.zeros(local, dtype=bool)
-            self.mat = bc(system.prior.cov, shape).copy()
+            cov = bc(system.prior.cov, shape)
+            self.mat = lanes_copy(cov) if per_run else cov.copy()
             self.s0 = np.tile(np.asarray(system.prior.mean, float), S)
             self.D0 = np.tile(np.eye(n), (S, 1))
         else:
             self.info = np.ones(local, dtype=bool)
-            self.mat = np.zeros(shape)
+            self.mat = lanes_copy(bc(np.zeros((n, n)), shape)) if per_run else np.zeros(shape)
             self.s0 = np.zeros(S * n)
             self.D0 = np.zeros((S * n, n))
             if not abs(np.linalg.det(system.F)) >= 1e-300:  # also NaN
@@ -222,7 +238,9 @@ class KalmanStack:
         """Report the filters' new matrices `mat`, which overflowed: the predicted covariance
         F P F' + G Q G' when it is the culprit (the usual case), else the update."""
         if not first and not self.any_info:
-            require_finite(self.F @ self.mat @ self.F.T + self.GQG, "the predicted covariance")
+            require_finite(
+                mm(mm(self.F, self.mat), self.F.T) + self.GQG, "the predicted covariance"
+            )
         require_finite(mat, "the filter's covariance (or information) matrix")
 
     def step_form(self, info: bool, part: Part, first: bool):
@@ -235,13 +253,13 @@ class KalmanStack:
         if first:
             Pp, Tp, Gam = part.mat, self.eye, part.Z
         else:
-            Pp, Tp, Gam = sym(self.F @ part.mat @ self.F.T + self.GQG), self.F, part.I
+            Pp, Tp, Gam = sym(mm(mm(self.F, part.mat), self.F.T) + self.GQG), self.F, part.I
         K = gain(Pp, part.H, part.R)
-        IKH = self.eye - K @ part.H
+        IKH = self.eye - mm(K, part.H)
         P = joseph(Pp, K, part.H, part.R, IKH)
-        Ke = K @ part.E  # exact: each column of K E is one column of K, or zero
+        Ke = mm(K, part.E)  # exact: each column of K E is one column of K, or zero
         info = np.zeros(P.shape[P.ndim - 2 - self.n_local : -2], dtype=bool)
-        return FilterStep(IKH @ Tp, Ke, part.I, P, Tp, Gam, IKH, -Ke, part.I), P, info
+        return FilterStep(mm(IKH, Tp), Ke, part.I, P, Tp, Gam, IKH, -Ke, part.I), P, info
 
     def step_info(self, part: Part, first: bool) -> tuple[FilterStep, np.ndarray, np.ndarray]:
         """Prediction and update of the information Y and information vector y, and the
@@ -252,20 +270,21 @@ class KalmanStack:
         else:
             # Prediction in information form valid for singular Y (and singular Q):
             # with M = F^-T Y F^-1, Y^- = (I + M GQG)^-1 M and y^- = (I + M GQG)^-1 F^-T y.
-            Mi = self.Finv.T @ Y @ self.Finv
-            Bm = self.eye + Mi @ self.GQG
+            Mi = mm(mm(self.Finv.T, Y), self.Finv)
+            Bm = self.eye + mm(Mi, self.GQG)
             A = solve(Bm, bc(self.Finv.T, Bm.shape))
             Yp = sym(solve(Bm, Mi))
-            Gam = -(A @ Y @ self.Finv)
+            Gam = -mm(mm(A, Y), self.Finv)
         RiH = solve(part.R, Hk, hermitian=True)
-        Y = sym(Yp + mT(Hk) @ RiH)
-        Ue = mT(RiH) @ part.E
+        Y = sym(Yp + mm(mT(Hk), RiH))
+        Ue = mm(mT(RiH), part.E)
         ok = is_invertible(Y)
         # A filter switches to covariance form when its Y is invertible in every run.
         switch = np.all(ok, axis=tuple(range(ok.ndim - self.n_local)))
         if switch.all():
             P = spd_inv(Y)
-            step = FilterStep(P @ A, P @ Ue, part.I, P, A, Gam, -P, -(P @ Ue), part.I)
+            PUe = mm(P, Ue)
+            step = FilterStep(mm(P, A), PUe, part.I, P, A, Gam, -P, -PUe, part.I)
             return step, P, ~switch
         Pinv = inv_or_nan(Y)  # per filter, as alone
         step = FilterStep(A, Ue, Pinv, Pinv, A, Gam, bc(self.eye, Y.shape), Ue, Y)
@@ -274,7 +293,8 @@ class KalmanStack:
         # Some local filters of a stack switch now, the others later. For the former,
         # inv_or_nan gave spd_inv(Y), as above.
         P = Pinv
-        cov = FilterStep(P @ A, P @ Ue, part.I, P, A, Gam, -P, -(P @ Ue), part.I)
+        PUe = mm(P, Ue)
+        cov = FilterStep(mm(P, A), PUe, part.I, P, A, Gam, -P, -PUe, part.I)
         w = switch[:, None, None]
         step = FilterStep(
             *(np.where(w, getattr(cov, f.name), getattr(step, f.name)) for f in fields(FilterStep))

@@ -9,6 +9,7 @@ from ..linalg import (
     all_finite,
     bc,
     block_diag,
+    mm,
     require_finite,
     spd_inv,
     spd_inv_scaled,
@@ -62,22 +63,22 @@ def build_hkf(request: BuildRequest) -> Plan:
             Pp, Tp = front.mat, eye
         else:
             F, GQG = system.F_at(k), system.GQG_at(k)
-            Pp, Tp = sym(F @ P @ F.T + GQG), F
+            Pp, Tp = sym(mm(mm(F, P), F.T) + GQG), F
         Yp = inv(Pp, what="the predicted covariance")
         Hj, Rj = sensors.masked(present[..., k, :])  # batch + (S, r, .)
         Ppj = Pp[..., None, :, :]  # every local starts from the fused prediction
         Kj = gain(Ppj, Hj, Rj)
-        IKH = eye - Kj @ Hj
+        IKH = eye - mm(Kj, Hj)
         Yj = inv(joseph(Ppj, Kj, Hj, Rj, IKH), what="a local covariance")
         Yf = sum_after((1 - S) * Yp, Yj)
-        Tacc = sum_after((1 - S) * Yp, Yj @ IKH)
+        Tacc = sum_after((1 - S) * Yp, mm(Yj, IKH))
         # Each sensor's gain sits in its own columns of z_k, zero elsewhere: the sum is exact.
-        U = (Yj @ Kj @ sensors.E).sum(axis=-3)
+        U = mm(mm(Yj, Kj), sensors.E).sum(axis=-3)
         P = inv(Yf, what="the fused information")
         if not all_finite(P):
             require_finite(Pp, "the predicted covariance")
             require_finite(P, "the fused covariance")
-        steps.append(StepMap(P @ Tacc @ Tp, P @ U, bc(eye, P.shape), P, eye))
+        steps.append(StepMap(mm(mm(P, Tacc), Tp), mm(P, U), bc(eye, P.shape), P, eye))
         if steady.reached(P):
             fill(steps, K1)
             break
