@@ -149,6 +149,22 @@ _arch = click.option(
     help="Architecture (repeatable): CKF, HKF, MSC, MSC-GMF, SKF[:sensor], CI, FBS; "
     "BAYES, DS for identity scenarios.",
 )
+_workers = click.option(
+    "--workers",
+    type=click.IntRange(min=0),
+    help="Run the blocks of runs on a Dask LocalCluster of N worker processes "
+    "(0: in this process; default for sweep: one per CPU).",
+)
+_scheduler = click.option(
+    "--scheduler",
+    metavar="ADDRESS",
+    help="Run the blocks of runs on the running Dask cluster at ADDRESS (tcp://host:port).",
+)
+
+
+def _one_executor(workers: int | None, scheduler: str | None) -> None:
+    if workers is not None and scheduler is not None:
+        raise click.UsageError("--workers and --scheduler: give one of them, not both")
 
 
 @main.command()
@@ -223,8 +239,20 @@ def evaluate(sensors, estimates, output, summary_path, force, block_runs) -> Non
 @_arch
 @_force
 @_block
-def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs) -> None:
-    """Simulate, estimate and evaluate SCENARIO.toml; print the results table."""
+@_workers
+@_scheduler
+def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers, scheduler) -> None:
+    """Simulate, estimate and evaluate SCENARIO.toml; print the results table.
+
+    With --workers or --scheduler the runs are computed on Dask in blocks whose metric sums
+    are merged here: only evaluation.rrd and summary.json are written (the MCAP logs would
+    carry every estimate back); the sample runs are computed here."""
+    _one_executor(workers, scheduler)
+    if workers is not None or scheduler is not None:
+        _run_distributed(
+            scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers, scheduler
+        )
+        return
     from fusionlog.io.atomic import Outputs
     from fusionlog.io.mcap import McapWriter
     from fusionlog.report import format_table
@@ -271,6 +299,87 @@ def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs) -> None:
     click.echo(format_table(summary_))
     click.echo(
         f"simulate {t1 - t0:.2f} s, estimate {t2 - t1:.2f} s, evaluate {t3 - t2:.2f} s -> {d}"
+    )
+
+
+def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, workers, scheduler):
+    """`run --workers/--scheduler`: evaluation.rrd and summary.json from metric sums."""
+    from fusionlog.report import format_table
+    from fusionlog.stages.distributed_run import DISTRIBUTED_OUTPUTS, run_distributed
+
+    sc = _scenario(scenario, runs, steps, seed)
+    d = out_dir if out_dir is not None else Path("recordings") / sc.name
+    _warn_stale([d / name for name in DISTRIBUTED_OUTPUTS])
+    res = run_distributed(
+        sc,
+        d,
+        archs=list(archs),
+        workers=workers,
+        scheduler=scheduler,
+        force=force,
+        block=block,
+        command=_command_line(),
+    )
+    click.echo(f"{sc.name}: M = {sc.runs} runs, K = {sc.instants - 1}, seed {sc.seed}")
+    click.echo(format_table(res.summary))
+    click.echo(f"{res.executor}: {res.seconds:.2f} s -> {d} (evaluation.rrd, summary.json)")
+
+
+@main.command()
+@click.argument("scenario", type=PATH)
+@click.option(
+    "--vary",
+    multiple=True,
+    required=True,
+    metavar="KEY=VALUES",
+    help="A dotted key of the scenario (scenario.dt, model.n0, sensors.<name>.R, "
+    "sensors.<name>.dropout, correlations.0.cov, ...) and its values: a comma list "
+    "(0.5,1,2) or start:stop:num[:log]. Repeat for a grid (the product).",
+)
+@_runs
+@click.option(
+    "--out-dir",
+    type=click.Path(path_type=Path, file_okay=False),
+    help="Output folder (default recordings/<scenario name>_sweep/).",
+)
+@_arch
+@_workers
+@_scheduler
+@click.option(
+    "--exact-only",
+    is_flag=True,
+    help="Only the exact analysis, no Monte Carlo (in this process unless --workers or "
+    "--scheduler is given).",
+)
+@_force
+@_block
+def sweep(scenario, vary, runs, out_dir, archs, workers, scheduler, exact_only, force, block_runs):
+    """Evaluate SCENARIO.toml over a grid of parameter values, on Dask: writes sweep.parquet,
+    sweep.rrd and summary.json (no MCAP logs: workers return metric sums)."""
+    from fusionlog.report import format_table
+    from fusionlog.stages.sweep import run_sweep
+
+    _one_executor(workers, scheduler)
+    res = run_sweep(
+        scenario,
+        list(vary),
+        runs=runs,
+        out_dir=out_dir,
+        archs=list(archs),
+        workers=workers,
+        scheduler=scheduler,
+        exact_only=exact_only,
+        force=force,
+        block=block_runs,
+        warn_stale=_warn_stale,
+    )
+    s = res.summary
+    what = "exact analysis only" if s["exact_only"] else f"M = {s['runs']} runs per point"
+    click.echo(f"{s['scenario']} sweep: {len(s['points'])} grid points, {what}")
+    click.echo(format_table(s))
+    click.echo(
+        f"{res.executor}: {res.seconds:.2f} s -> {res.out_dir} "
+        "(sweep.parquet, sweep.rrd, summary.json)"
     )
 
 
@@ -359,6 +468,17 @@ def compare(actual, golden, rtol, atol) -> None:
     click.echo(f"{actual} matches {golden} (rtol={rtol:g}, atol={atol:g})")
 
 
+def _sensor_timing(mf, topic: str) -> str:
+    """A sensor's rate (its instants per second of the log), and the share of its readings
+    lost (NaN) over all runs."""
+    at = mf.topic_steps(topic)
+    times = mf.times()[at]
+    span = float(times[-1] - times[0]) if len(times) > 1 else 0.0
+    rate = f"{(len(times) - 1) / span:.4g} Hz" if span > 0 else "one instant"
+    share = mf.lost_share(topic)
+    return f"measures at {at.sum()} of {len(at)} instants ({rate}), {100 * share:.1f} % lost"
+
+
 @main.command()
 @click.argument("file", type=PATH)
 @click.option("--recover", is_flag=True, help="Read a damaged file as far as it goes.")
@@ -396,6 +516,8 @@ def inspect(file, recover) -> None:
     for t in sorted(mf.topics):
         kind = f"dim {mf.dim_of(t)}" if t in ours else "not a fusionlog stream"
         click.echo(f"  {t:32s} {mf.topics[t]:8d} messages  {mf.schema_of(t)}  {kind}")
+        if t.startswith("/sensors/") and t in ours:
+            click.echo(f"  {'':32s} {_sensor_timing(mf, t)}")
     click.echo(f"  metadata: {', '.join(sorted(mf.metadata)) or 'none'}")
 
 

@@ -73,6 +73,8 @@ def format_table(summary: Mapping[str, Any]) -> str:
     if archs is not summary:  # noted non-finite values (null in the file) show as inf / nan
         summary = resolve_non_finite(summary, check=False)
         archs = summary.get("architectures", archs)
+    if summary.get("kind") == "sweep":
+        return _sweep_table(summary)
     if _is_identity(summary, archs):
         return _identity_table(summary, archs)
     header = ["architecture"] + [h for h, _ in _COLUMNS]
@@ -108,6 +110,52 @@ def _identity_table(summary: Mapping[str, Any], archs: Mapping[str, Any]) -> str
             f" of runs and steps, {_fmt(summary.get('final_disagreement'), percent=True)} at K"
         )
     return out
+
+
+#: A sweep's table lists every row up to this many; beyond, only each architecture's lowest MSE.
+SWEEP_ROWS = 60
+
+
+def _sweep_table(summary: Mapping[str, Any]) -> str:
+    """A sweep summary ("kind": "sweep"): one row per grid point and architecture (the varied
+    keys' values, then the columns of the run table) when there are at most SWEEP_ROWS, and
+    each architecture's lowest MSE over the grid."""
+    keys = [g.get("key") for g in summary.get("grid", [])]
+    header = [*map(str, keys), "architecture"] + [h for h, _ in _COLUMNS]
+    rows = [header]
+    for p in summary.get("points", []):
+        values = [_value(p.get("values", {}).get(k)) for k in keys]
+        for arch, entry in p.get("architectures", {}).items():
+            cells = [_fmt(_get(entry, keys_), percent=h == "in band") for h, keys_ in _COLUMNS]
+            rows.append([*values, str(arch), *cells])
+    lines = []
+    if len(rows) - 1 <= SWEEP_ROWS:
+        # left-aligned key values, like the architecture column
+        width = [max(len(r[j]) for r in rows) for j in range(len(header))]
+        for r in rows:
+            left = [c.ljust(w) for c, w in zip(r[: len(keys) + 1], width, strict=False)]
+            right = [
+                c.rjust(w) for c, w in zip(r[len(keys) + 1 :], width[len(keys) + 1 :], strict=True)
+            ]
+            lines.append("  ".join(left + right).rstrip())
+        lines.insert(1, "  ".join("-" * w for w in width))
+    else:
+        lines.append(f"({len(rows) - 1} rows: see sweep.parquet or summary.json)")
+    lowest = summary.get("lowest_mse", {})
+    if lowest:
+        lines.append("lowest MSE over the grid (exact where every point has it, else Monte Carlo):")
+        name = max(len(str(a)) for a in lowest)
+        for arch, b in lowest.items():
+            by = b.get("by") == "expected"
+            v = b.get("expected_mse") if by else b.get("mse")
+            at = ", ".join(f"{k}={_value(x)}" for k, x in b.get("values", {}).items())
+            lines.append(f"  {str(arch).ljust(name)}  {_fmt(v)} at {at}")
+    return "\n".join(lines)
+
+
+def _value(v: Any) -> str:
+    """A varied key's value as the table shows it."""
+    return f"{v:.6g}" if isinstance(v, float) else str(v)
 
 
 def _layout(header: list[str], rows: list[list[str]]) -> str:

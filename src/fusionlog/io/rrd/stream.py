@@ -136,10 +136,12 @@ def recording_stream(
     summary: Mapping[str, Any],
     properties: Mapping[str, Any] | None = None,
     recording_id: str | None = None,
+    axes: Mapping[str, tuple[str, np.ndarray]] | None = None,
 ) -> Iterator[SeriesWriter]:
     """A recording (application id, recording id, name, default blueprint, properties) whose
     series the block sends through the yielded :class:`SeriesWriter`; when the block completes
     the encoded recording is written into `file`. If the block raises, nothing is written.
+    `axes` replaces the timelines ``step`` and ``time`` (see :class:`SeriesWriter`).
 
     The default blueprint goes into the same file, as ``save(default_blueprint=...)`` puts it:
     a blueprint store followed by the activation command "make default, not active".
@@ -154,7 +156,7 @@ def recording_stream(
         rec.send_blueprint(blueprint, make_active=False, make_default=True)
         rec.send_recording_name(scenario_name)
         _send_properties(rec, scenario_name, seed, summary, properties)
-        yield SeriesWriter(rec, times)
+        yield SeriesWriter(rec, times, axes)
         data = stream.read(flush=True) or b""
     finally:
         rec.disconnect()  # closes the in-memory sink only: nothing here touches a disk
@@ -164,20 +166,33 @@ def recording_stream(
 class SeriesWriter:
     """Sends styled time series of one recording, one ``send_columns`` call each."""
 
-    def __init__(self, rec: rr.RecordingStream, times: np.ndarray) -> None:
+    def __init__(
+        self,
+        rec: rr.RecordingStream,
+        times: np.ndarray,
+        axes: Mapping[str, tuple[str, np.ndarray]] | None = None,
+    ) -> None:
         self.rec = rec
         self.times = np.asarray(times, dtype=float)
         self.steps = np.arange(self.times.shape[0], dtype=np.int64)
+        # The timelines every series is indexed by: {name: ("sequence" | "duration", values)},
+        # one value per entry of `times`; by default step (k) and time (t_k, seconds).
+        self.axes = (
+            dict(axes)
+            if axes
+            else {"step": ("sequence", self.steps), "time": ("duration", self.times)}
+        )
         # Many entities share a style (an architecture's colour and name across states) and
         # most series are defined at every step: build those column batches once.
         self._styles: dict[tuple, Any] = {}
         self._full_index = self.index(np.ones(self.times.shape[0], dtype=bool))
 
     def index(self, keep: np.ndarray) -> list[rr.TimeColumn]:
-        """The ``step`` and ``time`` columns of the steps where `keep` is true."""
+        """The timeline columns (``step`` and ``time`` unless `axes` said otherwise) of the
+        entries where `keep` is true."""
         return [
-            rr.TimeColumn("step", sequence=self.steps[keep]),
-            rr.TimeColumn("time", duration=self.times[keep]),
+            rr.TimeColumn(name, **{kind: np.asarray(values)[keep]})
+            for name, (kind, values) in self.axes.items()
         ]
 
     # Styling goes out with send_columns and no index (= static), so that it lands in the file

@@ -1,0 +1,282 @@
+"""Where the blocks of a sweep or a distributed run are computed: this process, or a Dask cluster
+(``dask[distributed]``: a LocalCluster of worker processes, or a running scheduler).
+
+Both executors take a list of tasks (a function of :mod:`.montecarlo` and its arguments) and
+yield their results **in task order**, whatever order they finish in: the callers fold the
+results as they come, so the merged metric sums are added in one fixed order and every number
+of a sweep or a run is the same for any number of workers and any scheduler.
+
+The Dask executor keeps at most a window of tasks submitted and not yet yielded (results that
+finished early wait in that window), so the client holds a bounded number of results however
+many blocks there are (10^7 runs are 200 blocks of the paper's example); on any exit that is
+not the end (an error, Ctrl-C, SIGTERM raised as an exception by the CLI) it cancels the tasks
+still on the cluster, and it closes the LocalCluster it started (never a cluster it connected
+to). Dask is imported only here, and only when a cluster is used: ``import fusionlog.cli``
+and runs in this process never load it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
+
+from fusionlog.errors import FusionlogError
+
+from .common import progress
+
+__all__ = ["DaskExecutor", "Executor", "LocalExecutor", "Task", "default_workers", "executor"]
+
+#: A task: a module-level function (pickled by reference) and its arguments.
+Task = tuple[Callable[..., Any], tuple[Any, ...]]
+
+#: Tasks in flight per worker: one running, the next ones queued on it, so that a worker never
+#: waits for the client between two tasks.
+WINDOW_PER_WORKER = 3
+#: Seconds to wait for a scheduler to answer, and for a cluster to have a worker.
+CONNECT_TIMEOUT = 10
+WORKER_TIMEOUT = 30
+
+
+def default_workers() -> int:
+    """The CPUs this process may use (the default of --workers)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+class Executor:
+    """Runs tasks and yields their results in task order; a context manager."""
+
+    #: how many tasks run at once, and what runs them (printed by the commands)
+    workers: int = 1
+    description: str = "in this process"
+
+    def __enter__(self) -> Executor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        pass
+
+    def map(self, tasks: Sequence[Task], desc: str) -> Iterator[Any]:
+        raise NotImplementedError
+
+
+class LocalExecutor(Executor):
+    """Every task in this process, one after the other (--workers 0; --exact-only by default)."""
+
+    def map(self, tasks: Sequence[Task], desc: str) -> Iterator[Any]:
+        for fn, args in progress(tasks, len(tasks), desc):
+            yield fn(*args)
+
+
+class DaskExecutor(Executor):
+    """Tasks on a Dask cluster: a LocalCluster of `workers` processes (one thread each) on
+    127.0.0.1, or the running scheduler at `scheduler` (its workers as they are)."""
+
+    def __init__(self, workers: int | None = None, scheduler: str | None = None) -> None:
+        self._n = workers
+        self._address = scheduler
+        self._cluster: Any = None
+        self._client: Any = None
+
+    def __enter__(self) -> DaskExecutor:
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError as e:  # pragma: no cover - a dependency, but say so plainly
+            raise FusionlogError(
+                f"Dask is not installed ({e}): pip install 'dask[distributed]'"
+            ) from None
+        try:
+            if self._address is None:
+                n = self._n or default_workers()
+                # One thread per process: the blocks are numpy work that holds the GIL often,
+                # and Dask's nanny already limits each worker's BLAS to one thread.
+                with _sigint_ignored():
+                    self._cluster = LocalCluster(
+                        n_workers=n,
+                        threads_per_worker=1,
+                        processes=True,
+                        host="127.0.0.1",
+                        # the scheduler's HTTP server (its dashboard, which needs bokeh, and
+                        # its metrics) on a free loopback port: without an address it takes
+                        # 8787, and warns when another cluster has it
+                        dashboard_address="127.0.0.1:0",
+                        silence_logs=logging.ERROR,
+                    )
+                self._client = Client(self._cluster, set_as_default=False)
+                self.description = f"on a LocalCluster of {n} worker process{'es' * (n != 1)}"
+            else:
+                self._client = self._connect(Client, self._address)
+            self.workers = self._wait_for_workers()
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    @staticmethod
+    def _connect(client_cls: Any, address: str) -> Any:
+        # a quiet client: a scheduler going away at the end must not print warnings
+        logging.getLogger("distributed").setLevel(logging.ERROR)
+        try:
+            return client_cls(address, timeout=CONNECT_TIMEOUT, set_as_default=False)
+        except (OSError, TimeoutError, ValueError) as e:
+            raise FusionlogError(
+                f"--scheduler {address}: cannot connect to a Dask scheduler ({_reason(e)})"
+            ) from None
+
+    def _wait_for_workers(self) -> int:
+        try:
+            self._client.wait_for_workers(1, timeout=WORKER_TIMEOUT)
+        except (TimeoutError, OSError) as e:
+            raise FusionlogError(
+                f"{self._address or 'LocalCluster'}: no Dask worker joined within "
+                f"{WORKER_TIMEOUT} s ({_reason(e)})"
+            ) from None
+        info = self._client.scheduler_info(n_workers=-1)["workers"]
+        threads = sum(int(w.get("nthreads", 1)) for w in info.values()) or 1
+        if self._address is not None:
+            self.description = (
+                f"on the Dask scheduler at {self._address} ({len(info)} workers, {threads} threads)"
+            )
+        return threads
+
+    def __exit__(self, *exc: object) -> None:
+        client, cluster = self._client, self._cluster
+        self._client = self._cluster = None
+        try:
+            if client is not None:
+                client.close(timeout=CONNECT_TIMEOUT)
+        finally:
+            if cluster is not None:
+                cluster.close(timeout=CONNECT_TIMEOUT)
+
+    def map(self, tasks: Sequence[Task], desc: str) -> Iterator[Any]:
+        # The first window is submitted now, not at the first next(): the caller may compute
+        # something of its own meanwhile (distributed run: the sample runs).
+        return _OrderedResults(self._client, tasks, desc, max(2, WINDOW_PER_WORKER * self.workers))
+
+
+class _OrderedResults:
+    """Results of tasks on a Dask client in task order, at most `window` tasks submitted and
+    not yet yielded; close() (or an error while waiting) cancels what is still running."""
+
+    def __init__(self, client: Any, tasks: Sequence[Task], desc: str, window: int) -> None:
+        from distributed import as_completed
+
+        self._client, self._tasks, self._window = client, tasks, window
+        self._futures: dict[int, Any] = {}
+        self._index: dict[str, int] = {}
+        self._done: dict[int, Any] = {}
+        self._submitted = self._yielded = 0
+        self._pending = as_completed(loop=client.loop)
+        self._submit_more()
+        self._completed = iter(progress(self._pending, len(tasks), desc))
+
+    def _submit_more(self) -> None:
+        while self._submitted < len(self._tasks) and self._submitted - self._yielded < self._window:
+            fn, args = self._tasks[self._submitted]
+            fut = self._client.submit(fn, *args, pure=False)
+            self._futures[self._submitted] = fut
+            self._index[fut.key] = self._submitted
+            self._pending.add(fut)
+            self._submitted += 1
+
+    def __iter__(self) -> _OrderedResults:
+        return self
+
+    def __next__(self) -> Any:
+        if self._yielded >= len(self._tasks):
+            raise StopIteration
+        try:
+            while self._yielded not in self._done:
+                fut = next(self._completed)
+                i = self._index.pop(fut.key)
+                self._done[i] = _result(fut, self._tasks[i])
+                del self._futures[i]
+                fut.release()
+        except BaseException:  # a failed task, Ctrl-C, SIGTERM: stop the others too
+            self.close()
+            raise
+        result = self._done.pop(self._yielded)
+        self._yielded += 1
+        self._submit_more()
+        return result
+
+    def close(self) -> None:
+        """Cancel every task still submitted (nothing of ours keeps running on the cluster)."""
+        if self._futures:
+            futures = list(self._futures.values())
+            self._futures.clear()
+            self._client.cancel(futures)
+
+
+@contextlib.contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """SIGINT ignored while the LocalCluster starts its worker processes, which inherit the
+    ignored disposition (exec keeps SIG_IGN, and a Python that starts with SIGINT ignored
+    raises no KeyboardInterrupt).
+
+    Ctrl-C at a terminal sends SIGINT to every process of the foreground group, the workers
+    too: each would die printing a KeyboardInterrupt traceback. Ignoring it in them leaves it
+    to this process (the CLI's one line), which stops the workers by closing the cluster. The
+    price: a Ctrl-C during the cluster's start-up (a second or two) is dropped. Blocking the
+    signal instead would hold it, but the processes are started by threads of Dask's, and
+    threads do not take the mask over from this one."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def _reason(e: BaseException) -> str:
+    text = " ".join(str(e).split())
+    return f"{type(e).__name__}: {text}" if text else type(e).__name__
+
+
+def _result(fut: Any, task: Task) -> Any:
+    """A finished task's result; a worker's failure as one line (a FusionlogError from the
+    task stays what it is: a numerical error names the architecture and the step)."""
+    try:
+        return fut.result()
+    except FusionlogError:
+        raise
+    except ImportError as e:
+        raise FusionlogError(
+            f"a Dask worker cannot run fusionlog ({_reason(e)}): install fusionlog, the same "
+            "version, where the workers run"
+        ) from None
+    except Exception as e:
+        from distributed import KilledWorker
+
+        if isinstance(e, KilledWorker):
+            raise FusionlogError(
+                f"Dask workers died running {task[0].__name__} (out of memory?): {_reason(e)}"
+            ) from None
+        raise
+
+
+def executor(
+    workers: int | None, scheduler: str | None, *, local_default: bool = False
+) -> Executor:
+    """The executor the options ask for: ``scheduler`` a running cluster; ``workers`` 0 this
+    process, N a LocalCluster of N processes; neither: a LocalCluster of one process per CPU,
+    or this process when `local_default` (work too small to be worth starting a cluster)."""
+    if workers is not None and scheduler is not None:
+        raise FusionlogError("--workers and --scheduler: give one of them, not both")
+    if workers is not None and workers < 0:
+        raise FusionlogError(f"--workers: must be >= 0, got {workers}")
+    if scheduler is not None:
+        return DaskExecutor(scheduler=scheduler)
+    if workers == 0 or (workers is None and local_default):
+        return LocalExecutor()
+    return DaskExecutor(workers=workers)

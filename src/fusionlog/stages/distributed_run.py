@@ -1,0 +1,146 @@
+"""``fusionlog run --workers N | --scheduler ADDRESS``: one big scenario's runs on Dask.
+
+The runs are split into blocks (:func:`.montecarlo.blocks`) that workers simulate, estimate and
+reduce to metric sums; no sensor or estimate log is written (it would carry every estimate back
+to this process, and 10^7 runs of the paper's example are 3.4 GB each), so a distributed run
+writes ``evaluation.rrd`` and ``summary.json`` only, committed together.
+
+Both come from the state kind's own Evaluator, as in ``fusionlog run``: the first few runs (the
+sample runs and the state-plane points of the recording) are computed here and added to it as
+a block of estimates, the workers' sums of the other runs are merged into its accumulators in
+block order, and its summary (the exact analysis beside the Monte Carlo values) and recording
+follow. The runs are those of ``fusionlog run`` with the same seed, so the numbers agree with it
+to rounding (the sums are added in another order).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import time
+import uuid
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fusionlog.errors import FusionlogError
+from fusionlog.io.atomic import Outputs
+from fusionlog.jsonout import dumps
+from fusionlog.scenario import Scenario
+
+from .common import provenance
+from .distributed import executor
+from .kinds import kind_of
+from .montecarlo import Job, block_estimates, block_sums, blocks, fold, pattern_provenance
+
+__all__ = ["DISTRIBUTED_OUTPUTS", "DistributedRun", "run_distributed"]
+
+#: What a distributed run writes in its folder (no MCAP logs: see the module docstring).
+DISTRIBUTED_OUTPUTS = ("evaluation.rrd", "summary.json")
+#: Runs computed here for the recording's state-plane view (stages.state.PLANE_POINTS).
+PLANE_RUNS = 300
+
+
+@dataclass
+class DistributedRun:
+    out_dir: Path
+    summary: dict[str, Any]
+    executor: str
+    seconds: float
+
+
+class _Unwritten:
+    """What an Evaluator reads of an estimates file, for estimates that were never written:
+    the topics, the instants, the runs and their times (the scenario's)."""
+
+    def __init__(self, scenario: Scenario, archs: Sequence[str]) -> None:
+        self.path = Path(f"<{scenario.name}: distributed run>")
+        self.topics = {f"/estimates/{a}": 0 for a in archs}
+        self._sc = scenario
+
+    def steps(self) -> int:
+        return self._sc.instants
+
+    def runs(self) -> int:
+        return self._sc.runs
+
+    def times(self) -> np.ndarray:
+        return self._sc.times
+
+
+def _remote_blocks(scenario: Scenario, local: int, block: int | None) -> list[tuple[int, int]]:
+    """The blocks after the `local` runs computed here: the scenario's blocks, the first one
+    starting at `local` (a function of the scenario alone, whatever the cluster)."""
+    out = []
+    for off, n in blocks(scenario, block):
+        end = off + n
+        if end > local:
+            out.append((max(off, local), end - max(off, local)))
+    return out
+
+
+def run_distributed(
+    scenario: Scenario,
+    out_dir: Path,
+    *,
+    archs: Sequence[str] = (),
+    workers: int | None = None,
+    scheduler: str | None = None,
+    force: bool = False,
+    block: int | None = None,
+    command: str = "fusionlog run",
+) -> DistributedRun:
+    """Evaluate every run of `scenario` on Dask into ``out_dir/evaluation.rrd`` and
+    ``out_dir/summary.json`` (both or neither). `workers` N: a LocalCluster of N processes
+    (0: this process); `scheduler`: a running cluster; neither: one process per CPU."""
+    sc = scenario
+    if sc.kind != "state":
+        raise FusionlogError(
+            f"{sc.path or sc.name}: --workers/--scheduler run state scenarios; "
+            f"a {sc.kind} scenario runs in one process (without them)"
+        )
+    kind = kind_of(sc.kind)
+    archs = kind.check_architectures(list(archs) or list(sc.architectures), sc.system, "--arch")
+    targets = [Path(out_dir) / name for name in DISTRIBUTED_OUTPUTS]
+    inputs = [Path(sc.path)] if sc.path else []
+    job = Job(sc, tuple(archs), uuid.uuid4().hex)
+    local = min(sc.runs, max(sc.sample_runs, PLANE_RUNS if sc.plane_view else 0, 1))
+    remote = _remote_blocks(sc, local, block)
+    t0 = time.perf_counter()
+    with Outputs(targets, force=force, inputs=inputs) as outs, executor(workers, scheduler) as ex:
+        totals: dict[str, Any] = {}  # arch -> the workers' sums, merged in block order
+        patterns: set[bytes | None] = set()  # the blocks' shared patterns (two: per-run)
+        with contextlib.closing(
+            ex.map([(block_sums, (job, off, n)) for off, n in remote], "run")
+        ) as results:
+            # the sample runs here while the workers start on the rest
+            x, est, pattern = block_estimates(job, 0, local)
+            patterns.add(None if pattern is None else np.packbits(pattern).tobytes())
+            for s in results:
+                fold(totals, s)
+                if len(patterns) < 2:
+                    patterns.add(s.pattern)
+        prov = provenance(
+            command,
+            sc.seed,
+            model_source="scenario",
+            architectures=json.dumps(archs),
+            runs_on=ex.description,
+            **pattern_provenance(sorted(patterns, key=repr), (sc.instants, sc.system.m)),
+        )
+        ev = kind.evaluator(sc, _Unwritten(sc, archs), prov)
+        ev.add(0, x, {f"/estimates/{a}": (e.mean, e.cov) for a, e in est.items()})
+        accs = getattr(ev, "accs", None)
+        if not isinstance(accs, dict):  # pragma: no cover - the state Evaluator has them
+            raise TypeError("the state kind's Evaluator keeps no metric accumulators (accs)")
+        for a, acc in totals.items():
+            accs[a].merge(acc)
+        summary = ev.summary()
+        text = dumps(summary, indent=2) + "\n"  # before the recording, as evaluate does
+        ev.write_recording(outs.open(targets[0]), sc.times, prov)
+        outs.open(targets[1]).write(text.encode())
+        outs.commit()
+    return DistributedRun(Path(out_dir), summary, ex.description, time.perf_counter() - t0)
