@@ -1,0 +1,131 @@
+"""Series: one recorded stream in time order, and the checks every source shares.
+
+A source (MCAP topic or CSV file) adds its messages in file order to a :class:`Collector`;
+``finish`` drops messages whose values are NaN/inf (counted), sorts by measurement time
+(stable, counted), and refuses two messages at one instant.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fusionlog.errors import ValidationError
+
+__all__ = ["Collector", "Series", "fail"]
+
+
+@dataclass(frozen=True)
+class Series:
+    """One recorded stream: N messages in time order."""
+
+    times_ns: np.ndarray  # (N,) int64, the measurement times (ns), sorted ascending (stable)
+    values: np.ndarray  # (N, d) float64
+    cov: np.ndarray | None  # (N, d, d) the per-message covariance blocks, or None when not asked
+    notes: tuple[str, ...]  # counted, reported skips/fixes
+
+
+def fail(source: Path, what: str, problem: str) -> ValidationError:
+    """The one-line error every check raises: ``<source>: <what>: <problem>``."""
+    text = " ".join(f"{source}: {what}: {problem}".split())
+    return ValidationError(text)
+
+
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
+
+
+class Collector:
+    """Accumulates (time, values, covariance) per message in file order.
+
+    ``unit`` names the items in notes and errors ("message" or "row"); ``label(k)`` says
+    where item k came from ("message 12", "line 14"); ``missing`` describes skipped values.
+    """
+
+    def __init__(
+        self,
+        source: Path,
+        what: str,
+        d: int,
+        with_cov: bool,
+        unit: str,
+        label: Callable[[int], str],
+        missing: str = "NaN or infinite",
+    ) -> None:
+        self.source, self.what, self.d, self.unit = source, what, d, unit
+        self.missing = missing
+        self.label = label
+        self.with_cov = with_cov
+        self._times: list[int] = []
+        self._values: list[list[float]] = []
+        self._covs: list[np.ndarray] = []
+        self._origin: list[int] = []
+        self.bad_values = 0
+        self.bad_times = 0
+        self.bad_covs = 0
+        self.seen = 0
+
+    def add(self, origin: int, t_ns: int | None, values: list[float], cov=None) -> None:
+        self.seen += 1
+        if t_ns is None:
+            self.bad_times += 1
+            return
+        if not all(np.isfinite(values)):
+            self.bad_values += 1
+            return
+        if self.with_cov:
+            if not np.isfinite(cov).all():
+                self.bad_covs += 1
+            self._covs.append(cov)
+        self._times.append(t_ns)
+        self._values.append(values)
+        self._origin.append(origin)
+
+    def finish(self) -> Series:
+        notes: list[str] = []
+        u = self.unit
+        if self.bad_times:
+            notes.append(f"{_plural(self.bad_times, u)} with a NaN or infinite time skipped")
+        if self.bad_values:
+            notes.append(f"{_plural(self.bad_values, u)} with {self.missing} values skipped")
+        if not self._times:
+            raise fail(
+                self.source,
+                self.what,
+                f"no {u} with finite values and time (of {self.seen} read)"
+                if self.seen
+                else f"no {u}s",
+            )
+        t = np.array(self._times, dtype=np.int64)
+        values = np.array(self._values, dtype=np.float64).reshape(len(t), self.d)
+        cov = (
+            np.array(self._covs, dtype=np.float64).reshape(len(t), self.d, self.d)
+            if (self.with_cov)
+            else None
+        )
+        late = int(np.count_nonzero(t[1:] < np.maximum.accumulate(t)[:-1]))
+        order = np.argsort(t, kind="stable")
+        if late:
+            notes.append(f"{_plural(late, u)} out of time order (sorted)")
+            t, values = t[order], values[order]
+            cov = cov[order] if cov is not None else None
+        dup = np.flatnonzero(t[1:] == t[:-1])
+        if dup.size:
+            i = int(dup[0])
+            a, b = sorted((self._origin[order[i]], self._origin[order[i + 1]]))
+            more = np.unique(t[dup]).size - 1
+            raise fail(
+                self.source,
+                self.what,
+                f"duplicate instant {int(t[i])} ns: {self.label(a)} and {self.label(b)} have the "
+                f"same time" + (f" ({_plural(more, 'more duplicated instant')})" if more else ""),
+            )
+        if self.bad_covs:
+            notes.append(
+                f"{_plural(self.bad_covs, u)} with NaN or infinite covariance entries "
+                "(returned as read)"
+            )
+        return Series(times_ns=t, values=values, cov=cov, notes=tuple(notes))
