@@ -295,7 +295,7 @@ def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers,
         )
         o.commit()
     t3 = time.perf_counter()
-    click.echo(f"{sc.name}: M = {sc.runs} runs, K = {sc.steps}, seed {sc.seed}")
+    click.echo(f"{sc.name}: M = {sc.runs} runs, K = {sc.instants - 1}, seed {sc.seed}")
     click.echo(format_table(summary_))
     click.echo(
         f"simulate {t1 - t0:.2f} s, estimate {t2 - t1:.2f} s, evaluate {t3 - t2:.2f} s -> {d}"
