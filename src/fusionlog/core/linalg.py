@@ -90,6 +90,8 @@ def spd_inv_scaled(
 
 def _spd_inv_scaled_lapack(A: np.ndarray, spread: float, what: str) -> np.ndarray:
     d = A.diagonal(0, -2, -1)
+    if d.size == 0:  # no matrices
+        return np.empty(A.shape)
     if d.size <= 64:  # a few matrices: Python compares faster than numpy reduces
         dl = d.ravel().tolist()
         lo, hi = min(dl), max(dl)
@@ -326,11 +328,16 @@ def stack_rows(X: np.ndarray) -> np.ndarray:
     """A stack's matrices one above the other: (..., S, a, b) -> (..., S a, b)."""
     *lead, S, a, b = X.shape
     if many_matrices(lead):
-        out = buffer((S * a, b), tuple(lead))
-        Xl = lanes(X)
-        for j in range(S):
-            out[j * a : (j + 1) * a] = Xl[..., j]
-        return unlanes(out)
+        try:  # lanes of a stack (see `buffer`): a reshape, no copy
+            view = X.view()
+            view.shape = (*lead, S * a, b)
+            return view
+        except AttributeError:
+            out = buffer((S * a, b), tuple(lead))
+            Xl = lanes(X)
+            for j in range(S):
+                out[j * a : (j + 1) * a] = Xl[..., j]
+            return unlanes(out)
     return X.reshape((*lead, S * a, b))
 
 
@@ -406,28 +413,29 @@ def buffer(
     lead: tuple[int, ...], batch: tuple[int, ...], zeros: bool = False, dtype: type = float
 ) -> np.ndarray:
     """An uninitialised (or zero) array of shape lead + batch in the lanes memory order: the
-    lead axes outermost, then the batch axes in reverse, so that the first batch axis (the
-    runs) is the contiguous one even when a stack of local filters follows it."""
+    first batch axis (the runs) is the contiguous one, the lead (matrix) axes come before it
+    and any further batch axes (a stack of local filters) before those. So a stack of S
+    matrices of each run is, in memory, S matrices of lanes one after the other: stacking them
+    into one tall matrix (`stack_rows`) is a reshape."""
     nl, nb = len(lead), len(batch)
-    mem = (np.zeros if zeros else np.empty)(lead + batch[::-1], dtype=dtype)
+    mem = (np.zeros if zeros else np.empty)((*batch[:0:-1], *lead, *batch[:1]), dtype=dtype)
     if nb < 2:
         return mem
-    return mem.transpose((*range(nl), *range(nl + nb - 1, nl - 1, -1)))
+    # memory axes: batch[-1], ..., batch[1], lead..., batch[0]
+    return mem.transpose((*range(nb - 1, nb - 1 + nl), nb - 1 + nl, *range(nb - 2, -1, -1)))
 
 
 def stack_matrices(arrays: list[np.ndarray]) -> np.ndarray:
-    """np.stack(arrays) of matrices batch + (p, q); a large batch in the lanes memory order,
-    the new (step) axis outside the batch axes, the runs still the contiguous axis."""
+    """np.stack(arrays) of matrices batch + (p, q); a large batch in the lanes memory order
+    with the new (step) axis outermost."""
     first = arrays[0]
     if not kernels_for(first):
         return np.stack(arrays)
     *batch, p, q = first.shape
-    nb = len(batch)
-    mem = np.empty((p, q, len(arrays), *batch[::-1]))
-    out = mem.transpose((2, *range(nb + 2, 2, -1), 0, 1))
+    out = buffer((len(arrays), p, q), tuple(batch))  # (L, p, q) + batch
     for j, a in enumerate(arrays):
-        out[j] = a
-    return out
+        out[j] = lanes(a)
+    return np.moveaxis(out, (1, 2), (-2, -1))
 
 
 def _all_true(batch: tuple[int, ...]) -> np.ndarray:
@@ -513,6 +521,10 @@ def mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     additions and copies it makes."""
     if (A.ndim == 2 and B.ndim == 2) or not kernels_for(A, B):
         return A @ B
+    if A.ndim == 2 and _is_identity(A):  # the other factor itself (never written to)
+        return B
+    if B.ndim == 2 and _is_identity(B):
+        return A
     batch = _batch_shape(A.shape[:-2], B.shape[:-2])
     nb = len(batch)
     X = buffer((A.shape[-2], B.shape[-1]), batch)
@@ -531,6 +543,15 @@ def mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     else:
         np.einsum("il...,lj...->ij...", lanes_of(A, nb), lanes_of(B, nb), out=X)
     return unlanes(X)
+
+
+def _is_identity(A: np.ndarray) -> bool:
+    """Whether a small shared matrix is the identity (a product with it is its other factor)."""
+    p, q = A.shape
+    return p == q and p <= KERNEL_MAX_DIM and A.ravel().tolist() == _EYE[p]
+
+
+_EYE = {p: np.eye(p).ravel().tolist() for p in range(1, KERNEL_MAX_DIM + 1)}
 
 
 def _unit_entries(A: np.ndarray) -> bool:
@@ -682,7 +703,7 @@ def _solve_kernel(A: np.ndarray, B: np.ndarray, hermitian: bool, what: str) -> n
             X = _cholesky_solve(L, Bl)
         else:
             X, ok = _lu_solve(Al, Bl)
-        ok &= _finite(X)
+        ok = ok & _finite(X)  # (A may have fewer runs than B)
     out = unlanes(X)
     _redo(out, ~ok, lambda a, b: _solve_lapack(a, b, hermitian, what), A, B)
     return out
@@ -696,7 +717,7 @@ def solve_spd_or_flag(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndar
     with np.errstate(all="ignore"):
         L, ok = _cholesky(lanes_of(A, nb))
         X = _cholesky_solve(L, lanes_of(B, nb))
-        ok &= _finite(X)
+        ok = ok & _finite(X)  # (A may have fewer runs than B)
     return unlanes(X), ok
 
 
@@ -708,7 +729,7 @@ def _spd_inv_kernel(
     with np.errstate(all="ignore"):
         L, ok = _cholesky(lanes(A))
         X = _cholesky_inverse(L)
-        ok &= _finite(X)
+        ok = ok & _finite(X)  # (A may have fewer runs than B)
     out = unlanes(X)
     _redo(out, ~ok, reference, A)
     return out, ok

@@ -21,7 +21,7 @@ import numpy as np
 
 from ...errors import NumericalError
 from ..linalg import apply, bc, lanes, mT, mv
-from .plan import DenseMap, Estimate, Plan, SmootherMaps
+from .plan import BlockDiagonal, DenseMap, Estimate, Plan, SmootherMaps
 
 #: Horizons up to this many instants apply a shared plan as one dense linear map.
 DENSE_MAX_STEPS = 128
@@ -155,7 +155,7 @@ def _recursion_per_run(plan: Plan, z: np.ndarray) -> np.ndarray:
     states = []
     for k in range(K1):
         st = plan.steps[k]
-        s = mv(_lanes(st.T), s) + mv(_lanes(st.U), zl[k])
+        s = _transition(st.T, s) + mv(_lanes(st.U), zl[k])
         if plan.smoother is not None:
             states.append(s)
         else:
@@ -168,6 +168,17 @@ def _recursion_per_run(plan: Plan, z: np.ndarray) -> np.ndarray:
                 yb = mv(_lanes(sm.L[k]), yb + mv(_lanes(sm.V[k + 1]), zl[k + 1]))
             out[k] = mv(_lanes(sm.A[k]), states[k]) + mv(_lanes(sm.B[k]), yb)
     return np.ascontiguousarray(out.transpose(2, 0, 1))
+
+
+def _transition(T: np.ndarray | BlockDiagonal, s: np.ndarray) -> np.ndarray:
+    """T s on lanes (s: (d, M)); a block-diagonal T block by block."""
+    if not isinstance(T, BlockDiagonal):
+        return mv(_lanes(T), s)
+    B = T.blocks  # (M, S, a, b): memory (S, a, b, M), see linalg.buffer
+    Bl = np.moveaxis(lanes(B), -1, 0)  # (S, a, b, M)
+    S, _, b = Bl.shape[:3]
+    out = np.einsum("iab...,ib...->ia...", Bl, s.reshape((S, b) + s.shape[1:]))
+    return out.reshape((-1,) + s.shape[1:])
 
 
 def _lanes(A: np.ndarray) -> np.ndarray:

@@ -38,17 +38,26 @@ from ..model import System
 
 def masked(H: np.ndarray, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """H and R with absent rows made information-free: the row of H is zeroed and the absent
-    component decoupled with unit variance, so its gain column is exactly zero."""
+    component decoupled with unit variance, so its gain column is exactly zero.
+
+    Per run (a large batch, for the batch kernels) the absent component keeps its own variance
+    R_ii instead of 1: decoupled either way, it does not change any other number of the
+    update (the Cholesky factor of a decoupled component does not touch the others), and with
+    uncorrelated components R stays one matrix shared by all runs.
+    """
     if p.shape == H.shape[:-1] and p.all():  # nothing absent, and no per-run pattern
         return H, R
     if p.ndim > H.ndim - 1 and many_matrices(p.shape[:-1]):  # per run: lanes for the kernels
         nb = p.ndim - 1
         pf = buffer((p.shape[-1],), p.shape[:-1])  # (r,) + batch, runs contiguous
         pf[...] = np.moveaxis(p, -1, 0)
-        Hm = lanes_of(H, nb) * pf[:, None]
-        Rm = lanes_of(R, nb) * (pf[:, None] * pf[None, :])
-        Rm += np.eye(R.shape[-1]).reshape(Rm.shape[:2] + (1,) * nb) * (1.0 - pf)
-        return unlanes(Hm), unlanes(Rm)
+        Hm = unlanes(lanes_of(H, nb) * pf[:, None])
+        r = R.shape[-1]
+        if not (R * (1.0 - np.eye(r))).any():  # uncorrelated components
+            return Hm, R
+        keep = pf[:, None] * pf[None, :]  # R_ij where both are present, and every R_ii
+        keep[np.arange(r), np.arange(r)] = 1.0
+        return Hm, unlanes(lanes_of(R, nb) * keep)
     pf = p.astype(float)
     Hm = H * pf[..., :, None]
     Rm = R * (pf[..., :, None] * pf[..., None, :]) + np.eye(R.shape[-1]) * (1.0 - pf)[..., None, :]

@@ -7,7 +7,8 @@ vector y = P^-1 x of a filter that has no covariance yet) follows
 
 with z_k the stacked measurement of eq. (30). The smoother (FBS) adds a backward information
 filter and a forward/backward fusion, eqs. (25)-(28) (`SmootherMaps`). Maps carry a leading run
-dimension when runs differ in which measurements are present (`Plan.per_run`).
+dimension when runs differ in which measurements are present (`Plan.per_run`); there, the
+transition of a stack of local filters is kept as its diagonal blocks (`BlockDiagonal`).
 """
 
 from __future__ import annotations
@@ -16,14 +17,40 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..linalg import stack_diag
 from ..model import System
+
+
+@dataclass
+class BlockDiagonal:
+    """The matrix blockdiag(B_1, ..., B_S) of blocks (..., S, a, b), kept as the blocks.
+
+    A per-run plan of S local filters has a transition T that is block-diagonal in every run:
+    dense, (M, S a, S b) would be mostly zeros, and writing them out costs more than the
+    recursion that produced them. Shared plans keep dense maps (the exact analysis uses them).
+    """
+
+    blocks: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        *lead, S, a, b = self.blocks.shape
+        return (*lead, S * a, S * b)
+
+    @property
+    def ndim(self) -> int:
+        return self.blocks.ndim - 1
+
+    def dense(self) -> np.ndarray:
+        """The matrix itself, (..., S a, S b)."""
+        return stack_diag(self.blocks)
 
 
 @dataclass
 class StepMap:
     """Affine map of one step: s_k = T s_{k-1} + U z_k, x_hat = O s_k, reported covariance P."""
 
-    T: np.ndarray  # (..., d, d_prev)
+    T: np.ndarray | BlockDiagonal  # (..., d, d_prev)
     U: np.ndarray  # (..., d, m)
     O: np.ndarray  # (..., n, d)
     P: np.ndarray  # (..., n, n)

@@ -16,16 +16,19 @@ numpy's stacked products in `readouts` would cost a microsecond per run and step
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
+from ...errors import NumericalError
 from ..fusion import gmf_weight_matrix
 from ..linalg import (
     all_finite,
     bc,
+    buffer,
     inv_or_nan,
-    kernels_for,
+    lanes,
     lanes_copy,
     many_matrices,
     mm,
@@ -38,17 +41,16 @@ from ..linalg import (
     stack_matrices,
     stack_rows,
     sym,
+    unlanes,
 )
 from .filters import KalmanStack, Rows, Steady, fill
-from .plan import BuildRequest, Plan, StepMap
+from .plan import BlockDiagonal, BuildRequest, Plan, StepMap
 from .readouts import (
     avg_readouts,
     ci_readouts,
     gmf_readouts,
     local_infos,
     msc_readouts,
-    require_fused,
-    set_readouts,
     signs,
 )
 
@@ -59,7 +61,8 @@ class LocalHistory:
     after each computed step (L of them; the steps after repeat the last), the locals' forms
     (L, S) (True: information form), their matrices (covariance, or information in information
     form), their joint error covariance J of eq. (35) (when asked for), and their readouts
-    x_j = O_j s_j."""
+    x_j = O_j s_j. With a per-step readout (`local_filters`), the matrices, J and the local
+    readouts are handed to it and not kept (empty lists)."""
 
     steps: list[StepMap]
     forms: np.ndarray
@@ -80,8 +83,18 @@ class LocalHistory:
         return self.steps[: len(self.forms)]
 
 
-def local_filters(request: BuildRequest, joint: bool) -> LocalHistory:
-    """Run the stack of local KFs over the horizon; with `joint`, carry eq. (35) along."""
+#: A fusion rule applied at every step as the local filters advance (the per-run path, where
+#: keeping every step's matrices for a rule over all steps would cost more memory than the
+#: plan itself): (step map to complete with O and P, the locals' forms (S,), their matrices,
+#: J of eq. (35) or None, their readouts O_j).
+StepReadout = Callable[[StepMap, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray], None]
+
+
+def local_filters(
+    request: BuildRequest, joint: bool, readout: StepReadout | None = None
+) -> LocalHistory:
+    """Run the stack of local KFs over the horizon; with `joint`, carry eq. (35) along; with a
+    `readout`, apply it at every step instead of keeping what it needs."""
     system, present, batch = request.system, request.present, request.batch
     n, m = system.n, system.m
     S = len(system.sensors)
@@ -92,7 +105,10 @@ def local_filters(request: BuildRequest, joint: bool) -> LocalHistory:
         J = bc(np.kron(np.ones((S, S)), system.prior.cov), batch + (S * n, S * n))
     else:
         J = bc(np.zeros((S * n, S * n)), batch + (S * n, S * n))
-    J = lanes_copy(J) if many_matrices(batch) else J.copy()
+    # Per run, J's products go block by block (`_diag_congruence`): Psi and Phi are
+    # block-diagonal, and a dense (S n)^3 product per run would cost S^2 times more.
+    blocks = many_matrices(batch)
+    J = lanes_copy(J) if blocks else J.copy()
     stack = batch + (S, n, n)
     # When every local is in covariance form they all predict with F and the full process
     # noise: Phi and Gam of eq. (35), and the noise term, are then the same at every step.
@@ -113,30 +129,71 @@ def local_filters(request: BuildRequest, joint: bool) -> LocalHistory:
                 if st.Phi is locs.F:
                     Phi_cov = stack_diag(bc(locs.F, (S, n, n)))
                     GQG_cov = mm(mm(Gam_cov, GQG), mT(Gam_cov))
-            if not first and st.Phi is locs.F:  # every local predicted in covariance form
+            if not first and st.Phi is locs.F and blocks:
+                J = _diag_congruence(locs.F, J) + GQG_cov
+            elif not first and st.Phi is locs.F:  # every local predicted in covariance form
                 J = mm(mm(Phi_cov, J), mT(Phi_cov)) + GQG_cov
             elif not first:
                 Phi = stack_diag(bc(st.Phi, stack))
                 Gam = stack_rows(bc(st.Gam, stack))
                 J = mm(mm(Phi, J), mT(Phi)) + mm(mm(Gam, GQG), mT(Gam))
-            Psi = stack_diag(bc(st.Psi, stack))
-            Lam = stack_rows(st.Lam)
             _, Rk = everything.masked(present[..., k, :])
-            J = sym(mm(mm(Psi, J), mT(Psi)) + mm(mm(Lam, Rk), mT(Lam)))
-        T = stack_diag(bc(st.T, stack))
+            if blocks:
+                J = sym(_diag_congruence(st.Psi, J) + _rows_congruence(st.Lam, Rk))
+            else:
+                Psi = stack_diag(bc(st.Psi, stack))
+                Lam = stack_rows(st.Lam)
+                J = sym(mm(mm(Psi, J), mT(Psi)) + mm(mm(Lam, Rk), mT(Lam)))
+        T = BlockDiagonal(bc(st.T, stack)) if blocks else stack_diag(bc(st.T, stack))
         # A local's state s_j is D_j x + sigma_j with sigma_j = -g_j (mean form: s = x_hat,
         # g = x - x_hat) or +g_j (information form: s = y, g = y - Y x); J is cov(g).
         D = D_cov if st.D is locs.I else stack_rows(bc(st.D, stack))  # D_j = I: mean form
-        steps.append(StepMap(T, stack_rows(st.U), None, None, D))  # O, P: set by a readout
+        step = StepMap(T, stack_rows(st.U), None, None, D)  # O, P: set by a readout
+        steps.append(step)
         forms.append(locs.info)
-        mats.append(locs.mat)
-        joints.append(J)
-        readouts.append(st.O)
+        if readout is not None:
+            if joint and not all_finite(J):
+                require_finite(J, "the local filters' joint error covariance")
+            readout(step, locs.info, locs.mat, J if joint else None, st.O)
+        else:
+            mats.append(locs.mat)
+            joints.append(J)
+            readouts.append(st.O)
         if not locs.any_info and steady.reached(J if joint else locs.mat):
             fill(steps, K1)
             break
     request.step = None  # the readouts process every step at once
     return LocalHistory(steps, np.stack(forms), mats, joints, readouts, locs.s0, locs.D0)
+
+
+def _diag_congruence(A: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """D J D^T for D = blockdiag(A_1, ..., A_S), per run and block by block: A batch +
+    (S, n, n), or one (n, n) for every block; J batch + (S n, S n). Lanes in and out."""
+    n = A.shape[-1]
+    S = J.shape[-1] // n
+    Jb = lanes(J).reshape((S, n, S, n) + J.shape[:-2])
+    out = buffer((S, n, S, n), J.shape[:-2])
+    if A.ndim == 2:
+        np.einsum("iajc...,dc->iajd...", np.einsum("ab,ibjc...->iajc...", A, Jb), A, out=out)
+    else:
+        Ai = np.moveaxis(lanes(A), -1, 0)  # (S, n, n) + batch
+        AJ = np.einsum("iab...,ibjc...->iajc...", Ai, Jb)
+        np.einsum("iajc...,jdc...->iajd...", AJ, Ai, out=out)
+    return unlanes(out.reshape((S * n, S * n) + J.shape[:-2]))
+
+
+def _rows_congruence(L: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """L R L^T for the stacked rows L = [L_1; ...; L_S] of L (batch + (S, n, m)), per run;
+    R batch + (m, m) or shared. Lanes out."""
+    S, n = L.shape[-3:-1]
+    Li = np.moveaxis(lanes(L), -1, 0)  # (S, n, m) + batch
+    if R.ndim == 2:
+        LR = np.einsum("iau...,uv->iav...", Li, R)
+    else:
+        LR = np.einsum("iau...,uv...->iav...", Li, lanes(R))
+    out = buffer((S, n, S, n), L.shape[:-3])
+    np.einsum("iav...,jdv...->iajd...", LR, Li, out=out)
+    return unlanes(out.reshape((S * n, S * n) + L.shape[:-3]))
 
 
 def _plan(request: BuildRequest, hist: LocalHistory, omega: np.ndarray | None = None) -> Plan:
@@ -146,42 +203,39 @@ def _plan(request: BuildRequest, hist: LocalHistory, omega: np.ndarray | None = 
 
 def build_msc(request: BuildRequest) -> Plan:
     """Millman's formula on the local estimates, eqs. (32)-(34)."""
-    hist = local_filters(request, joint=False)
     if request.batch:
-        _msc_per_run(hist)
-    else:
-        msc_readouts(hist.computed, hist.forms, hist.mats)
+        return _plan(request, local_filters(request, joint=False, readout=_msc_step))
+    hist = local_filters(request, joint=False)
+    msc_readouts(hist.computed, hist.forms, hist.mats)
     return _plan(request, hist)
 
 
 def _checked_joints(hist: LocalHistory) -> None:
     """J of eq. (35) is only multiplied in the recursion, so an overflow there (once non-finite,
     it stays so) is looked for once, before a fusion rule solves with it."""
-    if not all(all_finite(J) for J in hist.joints):
-        require_finite(
-            np.stack(hist.joints), "the local filters' joint error covariance", per_step=True
-        )
+    require_finite(
+        np.stack(hist.joints), "the local filters' joint error covariance", per_step=True
+    )
 
 
 def build_msc_gmf(request: BuildRequest) -> Plan:
     """The generalised Millman formula with the exact cross-covariances, eqs. (6)-(7), (35)."""
+    if request.batch:
+        step = GmfStep(request.system.n, request.present)
+        return _plan(request, local_filters(request, joint=True, readout=step))
     hist = local_filters(request, joint=True)
     _checked_joints(hist)
-    if request.batch:
-        _gmf_per_run(hist, request.system.n)
-    else:
-        gmf_readouts(hist.computed, hist.forms, hist.joints, request.system.n)
+    gmf_readouts(hist.computed, hist.forms, hist.joints, request.system.n)
     return _plan(request, hist)
 
 
 def build_avg(request: BuildRequest) -> Plan:
     """The plain average of the local means and its true covariance, eq. (4)."""
+    if request.batch:
+        return _plan(request, local_filters(request, joint=True, readout=_avg_step))
     hist = local_filters(request, joint=True)
     _checked_joints(hist)
-    if request.batch:
-        _avg_per_run(hist)
-    else:
-        avg_readouts(hist.computed, hist.forms, hist.joints, hist.readouts, request.batch)
+    avg_readouts(hist.computed, hist.forms, hist.joints, hist.readouts, request.batch)
     return _plan(request, hist)
 
 
@@ -193,47 +247,70 @@ def build_ci(request: BuildRequest) -> Plan:
 
 
 # ---------------------------------------------------------------------------------------------
-# The fusion rules of `readouts` for per-run plans: the same equations with the batch kernels,
-# one step at a time (the shared path's readouts are not changed by these).
+# The fusion rules of `readouts` for per-run plans, one step at a time as the local filters
+# advance (`StepReadout`), with the batch kernels. The shared path keeps `readouts`.
 
 
-def _msc_per_run(hist: LocalHistory) -> None:
+def _msc_step(
+    step: StepMap, form: np.ndarray, mats: np.ndarray, J: None, local_O: np.ndarray
+) -> None:
     """`readouts.msc_readouts`: P^-1 = sum_j Y_j, x = P sum_j W_j s_j."""
-    Ys, Ws = local_infos(hist.forms, hist.mats)
+    Ys, Ws = (a[0] for a in local_infos(form[None], mats[None]))
     Y = Ys[..., 0, :, :]
     for j in range(1, Ys.shape[-3]):
         Y = Y + Ys[..., j, :, :]
-    require_finite(Y, "the fused information sum_j P_j^-1", per_step=True)
+    require_finite(Y, "the fused information sum_j P_j^-1")
     P = inv_or_nan(Y)
-    require_fused(hist.forms, P, "Millman's formula")
-    set_readouts(hist.computed, stack_cols(mm(P[..., None, :, :], Ws)), P)
+    _require_fused(form, P, "Millman's formula")
+    step.O, step.P = stack_cols(mm(P[..., None, :, :], Ws)), P
 
 
-def _avg_per_run(hist: LocalHistory) -> None:
+def _require_fused(form: np.ndarray, P: np.ndarray, rule: str) -> None:
+    """`readouts.require_fused` for one step."""
+    if not form.any() and not all_finite(P):
+        raise NumericalError(
+            f"{rule} gives no estimate although every local filter has one (their "
+            "informations are beyond the float range)"
+        )
+
+
+def _avg_step(
+    step: StepMap, form: np.ndarray, mats: np.ndarray, J: np.ndarray, local_O: np.ndarray
+) -> None:
     """`readouts.avg_readouts`: equal weights I/S on the local means, P = M_sigma J M_sigma^T.
     O stays shared by the runs while every local's readout is (a mean: O_j = I)."""
-    S, n = hist.forms.shape[1], hist.readouts[0].shape[-1]
-    for st, form, J, local_O in zip(
-        hist.computed, hist.forms, hist.joints, hist.readouts, strict=True
-    ):
-        O = stack_cols(local_O) / S
-        Msig = mm(O, signs(tuple(form.tolist()), n))
-        st.O, st.P = O, sym(mm(mm(Msig, J), mT(Msig)))
+    S, n = form.shape[0], local_O.shape[-1]
+    O = stack_cols(local_O) / S
+    Msig = mm(O, signs(tuple(form.tolist()), n))
+    step.O, step.P = O, sym(mm(mm(Msig, J), mT(Msig)))
 
 
-def _gmf_per_run(hist: LocalHistory, n: int) -> None:
+@dataclass
+class GmfStep:
     """`readouts.gmf_readouts`. With every local in mean form, the constrained least squares
     of eqs. (5)-(7) has the closed form C = (E^T J^-1 E)^-1 E^T J^-1 (E = [I; ...; I]) when J
-    is positive definite: one Cholesky solve per run. Runs whose J is (nearly) singular (two
-    locals with the same error, e.g. both missed every measurement so far and share the
-    prior), and steps with a local in information form, take `gmf_weight_matrix`, the
-    minimum-norm KKT solution of the shared path."""
-    for st, form, J in zip(hist.computed, hist.forms, hist.joints, strict=True):
-        if form.any() or not kernels_for(J):
+    is positive definite: one Cholesky solve per run. Where J is (nearly) singular (two locals
+    with the same error: the paper's identical sensors share the prior's velocity error until
+    their gains differ), and at steps with a local in information form, the minimum-norm KKT
+    solution of the shared path, `gmf_weight_matrix`, once per distinct measurement history
+    (runs with the same history so far have the same J, to the last bit)."""
+
+    n: int
+    present: np.ndarray  # (M, K+1, m)
+    k: int = 0
+
+    def __call__(
+        self, step: StepMap, form: np.ndarray, mats: np.ndarray, J: np.ndarray, local_O
+    ) -> None:
+        n, history = self.n, self.present[:, : self.k + 1]
+        self.k += 1
+        if form.any():
             sign = signs(tuple(form.tolist()), n)
-            Js = mm(mm(sign, J), sign) if form.any() else J
-            st.O, st.P = gmf_weight_matrix(Js, n, st.D if form.any() else None)
-            continue
+            D = bc(step.D, J.shape[:-2] + step.D.shape[-2:])
+            step.O, step.P = _per_history(
+                lambda Js, D: gmf_weight_matrix(Js, n, D), history, mm(mm(sign, J), sign), D
+            )
+            return
         S = J.shape[-1] // n
         E = np.tile(np.eye(n), (S, 1))
         X, ok = solve_spd_or_flag(J, E)  # J^-1 E
@@ -246,6 +323,18 @@ def _gmf_per_run(hist: LocalHistory, n: int) -> None:
         P = sym(mm(mm(C, J), mT(C)))
         ok &= np.isfinite(P).all(axis=(-2, -1))  # e.g. subnormal noise variances
         if not ok.all():
-            bad = np.nonzero(~ok)
-            C[bad], P[bad] = gmf_weight_matrix(J[bad], n)
-        st.O, st.P = C, P
+            bad = np.flatnonzero(~ok)
+            C[bad], P[bad] = _per_history(lambda Js: gmf_weight_matrix(Js, n), history[bad], J[bad])
+        step.O, step.P = C, P
+
+
+def _per_history(
+    rule: Callable[..., tuple[np.ndarray, np.ndarray]], history: np.ndarray, *args: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """rule(*args) for a batch of runs, computed once per distinct measurement history
+    (history: (runs, steps so far, m) presence masks) and handed to every run that has it."""
+    keys = np.packbits(history.reshape(len(history), -1), axis=1)
+    keys = np.ascontiguousarray(keys).view(np.dtype((np.void, keys.shape[1]))).ravel()
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    outs = rule(*(a[first] for a in args))
+    return tuple(o[inverse] for o in outs)
