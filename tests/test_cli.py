@@ -181,7 +181,7 @@ def test_run_force_that_fails_leaves_the_old_outputs(ajgl_run: Path, tmp_path: P
     """Outputs are staged and moved into place together: a failure in the last stage keeps the
     previous run's four files as they were (no new sensors next to old estimates), and no
     staging folder is left behind."""
-    import fusionlog.stages.evaluate as evaluate_stage
+    import fusionlog.stages.run as run_stage
 
     d = tmp_path / "out"
     shutil.copytree(ajgl_run, d)
@@ -191,7 +191,7 @@ def test_run_force_that_fails_leaves_the_old_outputs(ajgl_run: Path, tmp_path: P
     def fail(*args, **kwargs):
         raise FusionlogError("disk trouble while evaluating")
 
-    monkeypatch.setattr(evaluate_stage, "evaluate_into", fail)
+    monkeypatch.setattr(run_stage, "evaluate_into", fail)
     res = cli("run", AJGL, "--out-dir", d, "--runs", "30", "--steps", "4", "--force")
     assert_one_line_error(res, "disk trouble")
     assert snapshot(d / n for n in OUTPUTS) == before

@@ -1,0 +1,236 @@
+"""Replay files: a state scenario whose sensors come from recorded data (DESIGN.md, "Replay files").
+
+    [scenario]   name, description, state_names, dt (optional: the nominal step of the
+                 constant-velocity kind's N0 = n0 dt; default 1 s). No steps, runs, seed: one
+                 run, whose instants are the measurement times found in the data.
+    [model]      kind = "constant-velocity" (n0, axes) or "continuous" (A, Qc): a model that
+                 can be discretised for any interval.
+    [prior]      mean, cov (optional: without it the filters start with no information).
+    [[sensors]]  name, H, and where the readings are: source (an .mcap or .csv file, relative to
+                 the replay file), topic (MCAP only), values (field paths, or CSV column names),
+                 time (optional field or column; default the MCAP log_time or CSV column
+                 `time`), time_unit (s, ms, us, ns); R, or covariance (a field holding a flat
+                 square covariance) with covariance_index (its rows/columns of `values`), R
+                 then applying where a message's matrix is all zero or not positive definite.
+    [truth]      optional: source, topic, values, time, time_unit and states (the state names
+                 those values are): turns on the truth-based metrics.
+    [estimate], [evaluate] as in a scenario.
+
+A replay is a scenario of the state kind with one run (`Scenario.replay` says where its data
+are); `fusionlog import` reads the data into an ordinary sensors file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fusionlog.core.model import Sensor, System
+
+from . import toml
+from .base import Header, Scenario
+from .model import model_section
+from .state import (
+    architectures_section,
+    correlations_section,
+    evaluate_section,
+    prior_section,
+    sensor_matrices,
+)
+from .toml import Ctx
+
+__all__ = ["Replay", "Stream", "is_replay_doc", "replay_from_doc"]
+
+_TOP_KEYS = ("scenario", "model", "prior", "truth", "sensors", "correlations", "estimate",
+             "evaluate")  # fmt: skip
+_SCENARIO_KEYS = ("name", "description", "state_names", "dt")
+_STREAM_KEYS = ("source", "topic", "values", "time", "time_unit")
+_SENSOR_REQUIRED = ("name", "H", "source", "values")
+_SENSOR_OPTIONAL = ("topic", "time", "time_unit", "R", "covariance", "covariance_index")
+TIME_UNITS = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
+
+
+@dataclass(frozen=True)
+class Stream:
+    """Where one stream of readings is: a file (resolved against the replay file's folder), an
+    MCAP topic, the value fields, the time field and unit, the covariance field and rows."""
+
+    source: Path
+    topic: str | None
+    values: tuple[str, ...]
+    time: str | None = None
+    time_unit: str = "s"
+    covariance: str | None = None
+    covariance_index: tuple[int, ...] | None = None
+
+
+@dataclass(frozen=True)
+class Replay:
+    """The recorded data of a replay: one stream per sensor (in the system's order), the
+    optional truth stream and the state indices its values are."""
+
+    sensors: tuple[Stream, ...]
+    truth: Stream | None = None
+    truth_states: tuple[int, ...] = ()
+
+
+def is_replay_doc(doc: dict[str, Any]) -> bool:
+    """A scenario document whose sensors name a `source`."""
+    sensors = doc.get("sensors")
+    return isinstance(sensors, list) and any(isinstance(t, dict) and "source" in t for t in sensors)
+
+
+def _stream(ctx: Ctx, t: dict[str, Any], where: str, base: Path) -> Stream:
+    source = toml.string(ctx, t["source"], f"{where}.source")
+    path = base / source
+    suffix = path.suffix.lower()
+    if suffix not in (".mcap", ".csv"):
+        raise ctx.err(f"{where}.source", f"expected an .mcap or .csv file, got {source!r}")
+    topic = None
+    if suffix == ".mcap":
+        if "topic" not in t:
+            raise ctx.err(f"{where}.topic", "missing required key (an .mcap source needs it)")
+        topic = toml.string(ctx, t["topic"], f"{where}.topic")
+    elif "topic" in t:
+        raise ctx.err(f"{where}.topic", "only used with an .mcap source (a CSV has columns)")
+    values = t["values"]
+    if (
+        not isinstance(values, list)
+        or not values
+        or not all(isinstance(v, str) and v.strip() for v in values)
+    ):
+        raise ctx.err(
+            f"{where}.values", f"expected a non-empty list of field names, got {toml.show(values)}"
+        )
+    time = toml.string(ctx, t["time"], f"{where}.time") if "time" in t else None
+    unit = toml.string(ctx, t.get("time_unit", "s"), f"{where}.time_unit")
+    if unit not in TIME_UNITS:
+        raise ctx.err(f"{where}.time_unit", f"unknown unit {unit!r} (known: s, ms, us, ns)")
+    return Stream(path, topic, tuple(v.strip() for v in values), time, unit)
+
+
+def _covariance(ctx: Ctx, t: dict[str, Any], where: str, m: int) -> tuple[str | None, Any]:
+    if "covariance" not in t:
+        if "covariance_index" in t:
+            raise ctx.err(f"{where}.covariance_index", "only used with covariance")
+        return None, None
+    field = toml.string(ctx, t["covariance"], f"{where}.covariance")
+    idx = t.get("covariance_index", list(range(m)))
+    if (
+        not isinstance(idx, list)
+        or len(idx) != m
+        or not all(type(i) is int and i >= 0 for i in idx)
+        or len(set(idx)) != m
+    ):
+        raise ctx.err(
+            f"{where}.covariance_index",
+            f"expected {m} distinct indices >= 0 (rows of the covariance for the {m} values), "
+            f"got {toml.show(idx)}",
+        )
+    return field, tuple(idx)
+
+
+def replay_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None) -> Scenario:
+    """A replay scenario from a parsed TOML document (`file` names it in errors; sources are
+    relative to the folder of `path`, or of `file` when there is no path)."""
+    ctx = Ctx(file)
+    base = Path(path if path is not None else file).parent
+    toml.check_keys(ctx, doc, "(top level)", _TOP_KEYS, what="section")
+    sc = toml.table(ctx, doc, "scenario", required=True)
+    for key in ("steps", "runs", "seed"):
+        if key in sc:
+            raise ctx.err(
+                f"scenario.{key}",
+                "not used in a replay (one run; the instants are the measurement times)",
+            )
+    toml.check_keys(ctx, sc, "scenario", _SCENARIO_KEYS)
+    if "name" not in sc:
+        raise ctx.err("scenario.name", "missing required key")
+    name = toml.name(ctx, sc["name"], "scenario.name")
+    description = toml.string(ctx, sc.get("description", ""), "scenario.description")
+    dt = 1.0
+    if "dt" in sc:
+        dt = toml.number(ctx, sc["dt"], "scenario.dt")
+        if not dt > 0:
+            raise ctx.err("scenario.dt", f"must be > 0, got {toml.fmt(dt)}")
+    names = None
+    if "state_names" in sc:
+        names = toml.names_list(ctx, sc["state_names"], "scenario.state_names")
+    md = toml.table(ctx, doc, "model", required=True)
+    if "kind" not in md:
+        raise ctx.err(
+            "model.kind",
+            "a replay's instants are irregular: give kind = 'constant-velocity' (n0, axes) or "
+            "'continuous' (A, Qc), not F and Q",
+        )
+    F, Q, G, state_names, dt, continuous = model_section(ctx, doc, names, dt)
+    n = F.shape[0]
+    prior = prior_section(ctx, doc, F)
+
+    sensors: list[Sensor] = []
+    streams: list[Stream] = []
+    tables = toml.named_tables(
+        ctx, doc, "sensors", _SENSOR_REQUIRED, " (name, H, source, values)", _SENSOR_OPTIONAL
+    )
+    for where, t, sname in tables:
+        H, R = sensor_matrices(ctx, t, where, n)
+        cov_field, cov_index = _covariance(ctx, t, where, H.shape[0])
+        if R is None and cov_field is None:
+            raise ctx.err(f"{where}.R", "missing: give R, or covariance (a field of the data)")
+        stream = _stream(ctx, t, where, base)
+        if len(stream.values) != H.shape[0]:
+            raise ctx.err(
+                f"{where}.values",
+                f"{len(stream.values)} values, but H has {H.shape[0]} rows",
+            )
+        streams.append(replace(stream, covariance=cov_field, covariance_index=cov_index))
+        # Without R the sensor's nominal R is set when the data are read (from the messages'
+        # own covariances); NaN until then.
+        m = H.shape[0]
+        sensors.append(Sensor(sname, H, R if R is not None else np.full((m, m), np.nan)))
+    truth, truth_states = _truth(ctx, doc, base, state_names)
+    cross_R = correlations_section(ctx, doc, tuple(sensors))
+    system = System(F=F, Q=Q, G=G, sensors=tuple(sensors), prior=prior, cross_R=cross_R, dt=dt,
+                    state_names=state_names, continuous=continuous)  # fmt: skip
+    architectures = architectures_section(ctx, doc, system)
+    confidence, sample_runs, plane_view = evaluate_section(ctx, doc)
+    if plane_view and n != 2:
+        raise ctx.err("evaluate.plane_view", f"needs a 2-D state, this one has {n}")
+    h = Header(name, description, 0, 1, 0, dt)
+    return Scenario.of(
+        "state",
+        h,
+        system,
+        dt=dt,
+        state_names=state_names,
+        architectures=architectures,
+        confidence=confidence,
+        sample_runs=min(sample_runs, 1),
+        plane_view=plane_view,
+        source=source,
+        path=path,
+        replay=Replay(tuple(streams), truth, truth_states),
+    )
+
+
+def _truth(
+    ctx: Ctx, doc: dict[str, Any], base: Path, state_names: tuple[str, ...]
+) -> tuple[Stream | None, tuple[int, ...]]:
+    tr = toml.table(ctx, doc, "truth", required=False)
+    if tr is None:
+        return None, ()
+    toml.check_keys(ctx, tr, "truth", _STREAM_KEYS + ("states",),
+                    required=("source", "values", "states"))  # fmt: skip
+    stream = _stream(ctx, tr, "truth", base)
+    states = toml.names_list(ctx, tr["states"], "truth.states")
+    for s in states:
+        if s not in state_names:
+            raise ctx.err("truth.states", toml.unknown_msg("state", s, state_names))
+    if len(states) != len(stream.values):
+        raise ctx.err(
+            "truth.states", f"{len(states)} states for {len(stream.values)} values (one each)"
+        )
+    return stream, tuple(state_names.index(s) for s in states)
