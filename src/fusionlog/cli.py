@@ -10,7 +10,6 @@ import json
 import shlex
 import signal
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -184,6 +183,21 @@ def simulate(scenario, output, runs, steps, seed, force, block_runs) -> None:
     click.echo(f"{res.path}: {res.runs} runs x {res.steps + 1} steps, {res.messages} messages")
 
 
+@main.command("import")
+@click.argument("replay", type=PATH)
+@click.option("-o", "--output", type=OUTPUT, required=True, help="Sensors MCAP file to write.")
+@_force
+def import_(replay, output, force) -> None:
+    """Import a replay file's recorded data (MCAP of any encoding, CSV) as a sensors file."""
+    from fusionlog.stages.replay import run_import
+
+    res = run_import(_scenario(replay, None, None, None), output, force=force,
+                     command=_command_line())  # fmt: skip
+    for note in res.notes:
+        click.echo(f"note: {note}")
+    click.echo(f"{res.path}: 1 run x {res.instants} instants, {res.messages} messages")
+
+
 @main.command()
 @click.argument("sensors", type=PATH)
 @click.option("-o", "--output", type=OUTPUT, required=True, help="Estimates MCAP file to write.")
@@ -253,53 +267,30 @@ def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers,
             scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers, scheduler
         )
         return
-    from fusionlog.io.atomic import Outputs
-    from fusionlog.io.mcap import McapWriter
     from fusionlog.report import format_table
-    from fusionlog.stages.estimate import estimate_to
-    from fusionlog.stages.evaluate import evaluate_into
     from fusionlog.stages.kinds import kind_of
-    from fusionlog.stages.simulate import simulate_to
+    from fusionlog.stages.run import RUN_OUTPUTS, run_pipeline
 
     sc = _scenario(scenario, runs, steps, seed)
     archs = kind_of(sc.kind).check_architectures(list(archs), sc.system, "--arch")
     d = out_dir if out_dir is not None else Path("recordings") / sc.name
-    names = ("sensors.mcap", "estimates.mcap", "evaluation.rrd", "summary.json")
-    outs = {k: d / k for k in names}
-    _warn_stale(list(outs.values()))
-    cmd = _command_line()
-    # The four outputs are committed together at the end, or none of them: a run that fails
-    # half-way leaves the previous outputs as they were, not a mix.
-    with Outputs(list(outs.values()), force=force, inputs=[scenario]) as o:
-        t0 = time.perf_counter()
-        with McapWriter(o.open(outs["sensors.mcap"])) as w:
-            simulate_to(sc, w, block=block_runs, command=cmd)
-        t1 = time.perf_counter()
-        with McapWriter(o.open(outs["estimates.mcap"])) as w:
-            estimate_to(
-                o.temp_path(outs["sensors.mcap"]),
-                w,
-                archs=archs or list(sc.architectures),
-                block=block_runs,
-                command=cmd,
-                sensors_name="sensors.mcap",
-            )
-        t2 = time.perf_counter()
-        summary_ = evaluate_into(
-            o.temp_path(outs["sensors.mcap"]),
-            o.temp_path(outs["estimates.mcap"]),
-            o,
-            outs["evaluation.rrd"],
-            outs["summary.json"],
-            block=block_runs,
-        )
-        o.commit()
-    t3 = time.perf_counter()
-    click.echo(f"{sc.name}: M = {sc.runs} runs, K = {sc.instants - 1}, seed {sc.seed}")
-    click.echo(format_table(summary_))
-    click.echo(
-        f"simulate {t1 - t0:.2f} s, estimate {t2 - t1:.2f} s, evaluate {t3 - t2:.2f} s -> {d}"
+    _warn_stale([d / k for k in RUN_OUTPUTS])
+    res = run_pipeline(
+        sc,
+        d,
+        archs=archs,
+        force=force,
+        block=block_runs,
+        command=_command_line(),
+        inputs=[scenario],
     )
+    sc = res.scenario
+    for note in res.notes:
+        click.echo(f"note: {note}")
+    click.echo(f"{sc.name}: M = {sc.runs} runs, K = {sc.instants - 1}, seed {sc.seed}")
+    click.echo(format_table(res.summary))
+    stages = ", ".join(f"{k} {v:.2f} s" for k, v in res.seconds.items())
+    click.echo(f"{stages} -> {d}")
 
 
 def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, workers, scheduler):

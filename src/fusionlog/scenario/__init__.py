@@ -17,10 +17,13 @@ from fusionlog.errors import FusionlogError
 from . import toml
 from .base import KINDS, Scenario, check_budget, scenario_with
 from .identity import check_identity_architectures, identity_from_doc, is_identity_doc
+from .replay import Replay, Stream, is_replay_doc, replay_from_doc
 from .state import MODEL_KINDS, model_from_doc, state_from_doc, system_from_dict, system_to_dict
 
 __all__ = [
     "KINDS",
+    "Replay",
+    "Stream",
     "MODEL_KINDS",
     "Scenario",
     "check_budget",
@@ -50,6 +53,8 @@ def scenario_from_doc(
     it in errors, `text` is the TOML as written (recorded in outputs), `path` its file."""
     if is_identity_doc(doc):
         return identity_from_doc(doc, file, text, path)
+    if is_replay_doc(doc):
+        return replay_from_doc(doc, file, text, path)
     return state_from_doc(doc, file, text, path)
 
 
@@ -109,6 +114,8 @@ def scenario_from_metadata(meta: Mapping[str, str], source: str) -> Scenario:
         doc = toml.parse_toml(text, source)
         if kind == "identity":
             sc = identity_from_doc(doc, source, text, None)
+        elif is_replay_doc(doc):
+            sc = replay_from_doc(doc, source, text, None)
         else:
             sc = state_from_doc(doc, source, text, None)
         if sc.kind != kind:

@@ -60,6 +60,7 @@ class Scenario:
     plane_view: bool = False  # a 2-D view of the state plane (n = 2): estimates and ellipses
     source: str = ""  # the TOML text as loaded (overrides are not written back into it)
     path: str | None = None
+    replay: Any = None  # a replay's recorded data (scenario.replay.Replay); None: simulated
 
     @cached_property
     def schedule(self) -> Schedule:

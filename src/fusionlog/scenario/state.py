@@ -51,6 +51,11 @@ from .model import (
 from .toml import Ctx
 
 __all__ = [
+    "architectures_section",
+    "correlations_section",
+    "evaluate_section",
+    "prior_section",
+    "sensor_matrices",
     "MODEL_KINDS",
     "model_from_doc",
     "state_from_doc",
@@ -154,8 +159,8 @@ def state_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None
 
     system = _system(ctx, doc, sc, need_truth=True)
     check_schedule(ctx, system, h.steps, "scenario.steps")
-    architectures = _architectures(ctx, doc, system)
-    confidence, sample_runs, plane_view = _evaluate(ctx, doc)
+    architectures = architectures_section(ctx, doc, system)
+    confidence, sample_runs, plane_view = evaluate_section(ctx, doc)
     if plane_view and system.n != 2:
         raise ctx.err("evaluate.plane_view", f"needs a 2-D state, this one has {system.n}")
     return Scenario.of(
@@ -183,8 +188,8 @@ def model_from_doc(doc: dict[str, Any], file: str) -> System:
     # A full scenario file is a valid model file: check what it says, use only the system.
     header(ctx, sc, model=True)
     system = _system(ctx, doc, sc, need_truth=False)
-    _architectures(ctx, doc, system)
-    _evaluate(ctx, doc)
+    architectures_section(ctx, doc, system)
+    evaluate_section(ctx, doc)
     return system
 
 
@@ -201,22 +206,7 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
     F, Q, G, state_names, dt, continuous = model_section(ctx, doc, state_names, dt)
     n = F.shape[0]
 
-    prior = None
-    pr = toml.table(ctx, doc, "prior", required=False)
-    if pr is not None:
-        toml.check_keys(ctx, pr, "prior", _PRIOR_KEYS, required=_PRIOR_KEYS)
-        prior = Prior(
-            toml.vector(ctx, pr["mean"], "prior.mean", n),
-            # Positive definite: a filter's covariance must be invertible (information form,
-            # Millman's formula); a perfectly known component belongs in [truth], not here.
-            toml.covariance(ctx, pr["cov"], "prior.cov", n, strict=True),
-        )
-    elif abs(np.linalg.det(F)) <= 1e-12 * max(1.0, float(np.abs(F).max()) ** n):
-        raise ctx.err(
-            "model.F",
-            "must be invertible when there is no [prior]: the filters start in information "
-            "form and predict through F^-1",
-        )
+    prior = prior_section(ctx, doc, F)
 
     initial = None
     tr = toml.table(ctx, doc, "truth", required=False)
@@ -247,7 +237,7 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
         )
 
     sensors = _sensors(ctx, doc, n)
-    cross_R = _correlations(ctx, doc, sensors)
+    cross_R = correlations_section(ctx, doc, sensors)
 
     return System(
         F=F,
@@ -263,26 +253,57 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
     )
 
 
+def prior_section(ctx: Ctx, doc: dict[str, Any], F: np.ndarray) -> Prior | None:
+    """[prior] mean, cov; None ("no prior information": F must then be invertible)."""
+    n = F.shape[0]
+    pr = toml.table(ctx, doc, "prior", required=False)
+    if pr is not None:
+        toml.check_keys(ctx, pr, "prior", _PRIOR_KEYS, required=_PRIOR_KEYS)
+        return Prior(
+            toml.vector(ctx, pr["mean"], "prior.mean", n),
+            # Positive definite: a filter's covariance must be invertible (information form,
+            # Millman's formula); a perfectly known component belongs in [truth], not here.
+            toml.covariance(ctx, pr["cov"], "prior.cov", n, strict=True),
+        )
+    if abs(np.linalg.det(F)) <= 1e-12 * max(1.0, float(np.abs(F).max()) ** n):
+        raise ctx.err(
+            "model.F",
+            "must be invertible when there is no [prior]: the filters start in information "
+            "form and predict through F^-1",
+        )
+    return None
+
+
+def sensor_matrices(
+    ctx: Ctx, t: dict[str, Any], where: str, n: int
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """A sensor table's H (m x n; a flat list for one row) and R (m x m, a scalar for one
+    row; None when the table has no R)."""
+    H = toml.matrix(ctx, t["H"], f"{where}.H", scalar=n == 1, row=True)
+    if H.shape[1] != n:
+        raise ctx.err(f"{where}.H", f"shape {toml.shape(H)}, expected {H.shape[0]}x{n} (m x n)")
+    m = H.shape[0]
+    if "R" not in t:
+        return toml.readonly(H), None
+    R = toml.matrix(ctx, t["R"], f"{where}.R", scalar=m == 1)
+    if R.shape != (m, m):
+        raise ctx.err(
+            f"{where}.R",
+            f"shape {toml.shape(R)}, expected {m}x{m} (H has {m} row{'s' * (m > 1)})",
+        )
+    return toml.readonly(H), toml.covariance_checks(ctx, R, f"{where}.R", strict=True)
+
+
 def _sensors(ctx: Ctx, doc: dict[str, Any], n: int) -> tuple[Sensor, ...]:
     sensors: list[Sensor] = []
     tables = toml.named_tables(ctx, doc, "sensors", _SENSOR_KEYS, " (name, H, R)", TIMING_KEYS)
     for where, t, name in tables:
-        H = toml.matrix(ctx, t["H"], f"{where}.H", scalar=n == 1, row=True)
-        if H.shape[1] != n:
-            raise ctx.err(f"{where}.H", f"shape {toml.shape(H)}, expected {H.shape[0]}x{n} (m x n)")
-        m = H.shape[0]
-        R = toml.matrix(ctx, t["R"], f"{where}.R", scalar=m == 1)
-        if R.shape != (m, m):
-            raise ctx.err(
-                f"{where}.R",
-                f"shape {toml.shape(R)}, expected {m}x{m} (H has {m} row{'s' * (m > 1)})",
-            )
-        R = toml.covariance_checks(ctx, R, f"{where}.R", strict=True)
-        sensors.append(Sensor(name, toml.readonly(H), R, sensor_timing(ctx, t, where)))
+        H, R = sensor_matrices(ctx, t, where, n)
+        sensors.append(Sensor(name, H, R, sensor_timing(ctx, t, where)))
     return tuple(sensors)
 
 
-def _correlations(
+def correlations_section(
     ctx: Ctx, doc: dict[str, Any], sensors: tuple[Sensor, ...]
 ) -> dict[tuple[int, int], np.ndarray]:
     items = doc.get("correlations", [])
@@ -364,12 +385,12 @@ def _correlations(
     return cross
 
 
-def _architectures(ctx: Ctx, doc: dict[str, Any], system: System) -> tuple[str, ...]:
+def architectures_section(ctx: Ctx, doc: dict[str, Any], system: System) -> tuple[str, ...]:
     names = tuple(s.name for s in system.sensors)
     return toml.architectures(ctx, doc, STATE_ARCHITECTURES, lambda a: parse_arch(a, names))
 
 
-def _evaluate(ctx: Ctx, doc: dict[str, Any]) -> tuple[float, int, bool]:
+def evaluate_section(ctx: Ctx, doc: dict[str, Any]) -> tuple[float, int, bool]:
     ev = toml.table(ctx, doc, "evaluate", required=False) or {}
     toml.check_keys(ctx, ev, "evaluate", _EVALUATE_KEYS)
     confidence = DEFAULT_CONFIDENCE

@@ -87,7 +87,12 @@ class McapWriter:
     """
 
     def __init__(
-        self, file: Any, *, compression: str = "none", chunk_size: int = 1024 * 1024
+        self,
+        file: Any,
+        *,
+        compression: str = "none",
+        chunk_size: int = 1024 * 1024,
+        time_origin_ns: int = 0,
     ) -> None:
         if isinstance(file, (str, bytes, os.PathLike)):
             raise TypeError(
@@ -114,6 +119,11 @@ class McapWriter:
         self._htime: float = math.nan
         self._head = b""
         self._t_ns = 0
+        # log_time = time_origin_ns + time in ns: an imported log keeps its recorded timestamps
+        # while its `time` fields count seconds from its first instant.
+        self._origin = operator.index(time_origin_ns)
+        if not 0 <= self._origin < 2**63:
+            raise ValueError(f"time_origin_ns must fit in 63 bits, got {self._origin}")
         # A context of its own per file: channels and sinks do not leak between files.
         self._ctx = foxglove.Context()
         options = MCAPWriteOptions(
@@ -301,7 +311,7 @@ class McapWriter:
         if self._block_offset == 0:  # the layout record's times: the first block's
             self._first_times.setdefault(step, time)
         self._hstep, self._htime = step, time
-        self._head, self._t_ns = encode_step_time(step, time), round(time * 1e9)
+        self._head, self._t_ns = encode_step_time(step, time), self._origin + round(time * 1e9)
 
     def _write(
         self,
