@@ -64,6 +64,9 @@ class System:
     continuous: tuple[np.ndarray, np.ndarray] | None = None
     Fs: np.ndarray | None = None  # (K, n, n)
     Qs: np.ndarray | None = None  # (K, n, n)
+    #: The stacked measurement noise covariance of eq. (31) at each instant (K+1, m, m), where
+    #: it varies (a recorded log whose messages carry their own covariance); None: R always.
+    Rs: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if not self.state_names:
@@ -96,6 +99,10 @@ class System:
     def schedule(self, steps: int) -> Schedule:
         """The instants of a horizon of `steps` dt and when each sensor measures."""
         return schedule(self.dt, steps, tuple(s.timing for s in self.sensors))
+
+    def R_at(self, k: int) -> np.ndarray:
+        """The stacked measurement noise covariance (eq. 31) at instant k."""
+        return self.R if self.Rs is None else self.Rs[k]
 
     def on_times(self, times: np.ndarray) -> System:
         """The system on the instants `times` (K+1,): itself when they are k dt, else with the
@@ -157,6 +164,8 @@ class System:
     def subset(self, indices: list[int]) -> System:
         """The same system seen by a subset of the sensors (e.g. one sensor for SKF)."""
         pos = {j: p for p, j in enumerate(indices)}
+        sl = self.sensor_slices
+        rows = np.concatenate([np.arange(self.m)[sl[j]] for j in indices]).astype(int)
         cross = {
             (pos[i], pos[j]): Rij for (i, j), Rij in self.cross_R.items() if i in pos and j in pos
         }
@@ -173,6 +182,7 @@ class System:
             continuous=self.continuous,
             Fs=self.Fs,
             Qs=self.Qs,
+            Rs=None if self.Rs is None else self.Rs[:, rows][:, :, rows],
         )
 
     def sensor_index(self, name: str) -> int:
