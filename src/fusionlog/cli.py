@@ -151,13 +151,13 @@ _arch = click.option(
 _workers = click.option(
     "--workers",
     type=click.IntRange(min=0),
-    help="Run the blocks of runs on a Dask LocalCluster of N worker processes "
-    "(0: in this process; default for sweep: one per CPU).",
+    help="Compute the runs, in blocks, on a Dask LocalCluster of N worker processes "
+    "(0: in this process, without Dask).",
 )
 _scheduler = click.option(
     "--scheduler",
     metavar="ADDRESS",
-    help="Run the blocks of runs on the running Dask cluster at ADDRESS (tcp://host:port).",
+    help="Compute the runs, in blocks, on the running Dask cluster at ADDRESS (tcp://host:port).",
 )
 
 
@@ -346,7 +346,10 @@ def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, 
 @_block
 def sweep(scenario, vary, runs, out_dir, archs, workers, scheduler, exact_only, force, block_runs):
     """Evaluate SCENARIO.toml over a grid of parameter values, on Dask: writes sweep.parquet,
-    sweep.rrd and summary.json (no MCAP logs: workers return metric sums)."""
+    sweep.rrd and summary.json (no MCAP logs: workers return metric sums).
+
+    Without --workers or --scheduler the runs go to a LocalCluster of one worker process per
+    CPU (--exact-only: this process)."""
     from fusionlog.report import format_table
     from fusionlog.stages.sweep import run_sweep
 
@@ -368,9 +371,11 @@ def sweep(scenario, vary, runs, out_dir, archs, workers, scheduler, exact_only, 
     what = "exact analysis only" if s["exact_only"] else f"M = {s['runs']} runs per point"
     click.echo(f"{s['scenario']} sweep: {len(s['points'])} grid points, {what}")
     click.echo(format_table(s))
+    t = res.timings
     click.echo(
-        f"{res.executor}: {res.seconds:.2f} s -> {res.out_dir} "
-        "(sweep.parquet, sweep.rrd, summary.json)"
+        f"{res.executor}: {res.seconds:.2f} s (start {t['start']:.2f} s, {res.tasks} tasks "
+        f"{t['tasks']:.2f} s, outputs {t['outputs']:.2f} s, stop {t['stop']:.2f} s) "
+        f"-> {res.out_dir} (sweep.parquet, sweep.rrd, summary.json)"
     )
 
 

@@ -2,8 +2,8 @@
 
 The runs are split into blocks (:func:`.montecarlo.blocks`) that workers simulate, estimate and
 reduce to metric sums; no sensor or estimate log is written (it would carry every estimate back
-to this process, and 10^7 runs of the paper's example are 3.4 GB each), so a distributed run
-writes ``evaluation.rrd`` and ``summary.json`` only, committed together.
+to this process: 10^7 runs of the paper's example are 3.4 GB of means per architecture), so a
+distributed run writes ``evaluation.rrd`` and ``summary.json`` only, committed together.
 
 Both come from the state kind's own Evaluator, as in ``fusionlog run``: the first few runs (the
 sample runs and the state-plane points of the recording) are computed here and added to it as

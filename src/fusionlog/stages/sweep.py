@@ -22,9 +22,11 @@ import contextlib
 import time
 import uuid
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from fusionlog import __version__
 from fusionlog.io.atomic import Outputs
@@ -57,6 +59,10 @@ class SweepResult:
     rows: list[dict[str, Any]]
     executor: str  # what ran the tasks
     seconds: float
+    #: wall seconds of the phases: "start" (the cluster), "tasks", "outputs", "stop"; and
+    #: "busy", the seconds the workers spent in block tasks (for the per-task overhead)
+    timings: dict[str, float] = field(default_factory=dict)
+    tasks: int = 0
 
 
 def _archs(points: Sequence[GridPoint], archs: Sequence[str]) -> list[tuple[str, ...]]:
@@ -104,10 +110,12 @@ def run_sweep(
     if warn_stale is not None:
         warn_stale(targets)
     ex = executor(workers, scheduler, local_default=exact_only)
-    t0 = time.perf_counter()
+    t = [time.perf_counter()]
+    busy = 0.0
     # The outputs are checked before the cluster starts: a sweep that cannot write its results
     # is refused at once, not after its runs.
     with Outputs(targets, force=force, inputs=[Path(scenario_path)]) as outs, ex:
+        t.append(time.perf_counter())
         token = uuid.uuid4().hex
         jobs = [
             Job(p.scenario, a, f"{token}:{p.index}")
@@ -128,13 +136,20 @@ def run_sweep(
             for i, result in zip(owner, results, strict=True):
                 if isinstance(result, BlockSums):
                     fold(sums[i], result)
+                    busy += result.seconds
                 else:
                     expected[i] = result
+        t.append(time.perf_counter())
         summary = _summary(varies, points, jobs, expected, sums, exact_only)
         rows = sweep_table(summary)
         _write(outs, targets, summary, rows, varies, ex.description)
         outs.commit()
-    return SweepResult(d, summary, rows, ex.description, time.perf_counter() - t0)
+        t.append(time.perf_counter())
+    t.append(time.perf_counter())
+    phases = dict(zip(("start", "tasks", "outputs", "stop"), np.diff(t).tolist(), strict=True))
+    return SweepResult(
+        d, summary, rows, ex.description, t[-1] - t[0], phases | {"busy": busy}, len(tasks)
+    )
 
 
 def _point_summary(

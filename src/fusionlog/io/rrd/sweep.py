@@ -1,11 +1,14 @@
 """The recording of a parameter sweep (``sweep.rrd``): every metric against the swept parameter.
 
-The x axis is the first varied key: a timeline named by the key (``scenario.dt``), a duration
-whose seconds are the key's values (a time-series view plots against a timeline, and a
-duration is the timeline kind that holds any real number, here to the nanosecond), and a
-sequence timeline ``grid index`` (the position along the first key: on a log-spaced range it
-is a logarithmic axis; keys whose values are not numbers have only this one). Each other
-varied key's values make lines of their own: one line per (architecture, other values).
+The x axis is the first varied key, on two timelines: one named by the key (``scenario.dt``), a
+duration whose seconds are the key's values (a time-series view plots against a timeline, and a
+duration is the timeline kind that holds any real number, here to the nanosecond), and the
+sequence ``grid index``, the position along the first key. The views open on the key's values,
+except for a log-spaced range (``start:stop:num:log``), whose points would crowd the left of a
+linear axis: on the grid index they are evenly spaced, i.e. on a logarithmic axis, and the first
+view's title says how an index reads as a value. Keys whose values are not numbers have only the
+grid index. Each other varied key's values make lines of their own: one line per (architecture,
+other values).
 
 =============================================  ============================================
 ``sweep/<metric>/<line>/exact``                 the exact expected value (covariance
@@ -32,6 +35,8 @@ from typing import IO, Any
 
 import numpy as np
 import rerun.blueprint as rrb
+
+from fusionlog.jsonout import dumps
 
 from .legend import legend_box, place_legend
 from .stream import entity_path, recording_id_for, recording_stream
@@ -134,8 +139,12 @@ def write_sweep_recording(
     lines = _lines(summary)
     n = len(summary["state_names"])
     confidence = float(summary["confidence"])
-    blueprint = _blueprint(key, lines, x, bool(summary.get("exact_only")))
+    log = bool(grid[0].get("log"))
+    blueprint = _blueprint(key, values, lines, x, log, bool(summary.get("exact_only")))
     name = f"{summary['scenario']}_sweep"
+    # deterministic, and not the same for two different grids of one scenario (the viewer
+    # merges recordings that share an id)
+    grid_id = dumps([(g["key"], g["values"]) for g in grid])
     with recording_stream(
         file,
         blueprint,
@@ -144,7 +153,7 @@ def write_sweep_recording(
         index.astype(float),
         summary,
         properties,
-        recording_id_for(name, int(summary["seed"])),
+        recording_id_for(f"{name}:{grid_id}", int(summary["seed"])),
         axes,
     ) as w:
         for line_name, line in lines.items():
@@ -179,22 +188,41 @@ def _on_axis(y: np.ndarray, x: np.ndarray | None) -> np.ndarray:
     return np.interp(np.linspace(xs[0], xs[-1], 400), xs[ok], ys[ok])
 
 
+def _axis_note(key: str, values: list[Any]) -> str:
+    """How the grid index reads as the key's value on a log-spaced range."""
+    a, b, n = values[0], values[-1], len(values) - 1
+    return f"{key} = {a:.4g} x {b / a:.4g}^(i/{n}) at grid index i"
+
+
 def _blueprint(
-    key: str, lines: Mapping[str, Mapping[str, Any]], x: np.ndarray | None, exact_only: bool
+    key: str,
+    values: list[Any],
+    lines: Mapping[str, Mapping[str, Any]],
+    x: np.ndarray | None,
+    log: bool,
+    exact_only: bool,
 ) -> rrb.Blueprint:
-    """One view per metric in a 2 x 2 grid, the legend once, on the view and in the corner
-    where it hides the fewest points; the time panel on the key's own timeline (values), or
-    on the grid index when the values are not numbers a duration holds."""
+    """One view per metric in a 2 x 2 grid (no Monte Carlo, no band share), the legend once,
+    on the view and in the corner where it hides the fewest points.
+
+    The time panel opens on the key's own timeline (its values), except for a log-spaced range,
+    whose points crowd the left of a linear axis: there the grid index is the log axis, and the
+    first view's title says how an index reads as a value (the value timeline stays a click
+    away in the time panel)."""
+    metrics = [m for m in _METRICS if m[2] or not exact_only]
+    on_index = x is None or (log and len(values) > 2)
     how = "lines: exact" if exact_only else "lines: exact, dots: Monte Carlo"
+    if on_index and x is not None:
+        how += "; " + _axis_note(key, values)
     names = list(lines)
     curves = [
         [
-            _on_axis(np.asarray(line[k]), x)
+            _on_axis(np.asarray(line[k]), None if on_index else x)
             for line in lines.values()
             for k in (m, f"expected_{m}")
             if k in line
         ]
-        for m, _, _ in _METRICS
+        for m, _, _ in metrics
     ]
     box = legend_box(len(names), max(map(len, names), default=0), 2, 2)
     at = place_legend(curves, box)
@@ -205,7 +233,7 @@ def _blueprint(
             legend=i == at[0],
             corner=at[1],
         )
-        for i, (m, title, _) in enumerate(_METRICS)
+        for i, (m, title, _) in enumerate(metrics)
     ]
     sweep = rrb.Grid(*views, grid_columns=2, name=f"Sweep of {key}")
-    return tabbed_blueprint([sweep], key if x is not None else INDEX_TIMELINE)
+    return tabbed_blueprint([sweep], INDEX_TIMELINE if on_index else key)
