@@ -66,6 +66,10 @@ class Executor:
     def map(self, tasks: Sequence[Task], desc: str) -> Iterator[Any]:
         raise NotImplementedError
 
+    def release(self) -> None:
+        """No more tasks: start letting the workers go while the caller writes its outputs
+        (``__exit__`` waits for it)."""
+
 
 class LocalExecutor(Executor):
     """Every task in this process, one after the other (--workers 0; --exact-only by default)."""
@@ -84,6 +88,7 @@ class DaskExecutor(Executor):
         self._address = scheduler
         self._cluster: Any = None
         self._client: Any = None
+        self._closing: threading.Thread | None = None
 
     def __enter__(self) -> DaskExecutor:
         try:
@@ -146,7 +151,21 @@ class DaskExecutor(Executor):
             )
         return threads
 
+    def release(self) -> None:
+        # Closing a LocalCluster waits a second or so for its processes to exit: that wait
+        # runs beside the caller's writing of its outputs instead of after it.
+        if self._closing is None and (self._client is not None or self._cluster is not None):
+            self._closing = threading.Thread(target=self._close, name="fusionlog: close Dask")
+            self._closing.start()
+
     def __exit__(self, *exc: object) -> None:
+        if self._closing is None:
+            self._close()
+        else:
+            self._closing.join()
+            self._closing = None
+
+    def _close(self) -> None:
         client, cluster = self._client, self._cluster
         self._client = self._cluster = None
         try:

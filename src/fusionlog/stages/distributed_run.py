@@ -123,6 +123,7 @@ def run_distributed(
                 fold(totals, s)
                 if len(patterns) < 2:
                     patterns.add(s.pattern)
+        ex.release()  # the cluster closes while the summary and the recording are made
         prov = provenance(
             command,
             sc.seed,

@@ -19,6 +19,7 @@ No sensor or estimate log is written: workers send back metric sums, never estim
 from __future__ import annotations
 
 import contextlib
+import threading
 import time
 import uuid
 from collections.abc import Callable, Sequence
@@ -132,6 +133,8 @@ def run_sweep(
                     owner.append(i)
         expected: list[dict[str, Any]] = [{} for _ in points]
         sums: list[dict[str, Any]] = [{} for _ in points]
+        # the writers' imports (rerun, pyarrow: a second or more) while the workers compute
+        threading.Thread(target=_import_writers, daemon=True).start()
         with contextlib.closing(ex.map(tasks, "sweep")) as results:
             for i, result in zip(owner, results, strict=True):
                 if isinstance(result, BlockSums):
@@ -139,6 +142,7 @@ def run_sweep(
                     busy += result.seconds
                 else:
                     expected[i] = result
+        ex.release()
         t.append(time.perf_counter())
         summary = _summary(varies, points, jobs, expected, sums, exact_only)
         rows = sweep_table(summary)
@@ -150,6 +154,14 @@ def run_sweep(
     return SweepResult(
         d, summary, rows, ex.description, t[-1] - t[0], phases | {"busy": busy}, len(tasks)
     )
+
+
+def _import_writers() -> None:
+    """Import what writing the outputs needs (Python's import lock makes the writer wait for
+    an import under way here rather than repeat it)."""
+    import pyarrow.parquet  # noqa: F401
+
+    import fusionlog.io.rrd.sweep  # noqa: F401
 
 
 def _point_summary(
