@@ -20,9 +20,8 @@ entity-path parts, see :func:`~fusionlog.io.rrd.stream.entity_path`: ``SKF:s2`` 
 ``runs/<m>/<state>/<ARCH>/mean``                estimate of sample run m
 ``runs/<m>/<state>/<ARCH>/upper``, ``/lower``   mean +- 2 sigma, sigma = sqrt(P_ii)
 ``plane/...``                                   the state plane (:mod:`.plane`)
-``sensors/<sensor>/measured``                   share of the runs whose measurement arrived,
-                                                at each instant the sensor measures (1 without
-                                                dropouts; dots, so its rate shows)
+``metrics/nis/...``, ``sensors/...``           truth-free consistency and sensor availability
+                                                (:mod:`.consistency`)
 =============================================  ============================================
 
 When the instants are not whole seconds apart (multi-rate sensors, irregular instants) the
@@ -42,10 +41,11 @@ from typing import IO, Any
 import numpy as np
 import rerun.blueprint as rrb
 
+from .consistency import NisSeries, check_consistency, consistency_views, write_consistency
 from .legend import legend_box, place_legend
 from .plane import check_plane, write_plane
 from .stream import SeriesWriter, check_axes, entity_path, recording_error, recording_stream
-from .style import BOUND_COLOR, CKF, TRUTH_COLOR, arch_color, arch_width, class_color
+from .style import BOUND_COLOR, CKF, TRUTH_COLOR, arch_color, arch_width
 from .views import query, tabbed_blueprint, time_series_view
 
 __all__ = ["write_recording"]
@@ -81,6 +81,7 @@ def write_recording(
     recording_id: str | None = None,
     plane: Mapping[str, Any] | None = None,
     availability: Mapping[str, np.ndarray] | None = None,
+    nis: NisSeries | None = None,
 ) -> None:
     """Write the evaluation recording into the binary file object `file`.
 
@@ -97,6 +98,8 @@ def write_recording(
     plane: for a 2-D state, the state-plane view (see :func:`.plane.write_plane`).
     availability: {sensor: (K+1,) share of runs measured, NaN where the sensor does not
     measure}, drawn in a "Sensors" tab.
+    nis: {ARCH: {part: (run-averaged NIS, band lower, band upper)}} (`.consistency`).
+    Without truth (a replay of a recorded log), `series` may be empty.
 
     Raises FusionlogError if the data are inconsistent (before anything is written) and
     OutputError if writing `file` fails.
@@ -108,20 +111,17 @@ def write_recording(
     if plane is not None:
         check_plane(file, times.shape[0], plane)
     avail = {k: np.asarray(v, dtype=float) for k, v in (availability or {}).items()}
-    for name, v in avail.items():
-        if v.shape != times.shape:
-            raise recording_error(
-                file, f"availability of {name}: shape {v.shape}, want {times.shape}"
-            )
+    nis = nis or {}
+    check_consistency(file, times.shape[0], nis, avail)
     # Instants k dt with dt = 1 read the same on both timelines; otherwise time is the axis.
     timeline = "step" if np.array_equal(times, np.arange(len(times))) else "time"
-    blueprint = _blueprint(state_names, series, samples, plane is not None, avail, timeline)
+    extra = consistency_views(nis, avail)
+    blueprint = _blueprint(state_names, series, samples, plane is not None, extra, timeline)
     args = (scenario_name, seed, times, summary, properties, recording_id)
     with recording_stream(file, blueprint, *args) as w:
         _write_metrics(w, state_names, series, nees_bounds, confidence)
         _write_sample_runs(w, state_names, samples)
-        for i, (name, v) in enumerate(avail.items()):
-            w.points(entity_path("sensors", name, "measured"), v, name, class_color(i))
+        write_consistency(w, nis, avail)
         if plane is not None:
             write_plane(w, plane)
 
@@ -216,7 +216,7 @@ def _blueprint(
     series: Mapping[str, Mapping[str, np.ndarray]],
     sample_runs: SampleRuns,
     plane: bool = False,
-    availability: Mapping[str, np.ndarray] | None = None,
+    extra_tabs: list | None = None,
     timeline: str = "step",
 ) -> rrb.Blueprint:
     """Tabs: [state plane], Overview (Figs. 4, 5, 6, NEES, DM), [sample runs].
@@ -282,7 +282,10 @@ def _blueprint(
     if with_fig5:
         columns.append(rrb.Vertical(*fig5, name="Fig. 5"))
     columns.append(rrb.Vertical(fig6, nees, dm, name="Fig. 6 and consistency"))
-    tabs: list[rrb.Container | rrb.View] = [rrb.Horizontal(*columns, name="Overview")]
+    # Without truth (a recorded log) there are no Monte Carlo metrics: no Overview.
+    tabs: list[rrb.Container | rrb.View] = (
+        [rrb.Horizontal(*columns, name="Overview")] if series else []
+    )
     run_ids = sorted(sample_runs)
     if run_ids:
         cells = [(m, i) for m in run_ids for i in range(n)]
@@ -306,13 +309,7 @@ def _blueprint(
             for k, (m, i) in enumerate(cells)
         ]
         tabs.append(rrb.Grid(*run_views, grid_columns=n, name="Sample runs"))
-    if availability:
-        tabs.append(
-            time_series_view(
-                "Sensors: share of runs measured at each of its instants (1 = none lost)",
-                [query("sensors") + "/**"],
-            )
-        )
+    tabs += extra_tabs or []
     if plane:
         tabs.insert(
             0,
