@@ -425,6 +425,13 @@ def buffer(
     return mem.transpose((*range(nb - 1, nb - 1 + nl), nb - 1 + nl, *range(nb - 2, -1, -1)))
 
 
+def take_runs(A: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """A[idx] along the first (runs) axis; a large result in the lanes layout."""
+    if not many_matrices((len(idx),)):
+        return A[idx]
+    return np.moveaxis(np.take(np.moveaxis(A, 0, -1), idx, axis=-1), -1, 0)
+
+
 def stack_matrices(arrays: list[np.ndarray]) -> np.ndarray:
     """np.stack(arrays) of matrices batch + (p, q); a large batch in the lanes memory order
     with the new (step) axis outermost."""
@@ -562,6 +569,8 @@ def _unit_entries(A: np.ndarray) -> bool:
 def mv(A: np.ndarray, v: np.ndarray) -> np.ndarray:
     """A v on lanes: A (d, e) + batch (or a shared (d, e) matrix), v (e,) + batch; the result
     (d,) + batch. The executor's per-run step."""
+    if A.ndim == 2 and _is_identity(A):
+        return v
     if A.ndim == 2 and _unit_entries(A):
         out = buffer((A.shape[0],), v.shape[1:])
         for i, row in enumerate(A.tolist()):

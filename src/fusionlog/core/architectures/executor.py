@@ -21,7 +21,7 @@ import numpy as np
 
 from ...errors import NumericalError
 from ..linalg import apply, bc, lanes, mT, mv
-from .plan import BlockDiagonal, DenseMap, Estimate, Plan, SmootherMaps
+from .plan import BlockDiagonal, DenseMap, Estimate, Plan, SmootherMaps, take_map
 
 #: Horizons up to this many instants apply a shared plan as one dense linear map.
 DENSE_MAX_STEPS = 128
@@ -144,30 +144,41 @@ def _recursion(
 
 def _recursion_per_run(plan: Plan, z: np.ndarray) -> np.ndarray:
     """`_recursion` for a per-run plan (NaN in z counts as 0), on lanes: the state is (d, M),
-    the measurements (K+1, m, M)."""
-    M, K1, _ = z.shape
-    zl = np.ascontiguousarray(z.transpose(1, 2, 0))  # (K+1, m, M)
-    np.copyto(zl, 0.0, where=np.isnan(zl))
+    a step's measurements (m, M). Nothing of the size of z or of the means is allocated
+    besides the means themselves: in this kind of VM the page faults of fresh multi-megabyte
+    arrays cost more than the arithmetic in them."""
+    M, K1, m = z.shape
     s = np.empty((plan.s0.shape[0], M))
     s[...] = plan.s0[:, None]
     n = plan.steps[0].O.shape[-2]
-    out = np.empty((K1, n, M))
+    out = np.empty((M, K1, n))
     states = []
+    zk = np.empty((K1 if plan.smoother is not None else 1, m, M))
+
+    def measured(k: int) -> np.ndarray:
+        """z_k as lanes (m, M), NaN as 0 (kept for the smoother's backward pass)."""
+        zz = zk[k if len(zk) > 1 else 0]
+        zz[...] = z[:, k].T
+        np.copyto(zz, 0.0, where=np.isnan(zz))
+        return zz
+
     for k in range(K1):
         st = plan.steps[k]
-        s = _transition(st.T, s) + mv(_lanes(st.U), zl[k])
+        idx = None if plan.nodes is None else plan.nodes[k]  # maps per history node
+        T, U = take_map(st.T, idx), take_map(st.U, idx)
+        s = _transition(T, s) + mv(_lanes(U), measured(k))
         if plan.smoother is not None:
             states.append(s)
         else:
-            out[k] = mv(_lanes(st.O), s)
+            out[:, k] = mv(_lanes(take_map(st.O, idx)), s).T
     sm = plan.smoother
     if sm is not None:
         yb = np.zeros((n, M))
         for k in range(K1 - 1, -1, -1):
             if k < K1 - 1:
-                yb = mv(_lanes(sm.L[k]), yb + mv(_lanes(sm.V[k + 1]), zl[k + 1]))
-            out[k] = mv(_lanes(sm.A[k]), states[k]) + mv(_lanes(sm.B[k]), yb)
-    return np.ascontiguousarray(out.transpose(2, 0, 1))
+                yb = mv(_lanes(sm.L[k]), yb + mv(_lanes(sm.V[k + 1]), zk[k + 1]))
+            out[:, k] = (mv(_lanes(sm.A[k]), states[k]) + mv(_lanes(sm.B[k]), yb)).T
+    return out
 
 
 def _transition(T: np.ndarray | BlockDiagonal, s: np.ndarray) -> np.ndarray:

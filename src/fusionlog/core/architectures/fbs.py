@@ -7,7 +7,7 @@ import numpy as np
 
 from ..linalg import bc, inv_or_nan, mm, mT, require_finite, solve, sym
 from .filters import Rows, Steady
-from .plan import BuildRequest, Plan, SmootherMaps
+from .plan import BuildRequest, Plan, SmootherMaps, take_map
 from .single import filter_plan
 
 
@@ -19,14 +19,15 @@ def build_fbs(request: BuildRequest) -> Plan:
     y_k = F^T (I + S^+ GQG)^-1 y^+. Fusion with the forward filter's P: Millman's formula as
     the gain K_s = P S (I + P S)^-1 (26), P_s = (I - K_s) P (27), x_s = (I - K_s) x + P_s y_b (28).
     """
-    system, present, batch = request.system, request.present, request.batch
-    fwd, fwd_infos = filter_plan(request, system, np.arange(system.m))
+    system, present = request.system, request.present
+    runs = present.shape[:-2]  # the backward filter and the fusion are per run
+    fwd, fwd_infos = filter_plan(request, system, np.arange(system.m))  # maybe per node
     n = system.n
     eye = np.eye(n)
     K1 = request.horizon
     V: list[np.ndarray] = [np.zeros(0)] * K1
     L: list[np.ndarray] = [np.zeros(0)] * (K1 - 1)
-    Smat = [np.zeros(batch + (n, n)) for _ in range(K1)]
+    Smat: list[np.ndarray] = [np.zeros(0)] * (K1 - 1) + [np.zeros(runs + (n, n))]
     steady = Steady(present, system)
     everything = Rows.of(system, np.arange(system.m), system.R)
     Hn = None  # the masked H of instant k + 1
@@ -55,16 +56,18 @@ def build_fbs(request: BuildRequest) -> Plan:
     for k, st in enumerate(fwd.steps):
         request.step = k
         Sk = Smat[k]
-        Yf = fwd_infos[k]
+        idx = None if fwd.nodes is None else fwd.nodes[k]  # the forward filter's nodes
+        Yf = take_map(fwd_infos[k], idx)
         if k > 0 and st is fwd.steps[k - 1] and Sk is Smat[k - 1]:
             A.append(A[-1])
             B.append(B[-1])
             Ps.append(Ps[-1])
             continue
         if Yf is None:
-            PS = mm(st.P, Sk)
+            Pf = take_map(st.P, idx)
+            PS = mm(Pf, Sk)
             Ks = mT(solve(mT(eye + PS), mT(PS)))  # eq. (26)
-            Pk = sym(mm(eye - Ks, st.P))  # eq. (27)
+            Pk = sym(mm(eye - Ks, Pf))  # eq. (27)
             A.append(eye - Ks)  # eq. (28)
             B.append(Pk)
         else:

@@ -31,6 +31,7 @@ from ..linalg import (
     solve,
     spd_inv,
     sym,
+    take_runs,
     unlanes,
 )
 from ..model import System
@@ -210,8 +211,11 @@ class KalmanStack:
             self.Finv = np.linalg.inv(system.F)
         self.any_info = bool(self.info.any())
 
-    def step(self, present: np.ndarray, k: int) -> FilterStep:
-        """Step k of every filter, with the components `present` (batch + (m,)) of z_k."""
+    def step(self, present: np.ndarray, k: int, parent: np.ndarray | None = None) -> FilterStep:
+        """Step k of every filter, with the components `present` (batch + (m,)) of z_k; on
+        history nodes (`BuildRequest.parent`), each node continues its parent's filter."""
+        if parent is not None:
+            self.mat = take_runs(self.mat, parent)
         first = k == 0
         if not first and not self.system.time_invariant:
             self.F, self.GQG = self.system.F_at(k), self.system.GQG_at(k)

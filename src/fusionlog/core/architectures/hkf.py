@@ -15,6 +15,7 @@ from ..linalg import (
     spd_inv_scaled,
     sum_after,
     sym,
+    take_runs,
 )
 from ..model import System
 from .filters import KalmanStack, Rows, Steady, fill, wide_range
@@ -54,18 +55,21 @@ def build_hkf(request: BuildRequest) -> Plan:
     for k in range(K1):
         request.step = k
         first = k == 0
+        parent = request.parent(k)  # on history nodes: each node continues its parent's
         if front.any_info:
-            st = front.step(present[..., k, :], k)
+            st = front.step(request.mask(k), k, parent)
             steps.append(StepMap(st.T, st.U, st.O, st.P, st.D))
             P = front.mat
             continue
+        if parent is not None:
+            P = take_runs(front.mat if first else P, parent)
         if first:
-            Pp, Tp = front.mat, eye
+            Pp, Tp = front.mat if parent is None else P, eye
         else:
             F, GQG = system.F_at(k), system.GQG_at(k)
             Pp, Tp = sym(mm(mm(F, P), F.T) + GQG), F
         Yp = inv(Pp, what="the predicted covariance")
-        Hj, Rj = sensors.masked(present[..., k, :])  # batch + (S, r, .)
+        Hj, Rj = sensors.masked(request.mask(k))  # batch + (S, r, .)
         Ppj = Pp[..., None, :, :]  # every local starts from the fused prediction
         Kj = gain(Ppj, Hj, Rj)
         IKH = eye - mm(Kj, Hj)
@@ -82,4 +86,6 @@ def build_hkf(request: BuildRequest) -> Plan:
         if steady.reached(P):
             fill(steps, K1)
             break
-    return Plan(request.name, front.s0, steps, per_run=bool(batch), D0=front.D0)
+    plan = Plan(request.name, front.s0, steps, per_run=bool(batch), D0=front.D0)
+    plan.nodes = request.node_index
+    return plan

@@ -18,7 +18,7 @@ from ..model import System
 from .executor import run_plan
 from .fbs import build_fbs
 from .hkf import build_hkf
-from .plan import BuildRequest, Estimate, Plan
+from .plan import BuildRequest, Estimate, HistoryNodes, Plan
 from .single import build_ckf, build_skf
 from .track_to_track import build_avg, build_ci, build_msc, build_msc_gmf
 
@@ -32,6 +32,8 @@ class Architecture:
     build: Callable[[BuildRequest], Plan]
     summary: str
     takes_sensor: bool = False
+    #: Whether the builder can work on history nodes (`HistoryNodes`) per run.
+    on_nodes: bool = True
 
 
 #: In the order of the default `[estimate] architectures` list: the paper's Table I, then
@@ -46,7 +48,7 @@ REGISTRY: dict[str, Architecture] = {
         ),
         Architecture("MSC", build_msc, "local KFs, Millman's formula, eqs. (32)-(34)"),
         Architecture("SKF", build_skf, "KF on one sensor", takes_sensor=True),
-        Architecture("CI", build_ci, "local KFs, covariance intersection"),
+        Architecture("CI", build_ci, "local KFs, covariance intersection", on_nodes=False),
         Architecture("FBS", build_fbs, "fixed-interval smoother, eqs. (25)-(28)"),
         Architecture("AVG", build_avg, "local KFs, plain average with its true covariance"),
     )
@@ -87,6 +89,8 @@ def build_plan(
     steps: int,
     present: np.ndarray | None = None,
     criterion: str = "trace",
+    *,
+    history_nodes: bool = False,
 ) -> Plan:
     """Compile architecture `arch` for instants k = 0..steps.
 
@@ -94,17 +98,39 @@ def build_plan(
     (M, K+1, m) per run; None means every measurement is present. A model whose numbers
     overflow or leave a matrix singular beyond what the filters can work around raises
     NumericalError naming the architecture, the step and the matrix.
+
+    Per run, the maps are computed once per measurement history (`HistoryNodes`) and, unless
+    `history_nodes`, gathered into per-run maps (a leading run axis, what the exact analysis
+    cuts by runs); `run_plan` takes either (`estimate` keeps the nodes: less memory).
     """
     base, sensor = parse_arch(arch, [s.name for s in system.sensors])
     if present is None:
         present = np.ones((steps + 1, system.m), dtype=bool)
     request = BuildRequest(system, arch, present, sensor, criterion, step=None)
+    if present.ndim == 3 and REGISTRY[base].on_nodes:
+        request.nodes = group_by_history(present)
     with numerical_errors(lambda: _where(request)):
         check_model(system)
         plan = REGISTRY[base].build(request)
     plan.system = system
     plan.complete = bool(present.all())
-    return plan
+    return plan if history_nodes else plan.per_run_maps()
+
+
+#: Per run, the maps are built per measurement history (`HistoryNodes`) when there are at most
+#: this fraction as many histories as run-steps; beyond, gathering the runs' maps from the
+#: nodes would cost more than computing fewer of them saves.
+NODES_AT_MOST = 0.8
+
+
+def group_by_history(present: np.ndarray) -> HistoryNodes | None:
+    """The runs of the per-run mask `present` (M, K+1, m) grouped by history, or None when
+    that would not pay (`NODES_AT_MOST`; over 16 components the grouping itself is slow)."""
+    M, K1, m = present.shape
+    if m > 16:
+        return None
+    nodes = HistoryNodes.of(present)
+    return nodes if nodes.count <= NODES_AT_MOST * M * K1 else None
 
 
 def check_model(system: System) -> None:
@@ -158,5 +184,5 @@ def estimate(system: System, z: np.ndarray, arch: str, criterion: str = "trace")
     if pattern is not None:
         plan = build_plan(system, arch, K, None if pattern.all() else pattern, criterion)
     else:
-        plan = build_plan(system, arch, K, ~np.isnan(z), criterion)
+        plan = build_plan(system, arch, K, ~np.isnan(z), criterion, history_nodes=True)
     return run_plan(plan, z)

@@ -25,14 +25,16 @@ def filter_plan(
     K1 = request.horizon
     for k in range(K1):
         request.step = k
-        st = kf.step(present[..., k, :], k)
+        st = kf.step(request.mask(k), k, request.parent(k))
         steps.append(StepMap(st.T, st.U, st.O, st.P, st.D))
         infos.append(kf.mat if kf.any_info else None)
         if not kf.any_info and steady.reached(kf.mat):
             fill(steps, K1)
             fill(infos, K1)
             break
-    return Plan(request.name, kf.s0, steps, per_run=bool(batch), D0=kf.D0), infos
+    plan = Plan(request.name, kf.s0, steps, per_run=bool(batch), D0=kf.D0)
+    plan.nodes = request.node_index
+    return plan, infos
 
 
 def build_ckf(request: BuildRequest) -> Plan:

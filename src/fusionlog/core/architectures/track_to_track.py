@@ -30,7 +30,6 @@ from ..linalg import (
     inv_or_nan,
     lanes,
     lanes_copy,
-    many_matrices,
     mm,
     mT,
     require_finite,
@@ -41,6 +40,7 @@ from ..linalg import (
     stack_matrices,
     stack_rows,
     sym,
+    take_runs,
     unlanes,
 )
 from .filters import KalmanStack, Rows, Steady, fill
@@ -107,9 +107,8 @@ def local_filters(
         J = bc(np.zeros((S * n, S * n)), batch + (S * n, S * n))
     # Per run, J's products go block by block (`_diag_congruence`): Psi and Phi are
     # block-diagonal, and a dense (S n)^3 product per run would cost S^2 times more.
-    blocks = many_matrices(batch)
+    blocks = bool(batch)
     J = lanes_copy(J) if blocks else J.copy()
-    stack = batch + (S, n, n)
     # When every local is in covariance form they all predict with F and the full process
     # noise: Phi and Gam of eq. (35), and the noise term, are then the same at every step.
     Phi_cov = stack_diag(bc(system.F, (S, n, n)))
@@ -122,7 +121,11 @@ def local_filters(
     for k in range(K1):
         request.step = k
         first = k == 0
-        st = locs.step(present[..., k, :], k)
+        parent = request.parent(k)  # on history nodes: each node continues its parent's
+        st = locs.step(request.mask(k), k, parent)
+        stack = locs.mat.shape  # batch + (S, n, n)
+        if joint and parent is not None:
+            J = take_runs(J, parent)
         if joint:
             if not first and not system.time_invariant:
                 GQG = system.GQG_at(k)
@@ -137,7 +140,7 @@ def local_filters(
                 Phi = stack_diag(bc(st.Phi, stack))
                 Gam = stack_rows(bc(st.Gam, stack))
                 J = mm(mm(Phi, J), mT(Phi)) + mm(mm(Gam, GQG), mT(Gam))
-            _, Rk = everything.masked(present[..., k, :])
+            _, Rk = everything.masked(request.mask(k))
             if blocks:
                 J = sym(_diag_congruence(st.Psi, J) + _rows_congruence(st.Lam, Rk))
             else:
@@ -198,7 +201,9 @@ def _rows_congruence(L: np.ndarray, R: np.ndarray) -> np.ndarray:
 
 def _plan(request: BuildRequest, hist: LocalHistory, omega: np.ndarray | None = None) -> Plan:
     batch = request.batch
-    return Plan(request.name, hist.s0, hist.steps, per_run=bool(batch), D0=hist.D0, omega=omega)
+    plan = Plan(request.name, hist.s0, hist.steps, per_run=bool(batch), D0=hist.D0, omega=omega)
+    plan.nodes = request.node_index
+    return plan
 
 
 def build_msc(request: BuildRequest) -> Plan:
@@ -221,7 +226,7 @@ def _checked_joints(hist: LocalHistory) -> None:
 def build_msc_gmf(request: BuildRequest) -> Plan:
     """The generalised Millman formula with the exact cross-covariances, eqs. (6)-(7), (35)."""
     if request.batch:
-        step = GmfStep(request.system.n, request.present)
+        step = GmfStep(request.system.n, request.present if request.nodes is None else None)
         return _plan(request, local_filters(request, joint=True, readout=step))
     hist = local_filters(request, joint=True)
     _checked_joints(hist)
@@ -296,13 +301,14 @@ class GmfStep:
     (runs with the same history so far have the same J, to the last bit)."""
 
     n: int
-    present: np.ndarray  # (M, K+1, m)
+    present: np.ndarray | None  # (M, K+1, m) for runs not grouped by history, else None
     k: int = 0
 
     def __call__(
         self, step: StepMap, form: np.ndarray, mats: np.ndarray, J: np.ndarray, local_O
     ) -> None:
-        n, history = self.n, self.present[:, : self.k + 1]
+        n = self.n
+        history = None if self.present is None else self.present[:, : self.k + 1]
         self.k += 1
         if form.any():
             sign = signs(tuple(form.tolist()), n)
@@ -324,15 +330,21 @@ class GmfStep:
         ok &= np.isfinite(P).all(axis=(-2, -1))  # e.g. subnormal noise variances
         if not ok.all():
             bad = np.flatnonzero(~ok)
-            C[bad], P[bad] = _per_history(lambda Js: gmf_weight_matrix(Js, n), history[bad], J[bad])
+            runs = None if history is None else history[bad]
+            C[bad], P[bad] = _per_history(lambda Js: gmf_weight_matrix(Js, n), runs, J[bad])
         step.O, step.P = C, P
 
 
 def _per_history(
-    rule: Callable[..., tuple[np.ndarray, np.ndarray]], history: np.ndarray, *args: np.ndarray
+    rule: Callable[..., tuple[np.ndarray, np.ndarray]],
+    history: np.ndarray | None,
+    *args: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """rule(*args) for a batch of runs, computed once per distinct measurement history
-    (history: (runs, steps so far, m) presence masks) and handed to every run that has it."""
+    (history: (runs, steps so far, m) presence masks) and handed to every run that has it;
+    rule(*args) itself for history nodes (history None), distinct already."""
+    if history is None:
+        return rule(*args)
     keys = np.packbits(history.reshape(len(history), -1), axis=1)
     keys = np.ascontiguousarray(keys).view(np.dtype((np.void, keys.shape[1]))).ravel()
     _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
