@@ -581,7 +581,7 @@ def mv(A: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.einsum("ij...,j...->i...", A, v)
 
 
-def _cholesky(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _cholesky(A: np.ndarray, rtol: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Lower Cholesky factor of lanes A (n, n) + batch (entries i >= j set) and whether each
     matrix's pivots are all above PIVOT_RTOL times their diagonal entries (False for NaN)."""
     n = A.shape[0]
@@ -591,7 +591,7 @@ def _cholesky(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         d = A[j, j]
         for k in range(j):
             d = d - L[j, k] * L[j, k]
-        least = PIVOT_RTOL * A[j, j]
+        least = (PIVOT_RTOL if rtol is None else rtol) * A[j, j]
         np.maximum(least, _TINY, out=least)  # a subnormal pivot has lost its digits
         ok &= d > least
         Ljj = L[j, j]
@@ -718,13 +718,16 @@ def _solve_kernel(A: np.ndarray, B: np.ndarray, hermitian: bool, what: str) -> n
     return out
 
 
-def solve_spd_or_flag(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A^-1 B for a large batch of symmetric positive definite A (`kernels_for`) by the
-    Cholesky kernel, and whether each A could be factored safely: where not, the result is
-    not a solution and the caller computes that matrix its own way."""
+def solve_spd_or_flag(
+    A: np.ndarray, B: np.ndarray, rtol: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """A^-1 B for a batch of symmetric positive definite A by the Cholesky kernel, and
+    whether each A could be factored safely (every pivot above `rtol`, default PIVOT_RTOL,
+    times its diagonal entry): where not, the result is not a solution and the caller
+    computes that matrix its own way."""
     nb = len(_batch_shape(A.shape[:-2], B.shape[:-2]))
     with np.errstate(all="ignore"):
-        L, ok = _cholesky(lanes_of(A, nb))
+        L, ok = _cholesky(lanes_of(A, nb), rtol)
         X = _cholesky_solve(L, lanes_of(B, nb))
         ok = ok & _finite(X)  # (A may have fewer runs than B)
     return unlanes(X), ok

@@ -8,7 +8,8 @@ compiled into a *plan*: for every step k an affine map on the estimator's intern
 
 where z_k is the stacked measurement of eq. (30). Applying a plan to M runs is one matrix product
 per step (the shared-gain fast path). When runs differ in which measurements are present (NaN =
-missing), the same code builds the maps with a leading run dimension (the per-run path). And because
+missing), the same code builds the maps with a leading run dimension (the per-run path: the batch
+kernels of `core.linalg`, the runs grouped by measurement history, `HistoryNodes`). And because
 the maps are explicit, `core.exact` propagates the true error covariance through them exactly.
 
 The internal state s is the mean of each filter, or, while a filter started without a prior has not
@@ -20,7 +21,16 @@ SKF), `hkf`, `track_to_track` with `readouts` (MSC, MSC-GMF, CI, AVG), `fbs`.
 """
 
 from .executor import DENSE_MAX_STEPS, STEADY_BLOCK, run_plan
-from .plan import BuildRequest, DenseMap, Estimate, Plan, SmootherMaps, StepMap
+from .plan import (
+    BlockDiagonal,
+    BuildRequest,
+    DenseMap,
+    Estimate,
+    HistoryNodes,
+    Plan,
+    SmootherMaps,
+    StepMap,
+)
 from .registry import (
     REGISTRY,
     STATE_ARCHITECTURES,
@@ -37,9 +47,11 @@ __all__ = [
     "STATE_ARCHITECTURES",
     "STEADY_BLOCK",
     "Architecture",
+    "BlockDiagonal",
     "BuildRequest",
     "DenseMap",
     "Estimate",
+    "HistoryNodes",
     "Plan",
     "SmootherMaps",
     "StepMap",

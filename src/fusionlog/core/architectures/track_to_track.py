@@ -96,11 +96,11 @@ def local_filters(
     """Run the stack of local KFs over the horizon; with `joint`, carry eq. (35) along; with a
     `readout`, apply it at every step instead of keeping what it needs."""
     system, present, batch = request.system, request.present, request.batch
-    n, m = system.n, system.m
+    n = system.n
     S = len(system.sensors)
     GQG = system.GQG
     locs = KalmanStack(system, Rows.per_sensor(system), batch)
-    everything = Rows.of(system, np.arange(m), system.R)  # masked per step for eq. (35)
+    everything = Rows.all_of(system)  # masked per step for eq. (35)
     if system.prior is not None:
         J = bc(np.kron(np.ones((S, S)), system.prior.cov), batch + (S * n, S * n))
     else:
@@ -140,7 +140,7 @@ def local_filters(
                 Phi = stack_diag(bc(st.Phi, stack))
                 Gam = stack_rows(bc(st.Gam, stack))
                 J = mm(mm(Phi, J), mT(Phi)) + mm(mm(Gam, GQG), mT(Gam))
-            _, Rk = everything.masked(request.mask(k))
+            _, Rk = everything.masked(request.mask(k), k)
             if blocks:
                 J = sym(_diag_congruence(st.Psi, J) + _rows_congruence(st.Lam, Rk))
             else:
@@ -314,7 +314,7 @@ class GmfStep:
             sign = signs(tuple(form.tolist()), n)
             D = bc(step.D, J.shape[:-2] + step.D.shape[-2:])
             step.O, step.P = _per_history(
-                lambda Js, D: gmf_weight_matrix(Js, n, D), history, mm(mm(sign, J), sign), D
+                lambda Js, D: _gmf_each(Js, n, D), history, mm(mm(sign, J), sign), D
             )
             return
         S = J.shape[-1] // n
@@ -331,8 +331,25 @@ class GmfStep:
         if not ok.all():
             bad = np.flatnonzero(~ok)
             runs = None if history is None else history[bad]
-            C[bad], P[bad] = _per_history(lambda Js: gmf_weight_matrix(Js, n), runs, J[bad])
+            C[bad], P[bad] = _per_history(lambda Js: _gmf_each(Js, n), runs, J[bad])
         step.O, step.P = C, P
+
+
+#: At most this many GMF problems are solved one by one (below).
+GMF_ONE_BY_ONE = 256
+
+
+def _gmf_each(J: np.ndarray, n: int, D: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """`gmf_weight_matrix` for a batch of J (and D), each solved on its own as the shared path
+    solves its one J (lstsq, SVD): near a singular J the weights are not unique and the
+    batched pseudo-inverse picks other ones, differing in the means by ~1e-10. Many problems
+    go through the batched call."""
+    if len(J) > GMF_ONE_BY_ONE:
+        return gmf_weight_matrix(J, n, D)
+    outs = [gmf_weight_matrix(J[i], n, None if D is None else D[i]) for i in range(len(J))]
+    C = np.stack([o[0] for o in outs]) if outs else np.empty(J.shape[:1] + (n, J.shape[-1]))
+    P = np.stack([o[1] for o in outs]) if outs else np.empty(J.shape[:1] + (n, n))
+    return C, P
 
 
 def _per_history(
