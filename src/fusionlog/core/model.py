@@ -85,8 +85,8 @@ class System:
 
     @property
     def time_invariant(self) -> bool:
-        """The same F and G Q G^T between every two instants."""
-        return self.Fs is None
+        """The same F and G Q G^T between every two instants, and the same R at every one."""
+        return self.Fs is None and self.Rs is None
 
     def F_at(self, k: int) -> np.ndarray:
         """Transition from instant k-1 to instant k (k >= 1)."""

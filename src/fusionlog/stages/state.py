@@ -28,6 +28,7 @@ from fusionlog.scenario import Scenario, load_model, system_from_dict, system_to
 
 from .common import block_runs
 from .kind import Estimator, Evaluator, Kind, Model, StepWriter
+from .noise import with_message_covariances
 
 #: Sample estimates per architecture drawn in the state-plane view.
 PLANE_POINTS = 300
@@ -85,7 +86,8 @@ class StateKind(Kind):
         self, system: System, steps: int, runs: int, archs: list[str], sensors: McapFile
     ) -> Estimator:
         topics = [f"/sensors/{s.name}" for s in system.sensors]
-        return _StateEstimator(on_times(system, sensors), steps, runs, archs, topics)
+        system = with_message_covariances(on_times(system, sensors), sensors)
+        return _StateEstimator(system, steps, runs, archs, topics)
 
     def evaluator(
         self, scenario: Scenario, estimates: McapFile, provenance: dict[str, str]

@@ -29,19 +29,19 @@ def build_fbs(request: BuildRequest) -> Plan:
     L: list[np.ndarray] = [np.zeros(0)] * (K1 - 1)
     Smat: list[np.ndarray] = [np.zeros(0)] * (K1 - 1) + [np.zeros(runs + (n, n))]
     steady = Steady(present, system)
-    everything = Rows.of(system, np.arange(system.m), system.R)
+    everything = Rows.all_of(system)
     Hn = None  # the masked H of instant k + 1
     for k in range(K1 - 1, -1, -1):
         request.step = k
         if steady.enabled and k < K1 - 3 and Smat[k + 1] is Smat[k + 2]:
             V[k], L[k], Smat[k], Hn = V[k + 1], L[k + 1], Smat[k + 1], None
             continue
-        Hk, Rk = everything.masked(present[..., k, :])
+        Hk, Rk = everything.masked(present[..., k, :], k)
         RiH = solve(Rk, Hk, hermitian=True)
         V[k] = mT(RiH)
         if k < K1 - 1:
             if Hn is None:
-                Hn = everything.masked(present[..., k + 1, :])[0]
+                Hn = everything.masked(present[..., k + 1, :], k + 1)[0]
             Splus = sym(Smat[k + 1] + mm(mT(Hn), mT(V[k + 1])))
             F, GQG = system.F_at(k + 1), system.GQG_at(k + 1)  # from instant k to k+1
             Bm = eye + mm(Splus, GQG)

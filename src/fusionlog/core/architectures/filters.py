@@ -82,11 +82,21 @@ class Rows:
     cols: np.ndarray  # ([S,] r): index of each component in z_k
     E: np.ndarray  # ([S,] r, m): 0/1 placement, K E puts the columns of a gain K at its rows
     masks: dict[bytes, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
+    #: R at every instant, (K+1,) + R's shape, where it varies (a recorded log: System.Rs).
+    Rs: np.ndarray | None = None
 
     @classmethod
-    def of(cls, system: System, rows: np.ndarray, R: np.ndarray) -> Rows:
-        """One filter on the components `rows` of z_k, believing noise covariance R."""
-        return cls(system.H[rows], R, rows, np.eye(system.m)[rows])
+    def of(
+        cls, system: System, rows: np.ndarray, R: np.ndarray, Rs: np.ndarray | None = None
+    ) -> Rows:
+        """One filter on the components `rows` of z_k, believing noise covariance R (at every
+        instant, or Rs[k] at instant k)."""
+        return cls(system.H[rows], R, rows, np.eye(system.m)[rows], Rs=Rs)
+
+    @classmethod
+    def all_of(cls, system: System) -> Rows:
+        """One filter on every component of z_k with the system's R of eq. (31)."""
+        return cls.of(system, np.arange(system.m), system.R, system.Rs)
 
     @classmethod
     def per_sensor(cls, system: System) -> Rows:
@@ -97,18 +107,25 @@ class Rows:
         R = np.tile(np.eye(r), (S, 1, 1))
         cols = np.zeros((S, r), dtype=int)
         E = np.zeros((S, r, m))
+        Rs = None if system.Rs is None else np.tile(np.eye(r), (len(system.Rs), S, 1, 1))
         for j, (sen, sl) in enumerate(zip(system.sensors, system.sensor_slices, strict=True)):
             d = sen.dim
             H[j, :d], R[j, :d, :d] = sen.H, sen.R
+            if Rs is not None:
+                Rs[:, j, :d, :d] = system.Rs[:, sl, sl]
             cols[j, :d] = np.arange(m)[sl]
             E[j, np.arange(d), cols[j, :d]] = 1.0
-        return cls(H, R, cols, E)
+        return cls(H, R, cols, E, Rs=Rs)
 
-    def masked(self, present: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """`masked` H and R for the present components of z_k (`present`, batch + (m,)). A
-        pattern shared by all runs usually recurs every step: its matrices are kept."""
+    def masked(self, present: np.ndarray, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """`masked` H and R (at instant k where R varies) for the present components of z_k
+        (`present`, batch + (m,)). A pattern shared by all runs usually recurs every step:
+        its matrices are kept (when R is the same at every instant)."""
+        R = self.R if self.Rs is None else self.Rs[k]
         if present.ndim > 1:
-            return masked(self.H, self.R, present[..., self.cols])
+            return masked(self.H, R, present[..., self.cols])
+        if self.Rs is not None:
+            return masked(self.H, R, present[self.cols])
         key = present.tobytes()
         if key not in self.masks:
             self.masks[key] = masked(self.H, self.R, present[self.cols])
@@ -221,7 +238,7 @@ class KalmanStack:
             self.F, self.GQG = self.system.F_at(k), self.system.GQG_at(k)
             if self.any_info:
                 self.Finv = np.linalg.inv(self.F)
-        Hk, Rk = self.rows.masked(present)
+        Hk, Rk = self.rows.masked(present, k)
         part = Part(self.mat, Hk, Rk, self.rows.E, self.I, self.Z)
         if not self.any_info:  # the usual case: all in covariance form, and they stay so
             st, mat, _ = self.step_cov(part, first)

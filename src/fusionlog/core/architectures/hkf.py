@@ -46,7 +46,12 @@ def build_hkf(request: BuildRequest) -> Plan:
     inv = spd_inv_scaled if wide_range(system) else spd_inv
     # Before a covariance exists (no prior), local equivalent measurements are just
     # H_j^T R_j^-1 H_j: the fused information filter on block-diagonal R is exactly that.
-    front = KalmanStack(system, Rows.of(system, np.arange(m), blockdiag_R(system)), batch)
+    Rs = None
+    if system.Rs is not None:  # per instant, without the cross-covariances (as blockdiag_R)
+        Rs = np.zeros_like(system.Rs)
+        for sl in system.sensor_slices:
+            Rs[:, sl, sl] = system.Rs[:, sl, sl]
+    front = KalmanStack(system, Rows.of(system, np.arange(m), blockdiag_R(system), Rs), batch)
     sensors = Rows.per_sensor(system)
     steps = []
     P = None
@@ -69,7 +74,7 @@ def build_hkf(request: BuildRequest) -> Plan:
             F, GQG = system.F_at(k), system.GQG_at(k)
             Pp, Tp = sym(mm(mm(F, P), F.T) + GQG), F
         Yp = inv(Pp, what="the predicted covariance")
-        Hj, Rj = sensors.masked(request.mask(k))  # batch + (S, r, .)
+        Hj, Rj = sensors.masked(request.mask(k), k)  # batch + (S, r, .)
         Ppj = Pp[..., None, :, :]  # every local starts from the fused prediction
         Kj = gain(Ppj, Hj, Rj)
         IKH = eye - mm(Kj, Hj)

@@ -18,7 +18,8 @@ def filter_plan(
     covariance), which the smoother's fusion needs."""
     present = request.present
     batch = request.batch
-    kf = KalmanStack(system, Rows.of(system, rows, system.R[np.ix_(rows, rows)]), batch)
+    Rs = None if system.Rs is None else system.Rs[:, rows][:, :, rows]
+    kf = KalmanStack(system, Rows.of(system, rows, system.R[np.ix_(rows, rows)], Rs), batch)
     steps = []
     infos: list[np.ndarray | None] = []
     steady = Steady(present, system)
