@@ -21,6 +21,16 @@ update from k = 1 on) — that loop is what is timed.
 Each timing is repeated (default 7, after one warm-up call) and the MEDIAN wall time reported,
 with run-steps per second M (K+1) / t and the throughput ratios to simdkalman's CKF and to
 FilterPy's CKF. `--quick` is a small smoke run; `--json PATH` saves every figure.
+
+Per-run path (dropouts): the same z with every measurement dropped (NaN) with probability
+`--dropout` (default 0.1), so every run has its own pattern and `estimate` builds per-run plans.
+All eight architectures are timed there next to simdkalman's CKF and RTS smoother on the same
+NaN data, and their ratios checked against the targets: per-run CKF >= 5x simdkalman's CKF, every
+architecture >= 1x, FBS >= 2x simdkalman's RTS. simdkalman leaves out a step's whole measurement
+vector when any component is NaN (ours only the missing components), so the agreement check runs
+both on the data with every step that lost a component made wholly NaN, where the two mean the
+same; it also checks that a pattern shared by all runs, passed per run, gives the shared plan's
+numbers (to 1e-12).
 """
 
 from __future__ import annotations
@@ -48,7 +58,7 @@ import filterpy
 import simdkalman
 from filterpy.kalman import KalmanFilter as FilterPyKF
 
-from fusionlog.core.architectures import build_plan, estimate, run_plan
+from fusionlog.core.architectures import HistoryNodes, build_plan, estimate, registry, run_plan
 from fusionlog.core.model import System, ajgl2009
 from fusionlog.core.names import STATE_ARCHITECTURES
 from fusionlog.core.simulate import simulate
@@ -56,6 +66,13 @@ from fusionlog.core.simulate import simulate
 CHECK_TOL = 1e-8
 #: Architectures also timed on the per-run path.
 PER_RUN = ("CKF", "FBS")
+#: Agreement asked for on the dropout data: ours with simdkalman's CKF and RTS smoother, and
+#: the per-run path with the shared one.
+DROPOUT_TOL = 1e-9
+PER_RUN_TOL = 1e-12
+#: Targets of the per-run path: minimum throughput ratios, and what they are relative to.
+TARGETS = {"CKF": (5.0, "simdkalman CKF"), "FBS": (2.0, "simdkalman RTS")}
+DEFAULT_TARGET = (1.0, "simdkalman CKF")
 
 
 def median_time(fn: Callable[[], object], repeats: int) -> tuple[float, list[float]]:
@@ -124,6 +141,147 @@ def simdkalman_ckf(
 
 
 # --------------------------------------------------------------------------------------------
+# Per-run path: random dropouts
+
+
+def drop(z: np.ndarray, p: float, seed: int) -> np.ndarray:
+    """z with every measurement component NaN (missing) with probability p, independently."""
+    out = z.copy()
+    out[np.random.default_rng([seed, 2024]).random(z.shape) < p] = np.nan
+    return out
+
+
+def whole_steps(z: np.ndarray) -> np.ndarray:
+    """z with every step that lost a component made wholly NaN: what simdkalman does with it."""
+    out = z.copy()
+    out[np.isnan(z).any(axis=-1)] = np.nan
+    return out
+
+
+def per_run_dropout(
+    system: System, z: np.ndarray, K: int, repeats: int, p: float, seed: int
+) -> dict | None:
+    """Time every architecture on the per-run path next to simdkalman on dropout data, check
+    the agreement first, print the table and the ratios against the targets. Returns the
+    figures for --json, or None (after printing MISMATCH) if a check fails."""
+    M, K1, m = z.shape
+    run_steps = M * K1
+    zd = drop(z, p, seed)
+    lost = float(np.isnan(zd).mean())
+    print()
+    print(
+        f"per-run path: each measurement dropped with probability {p:g} "
+        f"({100 * lost:.1f} % of the components NaN, every run its own pattern)"
+    )
+    nodes = HistoryNodes.of(~np.isnan(zd))
+    print(
+        f"{nodes.count} distinct (history, step) nodes for {run_steps} run-steps "
+        f"({100 * nodes.count / run_steps:.0f} %)"
+    )
+
+    # ---- agreement before timing ----------------------------------------------------------
+    skf = simdkalman_filter(system)
+    zw = whole_steps(zd)
+    checks = {}
+    sk_mean, _ = simdkalman_ckf(skf, system, zd)
+    ours = estimate(system, zw, "CKF")
+    assert ours.cov.ndim == 4, "the dropout data must take the per-run path"
+    checks["simdkalman_ckf_mean"] = rel_diff(sk_mean, ours.mean)
+    sks_mean, _ = simdkalman_ckf(skf, system, zd, smoothed=True)
+    checks["simdkalman_rts_mean_vs_fbs"] = rel_diff(sks_mean, estimate(system, zw, "FBS").mean)
+    del sk_mean, sks_mean, ours
+    # A shared pattern (everything present) passed per run against the shared plan: with the
+    # runs grouped by history (what estimate does) and without (every run through the kernels).
+    present = np.ones(z.shape, dtype=bool)
+    worst = (0.0, 0.0)
+    for arch in STATE_ARCHITECTURES:
+        shared = estimate(system, z, arch)
+        for grouping in (registry.NODES_AT_MOST, 0.0):
+            old, registry.NODES_AT_MOST = registry.NODES_AT_MOST, grouping
+            try:
+                plan = build_plan(system, arch, K, present, history_nodes=True)
+            finally:
+                registry.NODES_AT_MOST = old
+            per_run = run_plan(plan, z)
+            cov = np.broadcast_to(shared.cov, per_run.cov.shape)
+            worst = max(worst, rel_diff(per_run.mean, shared.mean), rel_diff(per_run.cov, cov))
+    checks["per_run_vs_shared_max"] = worst
+    print("agreement (max abs difference, relative):")
+    print(
+        "  (simdkalman leaves out a step's whole measurement when a component is missing; "
+        "ours on those data)"
+    )
+    tols = {"per_run_vs_shared_max": PER_RUN_TOL}
+    for name, (d, r) in checks.items():
+        print(f"  {name:28s} {d:9.2e}  ({r:.1e}, asked for {tols.get(name, DROPOUT_TOL):g})")
+    bad = [n for n, (_, r) in checks.items() if not r <= tols.get(n, DROPOUT_TOL)]
+    if bad:
+        print(f"MISMATCH (relative): {', '.join(bad)}", file=sys.stderr)
+        return None
+    print()
+
+    # ---- timings ----------------------------------------------------------------------------
+    rows: dict[str, dict] = {}
+
+    def add(name: str, fn: Callable[[], object], note: str) -> None:
+        t, ts = median_time(fn, repeats)
+        rows[name] = {
+            "name": name,
+            "median_s": t,
+            "times_s": ts,
+            "run_steps_per_s": run_steps / t,
+            "note": note,
+        }
+
+    add("simdkalman CKF", lambda: simdkalman_ckf(skf, system, zd), "filtered, NaN = missing step")
+    add("simdkalman RTS", lambda: simdkalman_ckf(skf, system, zd, smoothed=True), "smoothed")
+    for arch in STATE_ARCHITECTURES:
+        add(
+            f"fusionlog {arch}", lambda a=arch: estimate(system, zd, a), "estimate(), per-run plans"
+        )
+    sk, sks = rows["simdkalman CKF"]["median_s"], rows["simdkalman RTS"]["median_s"]
+    for arch in STATE_ARCHITECTURES:
+        r = rows[f"fusionlog {arch}"]
+        target, against = TARGETS.get(arch, DEFAULT_TARGET)
+        ratio = (sks if against == "simdkalman RTS" else sk) / r["median_s"]
+        r.update(ratio=ratio, target=target, target_against=against, met=ratio >= target)
+    rows["simdkalman RTS"]["ratio"] = sk / sks
+
+    head = (
+        f"{'implementation':22s} {'median s':>10s} {'run-steps/s':>12s} {'ratio':>7s} "
+        f"{'target':>16s}  note"
+    )
+    print(head)
+    print("-" * len(head))
+    for name, r in rows.items():
+        ratio = f"{r['ratio']:7.2f}" if "ratio" in r else f"{'':7s}"
+        target = ""
+        if "target" in r:
+            vs = "RTS" if r["target_against"] == "simdkalman RTS" else "CKF"
+            target = f">= {r['target']:g}x {vs} {'met' if r['met'] else 'NOT met'}"
+        print(
+            f"{name:22s} {r['median_s']:10.4f} {r['run_steps_per_s']:12.3e} {ratio} "
+            f"{target:>16s}  {r['note']}"
+        )
+    print()
+    print(
+        "ratio: throughput relative to simdkalman's CKF (FBS: to its RTS smoother; the RTS row: "
+        "its own ratio to the CKF)."
+    )
+    missed = [n for n, r in rows.items() if r.get("met") is False]
+    print("targets: " + ("all met" if not missed else "NOT met: " + ", ".join(missed)))
+    print()
+    return {
+        "dropout": p,
+        "missing_fraction": lost,
+        "history_nodes": nodes.count,
+        "checks": {k: {"max_abs": d, "relative": r} for k, (d, r) in checks.items()},
+        "results": list(rows.values()),
+        "targets_met": not missed,
+    }
+
+
+# --------------------------------------------------------------------------------------------
 
 
 def rel_diff(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
@@ -148,6 +306,12 @@ def main(argv: list[str] | None = None) -> int:
         "--filterpy-runs", type=int, default=None, help="runs FilterPy is timed on (default 300)"
     )
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument(
+        "--dropout",
+        type=float,
+        default=0.1,
+        help="probability that a measurement is missing in the per-run benchmark (default 0.1)",
+    )
     ap.add_argument("--json", type=Path, default=None, metavar="PATH", help="save the figures")
     args = ap.parse_args(argv)
 
@@ -284,6 +448,10 @@ def main(argv: list[str] | None = None) -> int:
         f"FilterPy was timed on {fp_runs} of the {M} runs and its time scaled by {scale:.4g} "
         "(it is a per-run Python loop, linear in M)."
     )
+    dropout = per_run_dropout(sys_, z, K, repeats, args.dropout, args.seed)
+    if dropout is None:
+        return 1
+
     rss = peak_rss_mib()
     print(f"peak RSS of this process: {rss:.1f} MiB")
 
@@ -307,6 +475,7 @@ def main(argv: list[str] | None = None) -> int:
             },
             "checks": {k: {"max_abs": d, "relative": r} for k, (d, r) in checks.items()},
             "results": [by_name[n] for n in order],
+            "per_run_dropout": dropout,
             "peak_rss_mib": rss,
         }
         args.json.parent.mkdir(parents=True, exist_ok=True)
