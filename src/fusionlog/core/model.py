@@ -118,10 +118,8 @@ class System:
         A, Qc = self.continuous
         deltas = np.diff(times)
         uniq, where = np.unique(deltas, return_inverse=True)
-        pairs = [van_loan(A, Qc, float(d)) for d in uniq]
-        Fu = np.array([f for f, _ in pairs]).reshape(len(uniq), self.n, self.n)
-        Qu = np.array([q for _, q in pairs]).reshape(len(uniq), self.n, self.n)
-        return dataclasses.replace(self, Fs=Fu[where], Qs=Qu[where])
+        Fu, Qu = van_loan(A, Qc, uniq)
+        return dataclasses.replace(self, Fs=Fu[where.ravel()], Qs=Qu[where.ravel()])
 
     @property
     def truth_initial(self) -> Prior:

@@ -100,17 +100,19 @@ def schedule(dt: float, steps: int, timings: tuple[SensorTiming, ...]) -> Schedu
     return Schedule(all_ns / NS, measures, False)
 
 
-def van_loan(A: np.ndarray, Qc: np.ndarray, delta: float) -> tuple[np.ndarray, np.ndarray]:
-    """F = expm(A Δ) and Q = ∫_0^Δ expm(A s) Qc expm(A s)' ds by Van Loan's method."""
+def van_loan(A: np.ndarray, Qc: np.ndarray, delta: float | np.ndarray):
+    """F = expm(A Δ) and Q = ∫_0^Δ expm(A s) Qc expm(A s)' ds by Van Loan's method, for one
+    interval Δ or for an array of them at once (F and Q then carry its shape in front)."""
     from scipy.linalg import expm  # here: only irregular instants need it
 
     n = A.shape[0]
     C = np.zeros((2 * n, 2 * n))
     C[:n, :n], C[:n, n:], C[n:, n:] = -A, Qc, A.T
-    E = expm(C * delta)
-    F = E[n:, n:].T
-    Q = F @ E[:n, n:]
-    return F, 0.5 * (Q + Q.T)
+    d = np.asarray(delta, dtype=float)
+    E = expm(C * d[..., None, None])  # one batched call for every interval
+    F = np.swapaxes(E[..., n:, n:], -1, -2)
+    Q = F @ E[..., :n, n:]
+    return F, 0.5 * (Q + np.swapaxes(Q, -1, -2))
 
 
 def constant_velocity_continuous(axes: int, q: float) -> tuple[np.ndarray, np.ndarray]:

@@ -115,7 +115,7 @@ def scenario_from_metadata(meta: Mapping[str, str], source: str) -> Scenario:
         if kind == "identity":
             sc = identity_from_doc(doc, source, text, None)
         elif is_replay_doc(doc):
-            sc = replay_from_doc(doc, source, text, None)
+            sc = _with_recorded_R(replay_from_doc(doc, source, text, None), meta, source)
         else:
             sc = state_from_doc(doc, source, text, None)
         if sc.kind != kind:
@@ -125,3 +125,22 @@ def scenario_from_metadata(meta: Mapping[str, str], source: str) -> Scenario:
         )
     except (KeyError, ValueError, TypeError) as e:
         raise FusionlogError(f"{source}: unreadable ({e})") from e
+
+
+def _with_recorded_R(sc: Scenario, meta: Mapping[str, str], source: str) -> Scenario:
+    """A replay's sensor given by its messages' covariances alone has no R in the file; the
+    import recorded the nominal R it took (their mean) in the resolved system: use it."""
+    import dataclasses
+    import json
+
+    import numpy as np
+
+    if all(np.isfinite(s.R).all() for s in sc.system.sensors) or "system" not in meta:
+        return sc
+    recorded = system_from_dict(json.loads(meta["system"]), source)
+    by_name = {s.name: s.R for s in recorded.sensors}
+    sensors = tuple(
+        s if np.isfinite(s.R).all() else dataclasses.replace(s, R=by_name[s.name])
+        for s in sc.system.sensors
+    )
+    return dataclasses.replace(sc, system=dataclasses.replace(sc.system, sensors=sensors))
