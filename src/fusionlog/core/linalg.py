@@ -413,16 +413,21 @@ def buffer(
     lead: tuple[int, ...], batch: tuple[int, ...], zeros: bool = False, dtype: type = float
 ) -> np.ndarray:
     """An uninitialised (or zero) array of shape lead + batch in the lanes memory order: the
-    first batch axis (the runs) is the contiguous one, the lead (matrix) axes come before it
-    and any further batch axes (a stack of local filters) before those. So a stack of S
-    matrices of each run is, in memory, S matrices of lanes one after the other: stacking them
-    into one tall matrix (`stack_rows`) is a reshape."""
+    largest batch axis (the runs) is the contiguous one, the lead (matrix) axes come before it
+    and the other batch axes (a stack of local filters, the steps) before those. So a stack of
+    S matrices of each run is, in memory, S matrices of lanes one after the other: stacking
+    them into one tall matrix (`stack_rows`) is a reshape."""
     nl, nb = len(lead), len(batch)
-    mem = (np.zeros if zeros else np.empty)((*batch[:0:-1], *lead, *batch[:1]), dtype=dtype)
     if nb < 2:
-        return mem
-    # memory axes: batch[-1], ..., batch[1], lead..., batch[0]
-    return mem.transpose((*range(nb - 1, nb - 1 + nl), nb - 1 + nl, *range(nb - 2, -1, -1)))
+        return (np.zeros if zeros else np.empty)(lead + batch, dtype=dtype)
+    inner = max(range(nb), key=lambda i: batch[i])  # the first of the largest
+    outer = [i for i in range(nb - 1, -1, -1) if i != inner]
+    shape = (*(batch[i] for i in outer), *lead, batch[inner])
+    mem = (np.zeros if zeros else np.empty)(shape, dtype=dtype)
+    # memory axes: the outer batch axes, the lead axes, the inner batch axis
+    where = {b: j for j, b in enumerate(outer)}
+    where[inner] = len(outer) + nl
+    return mem.transpose((*range(len(outer), len(outer) + nl), *(where[i] for i in range(nb))))
 
 
 def take_runs(A: np.ndarray, idx: np.ndarray) -> np.ndarray:
@@ -434,15 +439,15 @@ def take_runs(A: np.ndarray, idx: np.ndarray) -> np.ndarray:
 
 def stack_matrices(arrays: list[np.ndarray]) -> np.ndarray:
     """np.stack(arrays) of matrices batch + (p, q); a large batch in the lanes memory order
-    with the new (step) axis outermost."""
+    (the new, step, axis is not the contiguous one)."""
     first = arrays[0]
     if not kernels_for(first):
         return np.stack(arrays)
     *batch, p, q = first.shape
-    out = buffer((len(arrays), p, q), tuple(batch))  # (L, p, q) + batch
+    out = buffer((p, q), (len(arrays), *batch))  # (p, q, L) + batch
     for j, a in enumerate(arrays):
-        out[j] = lanes(a)
-    return np.moveaxis(out, (1, 2), (-2, -1))
+        out[:, :, j] = lanes(a)
+    return unlanes(out)
 
 
 def _all_true(batch: tuple[int, ...]) -> np.ndarray:

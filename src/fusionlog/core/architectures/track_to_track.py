@@ -245,7 +245,8 @@ def build_avg(request: BuildRequest) -> Plan:
 
 
 def build_ci(request: BuildRequest) -> Plan:
-    """Covariance intersection of the local estimates, every step's weights in one go."""
+    """Covariance intersection of the local estimates, every step's weights in one go (per run
+    not on history nodes: `readouts.ci_readouts` takes all steps as one batch)."""
     hist = local_filters(request, joint=False)
     omega = ci_readouts(hist.steps, hist.forms, hist.mats, request.batch, request.criterion)
     return _plan(request, hist, omega)
