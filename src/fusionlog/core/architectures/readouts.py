@@ -107,6 +107,15 @@ def avg_readouts(
     set_readouts(steps, O, sym(Msig @ np.stack(joints) @ mT(Msig)))
 
 
+def _small_mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A @ B for stacks of small matrices, as n elementwise products over the whole stack:
+    matmul calls BLAS once per matrix, which for 10^5 2 x 2 products costs ~30 times more."""
+    out = A[..., :, :1] * B[..., :1, :]
+    for k in range(1, A.shape[-1]):
+        out = out + A[..., :, k : k + 1] * B[..., k : k + 1, :]
+    return out
+
+
 def ci_readouts(
     steps: list[StepMap],
     forms: np.ndarray,
@@ -116,17 +125,28 @@ def ci_readouts(
 ) -> np.ndarray:
     """Covariance intersection of the local estimates at the first L steps, from the local
     informations Y_j and maps W_j with Y_j x_j = W_j s_j, (L,) + batch + (S, n, n): every step's
-    (and run's) omega in one `ci_omegas` call, then P = (sum w_j Y_j)^-1 and the weights
+    (and run's) omega in one `ci_omegas` call (each problem solved on its own, so the shared
+    and the per-run path agree), then P = (sum w_j Y_j)^-1 and the weights
     w_j P W_j written into those steps' maps. In information form a local with too little
     information to have a mean of its own still contributes. `steps` is the whole plan (the
     steps after the L-th repeat one of them). Returns the omegas, batch + (K+1, S)."""
     Ys, Ws = local_infos(forms, mats)
     K1 = len(steps)
     L, S, n = Ys.shape[0], Ys.shape[-3], Ys.shape[-1]
-    om = ci_omegas(Ys.reshape((-1, S, n, n)), criterion).reshape(Ys.shape[:-2])
-    P = inv_or_nan(np.einsum("...j,...jab->...ab", om, Ys))
+    om = ci_omegas(Ys, criterion)  # (L,) + batch + (S,), read in place whatever Ys's layout
+    # sum_j w_j Y_j and the weights w_j P W_j written out over j, elementwise over all steps
+    # and runs: einsum took ten times longer on the local filters' layout, and matmul calls
+    # BLAS once per 2 x 2 matrix.
+    Y = om[..., 0, None, None] * Ys[..., 0, :, :]
+    for j in range(1, S):
+        Y = Y + om[..., j, None, None] * Ys[..., j, :, :]
+    P = inv_or_nan(Y)
     require_fused(forms, P, "covariance intersection")
-    O = np.concatenate([om[..., j, None, None] * (P @ Ws[..., j, :, :]) for j in range(S)], -1)
+    O = np.empty(P.shape[:-1] + (S * n,))
+    for j in range(S):
+        np.multiply(
+            om[..., j, None, None], _small_mm(P, Ws[..., j, :, :]), out=O[..., j * n : (j + 1) * n]
+        )
     by_id = {}
     for i in range(L):
         steps[i].O, steps[i].P = O[i], P[i]
