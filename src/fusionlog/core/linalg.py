@@ -477,8 +477,7 @@ def kernels_for(*arrays: np.ndarray) -> bool:
             p, q = a.shape[-2:]
             if not 0 < p <= KERNEL_MAX_DIM or not 0 < q <= KERNEL_MAX_DIM:
                 return False
-            if math.prod(a.shape[:-2]) >= KERNEL_MIN_BATCH:
-                big = True
+            big = big or a.size >= KERNEL_MIN_BATCH * p * q
     return big
 
 
@@ -531,8 +530,8 @@ def mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     (result in the lanes layout): einsum's sum-of-products loops over the contiguous batch, or,
     for a shared factor of zeros and ones (a placement, F of constant velocity), only the
     additions and copies it makes."""
-    if (A.ndim == 2 and B.ndim == 2) or not kernels_for(A, B):
-        return A @ B
+    if (A.size < KERNEL_MIN_BATCH and B.size < KERNEL_MIN_BATCH) or not kernels_for(A, B):
+        return A @ B  # (a batch of KERNEL_MIN_BATCH matrices has at least as many entries)
     if A.ndim == 2 and _is_identity(A):  # the other factor itself (never written to)
         return B
     if B.ndim == 2 and _is_identity(B):
