@@ -5,41 +5,75 @@ first and second moments of Z_k = [x_k; s_k] (true state and estimator state) pr
 
     x_k = F_t x_{k-1} + w,                 s_k = T_k s_{k-1} + U_k (H_t x_k + v_k),
 
-with the *true* model (F_t, GQG_t, H_t, R_t, initial distribution), which may differ from the model
+with the *true* model (F_t, GQG_t, H_t, R_t, initial distribution; F, GQG and R per step where
+they vary), which may differ from the model
 the filter was built with (model-mismatch studies). The error e_k = x_k - O_k s_k then has mean
 mu_k and covariance C_k, and the expected MSE matrix is C_k + mu_k mu_k^T; for track-to-track
 architectures this is the joint covariance of all local filters' errors carried along.
 
 For the smoother (FBS) the backward information vector is y_b,k = B_k x_k + eta_k with eta_k
 independent of everything up to k; B_k and cov(eta_k) follow a backward recursion.
+
+A per-run plan (runs with their own measurement patterns, e.g. dropouts) is still linear with
+deterministic gains given its run's pattern, so each run's error statistics are exact too: the
+same recursions run with a leading run axis on every map and moment (matrix products broadcast
+over it), for chunks of runs. `ConditionalExpected` averages them over the runs: the expected
+values conditional on the drawn patterns, which the Monte Carlo averages estimate.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import dataclasses
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import NumericalError
-from .architectures import Plan
+from .architectures import Plan, StepMap
 from .linalg import mT, numerical_errors, sym, wide_diagonal
 from .model import System
+from .quadratic_form import (
+    _whitening,
+    expected_sqrt_quadratic,
+    expected_sqrt_quadratic_many,
+    nees_and_dm_many,
+)
+
+__all__ = [
+    "CHUNK_RUNS",
+    "ConditionalExpected",
+    "Expected",
+    "analyse",
+    "expected_sqrt_quadratic",
+    "expected_sqrt_quadratic_many",
+    "plan_of_runs",
+]
+
+#: Runs analysed together in a per-run plan: the moments of a chunk, (runs, d, d) per step,
+#: stay a few megabytes whatever the number of runs.
+CHUNK_RUNS = 2048
 
 
 @dataclass
 class Expected:
-    """Exact expected error statistics per step k = 0..K."""
+    """Exact expected error statistics per step k = 0..K (per run, with a leading run axis
+    (M, ...), for a per-run plan)."""
 
-    mse: np.ndarray  # (K+1, n, n): E[e e^T]
-    bias: np.ndarray  # (K+1, n): E[e]
-    P: np.ndarray  # (K+1, n, n): the covariance the architecture reports
-    nees: np.ndarray  # (K+1,): E[e^T P^-1 e] = tr(P^-1 E[e e^T])
-    dm: np.ndarray  # (K+1,): E[sqrt(e^T P^-1 e)], eq. (46)
+    mse: np.ndarray  # (..., K+1, n, n): E[e e^T]
+    bias: np.ndarray  # (..., K+1, n): E[e]
+    P: np.ndarray  # (..., K+1, n, n): the covariance the architecture reports
+    nees: np.ndarray  # (..., K+1): E[e^T P^-1 e] = tr(P^-1 E[e e^T])
+    dm: np.ndarray  # (..., K+1): E[sqrt(e^T P^-1 e)], eq. (46)
 
     @property
     def mse_per_state(self) -> np.ndarray:
-        """(K+1, n) expected MSE of each state component, the exact counterpart of eq. (44)."""
+        """(..., K+1, n) expected MSE of each state component, the exact counterpart of eq. (44)."""
         return np.diagonal(self.mse, axis1=-2, axis2=-1).copy()
+
+    @property
+    def defined(self) -> np.ndarray:
+        """(..., K+1) where the architecture reports a covariance, i.e. has an estimate."""
+        return np.isfinite(self.P).all(axis=(-2, -1))
 
 
 def _coupling(plan: Plan, truth: System) -> bool:
@@ -60,18 +94,48 @@ def _coupling(plan: Plan, truth: System) -> bool:
     return not (same_F and np.array_equal(model.H, truth.H))
 
 
+def _mv(A: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """A x for x (d,) or (runs, d) and A (r, d) or (runs, r, d)."""
+    return A @ x if x.ndim == 1 else (A @ x[..., None])[..., 0]
+
+
+def _rmul(X: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """X S for a matrix S shared by all runs: per-run X as one product of its stacked rows
+    (numpy calls BLAS once per run otherwise, which for small matrices costs more than the
+    arithmetic)."""
+    if X.ndim == 2 or S.ndim > 2:
+        return X @ S
+    return (X.reshape(-1, X.shape[-1]) @ S).reshape(X.shape[:-1] + S.shape[-1:])
+
+
+def _congruences(terms: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """sum_i X_i S_i X_i^T, term by term in order (a product by a shared S through `_rmul`)."""
+    out = None
+    for X, S in terms:
+        term = _rmul(X, S) @ mT(X)
+        out = term if out is None else out + term
+    return out
+
+
+def _hcat(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """[a, b] side by side, the run axis broadcast when one of them has it."""
+    if a.ndim == b.ndim == 2:
+        return np.hstack([a, b])
+    batch = np.broadcast_shapes(a.shape[:-2], b.shape[:-2])
+    a = np.broadcast_to(a, batch + a.shape[-2:])
+    return np.concatenate([a, np.broadcast_to(b, batch + b.shape[-2:])], axis=-1)
+
+
 def _forward_moments(plan: Plan, truth: System) -> tuple[list, list, int, int]:
     """Mean and covariance of Z_k = [x_k; zeta_k], zeta_k = s_k - D_k x_k, for every k.
 
     Returns the lists, the size of the x block (0 when x decouples, see `_coupling`) and the
     step from which the moments and the plan's map repeat (K + 1 if they never settle): once
     the plan repeats its steady-state map and the moments stop changing, later steps repeat
-    them too (the same objects in the lists).
+    them too (the same objects in the lists). Per-run maps give per-run moments (runs, ...).
     """
-    if plan.per_run:
-        raise ValueError("exact analysis needs a plan shared by all runs (no missing data)")
     n = truth.n
-    Ht, Rt = truth.H, truth.R
+    Ht = truth.H
     init = truth.truth_initial
     nx = n if _coupling(plan, truth) else 0
     D0 = plan.D0
@@ -83,24 +147,25 @@ def _forward_moments(plan: Plan, truth: System) -> tuple[list, list, int, int]:
     D_prev = D0
     K1 = len(plan.steps)
     for k, st in enumerate(plan.steps):
-        d_prev = mu.size - nx
-        d = st.T.shape[0]
+        d_prev = mu.shape[-1] - nx
+        d = st.T.shape[-2]
+        batch = np.broadcast_shapes(st.T.shape[:-2], st.U.shape[:-2], mu.shape[:-1])
         F = truth.F_at(k) if k > 0 else np.eye(n)
-        UHD = st.U @ Ht - st.D
-        A = np.zeros((nx + d, nx + d_prev))
-        A[nx:, nx:] = st.T
+        UHD = _rmul(st.U, Ht) - st.D
         Bw = UHD
         if nx:
-            A[:nx, :nx] = F
-            A[nx:, :nx] = st.T @ D_prev + UHD @ F
-            Bw = np.vstack([np.eye(n), UHD])
-        Bv = np.zeros((nx + d, Rt.shape[0]))
-        Bv[nx:] = st.U
-        mu_new = A @ mu
-        C_new = A @ C @ A.T + Bv @ Rt @ Bv.T
-        if k > 0:
-            C_new += Bw @ truth.GQG_at(k) @ Bw.T
-        C_new = sym(C_new)
+            A = np.zeros(batch + (nx + d, nx + d_prev))
+            A[..., nx:, nx:] = st.T
+            A[..., :nx, :nx] = F
+            A[..., nx:, :nx] = st.T @ D_prev + UHD @ F
+            Bw = np.concatenate([np.broadcast_to(np.eye(n), UHD.shape[:-2] + (n, n)), UHD], -2)
+            Bv = np.zeros(batch + (nx + d, Ht.shape[0]))
+            Bv[..., nx:, :] = st.U
+        else:  # zeta alone: the maps themselves (contiguous, as a padded copy would be)
+            A, Bv = np.ascontiguousarray(st.T), np.ascontiguousarray(st.U)
+        mu_new = _mv(A, mu)
+        noise = [(Bv, truth.R_at(k))] + ([(Bw, truth.GQG_at(k))] if k > 0 else [])
+        C_new = sym(_congruences([(A, C), *noise]))
         if (
             not nx
             and k > 1
@@ -126,50 +191,128 @@ def _forward_moments(plan: Plan, truth: System) -> tuple[list, list, int, int]:
     return mus, Cs, nx, K1
 
 
-def analyse(plan: Plan, truth: System) -> Expected:
-    """Exact error mean, MSE matrix, expected NEES and expected DM of a shared plan.
+def analyse(plan: Plan, truth: System, *, chunk_runs: int = CHUNK_RUNS) -> Expected:
+    """Exact error mean, MSE matrix, expected NEES and expected DM of a plan.
 
-    Raises NumericalError (naming the architecture and the step) when the true error
-    covariance overflows or the reported covariance is not positive definite where the
-    architecture reports one, i.e. when the expected values cannot be computed.
+    A shared plan gives (K+1, ...) arrays; a per-run plan each run's statistics given its
+    measurement pattern, (M, K+1, ...), computed for `chunk_runs` runs at a time.
+
+    Raises NumericalError (naming the architecture, the step and for a per-run plan the run)
+    when the true error covariance overflows or the reported covariance is not positive
+    definite where the architecture reports one, i.e. when the expected values cannot be
+    computed.
     """
+    if not plan.per_run:
+        return _checked(plan, truth)
+    nodes = getattr(plan, "nodes", None)  # maps per measurement history, see plan_of_runs
+    M = len(nodes[0]) if nodes is not None else plan.reported_cov.shape[0]
+    parts = [
+        _checked(plan_of_runs(plan, slice(a, min(a + chunk_runs, M))), truth, first_run=a)
+        for a in range(0, M, chunk_runs)
+    ]
+    if len(parts) == 1:
+        return parts[0]
+    return Expected(
+        *(np.concatenate([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(Expected))
+    )
+
+
+def _checked(plan: Plan, truth: System, first_run: int | None = None) -> Expected:
+    """`_analyse` with its failures named (`first_run`: the first run of a per-run chunk)."""
+
+    def where(mask: np.ndarray) -> str:
+        """Names the first entry of a (K+1,) or (runs, K+1) mask (or a leading part of it)."""
+        at = np.unravel_index(int(np.flatnonzero(mask)[0]), mask.shape)
+        if first_run is None:
+            return f"step {at[0]}"
+        return f"step {at[1]} of run {first_run + at[0]}"
+
     with numerical_errors(lambda: f"architecture {plan.name}, exact analysis"):
-        ex = _analyse(plan, truth)
-        defined = np.isfinite(ex.P).all(axis=(-2, -1))
+        ex = _analyse(plan, truth, where)
         finite = np.isfinite(ex.mse).all(axis=(-2, -1)) & np.isfinite(ex.nees) & np.isfinite(ex.dm)
-        if not finite[defined].all():
-            k = int(np.flatnonzero(defined & ~finite)[0])
+        bad = ex.defined & ~finite
+        if bad.any():
             raise NumericalError(
-                f"step {k}: the expected MSE, NEES or DM is not finite (the reported "
+                f"{where(bad)}: the expected MSE, NEES or DM is not finite (the reported "
                 "covariance is not positive definite to working precision, or the error "
                 "covariance overflows)"
             )
     return ex
 
 
-def _analyse(plan: Plan, truth: System) -> Expected:
+def plan_of_runs(plan: Plan, runs: slice | int) -> Plan:
+    """The plan of some runs of a per-run plan: every per-run map (one with a run axis) cut to
+    `runs`; an int gives that run's maps as a shared plan. Maps shared by several steps stay
+    shared (the analysis tests steps for identity); block-diagonal ones are made dense. A plan
+    whose steps hold maps per measurement history (`nodes`: each run's node at every step)
+    gives each run its node's maps."""
+    nodes = getattr(plan, "nodes", None)
+    cut: dict[tuple[int, int], np.ndarray] = {}
+
+    def c(a, k: int = -1) -> np.ndarray:
+        """Map `a` of step k (-1: a per-run map of the smoother) for the runs."""
+        key = (id(a), k if nodes is not None else -1)
+        if key not in cut:
+            sel = runs if nodes is None or k < 0 else nodes[k][runs]
+            if hasattr(a, "blocks"):  # a block-diagonal map kept as its blocks
+                b = a.blocks[sel] if a.ndim == 3 else a.blocks
+                cut[key] = dataclasses.replace(a, blocks=b).dense()
+            else:
+                cut[key] = a[sel] if a.ndim == 3 else a
+        return cut[key]
+
+    steps: dict[tuple[int, int], StepMap] = {}
+    for k, st in enumerate(plan.steps):
+        key = (id(st), k if nodes is not None else -1)
+        if key not in steps:
+            D = None if st.D is None else c(st.D, k)
+            maps = {"T": c(st.T, k), "U": c(st.U, k), "O": c(st.O, k), "P": c(st.P, k)}
+            steps[key] = dataclasses.replace(st, D=D, **maps)
+    sm = plan.smoother
+    if sm is not None:
+        sm = dataclasses.replace(
+            sm, **{f: [c(a) for a in getattr(sm, f)] for f in ("L", "V", "A", "B", "P")}
+        )
+    return dataclasses.replace(
+        plan,
+        steps=[steps[id(st), k if nodes is not None else -1] for k, st in enumerate(plan.steps)],
+        smoother=sm,
+        per_run=plan.per_run and not isinstance(runs, int),
+        omega=None,  # not used by the analysis
+        dense=None,
+        **({"nodes": None} if "nodes" in {f.name for f in dataclasses.fields(plan)} else {}),
+    )
+
+
+def _analyse(plan: Plan, truth: System, where) -> Expected:
     n = truth.n
     mus, Cs, nx, settled = _forward_moments(plan, truth)
     K1 = len(plan.steps)
+    P = plan.reported_cov
+    batch = P.shape[:-3]  # () for a shared plan, (runs,) for a per-run one
 
-    def readout(k: int, A: np.ndarray, D: np.ndarray, extra: np.ndarray) -> np.ndarray:
+    def readout(A: np.ndarray, D: np.ndarray, extra: np.ndarray) -> np.ndarray:
         """Row block L with e = L Z - (noise terms): e = (I - A D - extra) x - A zeta."""
         if nx:
-            return np.hstack([np.eye(n) - A @ D - extra, -A])
+            return _hcat(np.eye(n) - A @ D - extra, -A)
         return -A
 
-    bias = np.empty((K1, n))
-    mse = np.empty((K1, n, n))
+    def outer(b: np.ndarray) -> np.ndarray:
+        return b[..., :, None] * b[..., None, :]
+
+    bias = np.empty(batch + (K1, n))
+    mse = np.empty(batch + (K1, n, n))
     if plan.smoother is None:
         for k, st in enumerate(plan.steps[: settled + 1]):
-            Lk = readout(k, st.O, st.D, 0.0)
-            bias[k] = Lk @ mus[k]
-            mse[k] = sym(Lk @ Cs[k] @ Lk.T) + np.outer(bias[k], bias[k])
+            Lk = readout(st.O, st.D, 0.0)
+            bias[..., k, :] = _mv(Lk, mus[k])
+            mse[..., k, :, :] = sym(_congruences([(Lk, Cs[k])])) + outer(bias[..., k, :])
         if settled < K1:  # steady state: the same map of the same moments at every later step
-            bias[settled + 1 :], mse[settled + 1 :] = bias[settled], mse[settled]
+            bias[..., settled + 1 :, :] = bias[..., settled, None, :]
+            mse[..., settled + 1 :, :, :] = mse[..., settled, None, :, :]
     else:
         sm = plan.smoother
-        Ht, Rt = truth.H, truth.R
+        Ht = truth.H
         Bk = np.zeros((n, n))
         Ceta = np.zeros((n, n))
         steady = False  # backward statistics stopped changing under a repeated map
@@ -194,17 +337,19 @@ def _analyse(plan: Plan, truth: System) -> Expected:
             steady = steady and repeated[k]
             if steady and same[k]:  # the steady stretch repeats step k + 1's statistics
                 j = int(run_start[k])
-                bias[j : k + 1], mse[j : k + 1] = bias[k + 1], mse[k + 1]
+                bias[..., j : k + 1, :] = bias[..., k + 1, None, :]
+                mse[..., j : k + 1, :, :] = mse[..., k + 1, None, :, :]
                 k = j - 1
                 continue
             if k < K1 - 1 and not steady:
-                Bplus = Bk + sm.V[k + 1] @ Ht
-                Cplus = Ceta + sm.V[k + 1] @ Rt @ sm.V[k + 1].T
+                V = sm.V[k + 1]
+                Bplus = Bk + _rmul(V, Ht)
+                Cplus = Ceta + _congruences([(V, truth.R_at(k + 1))])
                 # L is about the inverse of the information in B+ and C+: multiplying it in
                 # first keeps B+ Q B+' (the square of an information) from overflowing.
                 LB = sm.L[k] @ Bplus
-                B_new = LB @ truth.F_at(k + 1)
-                C_new = sym(LB @ truth.GQG_at(k + 1) @ LB.T + sm.L[k] @ Cplus @ sm.L[k].T)
+                B_new = _rmul(LB, truth.F_at(k + 1))
+                C_new = sym(_congruences([(LB, truth.GQG_at(k + 1)), (sm.L[k], Cplus)]))
                 steady = repeated[k] and all(
                     np.abs(new - old).max() <= 1e-15 * max(np.abs(new).max(), 1e-300)
                     for new, old in ((B_new, Bk), (C_new, Ceta))
@@ -212,98 +357,120 @@ def _analyse(plan: Plan, truth: System) -> Expected:
                 Bk, Ceta = B_new, C_new
             # e = x - A s_f - B (B_k x + eta) = (I - A D - B B_k) x - A zeta - B eta; with the
             # true model I - A D - B B_k vanishes and B_k x is dropped with x (see _coupling).
-            Lk = readout(k, sm.A[k], plan.steps[k].D, sm.B[k] @ Bk)
-            bias[k] = Lk @ mus[k]
-            mse[k] = sym(Lk @ Cs[k] @ Lk.T + sm.B[k] @ Ceta @ sm.B[k].T) + np.outer(
-                bias[k], bias[k]
+            Lk = readout(sm.A[k], plan.steps[k].D, sm.B[k] @ Bk)
+            bias[..., k, :] = _mv(Lk, mus[k])
+            mse[..., k, :, :] = sym(_congruences([(Lk, Cs[k]), (sm.B[k], Ceta)])) + outer(
+                bias[..., k, :]
             )
             k -= 1
-    P = plan.reported_cov
-    nees = np.full(K1, np.nan)
-    dm = np.full(K1, np.nan)
+    nees = np.full(batch + (K1,), np.nan)
+    dm = np.full(batch + (K1,), np.nan)
     # A filter's statistics and reported covariance repeat after `settled`: compute them once.
     m = settled + 1 if plan.smoother is None and settled < K1 else K1
-    ok = ~np.isnan(P[:m]).any(axis=(-1, -2))
+    ok = ~np.isnan(P[..., :m, :, :]).any(axis=(-1, -2))
     if ok.any():
-        Pk, bk, mk = P[:m][ok], bias[:m][ok], mse[:m][ok]
-        definite = np.isfinite(_whitening(Pk)).all(axis=(-2, -1))
+        Pk, bk, mk = P[..., :m, :, :][ok], bias[..., :m, :][ok], mse[..., :m, :, :][ok]
+        if batch:  # every run and step: closed forms and fitted grids (nees_and_dm_many)
+            nees_k, dm_k, definite = nees_and_dm_many(Pk, bk, mk)
+        else:
+            W = _whitening(Pk)
+            definite = np.isfinite(W).all(axis=(-2, -1))
         if not definite.all():
-            k = int(np.flatnonzero(ok)[np.argmin(definite)])
+            failed = np.zeros_like(ok)
+            failed[ok] = ~definite
             raise NumericalError(
-                f"step {k}: the reported covariance is not positive definite to working "
+                f"{where(failed)}: the reported covariance is not positive definite to working "
                 "precision (no NEES or DM)"
             )
-        # For badly scaled P (see _whitening) P^-1 = W^T W; otherwise LU's inverse, as ever.
-        Linv = _whitening(Pk) if wide_diagonal(Pk) else None
-        Pinv = np.linalg.inv(Pk) if Linv is None else mT(Linv) @ Linv
-        nees[:m][ok] = np.einsum("kij,kji->k", Pinv, mk)
-        cov = mk - np.einsum("ki,kj->kij", bk, bk)
-        # Steady-state steps repeat the same statistics: integrate each distinct one once.
-        key = np.concatenate([Pk.reshape(len(Pk), -1), bk, cov.reshape(len(cov), -1)], 1)
-        uniq, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-        dm_u = expected_sqrt_quadratic(Pk[first], bk[first], cov[first])
-        dm[:m][ok] = dm_u[inverse.ravel()]
-    nees[m:], dm[m:] = nees[m - 1], dm[m - 1]
+        if not batch:
+            # For badly scaled P (see _whitening) P^-1 = W^T W; otherwise LU's inverse.
+            Pinv = mT(W) @ W if wide_diagonal(Pk) else np.linalg.inv(Pk)
+            nees_k = np.einsum("kij,kji->k", Pinv, mk)
+            cov = mk - np.einsum("ki,kj->kij", bk, bk)
+            # Steady-state steps repeat the same statistics: integrate each distinct one once.
+            key = np.concatenate([Pk.reshape(len(Pk), -1), bk, cov.reshape(len(cov), -1)], 1)
+            _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+            dm_k = expected_sqrt_quadratic(Pk[first], bk[first], cov[first])[inverse.ravel()]
+        nees[..., :m][ok] = nees_k
+        dm[..., :m][ok] = dm_k
+    nees[..., m:] = nees[..., m - 1, None]
+    dm[..., m:] = dm[..., m - 1, None]
     return Expected(mse, bias, P, nees, dm)
 
 
-def expected_sqrt_quadratic(
-    P: np.ndarray, mean: np.ndarray, cov: np.ndarray, nodes: int = 1601
-) -> np.ndarray:
-    """E[sqrt(e^T P^-1 e)] for e ~ N(mean, cov), batched over the leading axis.
+@dataclass
+class ConditionalExpected:
+    """Run averages of per-run exact statistics: the expected values conditional on the drawn
+    measurement patterns, accumulated over blocks of runs (`add` each block's `analyse`).
 
-    Uses sqrt(q) = 1/(2 sqrt(pi)) * int_0^inf (1 - exp(-t q)) t^-3/2 dt and the moment generating
-    function of a Gaussian quadratic form, E exp(-t q) = prod_i (1 + 2 t l_i)^-1/2
-    exp(-t b_i^2 / (1 + 2 t l_i)), with l_i the eigenvalues of P^-1/2 cov P^-1/2 and b the whitened
-    mean in their eigenbasis. After t = exp(u) the integrand is smooth and decays exponentially
-    at both ends, so the trapezoidal rule on a wide uniform grid is accurate to rounding.
-    For a consistent filter (mean 0, cov = P) this is the chi mean sqrt(2) G((n+1)/2) / G(n/2).
+    Per step k, over the runs whose estimate is defined at k (the architecture reports a
+    covariance there: the entries the Monte Carlo metrics keep, `metrics` eqs. 44-46),
+
+        mse_k = sum_r diag E_r[e_k e_k^T] / M_k,   nees_k = sum_r E_r[NEES_k] / M_k,
+        dm_k = sum_r E_r[DM_k] / M_k,
+
+    which is what the Monte Carlo per-step averages estimate, given the patterns; NaN where no
+    run is defined.
     """
-    out = np.full(P.shape[0], np.nan)
-    Linv = _whitening(P)
-    good = np.isfinite(Linv).all(axis=(-2, -1))
-    if not good.all():  # P not positive definite (to working precision): DM undefined (NaN)
-        Linv, mean, cov, P = Linv[good], mean[good], cov[good], P[good]
-    W = Linv @ cov @ mT(Linv)
-    lam, V = np.linalg.eigh(sym(W))
-    lam = np.clip(lam, 0.0, None)
-    b = np.einsum("kji,kj->ki", V, np.einsum("kij,kj->ki", Linv, mean))
-    u = np.linspace(-60.0, 60.0, nodes)
-    t = np.exp(u)
-    res = np.empty(P.shape[0])
-    for k0 in range(0, P.shape[0], 256):
-        sl = slice(k0, k0 + 256)
-        tl = t[None, :, None] * lam[sl, None, :]
-        log_mgf = -0.5 * np.log1p(2.0 * tl) - t[None, :, None] * b[sl, None, :] ** 2 / (1 + 2 * tl)
-        one_minus = -np.expm1(log_mgf.sum(axis=-1))
-        integrand = one_minus * np.exp(-0.5 * u)[None, :]
-        res[sl] = np.trapezoid(integrand, u, axis=-1) / (2.0 * np.sqrt(np.pi))
-    out[good] = res
-    return out
 
+    n_steps: int  # K + 1
+    n_states: int  # n
+    runs: int = 0
+    count: np.ndarray = field(init=False)  # (K+1,) runs with a defined estimate
+    mse_sum: np.ndarray = field(init=False)  # (K+1, n)
+    nees_sum: np.ndarray = field(init=False)  # (K+1,)
+    dm_sum: np.ndarray = field(init=False)  # (K+1,)
 
-def _whitening(P: np.ndarray) -> np.ndarray:
-    """W with W^T W = P^-1 for each P of a batch: the inverse Cholesky factor, or, where the
-    factorisation fails on a matrix that rounding left barely definite, diag(w)^-1/2 V^T from
-    its eigen-decomposition (any such W gives the same quadratic form); NaN where P is not
-    positive definite.
+    def __post_init__(self) -> None:
+        self.count = np.zeros(self.n_steps, dtype=np.int64)
+        self.mse_sum = np.zeros((self.n_steps, self.n_states))
+        self.nees_sum = np.zeros(self.n_steps)
+        self.dm_sum = np.zeros(self.n_steps)
 
-    A P whose diagonal spans more than 1e8 (a position known to 1e-150 beside a velocity known
-    to 0.1) is Jacobi-scaled first, P = D^1/2 Ps D^1/2 and W = chol(Ps)^-1 D^-1/2: the LU
-    inverse of its own Cholesky factor would put rounding garbage of 1e134 where a zero is.
-    The others are scaled by 1, which leaves their numbers as they were.
-    """
-    d = P.diagonal(0, -2, -1)
-    lo, hi = d.min(axis=-1), d.max(axis=-1)
-    wide = (lo > 0) & (hi > 1e8 * lo)
-    if wide.any():
-        s = 1.0 / np.sqrt(np.where(wide[..., None], d, 1.0))
-        return _whitening(P * (s[..., :, None] * s[..., None, :])) * s[..., None, :]
-    try:
-        return np.linalg.inv(np.linalg.cholesky(P))
-    except np.linalg.LinAlgError:
-        finite = np.isfinite(P).all(axis=(-2, -1))
-        w, V = np.linalg.eigh(np.where(finite[..., None, None], P, np.eye(P.shape[-1])))
-        pd = finite & (w[..., 0] > 0)
-        s = 1.0 / np.sqrt(np.where(pd[..., None], w, 1.0))
-        return np.where(pd[..., None, None], s[..., :, None] * mT(V), np.nan)
+    def add(self, ex: Expected, runs: int = 1) -> None:
+        """Add the per-run statistics (M, K+1, ...) of a block of runs, or those of a shared
+        plan (K+1, ...) as `runs` runs with that pattern."""
+        mse, nees, dm, ok = ex.mse_per_state, ex.nees, ex.dm, ex.defined
+        if nees.ndim == 1:
+            mse, nees, dm, ok = mse[None], nees[None], dm[None], ok[None]
+        else:
+            runs = 1
+        if nees.shape[1:] != (self.n_steps,) or mse.shape[2:] != (self.n_states,):
+            raise ValueError(
+                f"statistics of {nees.shape[1:]} steps and {mse.shape[2:]} states, "
+                f"expected ({self.n_steps},) and ({self.n_states},)"
+            )
+        self.runs += runs * nees.shape[0]
+        self.count += runs * ok.sum(axis=0)
+        self.mse_sum += runs * np.where(ok[..., None], mse, 0.0).sum(axis=0)
+        self.nees_sum += runs * np.where(ok, nees, 0.0).sum(axis=0)
+        self.dm_sum += runs * np.where(ok, dm, 0.0).sum(axis=0)
+
+    def merge(self, other: ConditionalExpected) -> ConditionalExpected:
+        """Add another accumulator's sums (same steps and states) into this one; returns self."""
+        if (other.n_steps, other.n_states) != (self.n_steps, self.n_states):
+            raise ValueError("cannot merge accumulators of different shapes")
+        self.runs += other.runs
+        for name in ("count", "mse_sum", "nees_sum", "dm_sum"):
+            setattr(self, name, getattr(self, name) + getattr(other, name))
+        return self
+
+    def _mean(self, total: np.ndarray) -> np.ndarray:
+        c = self.count.reshape(self.count.shape + (1,) * (total.ndim - 1))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(c > 0, total / np.maximum(c, 1), np.nan)
+
+    @property
+    def mse_per_state(self) -> np.ndarray:
+        """(K+1, n) run-averaged expected MSE of each state component (eq. 44)."""
+        return self._mean(self.mse_sum)
+
+    @property
+    def nees(self) -> np.ndarray:
+        """(K+1,) run-averaged expected NEES."""
+        return self._mean(self.nees_sum)
+
+    @property
+    def dm(self) -> np.ndarray:
+        """(K+1,) run-averaged expected DM (eq. 46)."""
+        return self._mean(self.dm_sum)

@@ -40,10 +40,12 @@ def evaluate_into(
     M = sens.runs()
     B = ev.block_runs(block)
     blocks = zip(
-        sens.iter_run_blocks(["/truth"], B), est.iter_run_blocks(ev.topics, B), strict=True
+        sens.iter_run_blocks(["/truth", *ev.sensor_topics], B),
+        est.iter_run_blocks(ev.topics, B),
+        strict=True,
     )
-    for (off, _runs, tdata), (_, _, edata) in progress(blocks, -(-M // B), "evaluate"):
-        ev.add(off, tdata["/truth"], edata)
+    for (off, _runs, sdata), (_, _, edata) in progress(blocks, -(-M // B), "evaluate"):
+        ev.add(off, sdata.pop("/truth"), edata, sdata)
     summary = ev.summary()
     # The summary is made first: a recording is never committed beside a summary that failed.
     text = dumps(summary, indent=2) + "\n" if summary_path is not None else None

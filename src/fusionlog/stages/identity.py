@@ -192,7 +192,13 @@ class _IdentityEvaluator(Evaluator):
     def block_runs(self, requested: int | None) -> int:
         return _block(self.K, self.M, self.sc.system.n, requested)
 
-    def add(self, run_offset: int, truth: np.ndarray, estimates: dict[str, Any]) -> None:
+    def add(
+        self,
+        run_offset: int,
+        truth: np.ndarray,
+        estimates: dict[str, Any],
+        sensors: dict[str, np.ndarray] | None = None,
+    ) -> None:
         n = self.sc.system.n
         try:
             classes = report_indices(truth[:, 0, 0], n, "/truth", allow_nan=False)

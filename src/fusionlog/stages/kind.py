@@ -57,14 +57,24 @@ class Evaluator(ABC):
 
     #: The estimates file's topics to read, and the runs per block.
     topics: list[str]
+    #: The sensors file's topics `add` needs besides /truth (none unless the kind says so).
+    sensor_topics: Sequence[str] = ()
 
     @abstractmethod
     def block_runs(self, requested: int | None) -> int:
         """Runs per block."""
 
     @abstractmethod
-    def add(self, run_offset: int, truth: np.ndarray, estimates: dict[str, Any]) -> None:
-        """Add one block: truth (runs, K+1, dim) and each topic's decoded estimates."""
+    def add(
+        self,
+        run_offset: int,
+        truth: np.ndarray,
+        estimates: dict[str, Any],
+        sensors: dict[str, np.ndarray] | None = None,
+    ) -> None:
+        """Add one block: truth (runs, K+1, dim), each topic's decoded estimates, and the
+        readings of `sensor_topics` ((runs, K+1, dim), NaN where absent; None when the caller
+        does not have them)."""
 
     @abstractmethod
     def summary(self) -> dict[str, Any]:

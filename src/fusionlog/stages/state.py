@@ -5,7 +5,10 @@ into a plan once per measurement pattern shared by a block's runs (:mod:`fusionl
 architectures`) and falls back to the per-run path when runs differ; evaluation accumulates
 MSE (eq. 45), NEES and the Mahalanobis distance (eq. 47) over blocks
 (:class:`fusionlog.core.metrics.MetricsAccumulator`) and puts the exact expected values of the
-covariance analysis (:func:`fusionlog.core.exact.analyse`) beside them.
+covariance analysis (:func:`fusionlog.core.exact.analyse`) beside them: for a measurement pattern
+shared by every run, those of its plan; for per-run patterns (dropouts), the average of each
+run's exact values given its pattern (:class:`fusionlog.core.exact.ConditionalExpected`), its
+plan built from the block's sensor readings.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from fusionlog.core.architectures import Plan, build_plan, estimate, run_plan, shared_pattern
-from fusionlog.core.exact import Expected, analyse
+from fusionlog.core.exact import ConditionalExpected, Expected, analyse
 from fusionlog.core.model import System
 from fusionlog.core.names import parse_arch
 from fusionlog.core.simulate import simulate
@@ -152,23 +155,25 @@ def _estimate_writer(mean: np.ndarray, cov: np.ndarray, shared: bool) -> StepWri
 
 
 def _analysable(prov: dict[str, str], filter_sys: System, truth_sys: System):
-    """(truth model as the filter saw it, measurement mask) for the exact analysis, or None.
+    """(truth model as the filter saw it, measurement mask, per run) for the exact analysis, or
+    None.
 
     The filter stacks its sensors in its own order, so the truth is re-ordered to match by
     sensor name (a `--model` may list them differently or use only some); sensors the truth
-    does not have, or missing measurements that differ between runs, leave no exact analysis.
+    does not have leave no exact analysis. `per run`: the runs' patterns differ (the mask is
+    then None: each block's plans are built from its sensor readings).
     """
     pattern = prov.get("measurement_pattern", "complete")
-    if pattern == "per-run":
-        return None
     names = [s.name for s in truth_sys.sensors]
     if any(s.name not in names for s in filter_sys.sensors):
         return None
     seen = truth_sys.subset([names.index(s.name) for s in filter_sys.sensors])
     if any(a.dim != b.dim for a, b in zip(seen.sensors, filter_sys.sensors, strict=True)):
         return None
+    if pattern == "per-run":
+        return seen, None, True
     mask = None if pattern == "complete" else np.array(json.loads(pattern), dtype=bool)
-    return seen, mask
+    return seen, mask, False
 
 
 def _known(arch: str, system: System) -> bool:
@@ -209,6 +214,16 @@ class _StateEvaluator(Evaluator):
         self.analysable = _analysable(prov, self.filter_sys, truth_sys)
         n = truth_sys.n
         self.accs = {a: MetricsAccumulator(self.K + 1, n) for a in self.archs}
+        # Per-run patterns: each run's exact values, summed block by block from its plan (the
+        # estimator's, rebuilt from the sensor readings: NaN = absent).
+        self.conditional: dict[str, ConditionalExpected] = {}
+        if self.analysable is not None and self.analysable[2]:
+            self.sensor_topics = [f"/sensors/{s.name}" for s in self.filter_sys.sensors]
+            self.conditional = {
+                a: ConditionalExpected(self.K + 1, n)
+                for a in self.archs
+                if _known(a, self.filter_sys)
+            }
         self.n_samples = min(sc.sample_runs, self.M)
         self.samples: dict[int, tuple[np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = {}
         self.plane_pts: dict[str, np.ndarray] = {}
@@ -220,10 +235,23 @@ class _StateEvaluator(Evaluator):
     def block_runs(self, requested: int | None) -> int:
         return block_runs(self.K, self.M, requested)
 
-    def add(self, run_offset: int, truth: np.ndarray, estimates: dict[str, Any]) -> None:
+    def add(
+        self,
+        run_offset: int,
+        truth: np.ndarray,
+        estimates: dict[str, Any],
+        sensors: dict[str, np.ndarray] | None = None,
+    ) -> None:
         x, off = truth, run_offset
         if x.shape[-1] != self.sc.system.n:
             raise FusionlogError(f"/truth has {x.shape[-1]} values per run, not {self.sc.system.n}")
+        if self.conditional:
+            if sensors is None or any(t not in sensors for t in self.sensor_topics):
+                # a block without its readings: the run average would miss its runs
+                self.conditional = {}
+            else:
+                z = np.concatenate([sensors[t] for t in self.sensor_topics], axis=-1)
+                self._add_conditional(z)
         for a, t in zip(self.archs, self.topics, strict=True):
             mean, cov = estimates[t]
             if mean.shape[-1] != x.shape[-1]:
@@ -240,14 +268,39 @@ class _StateEvaluator(Evaluator):
                 std = np.sqrt(np.clip(np.diagonal(c, axis1=-2, axis2=-1), 0, None))
                 self.samples.setdefault(r, (x[r - off], {}))[1][a] = (mean[r - off], std)
 
+    def _add_conditional(self, z: np.ndarray) -> None:
+        """Each run's exact statistics given its measurement pattern (z: the block's stacked
+        readings, (runs, K+1, m)), added to the run sums; a pattern shared by the block's
+        runs is analysed once."""
+        seen = self.analysable[0]
+        pattern = shared_pattern(z)
+        for a, acc in self.conditional.items():
+            if pattern is not None:
+                mask = None if pattern.all() else pattern
+                acc.add(analyse(build_plan(self.filter_sys, a, self.K, mask), seen), z.shape[0])
+            else:
+                acc.add(analyse(build_plan(self.filter_sys, a, self.K, ~np.isnan(z)), seen))
+
+    def _expected(self, a: str) -> tuple[Expected | ConditionalExpected | None, bool]:
+        """The exact expected values of architecture `a` (None: there are none) and whether
+        they are conditional on the drawn patterns (the run average of each run's)."""
+        if self.analysable is None or not _known(a, self.filter_sys):
+            return None, False
+        truth_seen, mask, per_run = self.analysable
+        if not per_run:
+            return analyse(build_plan(self.filter_sys, a, self.K, mask), truth_seen), False
+        cond = self.conditional.get(a)
+        # every run the Monte Carlo metrics saw must be in the average (a caller that merges
+        # accumulators from elsewhere, without their readings, leaves none)
+        if cond is None or cond.runs != self.accs[a].runs:
+            return None, False
+        return cond, True
+
     def summary(self) -> dict[str, Any]:
         arch_summary = {}
         for a in self.archs:
             res = self.accs[a].finalize(self.sc.confidence)
-            ex: Expected | None = None
-            if self.analysable is not None and _known(a, self.filter_sys):
-                truth_seen, mask = self.analysable
-                ex = analyse(build_plan(self.filter_sys, a, self.K, mask), truth_seen)
+            ex, conditional = self._expected(a)
             kw = (
                 {"expected_mse": ex.mse_per_state, "expected_nees": ex.nees, "expected_dm": ex.dm}
                 if ex is not None
@@ -255,6 +308,8 @@ class _StateEvaluator(Evaluator):
             )
             self._series[a] = res.series(**kw)
             arch_summary[a] = res.summary(**kw)
+            if conditional:  # DESIGN.md "summary.json": conditional on the drawn patterns
+                arch_summary[a]["expected"]["conditional"] = True
             if self._bounds is None:
                 self._bounds = (res.nees_lower, res.nees_upper)
         self._summary = {
