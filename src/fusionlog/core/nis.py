@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .linalg import sym
+from .linalg import mT, sym
 from .model import System
 
 __all__ = ["Innovations", "innovations", "whiteness"]
@@ -51,41 +51,47 @@ def innovations(
     measurements z (M, K+1, m), with noise covariance R (rows x rows; default the system's,
     per instant where it varies: `System.R_at`)."""
     M, K1, _ = z.shape
+    n = system.n
     H = system.H[rows]
     r = len(rows)
-    nis = np.full((M, K1), np.nan)
-    dof = np.zeros((M, K1), dtype=int)
-    out = np.full((M, K1, r), np.nan)
-    for k in range(K1):
-        if k == 0:
-            if system.prior is None:
-                continue
-            xp = np.broadcast_to(system.prior.mean, (M, system.n))
-            Pp = system.prior.cov
-        else:
-            F, Q = system.F_at(k), system.GQG_at(k)
-            xp = mean[:, k - 1] @ F.T
-            Pk = cov[k - 1] if cov.ndim == 3 else cov[:, k - 1]
-            Pp = sym(F @ Pk @ F.T + Q)
-        Rk = system.R_at(k)[np.ix_(rows, rows)] if R is None else R
-        zk = z[:, k, rows]
-        present = ~np.isnan(zk)  # (M, r)
-        if not present.any():
-            continue
-        ok = np.isfinite(xp).all(axis=-1) & np.isfinite(Pp).all(axis=(-2, -1))
-        nu = np.where(present, np.nan_to_num(zk) - xp @ H.T, 0.0)
-        S = sym(H @ Pp @ H.T + Rk)
-        pf = present.astype(float)
-        S = S * (pf[:, :, None] * pf[:, None, :]) + np.eye(r) * (1.0 - pf)[:, None, :]
-        try:
-            L = np.linalg.cholesky(S)
-        except np.linalg.LinAlgError:  # not positive definite for some run: no NIS there
-            continue
-        u = np.linalg.solve(L, nu[..., None])[..., 0]  # S^-1/2 nu (whitened by Cholesky)
-        use = ok & present.any(axis=-1)
-        nis[use, k] = (u[use] ** 2).sum(axis=-1)
-        dof[use, k] = present[use].sum(axis=-1)
-        out[use, k] = np.where(present[use], u[use], np.nan)
+    # The predictions of every instant at once: x_k^- = F_k x_{k-1}, P_k^- = F_k P F_k' + Q_k
+    # (k >= 1), the prior at k = 0 (none without a prior).
+    if system.time_invariant:
+        F = np.broadcast_to(system.F, (K1 - 1, n, n))
+        Q = np.broadcast_to(system.GQG, (K1 - 1, n, n))
+    else:
+        F = np.array([system.F_at(k) for k in range(1, K1)]).reshape(K1 - 1, n, n)
+        Q = np.array([system.GQG_at(k) for k in range(1, K1)]).reshape(K1 - 1, n, n)
+    xp = np.full((M, K1, n), np.nan)
+    xp[:, 1:] = np.einsum("kij,mkj->mki", F, mean[:, :-1])
+    Pp = np.full(cov.shape, np.nan)
+    Pp[..., 1:, :, :] = sym(F @ cov[..., :-1, :, :] @ mT(F) + Q)
+    if system.prior is not None:
+        xp[:, 0] = system.prior.mean
+        Pp[..., 0, :, :] = system.prior.cov
+    if R is None:
+        Rk = system.R[np.ix_(rows, rows)] if system.Rs is None else system.Rs[:, rows][:, :, rows]
+    else:
+        Rk = R
+    S = sym(H @ Pp @ H.T + Rk)  # ([M,] K+1, r, r)
+    zr = z[:, :, rows]
+    present = ~np.isnan(zr)  # (M, K+1, r)
+    usable = np.isfinite(xp).all(axis=-1) & np.isfinite(S).all(axis=(-2, -1))
+    nu = np.where(present, np.nan_to_num(zr) - xp @ H.T, 0.0)
+    pf = present.astype(float)
+    S = np.where(np.isfinite(S), S, np.eye(r))
+    S = S * (pf[..., :, None] * pf[..., None, :]) + np.eye(r) * (1.0 - pf)[..., None, :]
+    S = np.where(usable[..., None, None], S, np.eye(r))
+    try:
+        L = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:  # some S not positive definite: no NIS there
+        usable &= np.linalg.eigvalsh(S)[..., 0] > 0
+        L = np.linalg.cholesky(np.where(usable[..., None, None], S, np.eye(r)))
+    u = np.linalg.solve(L, nu[..., None])[..., 0]  # S^-1/2 nu (whitened by Cholesky)
+    use = usable & present.any(axis=-1)
+    nis = np.where(use, (u**2).sum(axis=-1), np.nan)
+    dof = np.where(use, present.sum(axis=-1), 0)
+    out = np.where(use[..., None] & present, u, np.nan)
     return Innovations(nis, dof, out)
 
 
