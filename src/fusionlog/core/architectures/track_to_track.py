@@ -320,7 +320,9 @@ class GmfStep:
             return
         S = J.shape[-1] // n
         E = np.tile(np.eye(n), (S, 1))
-        X, ok = solve_spd_or_flag(J, E)  # J^-1 E
+        X, ok = solve_spd_or_flag(J, E, GMF_PIVOT_RTOL)  # J^-1 E
+        big = np.abs(X).max(axis=(-2, -1)) * np.abs(J).max(axis=(-2, -1))
+        ok &= big < GMF_MAX_GROWTH
         if not ok.all():
             X[~ok] = E  # placeholders, replaced below
         W = X[..., :n, :]
@@ -336,6 +338,13 @@ class GmfStep:
         step.O, step.P = C, P
 
 
+#: A Cholesky pivot of J below this times its diagonal entry, or |J^-1 E| |J| beyond
+#: GMF_MAX_GROWTH, sends a GMF problem to the least-squares solution of the shared path:
+#: the closed form would amplify rounding by about that much, and where J is singular to
+#: working precision the weights are not unique (least squares takes the smallest). The
+#: paper's example stays at pivots above 1e-3 and growths below 200.
+GMF_PIVOT_RTOL = 1e-6
+GMF_MAX_GROWTH = 1e6
 #: At most this many GMF problems are solved one by one (below).
 GMF_ONE_BY_ONE = 256
 
