@@ -9,8 +9,6 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import TypeVar
 
-from tqdm import tqdm
-
 from fusionlog import __version__
 from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap import McapFile
@@ -32,9 +30,12 @@ def block_runs(steps: int, runs: int, requested: int | None = None) -> int:
 
 def progress(items: Iterable[T], total: int, desc: str) -> Iterator[T]:
     """A progress bar on a terminal, silence when stderr is piped or captured."""
-    yield from tqdm(
-        items, total=total, desc=desc, unit="block", disable=not sys.stderr.isatty(), leave=False
-    )
+    if not sys.stderr.isatty():  # what tqdm(disable=True) would do, without importing it
+        yield from items
+        return
+    from tqdm import tqdm  # here: ~0.03 s of import that a piped or captured run never needs
+
+    yield from tqdm(items, total=total, desc=desc, unit="block", leave=False)
 
 
 def sha256_of(path: Path) -> str:
@@ -85,9 +86,11 @@ def open_evaluation_inputs(
     Returns the two files, the estimates' provenance record and the recorded scenario."""
     sens = McapFile(sensors_path)
     est = McapFile(estimates_path)
-    if "/truth" not in sens.topics:
+    sc = scenario_from_file(sens) if SCENARIO_META in sens.metadata else None
+    if "/truth" not in sens.topics and (sc is None or sc.replay is None):
+        # a replayed recording without [truth] is evaluated without it (NIS); a simulation
+        # always has its truth
         raise FusionlogError(f"{sensors_path}: no /truth topic, nothing to evaluate against")
-    sc = scenario_from_file(sens)
     if sc is None:
         raise FusionlogError(f"{sensors_path}: no {SCENARIO_META} metadata (not a simulation)")
     prov = est.metadata.get(PROVENANCE_META, {})

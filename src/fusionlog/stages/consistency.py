@@ -120,10 +120,11 @@ class NisAccumulator:
                     if have.any()
                     else float("nan"),
                     "dof": float(self.dof[key][have].sum() / n) if n else float("nan"),
-                    "whiteness": whiteness(np.concatenate(self.white[key]))
-                    if self.white[key]
-                    else None,
                 }
+                white = whiteness(np.concatenate(self.white[key]) if self.white[key] else
+                                  np.zeros((0, 1, 1)))  # fmt: skip
+                # flat numbers (a summary's metrics are numbers): whiteness_<what>
+                entries[part] |= {f"whiteness_{k}": float(v) for k, v in white.items()}
             out[a] = (
                 entries["all"]
                 if list(entries) == ["all"]

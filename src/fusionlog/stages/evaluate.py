@@ -36,16 +36,17 @@ def evaluate_into(
     which exact expected values stand beside them is the kind's business (its Evaluator).
     """
     sens, est, prov, sc = open_evaluation_inputs(sensors_path, estimates_path)
-    ev = kind_of(sc.kind).evaluator(sc, est, prov)
+    ev = kind_of(sc.kind).evaluator(sc, est, prov, sens)
     M = sens.runs()
     B = ev.block_runs(block)
+    truth = ["/truth"] if "/truth" in sens.topics else []  # a recorded log may have none
     blocks = zip(
-        sens.iter_run_blocks(["/truth", *ev.sensor_topics], B),
+        sens.iter_run_blocks(truth + list(ev.sensor_topics), B),
         est.iter_run_blocks(ev.topics, B),
         strict=True,
     )
     for (off, _runs, sdata), (_, _, edata) in progress(blocks, -(-M // B), "evaluate"):
-        ev.add(off, sdata.pop("/truth"), edata, sdata)
+        ev.add(off, sdata.pop("/truth", None), edata, sdata)
     summary = ev.summary()
     # The summary is made first: a recording is never committed beside a summary that failed.
     text = dumps(summary, indent=2) + "\n" if summary_path is not None else None

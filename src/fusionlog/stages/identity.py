@@ -112,7 +112,11 @@ class IdentityKind(Kind):
         return _IdentityEstimator(system, steps, runs, archs, sensors.path)
 
     def evaluator(
-        self, scenario: Scenario, estimates: McapFile, provenance: dict[str, str]
+        self,
+        scenario: Scenario,
+        estimates: McapFile,
+        provenance: dict[str, str],
+        sensors: McapFile | None = None,
     ) -> Evaluator:
         return _IdentityEvaluator(scenario, estimates)
 

@@ -159,6 +159,11 @@ class Kind(ABC):
 
     @abstractmethod
     def evaluator(
-        self, scenario: Scenario, estimates: McapFile, provenance: dict[str, str]
+        self,
+        scenario: Scenario,
+        estimates: McapFile,
+        provenance: dict[str, str],
+        sensors: McapFile | None = None,
     ) -> Evaluator:
-        """An evaluator of the estimates against the scenario's truth."""
+        """An evaluator of the estimates against the scenario's truth (`sensors`: the sensors
+        file, when the evaluation has it: its structure and per-message covariances)."""

@@ -93,9 +93,13 @@ class StateKind(Kind):
         return _StateEstimator(system, steps, runs, archs, topics)
 
     def evaluator(
-        self, scenario: Scenario, estimates: McapFile, provenance: dict[str, str]
+        self,
+        scenario: Scenario,
+        estimates: McapFile,
+        provenance: dict[str, str],
+        sensors: McapFile | None = None,
     ) -> Evaluator:
-        return _StateEvaluator(scenario, estimates, provenance)
+        return _StateEvaluator(scenario, estimates, provenance, sensors)
 
 
 class _StateEstimator(Estimator):
@@ -187,7 +191,9 @@ def _known(arch: str, system: System) -> bool:
 class _StateEvaluator(Evaluator):
     """MSE, NEES, DM per architecture with exact expected values; sample runs; state plane."""
 
-    def __init__(self, sc: Scenario, est: McapFile, prov: dict[str, str]) -> None:
+    def __init__(
+        self, sc: Scenario, est: McapFile, prov: dict[str, str], sens: McapFile | None = None
+    ) -> None:
         # here, not at the top: core.metrics imports scipy.special (~0.25 s), which only an
         # evaluation needs, and this module is loaded by simulate and estimate too
         from fusionlog.core.metrics import MetricsAccumulator
@@ -205,6 +211,9 @@ class _StateEvaluator(Evaluator):
             else sc.system
         )
         self.filter_sys = on_times(filter_sys, est)
+        if sens is not None:  # an imported log's per-message R, for the filter and the truth
+            self.filter_sys = with_message_covariances(self.filter_sys, sens)
+            truth_sys = with_message_covariances(truth_sys, sens)
         if self.filter_sys.n != truth_sys.n:
             raise FusionlogError(
                 f"{est.path}: estimates of {self.filter_sys.n} states, the truth has {truth_sys.n}"
@@ -224,6 +233,30 @@ class _StateEvaluator(Evaluator):
                 for a in self.archs
                 if _known(a, self.filter_sys)
             }
+        # Truth-free consistency (NIS) and each sensor's availability, from the readings.
+        from .consistency import NisAccumulator  # core.metrics, as above
+
+        self.has_truth = sens is None or "/truth" in sens.topics
+        self.nis: Any = None  # a NisAccumulator
+        self.measured: dict[str, np.ndarray] = {}
+        self.scheduled: dict[str, np.ndarray] = {}
+        self.trace = {a: np.zeros(self.K + 1) for a in self.archs}
+        # Only where they say something: a replayed recording (NIS), sensors with their own
+        # timing (availability); the paper's scenarios keep their summaries and recordings.
+        replay = sc.replay is not None
+        timed = replay or any(not s.timing.default for s in sc.system.sensors)
+        if (
+            timed
+            and sens is not None
+            and all(f"/sensors/{s.name}" in sens.topics for s in self.filter_sys.sensors)
+        ):
+            self.sensor_topics = [f"/sensors/{s.name}" for s in self.filter_sys.sensors]
+            known = [a for a in self.archs if _known(a, self.filter_sys)]
+            if replay:
+                self.nis = NisAccumulator(self.filter_sys, known, self.K + 1)
+            for s in self.filter_sys.sensors:
+                self.scheduled[s.name] = sens.topic_steps(f"/sensors/{s.name}")
+                self.measured[s.name] = np.zeros(self.K + 1)
         self.n_samples = min(sc.sample_runs, self.M)
         self.samples: dict[int, tuple[np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = {}
         self.plane_pts: dict[str, np.ndarray] = {}
@@ -242,9 +275,13 @@ class _StateEvaluator(Evaluator):
         estimates: dict[str, Any],
         sensors: dict[str, np.ndarray] | None = None,
     ) -> None:
-        x, off = truth, run_offset
+        off = run_offset
+        runs = next(iter(estimates.values()))[0].shape[0]
+        x = truth if truth is not None else np.full((runs, self.K + 1, self.sc.system.n), np.nan)
         if x.shape[-1] != self.sc.system.n:
             raise FusionlogError(f"/truth has {x.shape[-1]} values per run, not {self.sc.system.n}")
+        if self.measured and sensors is not None:
+            self._add_consistency(sensors, estimates)
         if self.conditional:
             if sensors is None or any(t not in sensors for t in self.sensor_topics):
                 # a block without its readings: the run average would miss its runs
@@ -258,7 +295,11 @@ class _StateEvaluator(Evaluator):
                 raise FusionlogError(
                     f"{t}: estimates of {mean.shape[-1]} states, the truth has {x.shape[-1]}"
                 )
-            self.accs[a].add(x, mean, cov)
+            self.trace[a] += np.trace(cov, axis1=-2, axis2=-1).sum(axis=0) * (
+                x.shape[0] if cov.ndim == 3 else 1
+            )
+            if self.has_truth:
+                self.accs[a].add(x, mean, cov)
             if self.sc.plane_view and off == 0:
                 self.plane_truth = x[0]
                 self.plane_pts[a] = np.moveaxis(mean[:PLANE_POINTS], 0, 1)  # (K+1, P, 2)
@@ -267,6 +308,14 @@ class _StateEvaluator(Evaluator):
                 c = cov if cov.ndim == 3 else cov[r - off]
                 std = np.sqrt(np.clip(np.diagonal(c, axis1=-2, axis2=-1), 0, None))
                 self.samples.setdefault(r, (x[r - off], {}))[1][a] = (mean[r - off], std)
+
+    def _add_consistency(self, sensors: dict[str, np.ndarray], estimates: dict[str, Any]) -> None:
+        """NIS of each architecture and the sensors' availability, for one block."""
+        if self.nis is not None:
+            z = np.concatenate([sensors[t] for t in self.sensor_topics], axis=-1)
+            self.nis.add(z, {a: estimates[f"/estimates/{a}"] for a in self.nis.archs})
+        for s, t in zip(self.filter_sys.sensors, self.sensor_topics, strict=True):
+            self.measured[s.name] += (~np.isnan(sensors[t]).any(axis=-1)).sum(axis=0)
 
     def _add_conditional(self, z: np.ndarray) -> None:
         """Each run's exact statistics given its measurement pattern (z: the block's stacked
@@ -298,7 +347,12 @@ class _StateEvaluator(Evaluator):
 
     def summary(self) -> dict[str, Any]:
         arch_summary = {}
+        nis = self.nis.summary(self.sc.confidence) if self.nis is not None else {}
         for a in self.archs:
+            if not self.has_truth:  # a recorded log without truth: what needs none
+                mean_trace = float(np.nanmean(self.trace[a] / self.M))
+                arch_summary[a] = {"mean_trace": mean_trace} | ({"nis": nis[a]} if a in nis else {})
+                continue
             res = self.accs[a].finalize(self.sc.confidence)
             ex, conditional = self._expected(a)
             kw = (
@@ -310,6 +364,8 @@ class _StateEvaluator(Evaluator):
             arch_summary[a] = res.summary(**kw)
             if conditional:  # DESIGN.md "summary.json": conditional on the drawn patterns
                 arch_summary[a]["expected"]["conditional"] = True
+            if a in nis:
+                arch_summary[a]["nis"] = nis[a]
             if self._bounds is None:
                 self._bounds = (res.nees_lower, res.nees_upper)
         self._summary = {
@@ -343,6 +399,8 @@ class _StateEvaluator(Evaluator):
     def write_recording(self, file: BinaryIO, times: np.ndarray, provenance: dict) -> None:
         from fusionlog.io.rrd import write_recording  # rerun: slow to import, needed only here
 
+        from .consistency import availability
+
         write_recording(
             file,
             scenario_name=self.sc.name,
@@ -356,4 +414,10 @@ class _StateEvaluator(Evaluator):
             sample_runs=self.samples,
             properties={"scenario": self.sc.source, "provenance": provenance},
             plane=self._plane(),
+            availability={
+                name: availability(self.measured[name], self.scheduled[name], self.M)
+                for name in self.measured
+            },
+            nis=self.nis.series(self.sc.confidence) if self.nis is not None else None,
+            traces=None if self.has_truth else {a: t / self.M for a, t in self.trace.items()},
         )

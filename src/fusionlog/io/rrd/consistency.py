@@ -56,8 +56,11 @@ def write_consistency(
         w.points(entity_path("sensors", name, "measured"), v, name, class_color(i))
 
 
-def consistency_views(nis: NisSeries, availability: Mapping[str, np.ndarray]) -> list:
-    """A "Consistency without truth" tab (one NIS view per architecture) and a "Sensors" tab."""
+def consistency_views(
+    nis: NisSeries, availability: Mapping[str, np.ndarray], traces: bool = False
+) -> list:
+    """A "Consistency without truth" tab (one NIS view per architecture, and the trace of P
+    when there is no truth to show it beside), and a "Sensors" tab."""
     tabs: list = []
     if nis:
         views = [
@@ -68,6 +71,8 @@ def consistency_views(nis: NisSeries, availability: Mapping[str, np.ndarray]) ->
             )
             for arch, parts in nis.items()
         ]
+        if traces:
+            views.append(time_series_view("trace of P", [query("metrics", "trace") + "/**"]))
         tabs.append(rrb.Grid(*views, name="Consistency without truth"))
     if availability:
         tabs.append(

@@ -82,6 +82,7 @@ def write_recording(
     plane: Mapping[str, Any] | None = None,
     availability: Mapping[str, np.ndarray] | None = None,
     nis: NisSeries | None = None,
+    traces: Mapping[str, np.ndarray] | None = None,
 ) -> None:
     """Write the evaluation recording into the binary file object `file`.
 
@@ -99,7 +100,8 @@ def write_recording(
     availability: {sensor: (K+1,) share of runs measured, NaN where the sensor does not
     measure}, drawn in a "Sensors" tab.
     nis: {ARCH: {part: (run-averaged NIS, band lower, band upper)}} (`.consistency`).
-    Without truth (a replay of a recorded log), `series` may be empty.
+    Without truth (a replay of a recorded log), `series` may be empty and `traces` ({ARCH:
+    (K+1,) trace of P}) gives Fig. 6's curves.
 
     Raises FusionlogError if the data are inconsistent (before anything is written) and
     OutputError if writing `file` fails.
@@ -115,13 +117,18 @@ def write_recording(
     check_consistency(file, times.shape[0], nis, avail)
     # Instants k dt with dt = 1 read the same on both timelines; otherwise time is the axis.
     timeline = "step" if np.array_equal(times, np.arange(len(times))) else "time"
-    extra = consistency_views(nis, avail)
+    traces = {a: np.asarray(t, dtype=float) for a, t in (traces or {}).items()}
+    extra = consistency_views(nis, avail, bool(traces))
     blueprint = _blueprint(state_names, series, samples, plane is not None, extra, timeline)
     args = (scenario_name, seed, times, summary, properties, recording_id)
     with recording_stream(file, blueprint, *args) as w:
         _write_metrics(w, state_names, series, nees_bounds, confidence)
         _write_sample_runs(w, state_names, samples)
         write_consistency(w, nis, avail)
+        for arch, t in traces.items():
+            w.line(
+                entity_path("metrics", "trace", arch), t, arch, arch_color(arch), arch_width(arch)
+            )
         if plane is not None:
             write_plane(w, plane)
 
