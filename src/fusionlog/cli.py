@@ -509,8 +509,18 @@ def inspect(file, recover) -> None:
         click.echo(f"  runs: {mf.runs()}, instants: {mf.steps()} (k = 0..{mf.steps() - 1})")
     else:
         click.echo("  no fusionlog topics (no fusionlog.Block or fusionlog.EstimateBlock streams)")
+    foreign = {}
+    if len(ours) < len(mf.topics):  # any MCAP's topics: encoding and rate from its indexes
+        from fusionlog.io.replay import list_topics
+
+        foreign = {t: (enc, rate) for t, _, enc, _, rate in list_topics(file)}
     for t in sorted(mf.topics):
-        kind = f"dim {mf.dim_of(t)}" if t in ours else "not a fusionlog stream"
+        if t in ours:
+            kind = f"dim {mf.dim_of(t)}"
+        else:
+            enc, rate = foreign.get(t, ("?", None))
+            hz = f", {rate:.4g} Hz" if rate else ""
+            kind = f"not a fusionlog stream ({enc}{hz}; replay it with a replay file)"
         click.echo(f"  {t:32s} {mf.topics[t]:8d} messages  {mf.schema_of(t)}  {kind}")
         if t.startswith("/sensors/") and t in ours:
             click.echo(f"  {'':32s} {_sensor_timing(mf, t)}")
