@@ -241,6 +241,7 @@ class _StateEvaluator(Evaluator):
         self.measured: dict[str, np.ndarray] = {}
         self.scheduled: dict[str, np.ndarray] = {}
         self.trace = {a: np.zeros(self.K + 1) for a in self.archs}
+        self.measured_points: dict[int, dict[str, np.ndarray]] = {}
         # Only where they say something: a replayed recording (NIS), sensors with their own
         # timing (availability); the paper's scenarios keep their summaries and recordings.
         replay = sc.replay is not None
@@ -314,6 +315,14 @@ class _StateEvaluator(Evaluator):
         if self.nis is not None:
             z = np.concatenate([sensors[t] for t in self.sensor_topics], axis=-1)
             self.nis.add(z, {a: estimates[f"/estimates/{a}"] for a in self.nis.archs})
+            if not self.measured_points:  # the first run's readings of a state, under its estimates
+                for s, t in zip(self.filter_sys.sensors, self.sensor_topics, strict=True):
+                    for row, h in enumerate(s.H):
+                        if np.count_nonzero(h) == 1 and h.max() == 1.0:
+                            state = int(np.argmax(h))
+                            self.measured_points.setdefault(state, {})[s.name] = sensors[t][
+                                0, :, row
+                            ]
         for s, t in zip(self.filter_sys.sensors, self.sensor_topics, strict=True):
             self.measured[s.name] += (~np.isnan(sensors[t]).any(axis=-1)).sum(axis=0)
 
@@ -420,4 +429,5 @@ class _StateEvaluator(Evaluator):
             },
             nis=self.nis.series(self.sc.confidence) if self.nis is not None else None,
             traces=None if self.has_truth else {a: t / self.M for a, t in self.trace.items()},
+            measured=self.measured_points,
         )

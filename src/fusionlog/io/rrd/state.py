@@ -45,7 +45,7 @@ from .consistency import NisSeries, check_consistency, consistency_views, write_
 from .legend import legend_box, place_legend
 from .plane import check_plane, write_plane
 from .stream import SeriesWriter, check_axes, entity_path, recording_error, recording_stream
-from .style import BOUND_COLOR, CKF, TRUTH_COLOR, arch_color, arch_width
+from .style import BOUND_COLOR, CKF, TRUTH_COLOR, arch_color, arch_width, class_color
 from .views import query, tabbed_blueprint, time_series_view
 
 __all__ = ["write_recording"]
@@ -83,6 +83,7 @@ def write_recording(
     availability: Mapping[str, np.ndarray] | None = None,
     nis: NisSeries | None = None,
     traces: Mapping[str, np.ndarray] | None = None,
+    measured: Mapping[int, Mapping[str, np.ndarray]] | None = None,
 ) -> None:
     """Write the evaluation recording into the binary file object `file`.
 
@@ -101,7 +102,9 @@ def write_recording(
     measure}, drawn in a "Sensors" tab.
     nis: {ARCH: {part: (run-averaged NIS, band lower, band upper)}} (`.consistency`).
     Without truth (a replay of a recorded log), `series` may be empty and `traces` ({ARCH:
-    (K+1,) trace of P}) gives Fig. 6's curves.
+    (K+1,) trace of P}) gives Fig. 6's curves. measured: {state index: {sensor: (K+1,)}},
+    the first sample run's readings of sensors that measure a state directly (dots
+    ``runs/0/<state>/measured/<sensor>`` under the estimates).
 
     Raises FusionlogError if the data are inconsistent (before anything is written) and
     OutputError if writing `file` fails.
@@ -124,6 +127,10 @@ def write_recording(
     with recording_stream(file, blueprint, *args) as w:
         _write_metrics(w, state_names, series, nees_bounds, confidence)
         _write_sample_runs(w, state_names, samples)
+        for i, by_sensor in (measured or {}).items():
+            for j, (sensor, v) in enumerate(by_sensor.items()):
+                p = entity_path("runs", 0, state_names[i], "measured", sensor)
+                w.points(p, v, f"{sensor} (measured)", class_color(j))
         write_consistency(w, nis, avail)
         for arch, t in traces.items():
             w.line(
