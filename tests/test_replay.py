@@ -44,9 +44,7 @@ def _streams():
     sc = load_scenario(REPLAY)
     out = []
     for sen, st in zip(sc.system.sensors, sc.replay.sensors, strict=True):
-        s = read_series(st.source, topic=st.topic, values=st.values, time=st.time,
-                        time_unit=st.time_unit, covariance=st.covariance,
-                        covariance_index=st.covariance_index)  # fmt: skip
+        s = read_series(st.source, **st.reader_args())
         out.append((sen, s))
     return sc, out
 

@@ -166,6 +166,15 @@ def _one_executor(workers: int | None, scheduler: str | None) -> None:
         raise click.UsageError("--workers and --scheduler: give one of them, not both")
 
 
+def _out_dir(default: str):
+    """The --out-dir option of a command that writes several outputs into one folder."""
+    return click.option(
+        "--out-dir",
+        type=click.Path(path_type=Path, file_okay=False),
+        help=f"Output folder (default {default}).",
+    )
+
+
 @main.command()
 @click.argument("scenario", type=PATH)
 @click.option("-o", "--output", type=OUTPUT, required=True, help="Sensors MCAP file to write.")
@@ -242,11 +251,7 @@ def evaluate(sensors, estimates, output, summary_path, force, block_runs) -> Non
 
 @main.command()
 @click.argument("scenario", type=PATH)
-@click.option(
-    "--out-dir",
-    type=click.Path(path_type=Path, file_okay=False),
-    help="Output folder (default recordings/<scenario name>/).",
-)
+@_out_dir("recordings/<scenario name>/")
 @_runs
 @_steps
 @_seed
@@ -328,11 +333,7 @@ def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, 
     "(0.5,1,2) or start:stop:num[:log]. Repeat for a grid (the product).",
 )
 @_runs
-@click.option(
-    "--out-dir",
-    type=click.Path(path_type=Path, file_okay=False),
-    help="Output folder (default recordings/<scenario name>_sweep/).",
-)
+@_out_dir("recordings/<scenario name>_sweep/")
 @_arch
 @_workers
 @_scheduler
@@ -464,67 +465,16 @@ def compare(actual, golden, rtol, atol) -> None:
     click.echo(f"{actual} matches {golden} (rtol={rtol:g}, atol={atol:g})")
 
 
-def _sensor_timing(mf, topic: str) -> str:
-    """A sensor's rate (its instants per second of the log), and the share of its readings
-    lost (NaN) over all runs."""
-    at = mf.topic_steps(topic)
-    times = mf.times()[at]
-    span = float(times[-1] - times[0]) if len(times) > 1 else 0.0
-    rate = f"{(len(times) - 1) / span:.4g} Hz" if span > 0 else "one instant"
-    share = mf.lost_share(topic)
-    return f"measures at {at.sum()} of {len(at)} instants ({rate}), {100 * share:.1f} % lost"
-
-
 @main.command()
 @click.argument("file", type=PATH)
 @click.option("--recover", is_flag=True, help="Read a damaged file as far as it goes.")
 def inspect(file, recover) -> None:
-    """Show what is in an MCAP file: scenario, topics, message counts, runs, steps."""
-    from fusionlog.io.mcap import McapFile
-    from fusionlog.io.mcap import recover as recover_file
+    """Show what is in an MCAP file: scenario, topics, message counts, runs, steps, rates."""
+    from fusionlog.stages.inspect import describe, describe_damaged
 
     _warn_stale([file])
-    if recover:
-        info = recover_file(file)
-        click.echo(f"{file}: {'damaged: ' + str(info['error']) if info['error'] else 'intact'}")
-        for t, c in sorted(info["topics"].items()):
-            click.echo(f"  {t:32s} {c:8d} messages readable")
-        click.echo(
-            f"  complete runs: {info['complete_runs']}, "
-            f"last complete step: {info['last_complete_step']}"
-        )
-        click.echo(f"  metadata: {', '.join(sorted(info['metadata'])) or 'none'}")
-        return
-    mf = McapFile(file)
-    sc = mf.metadata.get("fusionlog.scenario", {})
-    prov = mf.metadata.get("fusionlog.provenance", {})
-    click.echo(f"{file}")
-    if sc:
-        click.echo(f"  scenario: {sc.get('name')} (seed {sc.get('seed')})")
-    if prov:
-        version = prov.get("fusionlog_version", "?")
-        click.echo(f"  written by: {prov.get('command', '?')} (fusionlog {version})")
-    ours = [t for t in mf.topics if mf.kind_of(t) is not None]
-    if ours:
-        click.echo(f"  runs: {mf.runs()}, instants: {mf.steps()} (k = 0..{mf.steps() - 1})")
-    else:
-        click.echo("  no fusionlog topics (no fusionlog.Block or fusionlog.EstimateBlock streams)")
-    foreign = {}
-    if len(ours) < len(mf.topics):  # any MCAP's topics: encoding and rate from its indexes
-        from fusionlog.io.replay import list_topics
-
-        foreign = {t: (enc, rate) for t, _, enc, _, rate in list_topics(file)}
-    for t in sorted(mf.topics):
-        if t in ours:
-            kind = f"dim {mf.dim_of(t)}"
-        else:
-            enc, rate = foreign.get(t, ("?", None))
-            hz = f", {rate:.4g} Hz" if rate else ""
-            kind = f"not a fusionlog stream ({enc}{hz}; replay it with a replay file)"
-        click.echo(f"  {t:32s} {mf.topics[t]:8d} messages  {mf.schema_of(t)}  {kind}")
-        if t.startswith("/sensors/") and t in ours:
-            click.echo(f"  {'':32s} {_sensor_timing(mf, t)}")
-    click.echo(f"  metadata: {', '.join(sorted(mf.metadata)) or 'none'}")
+    for line in describe_damaged(file) if recover else describe(file):
+        click.echo(line)
 
 
 if __name__ == "__main__":

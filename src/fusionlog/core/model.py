@@ -167,21 +167,9 @@ class System:
         cross = {
             (pos[i], pos[j]): Rij for (i, j), Rij in self.cross_R.items() if i in pos and j in pos
         }
-        return System(
-            F=self.F,
-            Q=self.Q,
-            G=self.G,
-            sensors=tuple(self.sensors[j] for j in indices),
-            prior=self.prior,
-            cross_R=cross,
-            initial=self.initial,
-            dt=self.dt,
-            state_names=self.state_names,
-            continuous=self.continuous,
-            Fs=self.Fs,
-            Qs=self.Qs,
-            Rs=None if self.Rs is None else self.Rs[:, rows][:, :, rows],
-        )
+        Rs = None if self.Rs is None else self.Rs[:, rows][:, :, rows]
+        sensors = tuple(self.sensors[j] for j in indices)
+        return dataclasses.replace(self, sensors=sensors, cross_R=cross, Rs=Rs)
 
     def sensor_index(self, name: str) -> int:
         for j, s in enumerate(self.sensors):

@@ -74,18 +74,8 @@ def model_section(
             raise ctx.err(
                 f"model.{key}", "missing required key (give kind = 'constant-velocity' or F and Q)"
             )
-    F = toml.matrix(ctx, md["F"], "model.F", scalar=True)
-    if F.shape[0] != F.shape[1]:
-        raise ctx.err("model.F", f"must be square, got {toml.shape(F)}")
+    F, state_names = _square(ctx, md, "F", state_names)
     n = F.shape[0]
-    if state_names is None:
-        state_names = tuple(f"x{i + 1}" for i in range(n))
-    elif len(state_names) != n:
-        raise ctx.err(
-            "model.F",
-            f"shape {toml.shape(F)} does not match the {len(state_names)} "
-            f"scenario.state_names (expected {len(state_names)}x{len(state_names)})",
-        )
     G = None
     q = n
     if "G" in md:
@@ -139,17 +129,8 @@ def _continuous(
     for key in ("A", "Qc"):
         if key not in md:
             raise ctx.err(f"model.{key}", "missing required key (kind = 'continuous' needs it)")
-    A = toml.matrix(ctx, md["A"], "model.A", scalar=True)
-    if A.shape[0] != A.shape[1]:
-        raise ctx.err("model.A", f"must be square, got {toml.shape(A)}")
+    A, state_names = _square(ctx, md, "A", state_names)
     n = A.shape[0]
-    if state_names is None:
-        state_names = tuple(f"x{i + 1}" for i in range(n))
-    elif len(state_names) != n:
-        raise ctx.err(
-            "model.A",
-            f"shape {toml.shape(A)} does not match the {len(state_names)} scenario.state_names",
-        )
     Qc = toml.covariance(ctx, md["Qc"], "model.Qc", n, strict=False)
     with np.errstate(all="ignore"):
         F, Q = van_loan(A, Qc, dt)
@@ -157,6 +138,26 @@ def _continuous(
         raise ctx.err("model.A", f"expm(A dt) overflows for dt = {toml.fmt(dt)}")
     A = toml.readonly(np.array(A))
     return toml.readonly(F), toml.readonly(Q), None, state_names, dt, (A, Qc)
+
+
+def _square(
+    ctx: Ctx, md: dict[str, Any], key: str, state_names: tuple[str, ...] | None
+) -> tuple[np.ndarray, tuple[str, ...]]:
+    """[model].<key> (F or A): a square matrix, and the state names it has room for
+    (x1, x2, ... when the scenario names none)."""
+    M = toml.matrix(ctx, md[key], f"model.{key}", scalar=True)
+    if M.shape[0] != M.shape[1]:
+        raise ctx.err(f"model.{key}", f"must be square, got {toml.shape(M)}")
+    n = M.shape[0]
+    if state_names is None:
+        return M, tuple(f"x{i + 1}" for i in range(n))
+    if len(state_names) != n:
+        raise ctx.err(
+            f"model.{key}",
+            f"shape {toml.shape(M)} does not match the {len(state_names)} "
+            f"scenario.state_names (expected {len(state_names)}x{len(state_names)})",
+        )
+    return M, state_names
 
 
 def sensor_timing(ctx: Ctx, t: dict[str, Any], where: str) -> SensorTiming:

@@ -66,6 +66,11 @@ class Stream:
     covariance: str | None = None
     covariance_index: tuple[int, ...] | None = None
 
+    def reader_args(self) -> dict[str, Any]:
+        """The keyword arguments of `fusionlog.io.replay.read_series` besides the source."""
+        return {k: getattr(self, k) for k in ("topic", "values", "time", "time_unit",
+                                              "covariance", "covariance_index")}  # fmt: skip
+
 
 @dataclass(frozen=True)
 class Replay:

@@ -36,7 +36,7 @@ from fusionlog.io.mcap import VALUES, McapFile, McapWriter
 from fusionlog.scenario import Scenario, check_identity_architectures, load_model
 
 from .common import block_runs
-from .kind import Estimator, Evaluator, Kind, Model, StepWriter
+from .kind import Array, Estimator, Evaluator, Kind, Model, Prov, Readings, Sens, StepWriter, Topics
 
 #: Default bound on masses held at once by DS (runs x 2^N), as RUN_STEPS_PER_BLOCK for steps.
 DS_MASSES_PER_BLOCK = 1 << 21
@@ -111,14 +111,8 @@ class IdentityKind(Kind):
     ) -> Estimator:
         return _IdentityEstimator(system, steps, runs, archs, sensors.path)
 
-    def evaluator(
-        self,
-        scenario: Scenario,
-        estimates: McapFile,
-        provenance: dict[str, str],
-        sensors: McapFile | None = None,
-    ) -> Evaluator:
-        return _IdentityEvaluator(scenario, estimates)
+    def evaluator(self, sc: Scenario, est: McapFile, prov: Prov, sens: Sens = None) -> Evaluator:
+        return _IdentityEvaluator(sc, est)
 
 
 def _with_archs(sc: Scenario) -> dict[str, Any]:
@@ -196,22 +190,16 @@ class _IdentityEvaluator(Evaluator):
     def block_runs(self, requested: int | None) -> int:
         return _block(self.K, self.M, self.sc.system.n, requested)
 
-    def add(
-        self,
-        run_offset: int,
-        truth: np.ndarray,
-        estimates: dict[str, Any],
-        sensors: dict[str, np.ndarray] | None = None,
-    ) -> None:
+    def add(self, off: int, truth: Array, estimates: Topics, sensors: Readings = None) -> None:
         n = self.sc.system.n
         try:
             classes = report_indices(truth[:, 0, 0], n, "/truth", allow_nan=False)
         except ValueError as e:
-            raise FusionlogError(f"{self.path}: runs from {run_offset}: {e}") from None
+            raise FusionlogError(f"{self.path}: runs from {off}: {e}") from None
         if (truth[..., 0] != truth[:, :1, 0]).any():
-            raise FusionlogError(f"{self.path}: runs from {run_offset}: the true class changes")
+            raise FusionlogError(f"{self.path}: runs from {off}: the true class changes")
         ests = {a: estimates[t] for a, t in zip(self.archs, self.topics, strict=True)}
-        self.metrics.add(classes, ests, run_offset)
+        self.metrics.add(classes, ests, off)
 
     def summary(self) -> dict[str, Any]:
         res = self.metrics.finish()

@@ -31,6 +31,15 @@ class Model(NamedTuple):
     architectures: list[str]  # the default when --arch is not given
 
 
+#: The argument types of the evaluation hooks: an array (None: no truth), the decoded
+#: topics of a block, the sensor readings of a block (None: not read), the provenance record,
+#: the sensors file (None: not at hand).
+Array = np.ndarray | None
+Topics = dict[str, Any]
+Readings = dict[str, np.ndarray] | None
+Prov = dict[str, str]
+Sens = McapFile | None
+
 #: Writes one step of one topic: (writer, topic, step, time, run_offset).
 StepWriter = Callable[[McapWriter, str, int, float, int], None]
 
@@ -65,13 +74,7 @@ class Evaluator(ABC):
         """Runs per block."""
 
     @abstractmethod
-    def add(
-        self,
-        run_offset: int,
-        truth: np.ndarray,
-        estimates: dict[str, Any],
-        sensors: dict[str, np.ndarray] | None = None,
-    ) -> None:
+    def add(self, off: int, truth: Array, estimates: Topics, sensors: Readings = None) -> None:
         """Add one block: truth (runs, K+1, dim), each topic's decoded estimates, and the
         readings of `sensor_topics` ((runs, K+1, dim), NaN where absent; None when the caller
         does not have them)."""
@@ -158,12 +161,6 @@ class Kind(ABC):
         """An estimator of every run with `archs`."""
 
     @abstractmethod
-    def evaluator(
-        self,
-        scenario: Scenario,
-        estimates: McapFile,
-        provenance: dict[str, str],
-        sensors: McapFile | None = None,
-    ) -> Evaluator:
+    def evaluator(self, sc: Scenario, est: McapFile, prov: Prov, sens: Sens = None) -> Evaluator:
         """An evaluator of the estimates against the scenario's truth (`sensors`: the sensors
         file, when the evaluation has it: its structure and per-message covariances)."""

@@ -47,16 +47,7 @@ class _Sensor:
 def _read(stream: Stream, what: str):
     from fusionlog.io.replay import read_series  # the decoders: only an import needs them
 
-    return read_series(
-        stream.source,
-        topic=stream.topic,
-        values=stream.values,
-        time=stream.time,
-        time_unit=stream.time_unit,
-        covariance=stream.covariance,
-        covariance_index=stream.covariance_index,
-        what=what,
-    )
+    return read_series(stream.source, **stream.reader_args(), what=what)
 
 
 def _usable(cov: np.ndarray) -> np.ndarray:

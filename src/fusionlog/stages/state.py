@@ -30,7 +30,7 @@ from fusionlog.io.mcap import McapFile, McapWriter
 from fusionlog.scenario import Scenario, load_model, system_from_dict, system_to_dict
 
 from .common import block_runs
-from .kind import Estimator, Evaluator, Kind, Model, StepWriter
+from .kind import Array, Estimator, Evaluator, Kind, Model, Prov, Readings, Sens, StepWriter, Topics
 from .noise import with_message_covariances
 
 #: Sample estimates per architecture drawn in the state-plane view.
@@ -92,14 +92,8 @@ class StateKind(Kind):
         system = with_message_covariances(on_times(system, sensors), sensors)
         return _StateEstimator(system, steps, runs, archs, topics)
 
-    def evaluator(
-        self,
-        scenario: Scenario,
-        estimates: McapFile,
-        provenance: dict[str, str],
-        sensors: McapFile | None = None,
-    ) -> Evaluator:
-        return _StateEvaluator(scenario, estimates, provenance, sensors)
+    def evaluator(self, sc: Scenario, est: McapFile, prov: Prov, sens: Sens = None) -> Evaluator:
+        return _StateEvaluator(sc, est, prov, sens)
 
 
 class _StateEstimator(Estimator):
@@ -269,14 +263,7 @@ class _StateEvaluator(Evaluator):
     def block_runs(self, requested: int | None) -> int:
         return block_runs(self.K, self.M, requested)
 
-    def add(
-        self,
-        run_offset: int,
-        truth: np.ndarray,
-        estimates: dict[str, Any],
-        sensors: dict[str, np.ndarray] | None = None,
-    ) -> None:
-        off = run_offset
+    def add(self, off: int, truth: Array, estimates: Topics, sensors: Readings = None) -> None:
         runs = next(iter(estimates.values()))[0].shape[0]
         x = truth if truth is not None else np.full((runs, self.K + 1, self.sc.system.n), np.nan)
         if x.shape[-1] != self.sc.system.n:

@@ -58,9 +58,8 @@ def build_hkf(request: BuildRequest) -> Plan:
     steady = Steady(present, system)
     K1 = request.horizon
     for k in range(K1):
-        request.step = k
+        parent = request.begin(k)  # on history nodes: each node continues its parent's
         first = k == 0
-        parent = request.parent(k)  # on history nodes: each node continues its parent's
         if front.any_info:
             st = front.step(request.mask(k), k, parent)
             steps.append(StepMap(st.T, st.U, st.O, st.P, st.D))

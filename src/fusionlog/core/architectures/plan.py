@@ -278,6 +278,11 @@ class BuildRequest:
         (U_k, m) per node."""
         return self.present[..., k, :] if self.nodes is None else self.nodes.present[k]
 
+    def begin(self, k: int) -> np.ndarray | None:
+        """Start building step k (a numerical failure names it): its `parent`."""
+        self.step = k
+        return self.parent(k)
+
     def parent(self, k: int) -> np.ndarray | None:
         """Per node: the node of step k - 1 of each node of step k, to carry a recursion's
         state from step to step (`linalg.take_runs`); None otherwise."""

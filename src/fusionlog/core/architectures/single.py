@@ -25,8 +25,7 @@ def filter_plan(
     steady = Steady(present, system)
     K1 = request.horizon
     for k in range(K1):
-        request.step = k
-        st = kf.step(request.mask(k), k, request.parent(k))
+        st = kf.step(request.mask(k), k, request.begin(k))
         steps.append(StepMap(st.T, st.U, st.O, st.P, st.D))
         infos.append(kf.mat if kf.any_info else None)
         if not kf.any_info and steady.reached(kf.mat):

@@ -119,9 +119,8 @@ def local_filters(
     steady = Steady(present, system)
     K1 = request.horizon
     for k in range(K1):
-        request.step = k
+        parent = request.begin(k)  # on history nodes: each node continues its parent's
         first = k == 0
-        parent = request.parent(k)  # on history nodes: each node continues its parent's
         st = locs.step(request.mask(k), k, parent)
         stack = locs.mat.shape  # batch + (S, n, n)
         if joint and parent is not None:

@@ -95,16 +95,9 @@ def read_series(
     if kind == ".mcap":
         if not isinstance(topic, str) or not topic:
             raise fail(source, what, "an MCAP source needs a topic")
-        return read_mcap(
-            source,
-            topic=topic,
-            values=list(values),
-            time=time,
-            time_unit=time_unit,
-            covariance=covariance,
-            covariance_index=covariance_index,
-            what=what,
-        )
+        kw = {"time_unit": time_unit, "covariance": covariance, "what": what}
+        return read_mcap(source, topic=topic, values=list(values), time=time,
+                         covariance_index=covariance_index, **kw)  # fmt: skip
     if kind == ".csv":
         if topic is not None:
             raise fail(source, what, f"topic {topic!r} given for a CSV source (topics are MCAP's)")
