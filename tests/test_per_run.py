@@ -5,7 +5,7 @@ The per-run path computes with the batch kernels of `core.linalg` (products, Cho
 solves, inverses written entry by entry over the runs) once the batch is large, groups the
 runs by measurement history (`HistoryNodes`) and runs the plan on the runs-last layout. Each
 test runs three ways: `nodes` (what `estimate` does: maps per history, the kernels wherever a
-step has at least `linalg.KERNEL_MIN_BATCH` histories), `runs` (no grouping: 80 runs through
+step has at least `kernels.KERNEL_MIN_BATCH` histories), `runs` (no grouping: 80 runs through
 the kernels at every step) and `forced` (grouping, and the kernels for every batch, even one
 matrix).
 """
@@ -19,7 +19,7 @@ import pytest
 from conftest import random_spd, random_system
 from filterpy.kalman import KalmanFilter
 
-from fusionlog.core import linalg
+from fusionlog.core import kernels, linalg
 from fusionlog.core.architectures import (
     STATE_ARCHITECTURES,
     HistoryNodes,
@@ -43,7 +43,7 @@ def path(request, monkeypatch) -> str:
     if request.param == "runs":
         monkeypatch.setattr(registry, "NODES_AT_MOST", 0.0)
     if request.param == "forced":
-        monkeypatch.setattr(linalg, "KERNEL_MIN_BATCH", 1)
+        monkeypatch.setattr(kernels, "KERNEL_MIN_BATCH", 1)
     return request.param
 
 
@@ -192,7 +192,7 @@ def test_kernels_equal_numpy_and_redo_what_they_cannot_factor(monkeypatch):
     """mm, solve (Cholesky and pivoted LU), spd_inv, inv_or_nan and is_invertible on a large
     batch equal numpy's routines to rounding; singular matrices take numpy's route one by one
     (the pseudo-inverse solution, NaN inverses), and the results are in the lanes layout."""
-    monkeypatch.setattr(linalg, "KERNEL_MIN_BATCH", 64)
+    monkeypatch.setattr(kernels, "KERNEL_MIN_BATCH", 64)
     rng = np.random.default_rng(0)
     B = 200
     for n in (1, 2, 3, 5):
