@@ -401,18 +401,18 @@ def test_ci_routes_agree(N, criterion):
     the edges, or the active-set Newton method; each route's answer is certified optimal, and
     the Newton method alone (with the n = 2 rational costs, and with the matrix costs of any
     n) finds the same costs on every problem."""
-    from fusionlog.core.fusion import _ci_finish, _Info2, _InfoN, _representatives
+    from fusionlog.core.ci_newton import Info2, InfoN, finish, representatives
 
     rng = np.random.default_rng(N + len(criterion))
     Ys = _ci_problems(rng, 100, N, 2)
     Ys = Ys / np.trace(Ys.mean(axis=1), axis1=1, axis2=2)[:, None, None, None]  # unit scale
     trace = criterion == "trace"
-    rep = _representatives(lambda k, i: (Ys[:, k] == Ys[:, i]).all(axis=(1, 2)), len(Ys), N)
+    rep = representatives(lambda k, i: (Ys[:, k] == Ys[:, i]).all(axis=(1, 2)), len(Ys), N)
     with np.errstate(all="ignore"):  # as in ci_omegas: infeasible trial points cost inf
         answers = [
             ci_omegas(Ys, criterion),
-            _ci_finish(_Info2.of(Ys[..., 0, 0], Ys[..., 0, 1], Ys[..., 1, 1], trace), rep),
-            _ci_finish(_InfoN.of(Ys, trace), rep),
+            finish(Info2.of(Ys[..., 0, 0], Ys[..., 0, 1], Ys[..., 1, 1], trace), rep),
+            finish(InfoN.of(Ys, trace), rep),
         ]
     costs = []
     for W in answers:

@@ -245,7 +245,7 @@ def test_no_prior_run_without_measurements_stays_undefined(path):
     z[0, :4] = np.nan
     for arch in STATE_ARCHITECTURES:
         if arch == "CI":
-            continue  # its weights are another module's (fusion.ci_omegas)
+            continue  # its weights are another module's (ci.ci_omegas)
         est = estimate(system, z, arch)
         assert np.isnan(est.cov[0, :5]).all() or arch == "FBS", arch
         assert np.isfinite(est.mean[1:, 2:]).all(), arch
