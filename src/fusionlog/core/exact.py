@@ -33,7 +33,7 @@ from .architectures import Plan, StepMap
 from .linalg import mT, numerical_errors, sym, wide_diagonal
 from .model import System
 from .quadratic_form import (
-    _whitening,
+    whitening,
     expected_sqrt_quadratic,
     expected_sqrt_quadratic_many,
     nees_and_dm_many,
@@ -373,7 +373,7 @@ def _analyse(plan: Plan, truth: System, where) -> Expected:
         if batch:  # every run and step: closed forms and fitted grids (nees_and_dm_many)
             nees_k, dm_k, definite = nees_and_dm_many(Pk, bk, mk)
         else:
-            W = _whitening(Pk)
+            W = whitening(Pk)
             definite = np.isfinite(W).all(axis=(-2, -1))
         if not definite.all():
             failed = np.zeros_like(ok)
@@ -383,7 +383,7 @@ def _analyse(plan: Plan, truth: System, where) -> Expected:
                 "precision (no NEES or DM)"
             )
         if not batch:
-            # For badly scaled P (see _whitening) P^-1 = W^T W; otherwise LU's inverse.
+            # For badly scaled P (see whitening) P^-1 = W^T W; otherwise LU's inverse.
             Pinv = mT(W) @ W if wide_diagonal(Pk) else np.linalg.inv(Pk)
             nees_k = np.einsum("kij,kji->k", Pinv, mk)
             cov = mk - np.einsum("ki,kj->kij", bk, bk)

@@ -58,9 +58,9 @@ def _fixed_grid(lam: np.ndarray, b: np.ndarray, nodes: int = 1601) -> np.ndarray
 def _whitened(P: np.ndarray, mean: np.ndarray, cov: np.ndarray, Linv: np.ndarray | None = None):
     """(good, l, b): which P are positive definite (to working precision; DM is undefined, NaN,
     for the others), and for those the eigenvalues l >= 0 of W cov W^T (W^T W = P^-1, `Linv`
-    if given, else `_whitening`) and the whitened mean W mean in their eigenbasis."""
+    if given, else `whitening`) and the whitened mean W mean in their eigenbasis."""
     if Linv is None:
-        Linv = _whitening(P)
+        Linv = whitening(P)
     good = np.isfinite(Linv).all(axis=(-2, -1))
     if not good.all():
         Linv, mean, cov = Linv[good], mean[good], cov[good]
@@ -105,7 +105,7 @@ def nees_and_dm_many(
     else:
         good, (lam, b) = _spectrum_small(P, mean, cov)
         retry = ~good & np.isfinite(P).all(axis=(-2, -1))
-        if retry.any():  # barely definite: `_whitening`'s eigen-decomposition may accept it
+        if retry.any():  # barely definite: `whitening`'s eigen-decomposition may accept it
             ok, lr, br = _whitened(P[retry], mean[retry], cov[retry])
             if ok.any():
                 good_r = np.flatnonzero(retry)[ok]
@@ -122,7 +122,7 @@ def expected_sqrt_quadratic_many(
     P: np.ndarray, mean: np.ndarray, cov: np.ndarray, whitening: np.ndarray | None = None
 ) -> np.ndarray:
     """`expected_sqrt_quadratic` for a large batch (N, n, n), to ~1e-15 (`_spectral_dm`).
-    `whitening`: `_whitening(P)` when the caller has it."""
+    `whitening`: `whitening(P)` when the caller has it."""
     out = np.full(P.shape[0], np.nan)
     good, lam, b = _whitened(P, mean, cov, whitening)
     out[good] = _spectral_dm(lam, b)
@@ -337,7 +337,7 @@ def _tail_sums(
     return total + np.sqrt(e_top) * above
 
 
-def _whitening(P: np.ndarray) -> np.ndarray:
+def whitening(P: np.ndarray) -> np.ndarray:
     """W with W^T W = P^-1 for each P of a batch: the inverse Cholesky factor, or, where the
     factorisation fails on a matrix that rounding left barely definite, diag(w)^-1/2 V^T from
     its eigen-decomposition (any such W gives the same quadratic form); NaN where P is not
@@ -353,7 +353,7 @@ def _whitening(P: np.ndarray) -> np.ndarray:
     wide = (lo > 0) & (hi > 1e8 * lo)
     if wide.any():
         s = 1.0 / np.sqrt(np.where(wide[..., None], d, 1.0))
-        return _whitening(P * (s[..., :, None] * s[..., None, :])) * s[..., None, :]
+        return whitening(P * (s[..., :, None] * s[..., None, :])) * s[..., None, :]
     try:
         return np.linalg.inv(np.linalg.cholesky(P))
     except np.linalg.LinAlgError:
