@@ -33,10 +33,10 @@ from .architectures import Plan, StepMap
 from .linalg import mT, numerical_errors, sym, wide_diagonal
 from .model import System
 from .quadratic_form import (
-    whitening,
     expected_sqrt_quadratic,
     expected_sqrt_quadratic_many,
     nees_and_dm_many,
+    whitening,
 )
 
 __all__ = [
