@@ -12,7 +12,7 @@ Cases (the project's issue 6 targets):
    against FilterPy's `KalmanFilter` running only the CKF in memory on the same z (read back from
    the sensors.mcap the run wrote; update at k = 0, predict + update after). FilterPy is timed on a
    subset of the runs and scaled linearly to M. The two are timed alternately, several times, and
-   medians are compared. Target: fusionlog run >= 2x faster.
+   medians are compared. Target: fusionlog run >= 3x faster (issue 11; issue 6 asked 2x).
 2. Estimation core: the JSON of `bench_core.py --json` (passed with --core-json; run_all.py does
    this). Target: every architecture >= 20x simdkalman's CKF throughput.
 3. Scale: the paper's five architectures, K = 20, M = 10^5 and 10^6 (--quick: 10^4 and 10^5).
@@ -56,6 +56,7 @@ except ImportError:  # running from a checkout without `pip install -e .`
 from bench_core import filterpy_ckf  # noqa: E402
 
 from fusionlog.core.names import PAPER_ARCHITECTURES  # noqa: E402
+from fusionlog.io.atomic import Outputs  # noqa: E402
 from fusionlog.io.mcap import McapFile, McapWriter  # noqa: E402
 from fusionlog.stages.common import scenario_from_file  # noqa: E402
 
@@ -66,8 +67,8 @@ OUTPUTS = ("sensors.mcap", "estimates.mcap", "evaluation.rrd", "summary.json")
 MIB = 1024.0**2
 GIB = 1024.0**3
 
-# Targets of issue 6.
-T_PAPER_SPEEDUP = 2.0
+# Targets of issue 6 (the paper example's raised to 3x by issue 11).
+T_PAPER_SPEEDUP = 3.0
 T_CORE_X_SIMDKALMAN = 20.0
 T_SCALE_RSS_GIB = 2.0
 T_SCALE_RATIO = 11.0
@@ -453,22 +454,25 @@ def mcap_layer_rates(out: Path, work: Path) -> dict[str, dict[str, float]]:
         times = f.times()
         copy = work / f"copy-{name}"
         t0 = time.perf_counter()
-        with McapWriter(copy, force=True) as w:
-            for k in range(len(times)):
-                for topic in topics:
-                    d = data[topic]
-                    if isinstance(d, tuple):
-                        mean, cov = d
-                        w.write_estimate(
-                            topic,
-                            k,
-                            times[k],
-                            0,
-                            mean[:, k],
-                            cov[k] if cov.ndim == 3 else cov[:, k],
-                        )
-                    else:
-                        w.write_values(topic, k, times[k], 0, d[:, k])
+        # the way the stages write: through Outputs (temporary file, fsync, rename on commit)
+        with Outputs([copy], force=True) as outs:
+            with McapWriter(outs.open(copy)) as w:
+                for k in range(len(times)):
+                    for topic in topics:
+                        d = data[topic]
+                        if isinstance(d, tuple):
+                            mean, cov = d
+                            w.write_estimate(
+                                topic,
+                                k,
+                                times[k],
+                                0,
+                                mean[:, k],
+                                cov[k] if cov.ndim == 3 else cov[:, k],
+                            )
+                        else:
+                            w.write_values(topic, k, times[k], 0, d[:, k])
+            outs.commit()
         t_write = time.perf_counter() - t0
         copy.unlink()
         res[name] = {"messages": n, "read_per_s": n / t_read, "write_per_s": n / t_write}
@@ -738,7 +742,7 @@ def print_report(res: dict) -> list[dict]:
     res["throughput"] = rows
 
     if targets:
-        print("Targets (issue 6)")
+        print("Targets (issue 6; the paper example's 3x from issue 11)")
         head = f"{'target':44s} {'measured':>22s} {'goal':>12s}  status"
         print(head)
         print("-" * len(head))
