@@ -187,7 +187,7 @@ def test_merged_blocks_equal_one_accumulation() -> None:
     totals: dict = {}
     for off, n in parts:
         fold(totals, block_sums(job, off, n))
-    x, est, _ = block_estimates(job, 0, 900)
+    x, _, est, _ = block_estimates(job, 0, 900)
     for a in job.archs:
         one = MetricsAccumulator(sc.instants, sc.system.n)
         one.add(x, est[a].mean, est[a].cov)
@@ -226,13 +226,51 @@ def test_exact_only_column_is_the_covariance_analysis_point_by_point(tmp_path: P
     assert summary["lowest_mse"]["CKF"]["by"] == "expected"
 
 
-def test_dropout_points_have_no_exact_values_yet(tmp_path: Path) -> None:
+def test_dropout_points_have_the_conditional_expected_values_of_fusionlog_run(
+    tmp_path: Path,
+) -> None:
+    """A point whose runs drop measurements has no exact analysis of its own: its expected
+    values are the run averages of each run's, given its pattern, as `fusionlog run` reports
+    them for the same runs; --exact-only has no runs, hence none."""
     d = tmp_path / "drop"
     ok("sweep", AJGL, "--vary", "sensors.s1.dropout=0,0.3", "--runs", "300", "--workers", "0",
-       "--arch", "CKF", "--out-dir", d)  # fmt: skip
+       "--block-runs", "120", "--arch", "CKF", "--arch", "MSC", "--out-dir", d)  # fmt: skip
     rows = table(d).to_pylist()
-    assert rows[0]["expected_mse"] is not None and rows[1]["expected_mse"] is None
-    assert rows[1]["mse"] is not None and rows[1]["runs"] == 300
+    assert all(r["expected_mse"] is not None and r["mse"] is not None for r in rows)
+    summary = json.loads((d / "summary.json").read_text())
+    point = summary["points"][1]
+    assert point["architectures"]["CKF"]["expected"]["conditional"] is True
+    toml = tmp_path / "drop.toml"
+    toml.write_text(AJGL.read_text().replace('name = "s1"', 'name = "s1"\ndropout = 0.3'))
+    ok("run", toml, "--runs", "300", "--seed", str(point["seed"]), "--arch", "CKF", "--arch", "MSC",
+       "--out-dir", tmp_path / "r")  # fmt: skip
+    run = json.loads((tmp_path / "r" / "summary.json").read_text())["architectures"]
+    for a in ("CKF", "MSC"):
+        want, got = run[a], point["architectures"][a]
+        assert want["expected"]["conditional"] is True
+        for m in ("mse", "anees", "dm"):
+            assert got["expected"][m] == pytest.approx(want["expected"][m], rel=1e-10), (a, m)
+            assert got[m] == pytest.approx(want[m], rel=1e-10), (a, m)
+    e = tmp_path / "exact"
+    ok("sweep", AJGL, "--vary", "sensors.s1.dropout=0.3", "--exact-only", "--arch", "CKF",
+       "--out-dir", e)  # fmt: skip
+    assert table(e).column("expected_mse").to_pylist() == [None]
+
+
+def test_distributed_run_with_dropouts_keeps_the_conditional_expected_values(
+    tmp_path: Path,
+) -> None:
+    drop = ROOT / "pipeline" / "ajgl2009_dropout.toml"
+    args = ("run", drop, "--runs", "400", "--block-runs", "150", "--arch", "CKF", "--arch", "FBS")
+    ok(*args, "--out-dir", tmp_path / "local")
+    ok(*args, "--workers", "0", "--out-dir", tmp_path / "dist")
+    got = json.loads((tmp_path / "dist" / "summary.json").read_text())["architectures"]
+    want = json.loads((tmp_path / "local" / "summary.json").read_text())["architectures"]
+    for a in ("CKF", "FBS"):
+        assert got[a]["expected"]["conditional"] is True
+        for m in ("mse", "anees", "dm"):
+            assert got[a]["expected"][m] == pytest.approx(want[a]["expected"][m], rel=1e-10)
+            assert got[a][m] == pytest.approx(want[a][m], rel=1e-10)
 
 
 def test_several_keys_make_the_product_and_a_line_per_other_value(tmp_path: Path) -> None:

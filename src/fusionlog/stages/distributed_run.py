@@ -34,7 +34,15 @@ from fusionlog.scenario import Scenario
 from .common import provenance
 from .distributed import executor
 from .kinds import kind_of
-from .montecarlo import Job, block_estimates, block_sums, blocks, fold, pattern_provenance
+from .montecarlo import (
+    Job,
+    block_estimates,
+    block_sums,
+    blocks,
+    exact_mask,
+    fold,
+    pattern_provenance,
+)
 
 __all__ = ["DISTRIBUTED_OUTPUTS", "DistributedRun", "run_distributed"]
 
@@ -106,21 +114,23 @@ def run_distributed(
     archs = kind.check_architectures(list(archs) or list(sc.architectures), sc.system, "--arch")
     targets = [Path(out_dir) / name for name in DISTRIBUTED_OUTPUTS]
     inputs = [Path(sc.path)] if sc.path else []
-    job = Job(sc, tuple(archs), uuid.uuid4().hex)
+    # runs whose patterns differ (dropouts): the workers also sum each run's exact statistics
+    job = Job(sc, tuple(archs), uuid.uuid4().hex, not exact_mask(sc)[0])
     local = min(sc.runs, max(sc.sample_runs, PLANE_RUNS if sc.plane_view else 0, 1))
     remote = _remote_blocks(sc, local, block)
     t0 = time.perf_counter()
     with Outputs(targets, force=force, inputs=inputs) as outs, executor(workers, scheduler) as ex:
         totals: dict[str, Any] = {}  # arch -> the workers' sums, merged in block order
+        conditional: dict[str, Any] = {}  # arch -> their conditional expected sums
         patterns: set[bytes | None] = set()  # the blocks' shared patterns (two: per-run)
         with contextlib.closing(
             ex.map([(block_sums, (job, off, n)) for off, n in remote], "run")
         ) as results:
             # the sample runs here while the workers start on the rest
-            x, est, pattern = block_estimates(job, 0, local)
+            x, z, est, pattern = block_estimates(job, 0, local)
             patterns.add(None if pattern is None else np.packbits(pattern).tobytes())
             for s in results:
-                fold(totals, s)
+                fold(totals, s, conditional)
                 if len(patterns) < 2:
                     patterns.add(s.pattern)
         ex.release()  # the cluster closes while the summary and the recording are made
@@ -133,12 +143,21 @@ def run_distributed(
             **pattern_provenance(sorted(patterns, key=repr), (sc.instants, sc.system.m)),
         )
         ev = kind.evaluator(sc, _Unwritten(sc, archs), prov)
-        ev.add(0, x, {f"/estimates/{a}": (e.mean, e.cov) for a, e in est.items()})
+        slices = dict(zip(kind.sensor_names(sc.system), sc.system.sensor_slices, strict=True))
+        readings = {f"/sensors/{name}": z[..., sl] for name, sl in slices.items()}
+        ev.add(0, x, {f"/estimates/{a}": (e.mean, e.cov) for a, e in est.items()}, readings)
         accs = getattr(ev, "accs", None)
         if not isinstance(accs, dict):  # pragma: no cover - the state Evaluator has them
             raise TypeError("the state kind's Evaluator keeps no metric accumulators (accs)")
         for a, acc in totals.items():
             accs[a].merge(acc)
+        # the evaluator's run averages of each run's exact statistics (per-run patterns): the
+        # workers' join the sample runs'; without them it reports no expected values
+        own = getattr(ev, "conditional", None)
+        if isinstance(own, dict):
+            for a, ce in conditional.items():
+                if a in own:
+                    own[a].merge(ce)
         summary = ev.summary()
         text = dumps(summary, indent=2) + "\n"  # before the recording, as evaluate does
         ev.write_recording(outs.open(targets[0]), sc.times, prov)

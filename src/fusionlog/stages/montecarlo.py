@@ -29,7 +29,6 @@ from typing import Any, TypeVar
 import numpy as np
 
 from fusionlog.core.architectures import Estimate, Plan, build_plan, run_plan, shared_pattern
-from fusionlog.core.architectures import estimate as estimate_per_run
 from fusionlog.core.model import System
 from fusionlog.scenario import Scenario
 
@@ -64,6 +63,9 @@ class Job:
     scenario: Scenario
     archs: tuple[str, ...]
     token: str
+    #: also sum each run's exact statistics given its measurement pattern (runs whose patterns
+    #: differ: dropouts), the expected values conditional on the drawn patterns
+    conditional: bool = False
 
 
 @dataclass
@@ -77,6 +79,8 @@ class BlockSums:
     sums: dict[str, Any]  # arch -> MetricsAccumulator
     pattern: bytes | None
     seconds: float = 0.0
+    #: arch -> core.exact.ConditionalExpected of the block's runs (conditional jobs only)
+    expected: dict[str, Any] | None = None
 
 
 @dataclass
@@ -156,22 +160,33 @@ def _compiled(job: Job) -> _Compiled:
 @_one_blas_thread
 def block_estimates(
     job: Job, run_offset: int, runs: int
-) -> tuple[np.ndarray, dict[str, Estimate], np.ndarray | None]:
-    """Truth (runs, K+1, n), each architecture's estimates and the shared measurement pattern
-    (None when runs differ) of runs [run_offset, run_offset + runs): as the estimate stage
-    computes them, one plan per architecture and pattern, the per-run path otherwise."""
+) -> tuple[np.ndarray, np.ndarray, dict[str, Estimate], np.ndarray | None]:
+    """Truth (runs, K+1, n), the stacked readings (runs, K+1, m; NaN where absent), each
+    architecture's estimates and the shared measurement pattern (None when runs differ) of runs
+    [run_offset, run_offset + runs): as the estimate stage computes them."""
+    x, z, plans, pattern = _block(job, run_offset, runs)
+    return x, z, {a: run_plan(plan, z) for a, plan in plans.items()}, pattern
+
+
+def _block(
+    job: Job, run_offset: int, runs: int
+) -> tuple[np.ndarray, np.ndarray, dict[str, Plan], np.ndarray | None]:
+    """Truth, readings, each architecture's plan and the shared pattern of a block: one plan
+    per architecture and shared pattern (compiled once per job), or one built for the block's
+    runs when their patterns differ (what `core.architectures.estimate` does)."""
     sc = job.scenario
     c = _compiled(job)
     x, zs = kind_of(sc.kind).simulate(sc, run_offset, runs)
     z = np.concatenate(zs, axis=-1)
     pattern = shared_pattern(z)
-    out: dict[str, Estimate] = {}
-    for a in job.archs:
-        if pattern is None:
-            out[a] = estimate_per_run(c.system, z, a)
-        else:
-            out[a] = run_plan(_plan(job, c, a, pattern), z)
-    return x, out, pattern
+    K = sc.instants - 1
+    plans = {
+        a: _plan(job, c, a, pattern)
+        if pattern is not None
+        else build_plan(c.system, a, K, ~np.isnan(z))
+        for a in job.archs
+    }
+    return x, z, plans, pattern
 
 
 def _plan(job: Job, c: _Compiled, arch: str, pattern: np.ndarray) -> Plan:
@@ -192,29 +207,49 @@ def block_sums(job: Job, run_offset: int, runs: int) -> BlockSums:
     from fusionlog.core.metrics import MetricsAccumulator, MetricsWorkspace
 
     t0 = time.perf_counter()
-    x, est, pattern = block_estimates(job, run_offset, runs)
+    x, z, plans, pattern = _block(job, run_offset, runs)
     ws = getattr(_LOCAL, "workspace", None)
     if ws is None:
         ws = _LOCAL.workspace = MetricsWorkspace()
     sums = {}
     empty = MetricsWorkspace()
-    for a, e in est.items():
+    for a, plan in plans.items():
+        e = run_plan(plan, z)
         acc = MetricsAccumulator(x.shape[1], x.shape[2], workspace=ws)
         acc.add(x, e.mean, e.cov)
         acc.workspace = empty  # the scratch arrays stay here: only the sums travel
         sums[a] = acc
+    expected = _conditional(job, plans, runs) if job.conditional else None
     key = None if pattern is None else np.packbits(pattern).tobytes()
-    return BlockSums(run_offset, runs, sums, key, time.perf_counter() - t0)
+    return BlockSums(run_offset, runs, sums, key, time.perf_counter() - t0, expected)
 
 
-def fold(totals: dict[str, Any], block: BlockSums) -> None:
+def _conditional(job: Job, plans: dict[str, Plan], runs: int) -> dict[str, Any]:
+    """Each run's exact statistics given its pattern, summed (`core.exact.ConditionalExpected`,
+    as the state evaluator sums them): a plan shared by the block's runs is analysed once."""
+    from fusionlog.core.exact import ConditionalExpected, analyse
+
+    c = _compiled(job)
+    out = {}
+    for a, plan in plans.items():
+        ce = ConditionalExpected(job.scenario.instants, c.system.n)
+        ce.add(analyse(plan, c.system), 1 if plan.per_run else runs)
+        out[a] = ce
+    return out
+
+
+def fold(totals: dict[str, Any], block: BlockSums, expected: dict[str, Any] | None = None) -> None:
     """Add a block's sums to running totals by architecture (the first block's become the
-    totals). Callers fold blocks in block order: the same additions for any cluster."""
-    for a, acc in block.sums.items():
-        if a in totals:
-            totals[a].merge(acc)
-        else:
-            totals[a] = acc
+    totals), and its conditional expected sums to `expected` when given. Callers fold blocks
+    in block order: the same additions for any cluster."""
+    for into, parts in ((totals, block.sums), (expected, block.expected)):
+        if into is None or parts is None:
+            continue
+        for a, acc in parts.items():
+            if a in into:
+                into[a].merge(acc)
+            else:
+                into[a] = acc
 
 
 def pattern_provenance(patterns: Sequence[bytes | None], shape: tuple[int, int]) -> dict[str, str]:
@@ -246,10 +281,12 @@ def exact_mask(scenario: Scenario) -> tuple[bool, np.ndarray | None]:
 
 def expected_overall(ex: Any) -> dict[str, float | None]:
     """Overall expected MSE (eq. 45 on the exact per-step values), ANEES and DM of an exact
-    analysis (`core.exact.Expected`): means over the steps where the architecture reports a
-    covariance, which are the steps where its Monte Carlo estimates are defined, the steps
-    `MetricsResult.expected_overall` averages over (non-finite entries skipped likewise)."""
-    valid = np.isfinite(ex.P).all(axis=(-2, -1))
+    analysis (`core.exact.Expected`, or a run average `ConditionalExpected`): means over the
+    steps where the architecture reports a covariance (some run does), which are the steps
+    where its Monte Carlo estimates are defined, the steps `MetricsResult.expected_overall`
+    averages over (non-finite entries skipped likewise)."""
+    # a run average (ConditionalExpected) counts the runs defined at each step
+    valid = ex.count > 0 if hasattr(ex, "count") else ex.defined
 
     def mean(a: np.ndarray) -> float | None:
         a = a[np.isfinite(a)]

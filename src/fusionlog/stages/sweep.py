@@ -4,9 +4,11 @@
    before anything runs; the outputs are checked (exist without --force, not an input) too.
 2. The tasks (:mod:`.montecarlo`): per grid point one exact analysis (covariance analysis of
    every architecture: the expected MSE, ANEES, DM) and, unless ``exact_only``, its Monte
-   Carlo runs in blocks; each point has its own seed (:func:`.grid.point_seed`), each chunk of
-   runs its own random stream, and the blocks' metric sums come back in task order
-   (:mod:`.distributed`), so the table is the same for any number of workers or scheduler.
+   Carlo runs in blocks (where runs differ in their measurement patterns, dropouts, the blocks
+   also sum each run's exact statistics: the expected values conditional on the patterns);
+   each point has its own seed (:func:`.grid.point_seed`), each chunk of runs its own random
+   stream, and the blocks' metric sums come back in task order (:mod:`.distributed`), so the
+   table is the same for any number of workers or scheduler.
 3. The outputs, committed together through :class:`fusionlog.io.atomic.Outputs`:
    ``sweep.parquet`` (DESIGN.md: one row per grid point and architecture), ``sweep.rrd`` (the
    metrics against the swept parameter, :mod:`fusionlog.io.rrd.sweep`) and ``summary.json``
@@ -36,7 +38,16 @@ from fusionlog.jsonout import dumps
 from .distributed import executor
 from .grid import GridPoint, Vary, grid_points, parse_vary
 from .kinds import kind_of
-from .montecarlo import BlockSums, Job, block_sums, blocks, fold, point_expected
+from .montecarlo import (
+    BlockSums,
+    Job,
+    block_sums,
+    blocks,
+    exact_mask,
+    expected_overall,
+    fold,
+    point_expected,
+)
 
 __all__ = ["OUTPUTS", "SweepResult", "run_sweep", "sweep_table"]
 
@@ -118,8 +129,15 @@ def run_sweep(
     with Outputs(targets, force=force, inputs=[Path(scenario_path)]) as outs, ex:
         t.append(time.perf_counter())
         token = uuid.uuid4().hex
+        # points whose runs differ in their patterns (dropouts) have no exact analysis of
+        # their own: their blocks sum each run's, given its pattern (the conditional value)
         jobs = [
-            Job(p.scenario, a, f"{token}:{p.index}")
+            Job(
+                p.scenario,
+                a,
+                f"{token}:{p.index}",
+                not exact_only and not exact_mask(p.scenario)[0],
+            )
             for p, a in zip(points, point_archs, strict=True)
         ]
         tasks: list = []
@@ -133,17 +151,21 @@ def run_sweep(
                     owner.append(i)
         expected: list[dict[str, Any]] = [{} for _ in points]
         sums: list[dict[str, Any]] = [{} for _ in points]
+        conditional: list[dict[str, Any]] = [{} for _ in points]
         # the writers' imports (rerun, pyarrow: a second or more) while the workers compute
         threading.Thread(target=_import_writers, daemon=True).start()
         with contextlib.closing(ex.map(tasks, "sweep")) as results:
             for i, result in zip(owner, results, strict=True):
                 if isinstance(result, BlockSums):
-                    fold(sums[i], result)
+                    fold(sums[i], result, conditional[i])
                     busy += result.seconds
                 else:
                     expected[i] = result
         ex.release()
         t.append(time.perf_counter())
+        for i, job in enumerate(jobs):
+            if job.conditional:
+                expected[i] = _conditional_expected(job, sums[i], conditional[i])
         summary = _summary(varies, points, jobs, expected, sums, exact_only)
         rows = sweep_table(summary)
         _write(outs, targets, summary, rows, varies, ex.description)
@@ -154,6 +176,20 @@ def run_sweep(
     return SweepResult(
         d, summary, rows, ex.description, t[-1] - t[0], phases | {"busy": busy}, len(tasks)
     )
+
+
+def _conditional_expected(
+    job: Job, sums: dict[str, Any], conditional: dict[str, Any]
+) -> dict[str, Any]:
+    """A dropout point's expected values: the run averages of each run's exact statistics,
+    marked conditional (DESIGN.md, summary.json), where they cover every run of the Monte
+    Carlo metrics (else none)."""
+    out: dict[str, Any] = {}
+    for a in job.archs:
+        ce = conditional.get(a)
+        ok = ce is not None and a in sums and ce.runs == sums[a].runs
+        out[a] = expected_overall(ce) | {"conditional": True} if ok else None
+    return out
 
 
 def _import_writers() -> None:
