@@ -10,14 +10,12 @@ determinism whatever the block size, silence when piped.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner, Result
+from cli_helpers import cli, ok, one_line_error
 
-from fusionlog.cli import main
 from fusionlog.io.mcap import McapFile
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,26 +25,6 @@ KINDS = {
 }
 SMALL = ["--runs", "120", "--steps", "6"]
 OUTPUTS = ("sensors.mcap", "estimates.mcap", "evaluation.rrd", "summary.json")
-
-
-def cli(*args: str | os.PathLike[str]) -> Result:
-    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=True)
-
-
-def ok(*args: str | os.PathLike[str]) -> Result:
-    res = cli(*args)
-    assert res.exit_code == 0, (res.output, res.exception)
-    return res
-
-
-def one_line_error(res: Result, *fragments: str) -> str:
-    assert res.exit_code == 2, (res.exit_code, res.output, res.exception)
-    lines = res.stderr.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("fusionlog: error: "), res.stderr
-    assert "Traceback" not in res.output
-    for f in fragments:
-        assert f in lines[0], (f, lines[0])
-    return lines[0]
 
 
 def arrays(path: Path) -> dict[str, np.ndarray]:

@@ -12,11 +12,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
+from cli_helpers import ok
 from filterpy.kalman import KalmanFilter
 from mcap.reader import make_reader
 
-from fusionlog.cli import main
 from fusionlog.core.model import constant_velocity
 from fusionlog.io.mcap import McapFile
 from fusionlog.io.replay import read_series
@@ -24,12 +23,6 @@ from fusionlog.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 REPLAY = ROOT / "pipeline" / "replay_robot.toml"
-
-
-def ok(*args):
-    res = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=True)
-    assert res.exit_code == 0, (res.output, res.exception)
-    return res
 
 
 @pytest.fixture(scope="module")

@@ -24,9 +24,8 @@ import numpy as np
 import psutil
 import pyarrow.parquet as pq
 import pytest
-from click.testing import CliRunner, Result
+from cli_helpers import cli, ok, one_line_error
 
-from fusionlog.cli import main
 from fusionlog.core.architectures import build_plan
 from fusionlog.core.exact import analyse
 from fusionlog.core.metrics import MetricsAccumulator
@@ -55,25 +54,6 @@ COLUMNS = [
     "expected_mse",
     "expected_anees",
 ]
-
-
-def cli(*args: str | os.PathLike[str]) -> Result:
-    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=True)
-
-
-def ok(*args: str | os.PathLike[str]) -> Result:
-    res = cli(*args)
-    assert res.exit_code == 0, (res.output, res.exception)
-    return res
-
-
-def one_line_error(res: Result, *fragments: str) -> str:
-    assert res.exit_code == 2, (res.exit_code, res.output, res.exception)
-    lines = res.stderr.splitlines()
-    assert len(lines) == 1, res.stderr
-    for f in fragments:
-        assert f in lines[0], (f, lines[0])
-    return lines[0]
 
 
 def table(d: Path):

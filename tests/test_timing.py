@@ -13,10 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
+from cli_helpers import cli, ok
 from filterpy.kalman import KalmanFilter
 
-from fusionlog.cli import main
 from fusionlog.core.architectures import estimate
 from fusionlog.core.model import constant_velocity
 from fusionlog.core.simulate import simulate
@@ -29,16 +28,6 @@ ROOT = Path(__file__).resolve().parents[1]
 MULTIRATE = ROOT / "pipeline" / "multirate.toml"
 DROPOUT = ROOT / "pipeline" / "ajgl2009_dropout.toml"
 AJGL = ROOT / "pipeline" / "ajgl2009.toml"
-
-
-def cli(*args):
-    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=True)
-
-
-def ok(*args):
-    res = cli(*args)
-    assert res.exit_code == 0, (res.output, res.exception)
-    return res
 
 
 # ------------------------------------------------------------------------------------------
