@@ -10,34 +10,17 @@ in log-time order; the measurement time is ``log_time`` or the ``time`` field.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from math import isqrt
 from pathlib import Path
-from typing import Any
 
-import numpy as np
 from mcap.records import Channel, Schema
 
 from .decoders import SUPPORTED, decoder_factories
-from .fields import (
-    FieldPath,
-    PathError,
-    describe,
-    is_array,
-    parse_path,
-    to_number,
-    to_time_ns,
-)
+from .extract import Extractor
+from .fields import PathError
 from .series import Collector, Series, fail
 from .topics import TopicInfo, catalog, damaged, one_line, open_mcap
 
 __all__ = ["read_mcap"]
-
-
-def _path(source: Path, what: str, text: str, key: str) -> FieldPath:
-    try:
-        return parse_path(text)
-    except PathError as e:
-        raise fail(source, what, f"{key}: {e}") from None
 
 
 def _schema_text(channel: Channel, schema: Schema | None) -> str:
@@ -73,45 +56,6 @@ def _check_decodable(source: Path, what: str, info: TopicInfo, factories: list) 
             )
 
 
-class _Covariance:
-    """Extracts ``M[np.ix_(idx, idx)]`` from a flat row-major square matrix field."""
-
-    def __init__(self, path: FieldPath, index: Sequence[int] | None, d: int) -> None:
-        self.path, self.index, self.d = path, index, d
-        self.n: int | None = None
-        self.ix: Any = None
-
-    def block(self, value: Any) -> np.ndarray:
-        p = self.path.text
-        if not is_array(value) or isinstance(value, bytes | bytearray | memoryview):
-            raise PathError(f"covariance {p} is {describe(value)}, not an array of numbers")
-        n = len(value)
-        if self.n is None:
-            k = isqrt(n)
-            if n == 0 or k * k != n:
-                raise PathError(f"covariance {p} has {n} numbers, not a square matrix")
-            idx = list(range(k)) if self.index is None else list(self.index)
-            if self.index is None and k != self.d:
-                raise PathError(
-                    f"covariance {p} is {k}x{k} but values has {self.d} components: give "
-                    "covariance_index (its rows/columns that belong to values)"
-                )
-            bad = [i for i in idx if i >= k]
-            if bad:
-                raise PathError(
-                    f"covariance_index {bad[0]} is out of range for the {k}x{k} matrix {p}"
-                )
-            self.n, self.ix = n, np.ix_(idx, idx)
-        elif n != self.n:
-            raise PathError(f"covariance {p} has {n} numbers where the first message had {self.n}")
-        if all(type(x) is float for x in value):
-            flat = np.array(value, dtype=np.float64)
-        else:
-            flat = np.array([to_number(x, f"{p}[{j}]") for j, x in enumerate(value)])
-        k = isqrt(n)
-        return flat.reshape(k, k)[self.ix]
-
-
 def read_mcap(
     source: Path,
     *,
@@ -123,13 +67,7 @@ def read_mcap(
     covariance_index: Sequence[int] | None,
     what: str,
 ) -> Series:
-    vpaths = [_path(source, what, v, "values") for v in values]
-    tpath = _path(source, what, time, "time") if time is not None else None
-    cov = (
-        _Covariance(_path(source, what, covariance, "covariance"), covariance_index, len(values))
-        if covariance is not None
-        else None
-    )
+    ex = Extractor(source, what, values, time, time_unit, covariance, covariance_index)
     factories = decoder_factories()
     with open_mcap(source, what, factories) as (reader, f):
         try:
@@ -145,7 +83,7 @@ def read_mcap(
         _check_decodable(source, what, info, factories)
 
         col = Collector(
-            source, what, len(vpaths), cov is not None, "message", lambda k: f"message {k}"
+            source, what, len(values), ex.cov is not None, "message", lambda k: f"message {k}"
         )
         messages = reader.iter_decoded_messages(topics=[topic])
         k = 0
@@ -164,12 +102,7 @@ def read_mcap(
                 ) from None
             k += 1
             try:
-                vals = [to_number(p.resolve(decoded), p.text) for p in vpaths]
-                if tpath is None:
-                    t = message.log_time
-                else:
-                    t = to_time_ns(tpath.resolve(decoded), tpath.text, time_unit)
-                block = cov.block(cov.path.resolve(decoded)) if cov is not None else None
+                t, vals, block = ex.read(decoded, message.log_time)
             except PathError as e:
                 name = schema.name if schema is not None else "schemaless"
                 where = f"topic {topic} ({name})" + (f", message {k}" if k > 1 else "")
