@@ -161,6 +161,8 @@ def _analysable(prov: dict[str, str], filter_sys: System, truth_sys: System):
     does not have leave no exact analysis. `per run`: the runs' patterns differ (the mask is
     then None: each block's plans are built from its sensor readings).
     """
+    if truth_sys.initial is None and truth_sys.prior is None:
+        return None  # a replay without [prior]: no initial distribution to propagate
     pattern = prov.get("measurement_pattern", "complete")
     names = [s.name for s in truth_sys.sensors]
     if any(s.name not in names for s in filter_sys.sensors):
