@@ -466,10 +466,13 @@ def compare(actual, golden, rtol, atol) -> None:
 
 
 @main.command()
-@click.argument("file", type=PATH)
+@click.argument("file", type=click.Path(path_type=Path))
 @click.option("--recover", is_flag=True, help="Read a damaged file as far as it goes.")
 def inspect(file, recover) -> None:
-    """Show what is in an MCAP file: scenario, topics, message counts, runs, steps, rates."""
+    """Show what is in a log: scenario, topics, message counts, runs, steps, rates.
+
+    FILE: an MCAP file, a ROS 1 .bag, or a ROS 2 bag folder (or its .db3); topics that are not
+    fusionlog's are listed with their type and the field paths of their first message."""
     from fusionlog.stages.inspect import describe, describe_damaged
 
     _warn_stale([file])

@@ -28,7 +28,7 @@ from pathlib import Path
 from .bag_source import bag_topics, is_bag, read_bag
 from .fields import TIME_UNITS, leaf_fields
 from .geodetic import to_enu
-from .mcap_source import read_mcap
+from .mcap_source import first_fields, read_mcap
 from .series import Series, fail
 from .text_source import TUM_COLUMNS, read_text
 from .topics import list_topics
@@ -37,6 +37,7 @@ __all__ = [
     "Series",
     "TUM_COLUMNS",
     "bag_topics",
+    "first_fields",
     "leaf_fields",
     "list_topics",
     "read_series",

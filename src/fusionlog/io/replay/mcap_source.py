@@ -16,11 +16,11 @@ from mcap.records import Channel, Schema
 
 from .decoders import SUPPORTED, decoder_factories
 from .extract import Extractor
-from .fields import PathError
+from .fields import PathError, leaf_fields
 from .series import Collector, Series, fail
 from .topics import TopicInfo, catalog, damaged, one_line, open_mcap
 
-__all__ = ["read_mcap"]
+__all__ = ["first_fields", "read_mcap"]
 
 
 def _schema_text(channel: Channel, schema: Schema | None) -> str:
@@ -111,3 +111,28 @@ def read_mcap(
     if k == 0:
         raise fail(source, what, f"topic {topic} has no messages")
     return col.finish()
+
+
+def first_fields(
+    source: Path, topics: Sequence[str]
+) -> dict[str, list[tuple[str, str, str]] | str]:
+    """For ``inspect``: per topic the field paths of its first decoded message with their types
+    and values (:func:`.fields.leaf_fields`), or why it does not decode (a string)."""
+    out: dict[str, list[tuple[str, str, str]] | str] = {}
+    factories = decoder_factories()
+    with open_mcap(source, None, factories) as (reader, f):
+        try:
+            info = catalog(reader, f)
+        except Exception as e:  # a damaged file, whatever the library raises
+            raise damaged(source, e) from None
+        for topic in topics:
+            if topic not in info or not info[topic].count:
+                continue
+            try:
+                _check_decodable(source, "inspect", info[topic], factories)
+                for _, _, _, decoded in reader.iter_decoded_messages(topics=[topic]):
+                    out[topic] = leaf_fields(decoded)
+                    break
+            except Exception as e:  # no decoder, or the first message does not decode
+                out[topic] = one_line(e).split("inspect: ", 1)[-1]
+    return out
