@@ -181,7 +181,7 @@ def read_text(
             if delimiter is None:
                 delimiter = _sniff(source, what, sample)
             split = _splitter(delimiter)
-            name = DELIMITERS.get(delimiter, repr(delimiter))
+            name = delimiter if delimiter == "whitespace" else repr(delimiter)
             if columns is None:
                 header = [c.strip() for c in split(sample[0][1])]
                 rows = sample[1:]
