@@ -151,7 +151,9 @@ def read_replay(scenario: Scenario) -> ReplayData:
                     f"{sen.name}: {bad} of {len(good)} messages with an all-zero or not "
                     "positive definite covariance: R applied"
                 )
-            cov = np.where(good[:, None, None], s.cov, R if np.isfinite(R).all() else 0.0)
+            # symmetric to rounding (a driver's 1e-15 asymmetry): used as its symmetric part
+            sym = 0.5 * (s.cov + np.swapaxes(s.cov, -1, -2))
+            cov = np.where(good[:, None, None], sym, R if np.isfinite(R).all() else 0.0)
             if not np.isfinite(R).all():
                 R = cov.mean(axis=0)  # the nominal R of a sensor given by its messages alone
             if np.array_equal(cov, np.broadcast_to(R, cov.shape)):
