@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from fusionlog.io.atomic import Outputs
+from fusionlog.io.mcap import TRUTH
 from fusionlog.jsonout import dumps
 
 from .common import open_evaluation_inputs, progress
@@ -36,21 +37,23 @@ def evaluate_into(
     which exact expected values stand beside them is the kind's business (its Evaluator).
     """
     sens, est, prov, sc = open_evaluation_inputs(sensors_path, estimates_path)
-    ev = kind_of(sc.kind).evaluator(sc, est, prov, sens)
+    kind = kind_of(sc.kind)
+    ev = kind.evaluator(sc, est, prov, sens)
     M = sens.runs()
     B = ev.block_runs(block)
-    truth = ["/truth"] if "/truth" in sens.topics else []  # a recorded log may have none
+    truth = [TRUTH] if TRUTH in sens.topics else []  # a recorded log may have none
     blocks = zip(
         sens.iter_run_blocks(truth + list(ev.sensor_topics), B),
         est.iter_run_blocks(ev.topics, B),
         strict=True,
     )
     for (off, _runs, sdata), (_, _, edata) in progress(blocks, -(-M // B), "evaluate"):
-        ev.add(off, sdata.pop("/truth", None), edata, sdata)
-    summary = ev.summary()
+        ev.add(off, sdata.pop(TRUTH, None), edata, sdata)
+    evaluation = ev.evaluation(prov)
+    summary = evaluation.summary
     # The summary is made first: a recording is never committed beside a summary that failed.
     text = dumps(summary, indent=2) + "\n" if summary_path is not None else None
-    ev.write_recording(outs.open(out), sens.times(), prov)
+    kind.write_evaluation(outs.open(out), evaluation)
     if summary_path is not None:
         outs.open(summary_path).write(text.encode())
     return summary

@@ -41,6 +41,8 @@ from typing import IO, Any
 import numpy as np
 import rerun.blueprint as rrb
 
+from fusionlog.core.evaluation import Evaluation
+
 from .consistency import NisSeries, check_consistency, consistency_views, write_consistency
 from .legend import legend_box, place_legend
 from .plane import check_plane, write_plane
@@ -48,7 +50,7 @@ from .stream import SeriesWriter, check_axes, entity_path, recording_error, reco
 from .style import BOUND_COLOR, CKF, TRUTH_COLOR, arch_color, arch_width, class_color
 from .views import query, tabbed_blueprint, time_series_view
 
-__all__ = ["write_recording"]
+__all__ = ["write_evaluation", "write_recording"]
 
 #: Per-architecture series: name -> shape, with s steps and n states.
 _SHAPES = {
@@ -138,6 +140,29 @@ def write_recording(
             )
         if plane is not None:
             write_plane(w, plane)
+
+
+def write_evaluation(file: IO[bytes], ev: Evaluation) -> None:
+    """Write the recording of an evaluation (`core.evaluation.Evaluation`) into `file`."""
+    sc = ev.summary
+    write_recording(
+        file,
+        scenario_name=sc["scenario"],
+        seed=sc["seed"],
+        times=ev.times,
+        state_names=ev.state_names,
+        series=ev.series,
+        summary=sc,
+        nees_bounds=ev.nees_bounds,
+        confidence=ev.confidence,
+        sample_runs=ev.samples,
+        properties=ev.properties,
+        plane=ev.plane,
+        availability=ev.availability,
+        nis=ev.nis,
+        traces=ev.traces,
+        measured=ev.measured,
+    )
 
 
 def _check(
