@@ -70,13 +70,16 @@ def load(path: str | os.PathLike[str]) -> Scenario:
 
 
 def simulate(
-    scenario: Scenario,
+    scenario: Scenario | str | os.PathLike[str],
     runs: int | None = None,
     seed: int | None = None,
     steps: int | None = None,
 ) -> Simulation:
     """Simulate `runs` runs (default the scenario's) of K = `steps` steps with `seed`: the
-    runs `fusionlog simulate --runs --steps --seed` writes to its sensors file."""
+    runs `fusionlog simulate --runs --steps --seed` writes to its sensors file. `scenario` is
+    a loaded scenario or the path of its file (`load`)."""
+    if not isinstance(scenario, Scenario):
+        scenario = load(scenario)
     if scenario.kind != "state" or scenario.replay is not None:
         raise FusionlogError(
             f"{scenario.path or scenario.name}: the Python API simulates state scenarios "

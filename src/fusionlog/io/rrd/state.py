@@ -111,9 +111,31 @@ def write_recording(
     Raises FusionlogError if the data are inconsistent (before anything is written) and
     OutputError if writing `file` fails.
     """
-    times = np.asarray(times, dtype=float)
-    state_names = [str(s) for s in state_names]
-    samples = sample_runs or {}
+    ev = Evaluation(
+        dict(summary), times, tuple(state_names), confidence, dict(series), nees_bounds,
+        dict(sample_runs or {}), plane, dict(availability or {}), dict(nis or {}),
+        None if traces is None else dict(traces), dict(measured or {}), dict(properties or {}),
+    )  # fmt: skip
+    write_evaluation(file, ev, scenario_name, seed, recording_id)
+
+
+def write_evaluation(
+    file: IO[bytes],
+    ev: Evaluation,
+    scenario_name: str | None = None,
+    seed: int | None = None,
+    recording_id: str | None = None,
+) -> None:
+    """Write the recording of an evaluation (`core.evaluation.Evaluation`) into `file`; the
+    recording is named by the summary's scenario and seed unless given (see
+    `write_recording` for what each part draws and the errors)."""
+    if scenario_name is None:
+        scenario_name, seed = ev.summary["scenario"], ev.summary["seed"]
+    times = np.asarray(ev.times, dtype=float)
+    state_names = [str(s) for s in ev.state_names]
+    series, nees_bounds, confidence, plane = ev.series, ev.nees_bounds, ev.confidence, ev.plane
+    samples, summary, properties = ev.samples, ev.summary, ev.properties
+    availability, nis, traces, measured = ev.availability, ev.nis, ev.traces, ev.measured
     _check(file, times, state_names, series, nees_bounds, samples)
     if plane is not None:
         check_plane(file, times.shape[0], plane)
@@ -140,29 +162,6 @@ def write_recording(
             )
         if plane is not None:
             write_plane(w, plane)
-
-
-def write_evaluation(file: IO[bytes], ev: Evaluation) -> None:
-    """Write the recording of an evaluation (`core.evaluation.Evaluation`) into `file`."""
-    sc = ev.summary
-    write_recording(
-        file,
-        scenario_name=sc["scenario"],
-        seed=sc["seed"],
-        times=ev.times,
-        state_names=ev.state_names,
-        series=ev.series,
-        summary=sc,
-        nees_bounds=ev.nees_bounds,
-        confidence=ev.confidence,
-        sample_runs=ev.samples,
-        properties=ev.properties,
-        plane=ev.plane,
-        availability=ev.availability,
-        nis=ev.nis,
-        traces=ev.traces,
-        measured=ev.measured,
-    )
 
 
 def _check(
