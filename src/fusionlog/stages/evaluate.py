@@ -9,6 +9,7 @@ from typing import Any
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import TRUTH
 from fusionlog.jsonout import dumps
+from fusionlog.scenario import Scenario
 
 from .common import open_evaluation_inputs, progress
 from .kinds import kind_of
@@ -29,6 +30,8 @@ def evaluate_into(
     summary_path: Path | None = None,
     *,
     block: int | None = None,
+    scenario: Scenario | None = None,
+    sensors_sha256: str | None = None,
 ) -> dict[str, Any]:
     """Metrics of every architecture in `estimates_path` against the truth of `sensors_path`,
     written into the (uncommitted) outputs `out` (.rrd) and `summary_path` (JSON).
@@ -36,7 +39,9 @@ def evaluate_into(
     Metrics are sums over blocks of runs, so memory does not grow with M; what they are and
     which exact expected values stand beside them is the kind's business (its Evaluator).
     """
-    sens, est, prov, sc = open_evaluation_inputs(sensors_path, estimates_path)
+    sens, est, prov, sc = open_evaluation_inputs(
+        sensors_path, estimates_path, scenario, sensors_sha256
+    )
     kind = kind_of(sc.kind)
     ev = kind.evaluator(sc, est, prov, sens)
     M = sens.runs()

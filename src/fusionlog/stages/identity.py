@@ -34,6 +34,7 @@ from fusionlog.core.identity.model import ARCHITECTURES, IdentitySystem
 from fusionlog.core.identity.simulate import simulate
 from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap import VALUES, McapFile, McapWriter
+from fusionlog.io.mcap.topics import TRUTH, estimates_topic, sensor_topic
 from fusionlog.scenario import Scenario, check_identity_architectures, load_model
 
 from .common import block_runs
@@ -139,7 +140,7 @@ class _IdentityEstimator(Estimator):
         self, system: IdentitySystem, steps: int, runs: int, archs: list[str], path: Any
     ) -> None:
         self.system, self.K, self.M, self.archs, self.path = system, steps, runs, archs, path
-        self.topics = [f"/sensors/{s.name}" for s in system.sensors]
+        self.topics = [sensor_topic(s.name) for s in system.sensors]
 
     def block_runs(self, requested: int | None) -> int:
         return _block(self.K, self.M, self.system.n, requested)
@@ -184,13 +185,13 @@ class _IdentityEvaluator(Evaluator):
         self.sc, self.path = sc, est.path
         n = sc.system.n
         d = dims(n)
-        self.archs = [a for a in ARCHITECTURES if f"/estimates/{a}" in est.topics]
+        self.archs = [a for a in ARCHITECTURES if estimates_topic(a) in est.topics]
         if not self.archs:
             have = ", ".join(sorted(est.topics)) or "none"
             raise FusionlogError(
                 f"{est.path}: no /estimates/BAYES or /estimates/DS topics (topics: {have})"
             )
-        self.topics = [f"/estimates/{a}" for a in self.archs]
+        self.topics = [estimates_topic(a) for a in self.archs]
         for a, t in zip(self.archs, self.topics, strict=True):
             if est.kind_of(t) != VALUES or est.dim_of(t) != d[a]:
                 raise FusionlogError(
@@ -209,7 +210,7 @@ class _IdentityEvaluator(Evaluator):
     def add(self, off: int, truth: Array, estimates: Topics, sensors: Readings = None) -> None:
         n = self.sc.system.n
         try:
-            classes = report_indices(truth[:, 0, 0], n, "/truth", allow_nan=False)
+            classes = report_indices(truth[:, 0, 0], n, TRUTH, allow_nan=False)
         except ValueError as e:
             raise FusionlogError(f"{self.path}: runs from {off}: {e}") from None
         if (truth[..., 0] != truth[:, :1, 0]).any():
