@@ -35,16 +35,17 @@ from typing import Any
 import numpy as np
 
 from fusionlog.core.model import Sensor, System
+from fusionlog.core.timing import TIME_UNITS
 
 from . import toml
 from .base import Header, Scenario
 from .model import model_section
+from .sensors import sensor_matrices
 from .state import (
     architectures_section,
     correlations_section,
     evaluate_section,
     prior_section,
-    sensor_matrices,
 )
 from .toml import Ctx
 
@@ -57,7 +58,6 @@ _STREAM_KEYS = ("source", "topic", "values", "time", "time_unit", "delimiter", "
                 "geodetic", "origin")  # fmt: skip
 _SENSOR_REQUIRED = ("name", "H", "source", "values")
 _SENSOR_OPTIONAL = _STREAM_KEYS[2:] + ("topic", "R", "covariance", "covariance_index")
-TIME_UNITS = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
 MATCHES = ("nearest", "interpolate", "exact")
 FORMATS = ("tum",)
 
