@@ -292,10 +292,17 @@ def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers,
     sc = res.scenario
     for note in res.notes:
         click.echo(f"note: {note}")
-    click.echo(f"{sc.name}: M = {sc.runs} runs, K = {sc.instants - 1}, seed {sc.seed}")
+    click.echo(_headline(sc))
     click.echo(format_table(res.summary))
     stages = ", ".join(f"{k} {v:.2f} s" for k, v in res.seconds.items())
     click.echo(f"{stages} -> {d}")
+
+
+def _headline(sc) -> str:
+    """The line above the table: runs, instants and seed (a replay has no seed: one log)."""
+    if sc.replay is not None:
+        return f"{sc.name}: one recorded log, K = {sc.instants - 1} ({sc.instants} instants)"
+    return f"{sc.name}: M = {sc.runs} runs, K = {sc.instants - 1}, seed {sc.seed}"
 
 
 def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, workers, scheduler):
@@ -316,7 +323,7 @@ def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, 
         block=block,
         command=_command_line(),
     )
-    click.echo(f"{sc.name}: M = {sc.runs} runs, K = {sc.instants - 1}, seed {sc.seed}")
+    click.echo(_headline(sc))
     click.echo(format_table(res.summary))
     click.echo(f"{res.executor}: {res.seconds:.2f} s -> {d} (evaluation.rrd, summary.json)")
 
