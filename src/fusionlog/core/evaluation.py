@@ -35,7 +35,9 @@ class Evaluation:
     `availability[sensor]` (K+1,) share of runs measured; `nis[arch][part]`: (run-averaged
     NIS, band lower, band upper); `traces[arch]` (K+1,) tr P without truth; `measured[state]
     [sensor]` (K+1,) the first sample run's direct readings; `properties`: the recording's
-    (scenario text, provenance).
+    (scenario text, provenance). `innovations[arch][sensor]` (K+1, r): a replayed log's
+    normalised innovations, None for a scenario; with them the recording takes the layout of
+    one log (`io.rrd.replay`).
     """
 
     summary: dict[str, Any]
@@ -51,6 +53,7 @@ class Evaluation:
     traces: dict[str, np.ndarray] | None = None
     measured: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)
     properties: dict[str, Any] = field(default_factory=dict)
+    innovations: dict[str, dict[str, np.ndarray]] | None = None
 
     @property
     def architectures(self) -> list[str]:

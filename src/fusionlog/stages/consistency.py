@@ -83,6 +83,14 @@ class NisAccumulator:
                     self.white[key].append(inn.normalised[:keep])
         self.kept += min(keep, z.shape[0])
 
+    def first_run(self) -> dict[str, dict[str, np.ndarray]]:
+        """{ARCH: {part: (K+1, r)}} the first run's normalised innovations (NaN where none)."""
+        return {
+            a: {part: self.white[(a, part)][0][0] for part, _ in self.parts[a]}
+            for a in self.archs
+            if all(self.white[(a, part)] for part, _ in self.parts[a])
+        }
+
     def _blockdiag(self) -> np.ndarray | None:
         if self.system.Rs is not None:
             return None  # per instant: the system's R (cross-covariances are rare in logs)

@@ -349,5 +349,10 @@ class StateEvaluator(Evaluator):
             nis=self.nis.series(self.sc.confidence) if self.nis is not None else None,
             traces=None if self.has_truth else {a: t / self.M for a, t in self.trace.items()},
             measured=self.measured_points,
+            innovations=(
+                self.nis.first_run()
+                if self.nis is not None and self.sc.replay is not None
+                else None
+            ),
             properties={"scenario": self.sc.source, "provenance": provenance or self.prov},
         )
