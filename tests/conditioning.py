@@ -47,6 +47,7 @@ def perturbed(system: System, rng: np.random.Generator, rel: float = REL) -> Sys
         return A + d
 
     sensors = tuple(dataclasses.replace(s, H=p(s.H), R=p(s.R, True)) for s in system.sensors)
+
     def dist(d):
         return None if d is None else dataclasses.replace(d, mean=p(d.mean), cov=p(d.cov, True))
 
@@ -75,8 +76,8 @@ class Sensitivity:
     which some field's definedness (NaN or not) flips or its value jumps (`JUMP`) under such
     changes — a decision made at rounding level (an information matrix singular to working
     precision, covariance intersection's weights jumping to another corner), which two
-    machines may make either way; those steps are not compared. `rel[f]`: the largest change of field f at the
-    other steps, relative to its largest entry."""
+    machines may make either way; those steps are not compared. `rel[f]`: the largest change
+    of field f at the other steps, relative to its largest entry."""
 
     rel: dict[str, float]
     unsettled: np.ndarray

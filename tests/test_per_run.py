@@ -113,7 +113,9 @@ def test_every_run_equals_the_shared_plan_of_its_own_pattern(path, arch):
         sens = sensitivity(own_estimate, system, ("mean", "cov"))
         for f in ("mean", "cov"):
             tol = sens.tolerance(f, RTOL)
-            assert_agree(getattr(est, f)[r], getattr(own, f), tol, sens.unsettled, f"{arch} {r} {f}")
+            assert_agree(
+                getattr(est, f)[r], getattr(own, f), tol, sens.unsettled, f"{arch} {r} {f}"
+            )
 
 
 def test_build_plan_gathers_the_nodes_into_per_run_maps(path):
