@@ -225,8 +225,10 @@ def expected_overall(ex: Any) -> dict[str, float | None]:
     steps where the architecture reports a covariance (some run does), which are the steps
     where its Monte Carlo estimates are defined, the steps `MetricsResult.expected_overall`
     averages over (non-finite entries skipped likewise)."""
-    # a run average (ConditionalExpected) counts the runs defined at each step
-    valid = ex.count > 0 if hasattr(ex, "count") else ex.defined
+    from fusionlog.core.exact import ConditionalExpected
+
+    # a run average counts the runs defined at each step
+    valid = ex.count > 0 if isinstance(ex, ConditionalExpected) else ex.defined
 
     def mean(a: np.ndarray) -> float | None:
         a = a[np.isfinite(a)]
