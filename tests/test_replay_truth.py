@@ -146,3 +146,16 @@ def test_a_truth_free_replay_has_nis_per_sensor_no_warning_no_seed(tmp_path: Pat
     cov = cov if cov.ndim == 3 else cov[0]
     np.testing.assert_allclose(summary["architectures"]["CKF"]["mean_trace"],
                                np.trace(cov, axis1=1, axis2=2).mean(), rtol=1e-12)  # fmt: skip
+
+
+def test_the_api_gives_the_partial_truth_metrics_of_the_cli(tmp_path: Path) -> None:
+    import fusionlog as fl
+
+    _, summary = _run(tmp_path, PIPELINE / "replay_tum.toml", "CKF")
+    sc = fl.load(PIPELINE / "replay_tum.toml")
+    sim = fl.simulate(sc)
+    ev = fl.evaluate(sc, sim, fl.estimate(sc, sim, ["CKF"]))
+    assert ev.summary["truth"] == summary["truth"]
+    for key in ("mse", "anees", "mean_trace"):
+        np.testing.assert_allclose(ev.summary["architectures"]["CKF"][key],
+                                   summary["architectures"]["CKF"][key], rtol=1e-12)  # fmt: skip

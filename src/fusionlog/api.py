@@ -55,6 +55,8 @@ class Simulation:
     measurements: dict[str, np.ndarray]
     scheduled: dict[str, np.ndarray] = field(default_factory=dict)
     covariances: dict[str, np.ndarray] = field(default_factory=dict)
+    #: a replay's truth: {"states", "matched", "unmatched"} (summary.json `truth`), else None
+    truth_info: dict | None = None
 
     @property
     def z(self) -> np.ndarray:
@@ -135,7 +137,8 @@ def _recorded(scenario: Scenario) -> Simulation:
         truth = np.full((1, K1, n), np.nan)
         truth[0, data.truth["at"]] = data.truth["values"]
     times = (data.instants - data.instants[0]) / 1e9
-    return Simulation(sc, times, truth, measurements, scheduled, covariances)
+    info = data.truth_info or None
+    return Simulation(sc, times, truth, measurements, scheduled, covariances, info)
 
 
 def _blocks(sim: Simulation) -> list[tuple[int, int]]:
@@ -200,7 +203,7 @@ def evaluate(scenario: Scenario, sim: Simulation, estimates: Estimates) -> Evalu
     )
     # the sensors' availability, where it says something (their own timing, a recording)
     timed = sc.replay is not None or any(not s.timing.default for s in system.sensors)
-    log = SensorLog(sim.truth is not None, sim.scheduled if timed else None)
+    log = SensorLog(sim.truth is not None, sim.scheduled if timed else None, sim.truth_info)
     ev = StateEvaluator(
         sc, list(estimates), system, system, sim.runs, sim.times, prov, log, sc.name
     )
