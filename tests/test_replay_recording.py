@@ -128,3 +128,39 @@ def test_replay_blueprint_tabs() -> None:
     assert not any("Fig. 4" in str(t) for t in tabs)
     nis_views = [v.name for v in bp.root_container.contents[2].contents]
     assert nis_views == ["NIS of pos (grey: χ² band)", "NIS of vel (grey: χ² band)"]
+
+
+def test_a_long_log_keeps_the_states_and_decimates_the_overview(recording, monkeypatch) -> None:
+    """Above OVERVIEW_POINTS instants the overview series keep every n-th value, the first
+    run's estimates, truth and readings every value, and the recording says which."""
+    import json
+
+    from fusionlog.io.rrd import decimation as dec
+
+    small = recording.parent.parent
+    monkeypatch.setattr(dec, "OVERVIEW_POINTS", 40)
+    ok("run", small / "small.toml", "--out-dir", small / "long", "--force")
+    rec = read_recording(small / "long" / "evaluation.rrd")
+    full, short = rec["series"], read_recording(recording)["series"]
+    for key in ("runs/0/x/CKF/mean", "runs/0/x/measured/pos", "runs/0/x/truth"):
+        np.testing.assert_array_equal(np.isfinite(full[key]), np.isfinite(short[key]), key)
+    prop = rec["properties"]["decimation"]
+    instants = len(short["runs/0/x/CKF/mean"])  # 200 position and 100 velocity instants
+    n = -(-instants // 40)
+    assert prop["instants"] == str(instants) == "300" and f"every {n}th" in prop["decimated"]
+    for key in ("metrics/nis/CKF/pos", "innovations/pos/z0/CKF", "runs/0/x/CKF/upper"):
+        n_full, n_dec = np.isfinite(short[key]).sum(), np.isfinite(full[key]).sum()
+        assert n_dec == -(-n_full // n), (key, n_full, n_dec)
+    assert "every instant" in prop["full_resolution"]
+    assert json.loads(rec["properties"]["summary"]["json"])["scenario"] == "small"
+
+
+def test_decimation_strides() -> None:
+    from fusionlog.io.rrd.decimation import decimation
+
+    assert decimation(100_000, 10) == (None, {})
+    stride, prop = decimation(1_000_000, 10)
+    assert stride("metrics/nis/CKF/gps") == 10 and stride("runs/0/x/CKF/upper") == 10
+    assert stride("runs/0/x/CKF/mean") == 1 and stride("runs/0/x/measured/gps") == 1
+    stride, _ = decimation(1_000_000, 40)  # 4e7 values: every 4th
+    assert stride("runs/0/x/truth") == 4

@@ -101,21 +101,23 @@ def write_replay(
     """The trajectory (static 2-D strips and points) and the normalised innovations."""
     i, j = ij
     rec = w.rec
+    # a long log's paths: every n-th point, as the first run's states (io/rrd/decimation.py)
+    n = w.stride("runs/0/state/arch/mean") if w.stride is not None else 1
     if 0 in samples:
         truth, est = samples[0]
-        t = _strip(np.asarray(truth, dtype=float)[:, [i, j]])
+        t = _strip(np.asarray(truth, dtype=float)[::n, [i, j]])
         if len(t):
             rec.log("trajectory/truth", rr.LineStrips2D([t], colors=[TRUTH_COLOR], radii=[-2.0],
                                                         labels=["truth"]), static=True)  # fmt: skip
         for arch, (mean, _) in est.items():
-            path = _strip(np.asarray(mean, dtype=float)[:, [i, j]])
+            path = _strip(np.asarray(mean, dtype=float)[::n, [i, j]])
             strip = rr.LineStrips2D(
                 [path], colors=[arch_color(arch)], radii=[-arch_width(arch)], labels=[arch]
             )
             rec.log(entity_path("trajectory", "estimates", arch), strip, static=True)
     sensors = [s for s in measured.get(i, {}) if s in measured.get(j, {})]
     for k, s in enumerate(sensors):
-        pts = _strip(np.stack([measured[i][s], measured[j][s]], axis=1))
+        pts = _strip(np.stack([measured[i][s], measured[j][s]], axis=1))[::n]
         rec.log(entity_path("trajectory", "measured", s),
                 rr.Points2D(pts, colors=[class_color(k)], radii=[-2.5]), static=True)  # fmt: skip
     for arch, parts in innovations.items():

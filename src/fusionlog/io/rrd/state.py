@@ -44,6 +44,7 @@ import rerun.blueprint as rrb
 from fusionlog.core.evaluation import Evaluation
 
 from .consistency import NisSeries, check_consistency, consistency_views, write_consistency
+from .decimation import decimation
 from .legend import legend_box, place_legend
 from .plane import check_plane, write_plane
 from .replay import plane_states, replay_blueprint, write_replay
@@ -156,8 +157,15 @@ def write_evaluation(
     else:
         extra = consistency_views(nis, avail, bool(traces))
         blueprint = _blueprint(state_names, series, samples, plane is not None, extra, timeline)
+    # a long log: overview series decimated, the first run's states kept (io/rrd/decimation.py)
+    n_full = sum(len(state_names) * (1 + len(est)) for _, est in samples.values())
+    n_full += sum(len(by) for by in (measured or {}).values())
+    stride, decimated = decimation(len(times), n_full)
+    if decimated:
+        properties = {**(properties or {}), "decimation": decimated}
     args = (scenario_name, seed, times, summary, properties, recording_id)
     with recording_stream(file, blueprint, *args) as w:
+        w.stride = stride
         _write_metrics(w, state_names, series, nees_bounds, confidence)
         _write_sample_runs(w, state_names, samples)
         for i, by_sensor in (measured or {}).items():
