@@ -189,6 +189,13 @@ class StateEvaluator(Evaluator):
                 std = np.sqrt(np.clip(np.diagonal(c, axis1=-2, axis2=-1), 0, None))
                 self.samples.setdefault(r, (x[r - off], {}))[1][a] = (mean[r - off], std)
 
+    def _mean_trace(self, a: str) -> float:
+        """The mean over the instants of tr P (those with a covariance: a filter without a
+        prior has none until it has seen every state), as in estimates.mcap; NaN if none."""
+        tr = self.trace[a] / self.M
+        tr = tr[np.isfinite(tr)]
+        return float(tr.mean()) if tr.size else float("nan")
+
     def _marginal(self, x: np.ndarray, mean: np.ndarray, cov: np.ndarray):
         """Truth, mean and covariance of the truthed states (all of them: as given)."""
         idx = self.truthed
@@ -276,7 +283,7 @@ class StateEvaluator(Evaluator):
         nis = self.nis.summary(self.sc.confidence) if self.nis is not None else {}
         for a in self.archs:
             if not self.has_truth:  # a recorded log without truth: what needs none
-                mean_trace = float(np.nanmean(self.trace[a] / self.M))
+                mean_trace = self._mean_trace(a)
                 arch_summary[a] = {"mean_trace": mean_trace} | ({"nis": nis[a]} if a in nis else {})
                 continue
             res = self.accs[a].finalize(self.sc.confidence)
@@ -290,7 +297,7 @@ class StateEvaluator(Evaluator):
             if self.sc.replay is not None:
                 # a replay's truth may cover only some instants: the mean trace is of every
                 # instant's reported covariance, as in estimates.mcap
-                arch_summary[a]["mean_trace"] = float(np.mean(self.trace[a] / self.M))
+                arch_summary[a]["mean_trace"] = self._mean_trace(a)
             if conditional:  # DESIGN.md "summary.json": conditional on the drawn patterns
                 arch_summary[a]["expected"]["conditional"] = True
             if a in nis:
