@@ -391,3 +391,26 @@ def test_ckf_on_the_tum_example_equals_an_independent_kalman_filter(tmp_path: Pa
     mean, cov = McapFile(tmp_path / "e.mcap").read_all(["/estimates/CKF"])["/estimates/CKF"]
     np.testing.assert_allclose(mean[0], m_ref, rtol=1e-9, atol=1e-9 * np.abs(m_ref).max())
     np.testing.assert_allclose(cov if cov.ndim == 3 else cov[0], P_ref, rtol=1e-9, atol=1e-15)
+
+
+@pytest.mark.skipif(not LOGS.is_dir(), reason="the shared real logs are not here")
+@pytest.mark.parametrize(
+    ("log", "topic", "field"),
+    [
+        ("test1.bag", "/fix", "position_covariance"),
+        ("bag", "/gps", "latitude"),
+        ("bag/bag_0.db3", "/odometry", "twist.twist.linear.x"),
+        ("nav2_turtlebot.mcap", "/amcl_pose", "pose.covariance"),
+        ("going_in_circles1_0.mcap", "/imu", "imu.linear_acceleration.z"),
+    ],
+)
+def test_inspect_lists_the_fields_of_real_logs(log: str, topic: str, field: str) -> None:
+    out = ok("inspect", LOGS / log).stdout
+    lines = out.splitlines()
+    at = next(i for i, ln in enumerate(lines) if ln.split() and ln.split()[0] == topic)
+    fields = []
+    for ln in lines[at + 1 :]:
+        if not ln.startswith("      "):
+            break
+        fields.append(ln.split()[0])
+    assert field in fields, (field, fields[:20])
