@@ -201,13 +201,19 @@ def read_text(
                 source, what, header, tname, "time" if time is not None else "time (default)"
             )
 
-            def numbered() -> Iterator[tuple[int, str]]:
-                yield from rows
-                for line in it:
-                    yield lines.number, line
+            def numbered() -> Iterator[tuple[int, list[str]]]:
+                for number, line in rows:
+                    yield number, split(line)
+                if delimiter == "whitespace":
+                    for line in it:
+                        yield lines.number, line.split()
+                    return
+                # one reader over the remaining lines (a reader per line costs 3x as much)
+                opts = {"delimiter": delimiter, "skipinitialspace": True, "strict": True}
+                for fields in csv.reader(it, **opts):
+                    yield lines.number, fields
 
-            for number, line in numbered():
-                row = split(line)
+            for number, row in numbered():
                 if len(row) != len(header):
                     given = "columns has" if columns is not None else "the header has"
                     raise fail(
