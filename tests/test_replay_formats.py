@@ -392,3 +392,11 @@ def test_inspect_lists_the_fields_of_foreign_mcap_topics() -> None:
 
 def test_inspect_on_a_folder_that_is_not_a_bag(tmp_path: Path) -> None:
     one_line_error(cli("inspect", tmp_path), str(tmp_path), "not a ROS 2 bag")
+
+
+def test_run_workers_on_a_replay_is_a_one_line_error(logs: Path) -> None:
+    f = logs / "replay.toml"
+    f.write_text(_BASE + 'source = "xy.txt"\nvalues = ["x", "y"]\n')
+    res = cli("run", f, "--out-dir", logs / "out", "--workers", "1")
+    one_line_error(res, "a replay is one recorded run", "without --workers")
+    assert not (logs / "out").exists()
