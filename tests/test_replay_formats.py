@@ -400,3 +400,11 @@ def test_run_workers_on_a_replay_is_a_one_line_error(logs: Path) -> None:
     res = cli("run", f, "--out-dir", logs / "out", "--workers", "1")
     one_line_error(res, "a replay is one recorded run", "without --workers")
     assert not (logs / "out").exists()
+
+
+def test_sweep_on_a_replay_is_a_one_line_error(logs: Path) -> None:
+    f = logs / "replay.toml"
+    f.write_text(_BASE + 'source = "xy.txt"\nvalues = ["x", "y"]\n')
+    res = cli("sweep", f, "--vary", "model.n0=0.1,0.2", "--workers", "0", "--out-dir", logs / "o")
+    one_line_error(res, "a replay is one recorded run")
+    assert not (logs / "o").exists()
