@@ -223,24 +223,28 @@ def import_to(data: ReplayData, w: McapWriter, *, command: str) -> int:
     extra = {f"source_sha256:{p}": sha256_of_source(Path(p)) for p in sources}
     w.add_metadata(PROVENANCE_META, provenance(command, None, sources=json.dumps(sources), **extra))
     topics = [sensor_topic(s.name) for s in sc.system.sensors]
-    # readings per instant: (sensor, row) pairs, in instant order
-    rows: list[list[tuple[int, int]]] = [[] for _ in instants]
+    # every message in instant order, the truth first at an instant, then the sensors in
+    # their order: one sort of (instant, source) over flat arrays (no per-instant lists)
+    src = [np.full(len(truth["at"]), -1)] if truth else []
+    at = [truth["at"]] if truth else []
+    row = [np.arange(len(truth["at"]))] if truth else []
     for j, s in enumerate(sensors):
-        for r, k in enumerate(s.at.tolist()):
-            rows[k].append((j, r))
-    truth_row = np.full(len(instants), -1)
-    if truth:
-        truth_row[truth["at"]] = np.arange(len(truth["at"]))
+        src.append(np.full(len(s.at), j))
+        at.append(s.at)
+        row.append(np.arange(len(s.at)))
+    src_a, at_a, row_a = (np.concatenate(x) for x in (src, at, row))
+    order = np.lexsort((src_a, at_a))
     messages = 0
-    for k, t in enumerate(times.tolist()):
-        if truth_row[k] >= 0:
-            w.write_values(TRUTH, k, t, 0, truth["values"][truth_row[k]][None])
-            messages += 1
-        for j, r in rows[k]:
+    for j, k, r in zip(src_a[order].tolist(), at_a[order].tolist(), row_a[order].tolist(),
+                       strict=True):  # fmt: skip
+        t = float(times[k])
+        if j < 0:
+            w.write_values(TRUTH, k, t, 0, truth["values"][r][None])
+        else:
             s = sensors[j]
             cov = None if s.cov is None else s.cov[r][None]
             w.write_values(topics[j], k, t, 0, s.values[r][None], cov)
-            messages += 1
+        messages += 1
     return messages
 
 
