@@ -122,7 +122,12 @@ class StateEvaluator(Evaluator):
         self.truthed = (
             [names.index(x) for x in log.truth["states"]] if log.truth else list(range(n))
         )
-        self.accs = {a: MetricsAccumulator(self.K + 1, len(self.truthed)) for a in self.archs}
+        # the truth metrics' sums (K+1 x n arrays each): none for a log without truth
+        self.accs = (
+            {a: MetricsAccumulator(self.K + 1, len(self.truthed)) for a in self.archs}
+            if log.has_truth
+            else {}
+        )
         sensor_topics = [sensor_topic(s.name) for s in filter_sys.sensors]
         self.sensor_topics: list[str] = []
         # Per-run patterns: each run's exact values, summed block by block from its plan (the
@@ -229,7 +234,7 @@ class StateEvaluator(Evaluator):
         """Add metric sums accumulated elsewhere (`estimate_block`'s, of runs not `add`ed
         here) and, for per-run patterns, those runs' conditional exact sums."""
         for a, acc in sums.items():
-            self.accs[a].merge(acc)
+            self.accs[a] = self.accs[a].merge(acc) if a in self.accs else acc
         if expected:
             self._merge_expected(expected)
 
@@ -270,7 +275,7 @@ class StateEvaluator(Evaluator):
         cond = self.conditional.get(a)
         # every run the Monte Carlo metrics saw must be in the average (a caller that merges
         # accumulators from elsewhere, without their readings, leaves none)
-        if cond is None or cond.runs != self.accs[a].runs:
+        if cond is None or a not in self.accs or cond.runs != self.accs[a].runs:
             return None, False
         return cond, True
 
