@@ -132,5 +132,8 @@ def test_readme_example_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) ->
     assert code is not None, "README: no python block in the Python API section"
     monkeypatch.chdir(tmp_path)
     os.symlink(ROOT / "pipeline", tmp_path / "pipeline")
-    exec(compile(code.group(1), "README.md", "exec"), {})
+    shown: list[str] = []
+    exec(compile(code.group(1), "README.md", "exec"), {"print": lambda *a: shown.append(repr(a))})
     assert (tmp_path / "evaluation.rrd").exists()
+    # the shapes its comment states
+    assert shown[0] == repr(((200, 21, 2), (21, 2, 2))), shown[0]
