@@ -19,11 +19,12 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
+from .core import evaluation
 from .core.architectures import Estimate, PlanCache, estimate_block
-from .core.evaluation import Evaluation
 from .core.model import System
 from .core.names import check_architectures
 from .errors import FusionlogError
@@ -79,6 +80,29 @@ class Estimates(dict[str, Estimate]):
     measurement pattern (which exact analysis applies)."""
 
     provenance: dict[str, str]
+
+
+class Evaluation(evaluation.Evaluation):
+    """An evaluation (`core.evaluation.Evaluation`: `.summary` the summary.json dict, per-step
+    `.series` per architecture, `.samples`, ...) with the adapters a notebook wants."""
+
+    def table(self) -> str:
+        """The results table `fusionlog summary` prints (`report.format_table`)."""
+        from .report import format_table
+
+        return format_table(self.summary)
+
+    def save(self, path: str | os.PathLike[str], *, force: bool = False) -> Path:
+        """Write the Rerun recording to `path` (atomically, `io.atomic.Outputs`; an existing
+        file only with `force`): `io.rrd.write_evaluation`. Returns the path."""
+        from .io.atomic import Outputs
+        from .io.rrd import write_evaluation  # rerun: slow to import, needed only here
+
+        target = Path(path)
+        with Outputs([target], force=force) as outs:
+            write_evaluation(outs.open(target), self)
+            outs.commit()
+        return target
 
 
 def load(path: str | os.PathLike[str]) -> Scenario:
@@ -210,7 +234,7 @@ def evaluate(scenario: Scenario, sim: Simulation, estimates: Estimates) -> Evalu
         readings = {t: z[off : off + n] for t, z in topics.items()}
         truth = None if sim.truth is None else sim.truth[off : off + n]
         ev.add(off, truth, ests, readings)
-    return ev.evaluation({"command": "fusionlog.evaluate"})
+    return Evaluation(**vars(ev.evaluation({"command": "fusionlog.evaluate"})))
 
 
 def _runs(e: Estimate, off: int, n: int) -> tuple[np.ndarray, np.ndarray]:
