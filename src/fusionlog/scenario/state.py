@@ -158,8 +158,8 @@ def state_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None
     h = header(ctx, sc, model=False)
 
     system = _system(ctx, doc, sc, need_truth=True)
-    check_schedule(ctx, system, h.steps, "scenario.steps")
     architectures = architectures_section(ctx, doc, system)
+    check_schedule(ctx, system, h.steps, "scenario.steps", len(architectures))
     confidence, sample_runs, plane_view = evaluate_section(ctx, doc)
     if plane_view and system.n != 2:
         raise ctx.err("evaluate.plane_view", f"needs a 2-D state, this one has {system.n}")
@@ -236,7 +236,7 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
             "[truth] (initial_mean, initial_cov) to draw the true x_0 from",
         )
 
-    sensors = _sensors(ctx, doc, n)
+    sensors = _sensors(ctx, doc, n, dt)
     cross_R = correlations_section(ctx, doc, sensors)
 
     return System(
@@ -294,12 +294,12 @@ def sensor_matrices(
     return toml.readonly(H), toml.covariance_checks(ctx, R, f"{where}.R", strict=True)
 
 
-def _sensors(ctx: Ctx, doc: dict[str, Any], n: int) -> tuple[Sensor, ...]:
+def _sensors(ctx: Ctx, doc: dict[str, Any], n: int, dt: float) -> tuple[Sensor, ...]:
     sensors: list[Sensor] = []
     tables = toml.named_tables(ctx, doc, "sensors", _SENSOR_KEYS, " (name, H, R)", TIMING_KEYS)
     for where, t, name in tables:
         H, R = sensor_matrices(ctx, t, where, n)
-        sensors.append(Sensor(name, H, R, sensor_timing(ctx, t, where)))
+        sensors.append(Sensor(name, H, R, sensor_timing(ctx, t, where, dt)))
     return tuple(sensors)
 
 
