@@ -419,10 +419,10 @@ def test_run_on_a_running_scheduler_writes_the_evaluation_only(
         np.testing.assert_allclose(rec["series"][key], local["series"][key], rtol=1e-9)
 
 
-def test_unreachable_scheduler_is_one_line(tmp_path: Path, monkeypatch) -> None:
-    monkeypatch.setattr("fusionlog.stages.distributed.CONNECT_TIMEOUT", 2)
+def test_unreachable_scheduler_is_one_line(tmp_path: Path) -> None:
     res = cli("sweep", AJGL, "--vary", "scenario.dt=1", "--runs", "10", "--arch", "CKF",
-              "--scheduler", f"tcp://127.0.0.1:{_free_port()}", "--out-dir", tmp_path)  # fmt: skip
+              "--scheduler", f"tcp://127.0.0.1:{_free_port()}", "--scheduler-timeout", "2",
+              "--out-dir", tmp_path)  # fmt: skip
     one_line_error(res, "--scheduler tcp://127.0.0.1:", "cannot connect")
 
 

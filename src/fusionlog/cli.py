@@ -72,6 +72,16 @@ class _Group(click.Group):
             signum = e.signum if isinstance(e, Terminated) else signal.SIGINT
             click.echo("fusionlog: interrupted; no partial output was left behind", err=True)
             ctx.exit(128 + int(signum))
+        except click.UsageError as e:  # one line too, not click's usage block
+            if debug:
+                raise
+            sub = e.ctx.info_name if e.ctx is not None and e.ctx.parent is not None else None
+            where = f"fusionlog {sub}" if sub else "fusionlog"
+            click.echo(
+                f"fusionlog: error: {_one_line(e.format_message())} (see: {where} --help)",
+                err=True,
+            )
+            ctx.exit(EXIT_BAD_INPUT)
         except (click.exceptions.Exit, click.ClickException, click.Abort):
             raise
         except MemoryError:
@@ -157,7 +167,17 @@ _workers = click.option(
 _scheduler = click.option(
     "--scheduler",
     metavar="ADDRESS",
-    help="Compute the runs, in blocks, on the running Dask cluster at ADDRESS (tcp://host:port).",
+    help="Compute the runs, in blocks, on the running Dask cluster at ADDRESS (tcp://host:port "
+    "or tls://host:port).",
+)
+_scheduler_timeout = click.option(
+    "--scheduler-timeout",
+    type=float,
+    default=10.0,
+    show_default=True,
+    metavar="SECONDS",
+    help="With --scheduler: how long to wait for the scheduler to answer, and for a worker "
+    "when it has none (also while the runs are computed).",
 )
 
 
@@ -260,7 +280,11 @@ def evaluate(sensors, estimates, output, summary_path, force, block_runs) -> Non
 @_block
 @_workers
 @_scheduler
-def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers, scheduler) -> None:
+@_scheduler_timeout
+def run(
+    scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers, scheduler,
+    scheduler_timeout,
+) -> None:  # fmt: skip
     """Simulate, estimate and evaluate SCENARIO.toml; print the results table.
 
     With --workers or --scheduler the runs are computed on Dask in blocks whose metric sums
@@ -268,9 +292,8 @@ def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers,
     carry every estimate back); the sample runs are computed here."""
     _one_executor(workers, scheduler)
     if workers is not None or scheduler is not None:
-        _run_distributed(
-            scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers, scheduler
-        )
+        _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block_runs,
+                         workers, scheduler, scheduler_timeout)  # fmt: skip
         return
     from fusionlog.report import format_table
     from fusionlog.stages.kinds import kind_of
@@ -298,7 +321,9 @@ def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers,
     click.echo(f"{stages} -> {d}")
 
 
-def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, workers, scheduler):
+def _run_distributed(
+    scenario, out_dir, runs, steps, seed, archs, force, block, workers, scheduler, timeout
+):
     """`run --workers/--scheduler`: evaluation.rrd and summary.json from metric sums."""
     from fusionlog.report import format_table
     from fusionlog.stages.distributed_run import DISTRIBUTED_OUTPUTS, run_distributed
@@ -312,6 +337,7 @@ def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, 
         archs=list(archs),
         workers=workers,
         scheduler=scheduler,
+        scheduler_timeout=timeout,
         force=force,
         block=block,
         command=_command_line(),
@@ -337,6 +363,7 @@ def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, 
 @_arch
 @_workers
 @_scheduler
+@_scheduler_timeout
 @click.option(
     "--exact-only",
     is_flag=True,
@@ -345,7 +372,10 @@ def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, 
 )
 @_force
 @_block
-def sweep(scenario, vary, runs, out_dir, archs, workers, scheduler, exact_only, force, block_runs):
+def sweep(
+    scenario, vary, runs, out_dir, archs, workers, scheduler, scheduler_timeout, exact_only,
+    force, block_runs,
+):  # fmt: skip
     """Evaluate SCENARIO.toml over a grid of parameter values, on Dask: writes sweep.parquet,
     sweep.rrd and summary.json (no MCAP logs: workers return metric sums).
 
@@ -363,6 +393,7 @@ def sweep(scenario, vary, runs, out_dir, archs, workers, scheduler, exact_only, 
         archs=list(archs),
         workers=workers,
         scheduler=scheduler,
+        scheduler_timeout=scheduler_timeout,
         exact_only=exact_only,
         force=force,
         block=block_runs,
