@@ -276,3 +276,35 @@ def test_usage_errors_are_one_line(tmp_path: Path, case: str) -> None:
             "out-dir-file": "is a file"}[case]  # fmt: skip
     one_line_error(cli(*args), says, "fusionlog sweep --help")
     assert sorted(x.name for x in tmp_path.iterdir()) == ["f"]
+
+
+# ------------------------------------------------------------------- grids
+
+
+@pytest.mark.parametrize(
+    ("vary", "says"),
+    [
+        (["scenario.dt=0.1:10:100000"], "100000 values is more than 10000"),
+        (["scenario.dt=0.1:10:200", "model.n0=0.1:1:60"], "12000 grid points is more than 10000"),
+    ],
+)
+def test_grids_beyond_the_bound_are_refused(tmp_path: Path, vary: list[str], says: str) -> None:
+    args = [a for v in vary for a in ("--vary", v)]
+    t = time.monotonic()
+    res = cli("sweep", AJGL, *args, "--exact-only", "--out-dir", tmp_path / "o")
+    one_line_error(res, says)
+    assert time.monotonic() - t < 10 and not (tmp_path / "o").exists()
+
+
+def test_ctrl_c_cancels_a_long_grid(tmp_path: Path) -> None:
+    d = tmp_path / "o"
+    # 5000 points of exact analysis: minutes of work, interrupted after a second or two
+    p = fusionlog("sweep", AJGL, "--vary", "scenario.dt=0.1:10:5000", "--exact-only",
+                  "--out-dir", d)  # fmt: skip
+    time.sleep(3)
+    assert p.poll() is None
+    p.send_signal(signal.SIGINT)
+    rc, out, err = finish(p, timeout=30)
+    assert rc == 130, err
+    assert err.splitlines() == ["fusionlog: interrupted; no partial output was left behind"]
+    assert not d.exists() or not any(d.iterdir())
