@@ -282,9 +282,8 @@ class _StateEvaluator(Evaluator):
                 raise FusionlogError(
                     f"{t}: estimates of {mean.shape[-1]} states, the truth has {x.shape[-1]}"
                 )
-            self.trace[a] += np.trace(cov, axis1=-2, axis2=-1).sum(axis=0) * (
-                x.shape[0] if cov.ndim == 3 else 1
-            )
+            tr = np.trace(cov, axis1=-2, axis2=-1)  # (K+1,) shared by all runs, or (runs, K+1)
+            self.trace[a] += tr * x.shape[0] if cov.ndim == 3 else tr.sum(axis=0)
             if self.has_truth:
                 self.accs[a].add(x, mean, cov)
             if self.sc.plane_view and off == 0:
