@@ -6,7 +6,6 @@ stderr naming the file and the problem; a traceback only with --debug), 130 inte
 
 from __future__ import annotations
 
-import json
 import shlex
 import signal
 import sys
@@ -435,21 +434,6 @@ def summary(recording, as_json) -> None:
     click.echo(table)
 
 
-def _load_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError as e:
-        raise FusionlogError(f"{path}: no such file") from e
-    except (OSError, UnicodeDecodeError) as e:
-        raise FusionlogError(f"{path}: cannot read ({e})") from e
-    except json.JSONDecodeError as e:
-        raise FusionlogError(f"{path}: not valid JSON (line {e.lineno}: {e.msg})") from e
-    except RecursionError:
-        raise FusionlogError(f"{path}: nested too deeply to be a summary") from None
-    except ValueError as e:  # Python refuses integers of more than 4300 digits
-        raise FusionlogError(f"{path}: cannot read a number ({str(e).split(';')[0]})") from None
-
-
 def _tolerance(name: str, default: float, text: str):
     """--rtol / --atol: a finite number >= 0 (else a usage error, exit 2)."""
 
@@ -476,11 +460,11 @@ def compare(actual, golden, rtol, atol) -> None:
 
     A file that is not a well-formed summary (not strict JSON, a metric that is not a number)
     is bad input (exit 2), not a regression."""
-    from fusionlog.report import check_summary, compare_summaries
+    from fusionlog.report import check_summary, compare_summaries, load_json
 
     docs = []
     for path in (actual, golden):
-        doc = _load_json(path)
+        doc = load_json(path)
         if not isinstance(doc, dict) or not isinstance(doc.get("architectures"), dict):
             raise FusionlogError(f"{path}: not a fusionlog summary (no 'architectures' object)")
         try:
