@@ -4,6 +4,7 @@ allocated (`fusionlog simulate`, `run`, `sweep` through the CLI)."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -135,3 +136,18 @@ def test_sweep_over_periods_refuses_the_bad_point(tmp_path: Path, values: str) -
               "--out-dir", tmp_path / "out")  # fmt: skip
     one_line_error(res, "[point 0: sensors.s1.period=", "sensors[0].period")
     assert not (tmp_path / "out").exists()
+
+
+def test_a_billion_steps_of_an_identity_scenario_refused_before_allocating(
+    tmp_path: Path,
+) -> None:
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "pipeline" / "aircraft_identity.toml").read_text()
+    sc = tmp_path / "sc.toml"
+    sc.write_text(re.sub(r"(?m)^steps = .*$", "steps = 1000000000", text))
+    for args in (
+        ["simulate", sc, "-o", tmp_path / "s.mcap"],
+        ["run", sc, "--out-dir", tmp_path / "o"],
+    ):
+        one_line_error(cli(*args), str(sc), "1000000001 instants", "GiB")
+    assert listing(tmp_path) == ["sc.toml"]
