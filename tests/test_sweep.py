@@ -363,9 +363,11 @@ def scheduler(tmp_path_factory: pytest.TempPathFactory):
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
     procs: list[subprocess.Popen] = []
+    logs: list = []
 
     def start(name: str, *args: str) -> None:
-        out = open(log / f"{name}.log", "wb")  # noqa: SIM115 - closed with the process
+        out = open(log / f"{name}.log", "wb")  # noqa: SIM115 - closed after the processes
+        logs.append(out)
         procs.append(subprocess.Popen([str(DASK), *args], stdout=out, stderr=out, env=ENV))
 
     try:
@@ -392,6 +394,8 @@ def scheduler(tmp_path_factory: pytest.TempPathFactory):
         yield address
     finally:
         _stop(procs)
+        for f in logs:  # an unclosed file is a ResourceWarning, an error in this suite
+            f.close()
         assert all(p.poll() is not None for p in procs)
 
 
