@@ -244,3 +244,32 @@ def test_cdr_schema_that_does_not_parse_is_one_line(tmp_path: Path) -> None:
         w.finish()
     sc = replay(tmp_path, "bad.mcap", '["x"]', "R = 1.0", topic="/x")
     refused(tmp_path, sc, "bad.mcap", "cannot decode its schema")
+
+
+# ------------------------------------------------------------------ every command's inputs
+
+
+@pytest.mark.parametrize(
+    ("args", "fifo"),
+    [
+        (["simulate", "{f}", "-o", "s.mcap"], "f.toml"),
+        (["run", "{f}", "--out-dir", "o"], "f.toml"),
+        (["estimate", "{f}", "-o", "e.mcap"], "f.mcap"),
+        (["evaluate", "{f}", "{f}", "-o", "x.rrd"], "f.mcap"),
+        (["inspect", "{f}"], "f.mcap"),
+        (["inspect", "--recover", "{f}"], "f.mcap"),
+        (["compare", "{f}", "{f}"], "f.json"),
+    ],
+)
+def test_every_command_refuses_a_fifo_input_without_blocking(
+    tmp_path: Path, args: list[str], fifo: str
+) -> None:
+    os.mkfifo(tmp_path / fifo)
+    argv = [a.replace("{f}", fifo) for a in args]
+    cmd = [sys.executable, "-m", "fusionlog.cli", *argv]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=60, check=False, cwd=tmp_path)
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.splitlines() == [
+        f"fusionlog: error: {fifo}: is a FIFO (named pipe), not a regular file"
+    ]
+    assert listing(tmp_path) == [fifo]

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from fusionlog.errors import FusionlogError
+from fusionlog.inputs import check_input
 from fusionlog.jsonout import NON_FINITE, join_path, resolve_non_finite, to_strict_json
 
 __all__ = ["check_summary", "check_tolerance", "compare_summaries", "format_table", "load_json"]
@@ -422,6 +423,7 @@ def compare_summaries(
 
 def load_json(path: Path) -> Any:
     """A JSON file for `fusionlog compare`; every way it can fail is one FusionlogError line."""
+    check_input(path)  # a FIFO or a device would block or never end
     try:
         return json.loads(path.read_text())
     except FileNotFoundError as e:

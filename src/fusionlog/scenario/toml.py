@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from fusionlog.errors import ValidationError
+from fusionlog.inputs import check_input
 
 #: Names that end up in MCAP topics, Rerun entity paths and folder names.
 _NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
@@ -40,6 +41,7 @@ class Ctx:
 
 
 def read_text(file: str) -> str:
+    check_input(file)  # a FIFO or a device would block or never end
     try:
         with open(file, "rb") as fh:
             data = fh.read()

@@ -21,19 +21,12 @@ from pathlib import Path
 from typing import BinaryIO
 
 from fusionlog.errors import FusionlogError
+from fusionlog.inputs import special_kind
 
 __all__ = ["MAX_MCAP_BYTES", "MAX_TEXT_BYTES", "bounded_lines", "open_source"]
 
 MAX_TEXT_BYTES = 1 << 30
 MAX_MCAP_BYTES = 256 << 30
-
-_KINDS = (
-    (stat.S_ISDIR, "a directory"),
-    (stat.S_ISFIFO, "a FIFO (named pipe)"),
-    (stat.S_ISCHR, "a character device"),
-    (stat.S_ISBLK, "a block device"),
-    (stat.S_ISSOCK, "a socket"),
-)
 
 
 def _size(n: int) -> str:
@@ -41,7 +34,7 @@ def _size(n: int) -> str:
 
 
 def _not_regular(path: Path, prefix: str, mode: int) -> FusionlogError:
-    kind = next((name for test, name in _KINDS if test(mode)), "not a regular file")
+    kind = "a directory" if stat.S_ISDIR(mode) else special_kind(mode) or "not a regular file"
     return FusionlogError(f"{path}: {prefix}is {kind}, not a regular file (a recorded log)")
 
 
