@@ -1,0 +1,156 @@
+"""The local filters, EKF and UKF, batched over runs: means (M, n), covariances (M, n, n).
+
+EKF (DESIGN.md): the models linearised at the prediction (analytic Jacobians), the update in
+Joseph form  P+ = (I - K H) P (I - K H)^T + K R K^T.
+
+UKF: the scaled unscented transform (Julier 2002; Wan and van der Merwe 2000):
+lambda = alpha^2 (n + kappa) - n, sigma points x, x +- columns of the lower Cholesky factor of
+(n + lambda) P; weights W0m = lambda/(n+lambda), W0c = W0m + 1 - alpha^2 + beta,
+Wi = 1/(2(n+lambda)). The points are drawn afresh from the predicted mean and covariance for each
+update; the weighted mean of angle components is taken on residuals about the central point's
+image, wrapped; the update is x+ = x + K (z - z_hat), P+ = P - K S K^T with K = Pxz S^-1.
+
+Both report the *linearised gain* of an update: K and the effective H (the Jacobian for the EKF,
+the statistical linearisation Pxz^T P^-1 for the UKF) and of a prediction the effective F, which
+the architectures that carry cross-covariances (MSC-GMF, AVG) propagate errors through.
+
+A run without a measurement (NaN: not scheduled, or lost) has its rows' H and innovation zeroed:
+its K columns are then exactly zero (S is block-diagonal between present and absent rows), so one
+batched update serves runs with any pattern of missing data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...errors import NumericalError
+from ..linalg import mT, sym
+from .measurement import Stacked, wrap_angles
+from .motion import Motion
+
+
+@dataclass(frozen=True)
+class UkfParams:
+    """[estimate.ukf]: alpha, beta, kappa (defaults 1, 2, 0)."""
+
+    alpha: float = 1.0
+    beta: float = 2.0
+    kappa: float = 0.0
+
+    def weights(self, n: int) -> tuple[float, np.ndarray, np.ndarray]:
+        """(n + lambda, Wm, Wc) for 2n + 1 sigma points; n + lambda > 0 is checked on load."""
+        lam = self.alpha**2 * (n + self.kappa) - n
+        c = n + lam
+        Wm = np.full(2 * n + 1, 0.5 / c)
+        Wc = Wm.copy()
+        Wm[0] = lam / c
+        Wc[0] = lam / c + 1.0 - self.alpha**2 + self.beta
+        return c, Wm, Wc
+
+
+@dataclass(frozen=True)
+class Update:
+    """The result of an update: x+, P+, and the linearised gain (K, effective H)."""
+
+    x: np.ndarray
+    P: np.ndarray
+    K: np.ndarray  # (M, n, m)
+    H: np.ndarray  # (M, m, n)
+
+
+def sigma_points(x: np.ndarray, P: np.ndarray, c: float, what: str) -> np.ndarray:
+    """(M, 2n+1, n): x, x + L_i, x - L_i with L L^T = c P (lower Cholesky)."""
+    try:
+        L = np.linalg.cholesky(c * sym(P))
+    except np.linalg.LinAlgError:
+        raise NumericalError(
+            f"UKF: {what} is not positive definite (no sigma points); try the EKF or a "
+            "larger process noise"
+        ) from None
+    cols = mT(L)  # (M, n, n): row i is column i of L
+    return np.concatenate([x[:, None], x[:, None] + cols, x[:, None] - cols], axis=1)
+
+
+def predict(
+    motion: Motion, x: np.ndarray, P: np.ndarray, dt: float, ukf: UkfParams | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """x-, P- and the effective F and the cross-covariance C = cov(x_{k-1}, x_k) (the RTS
+    smoother's) of one prediction over dt. Linear motion: F x, F P F^T + Q for both filters
+    (the unscented transform is exact there)."""
+    Q = motion.noise(dt)
+    if ukf is None or motion.linear:
+        F = motion.jacobian(x, dt)
+        C = P @ mT(F)
+        return motion.f(x, dt), sym(F @ C + Q), F, C
+    n = x.shape[-1]
+    c, Wm, Wc = ukf.weights(n)
+    X = sigma_points(x, P, c, "the covariance before a prediction")
+    Y = motion.f(X, dt)
+    xp = np.einsum("j,mjn->mn", Wm, Y)
+    dY = Y - xp[:, None]
+    dX = X - x[:, None]
+    Pp = sym(np.einsum("j,mja,mjb->mab", Wc, dY, dY) + Q)
+    C = np.einsum("j,mja,mjb->mab", Wc, dX, dY)
+    F = mT(np.linalg.solve(P, C))  # statistical linearisation: C = P F^T
+    return xp, Pp, F, C
+
+
+def _masked(z: np.ndarray, model: Stacked) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(present (M, m), z with NaN as 0, R with no coupling between present and absent rows)."""
+    present = ~np.isnan(z)
+    R = model.R
+    Rm = np.where(present[:, :, None] == present[:, None, :], R, 0.0)
+    return present, np.where(present, z, 0.0), Rm
+
+
+def _gain(P_xz: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """K = Pxz S^-1 as a solve with S (symmetric positive definite)."""
+    return mT(np.linalg.solve(S, mT(P_xz)))
+
+
+def update_ekf(model: Stacked, x: np.ndarray, P: np.ndarray, z: np.ndarray) -> Update:
+    """EKF update at the prediction, Joseph form (module docstring)."""
+    present, z0, R = _masked(z, model)
+    H = model.jacobian(x) * present[:, :, None]
+    y = wrap_angles(z0 - model.h(x), model.angles) * present
+    PHt = P @ mT(H)
+    S = sym(H @ PHt + R)
+    K = _gain(PHt, S)
+    A = np.eye(x.shape[-1]) - K @ H
+    Pu = sym(A @ P @ mT(A) + K @ R @ mT(K))
+    return Update(x + np.einsum("mij,mj->mi", K, y), Pu, K, H)
+
+
+def update_ukf(
+    model: Stacked, x: np.ndarray, P: np.ndarray, z: np.ndarray, ukf: UkfParams
+) -> Update:
+    """UKF update with sigma points drawn from (x, P) (module docstring)."""
+    present, z0, R = _masked(z, model)
+    n = x.shape[-1]
+    angles = model.angles
+    c, Wm, Wc = ukf.weights(n)
+    X = sigma_points(x, P, c, "the predicted covariance")
+    Z = model.h(X)  # (M, 2n+1, m)
+    # the weighted mean about the central point's image: angles averaged as wrapped residuals
+    D = wrap_angles(Z - Z[:, :1], angles)
+    zhat = wrap_angles(Z[:, 0] + np.einsum("j,mjk->mk", Wm, D), angles)
+    dZ = wrap_angles(Z - zhat[:, None], angles) * present[:, None]
+    dX = X - x[:, None]
+    S = sym(np.einsum("j,mja,mjb->mab", Wc, dZ, dZ) + R)
+    Pxz = np.einsum("j,mja,mjb->mab", Wc, dX, dZ)
+    K = _gain(Pxz, S)
+    y = wrap_angles(z0 - zhat, angles) * present
+    Pu = sym(P - K @ S @ mT(K))
+    H = mT(np.linalg.solve(P, Pxz))  # statistical linearisation: Pxz = P H^T
+    return Update(x + np.einsum("mij,mj->mi", K, y), Pu, K, H)
+
+
+def update(
+    model: Stacked, x: np.ndarray, P: np.ndarray, z: np.ndarray, ukf: UkfParams | None
+) -> Update:
+    """One update with the sensors of `model` (z (M, m), NaN = absent): EKF when `ukf` is None."""
+    if ukf is None:
+        return update_ekf(model, x, P, z)
+    return update_ukf(model, x, P, z, ukf)
