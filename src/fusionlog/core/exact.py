@@ -91,7 +91,7 @@ def _coupling(plan: Plan, truth: System) -> bool:
     same_F = np.array_equal(model.F, truth.F) and (
         model.Fs is truth.Fs or (model.Fs is not None and np.array_equal(model.Fs, truth.Fs))
     )
-    return not (same_F and np.array_equal(model.H, truth.H))
+    return not (same_F and np.array_equal(model.linear_measurement(), truth.linear_measurement()))
 
 
 def _mv(A: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -135,7 +135,7 @@ def _forward_moments(plan: Plan, truth: System) -> tuple[list, list, int, int]:
     them too (the same objects in the lists). Per-run maps give per-run moments (runs, ...).
     """
     n = truth.n
-    Ht = truth.H
+    Ht = truth.linear_measurement()
     init = truth.truth_initial
     nx = n if _coupling(plan, truth) else 0
     D0 = plan.D0
@@ -312,7 +312,7 @@ def _analyse(plan: Plan, truth: System, where) -> Expected:
             mse[..., settled + 1 :, :, :] = mse[..., settled, None, :, :]
     else:
         sm = plan.smoother
-        Ht = truth.H
+        Ht = truth.linear_measurement()
         Bk = np.zeros((n, n))
         Ceta = np.zeros((n, n))
         steady = False  # backward statistics stopped changing under a repeated map

@@ -12,21 +12,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .timing import Schedule, SensorTiming, schedule
+from .models import LinearMotion, LinearSensor, MotionModel, NotLinear, SensorModel
+from .timing import Schedule, schedule
 
-
-@dataclass(frozen=True)
-class Sensor:
-    """One sensor of eq. (13): z = H x + v, v ~ N(0, R), measuring when `timing` says."""
-
-    name: str
-    H: np.ndarray  # (m, n)
-    R: np.ndarray  # (m, m)
-    timing: SensorTiming = SensorTiming()
-
-    @property
-    def dim(self) -> int:
-        return self.H.shape[0]
+#: The linear sensor of eq. (13) (`core.models.LinearSensor`), by its historical name.
+Sensor = LinearSensor
 
 
 @dataclass(frozen=True)
@@ -54,7 +44,7 @@ class System:
 
     F: np.ndarray
     Q: np.ndarray
-    sensors: tuple[Sensor, ...]
+    sensors: tuple[SensorModel, ...]
     prior: Prior | None = None
     G: np.ndarray | None = None
     cross_R: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
@@ -82,6 +72,39 @@ class System:
         if self.G is None:
             return self.Q
         return self.G @ self.Q @ self.G.T
+
+    @property
+    def motion(self) -> MotionModel:
+        """The motion model (`core.models`): here the linear one of F, G Q G^T over dt (and the
+        continuous model, for other intervals)."""
+        return LinearMotion(self.F, self.GQG, self.dt, self.continuous)
+
+    @property
+    def linear(self) -> bool:
+        """Whether every sensor (and the motion) is linear: what compiled plans and the exact
+        analysis need."""
+        return self.motion.linear and all(s.linear for s in self.sensors)
+
+    def linear_measurement(self) -> np.ndarray:
+        """The stacked measurement matrix of eq. (30), (m, n), asked of the sensor models; the
+        one place that refuses a nonlinear sensor (`NotLinear`) where a matrix is needed."""
+        for s in self.sensors:
+            if not s.linear:
+                raise NotLinear(
+                    f"sensor {s.name} ({s.kind}) is nonlinear: it has no measurement matrix "
+                    "(the compiled plans and the exact analysis need linear sensors)"
+                )
+        return np.vstack([s.H for s in self.sensors])
+
+    def h(self, x: np.ndarray) -> np.ndarray:
+        """The stacked noise-free measurement (eq. 30) of states x (..., n): (..., m)."""
+        if self.linear:  # one product: what the simulation always computed
+            return x @ self.H.T
+        return np.concatenate([s.h(x) for s in self.sensors], axis=-1)
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """The stacked measurement Jacobian at states x (..., n): (..., m, n)."""
+        return np.concatenate([s.jacobian(x) for s in self.sensors], axis=-2)
 
     @property
     def time_invariant(self) -> bool:
@@ -144,8 +167,8 @@ class System:
 
     @property
     def H(self) -> np.ndarray:
-        """Stacked measurement matrix of eq. (30)."""
-        return np.vstack([s.H for s in self.sensors])
+        """Stacked measurement matrix of eq. (30) (`linear_measurement`)."""
+        return self.linear_measurement()
 
     @property
     def R(self) -> np.ndarray:
@@ -186,6 +209,9 @@ def constant_velocity(dt: float, n0: float) -> tuple[np.ndarray, np.ndarray]:
     F = np.array([[1.0, dt], [0.0, 1.0]])
     Q = np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]) * n0
     return F, Q
+
+
+__all__ = ["NotLinear", "Prior", "Sensor", "System", "ajgl2009", "constant_velocity"]
 
 
 def ajgl2009(ts: float = 1.0, n_sensors: int = 3) -> System:

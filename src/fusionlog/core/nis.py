@@ -52,7 +52,7 @@ def innovations(
     per instant where it varies: `System.R_at`)."""
     M, K1, _ = z.shape
     n = system.n
-    H = system.H[rows]
+    H = system.linear_measurement()[rows]
     r = len(rows)
     # The predictions of every instant at once: x_k^- = F_k x_{k-1}, P_k^- = F_k P F_k' + Q_k
     # (k >= 1), the prior at k = 0 (none without a prior).

@@ -33,12 +33,12 @@ from fusionlog.core.model import Sensor, System
 from . import toml
 from .base import Header, Scenario
 from .model import model_section
+from .sensors import sensor_matrices
 from .state import (
     architectures_section,
     correlations_section,
     evaluate_section,
     prior_section,
-    sensor_matrices,
 )
 from .toml import Ctx
 

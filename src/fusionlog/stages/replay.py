@@ -132,7 +132,7 @@ def read_replay(scenario: Scenario) -> ReplayData:
         values[:, list(replay.truth_states)] = t.values[match]
         truth = {"at": pos[match], "values": values}
     new_sensors = tuple(
-        type(sen)(sen.name, sen.H, np.asarray(R), sen.timing)
+        dataclasses.replace(sen, R=np.asarray(R))
         for sen, R in zip(system.sensors, nominal, strict=True)
     )
     sc = dataclasses.replace(scenario, system=dataclasses.replace(system, sensors=new_sensors))

@@ -303,8 +303,14 @@ class _StateEvaluator(Evaluator):
             z = np.concatenate([sensors[t] for t in self.sensor_topics], axis=-1)
             self.nis.add(z, {a: estimates[f"/estimates/{a}"] for a in self.nis.archs})
             if not self.measured_points:  # the first run's readings of a state, under its estimates
-                for s, t in zip(self.filter_sys.sensors, self.sensor_topics, strict=True):
-                    for row, h in enumerate(s.H):
+                H = self.filter_sys.linear_measurement()
+                for s, t, sl in zip(
+                    self.filter_sys.sensors,
+                    self.sensor_topics,
+                    self.filter_sys.sensor_slices,
+                    strict=True,
+                ):
+                    for row, h in enumerate(H[sl]):
                         if np.count_nonzero(h) == 1 and h.max() == 1.0:
                             state = int(np.argmax(h))
                             self.measured_points.setdefault(state, {})[s.name] = sensors[t][
