@@ -31,10 +31,10 @@ from ...errors import NumericalError
 from ..ci import ci_omegas
 from ..fusion import gmf_weight_matrix
 from ..linalg import mT, spd_inv, sym
+from ..model import System
+from ..models.polar import PolarSensor
 from ..names import parse_arch
-from .local import predict, update
-from .measurement import Stacked
-from .system import NonlinearSystem, intervals
+from .local import Stacked, predict, transition, ukf_params, update
 
 
 @dataclass
@@ -49,18 +49,18 @@ class _Steps:
     """What every architecture needs of the instants: the intervals, the stacked measurement
     columns of each sensor, and which sensors measure at an instant in some run."""
 
-    def __init__(self, system: NonlinearSystem, z: np.ndarray, times: np.ndarray, off: int):
-        self.system, self.z, self.off = system, z, off
+    def __init__(self, system: System, z: np.ndarray, times: np.ndarray, off: int):
         self.times = np.asarray(times, dtype=float)
-        self.dts = intervals(self.times)
-        self.cols = [np.arange(system.m)[sl] for sl in system.sensor_slices]
+        self.system, self.z, self.off = system.on_times(self.times), z, off
+        m = self.system.m
+        self.cols = [np.arange(m)[sl] for sl in self.system.sensor_slices]
         self.measures = np.stack(
             [(~np.isnan(z[..., c])).any(axis=(0, 2)) for c in self.cols], axis=1
         )  # (K+1, S)
-        self.ukf = system.ukf_params
+        self.ukf = ukf_params(self.system)
 
     def predict(self, k: int, x: np.ndarray, P: np.ndarray):
-        return predict(self.system.motion, x, P, float(self.dts[k - 1]), self.ukf)
+        return predict(*transition(self.system, k), x, P, self.ukf)
 
     def update(self, k: int, which: list[int], x: np.ndarray, P: np.ndarray):
         """The update at instant k with the sensors `which` that measure then (None: none)."""
@@ -77,8 +77,8 @@ class _Steps:
         start = 0
         for j in which:
             s = self.system.sensors[j]
-            r = s.ranges(x)
-            if r is not None:
+            if isinstance(s, PolarSensor):
+                r = s.ranges(x)
                 present = ~np.isnan(zk[:, start : start + s.dim]).any(axis=-1)
                 bad = present & ~(r > 0)
                 if bad.any():
@@ -97,7 +97,7 @@ class _Steps:
 
 
 def estimate(
-    system: NonlinearSystem, arch: str, z: np.ndarray, times: np.ndarray, run_offset: int = 0
+    system: System, arch: str, z: np.ndarray, times: np.ndarray, run_offset: int = 0
 ) -> Track:
     """Estimates of every run (z: (M, K+1, m), NaN = absent) with architecture `arch`;
     `run_offset` (the block's first run) only names runs in errors."""
@@ -186,7 +186,8 @@ def _track_to_track(st: _Steps, base: str) -> Track:
             xs, Ps = [p[0] for p in pred], [p[1] for p in pred]
             if joint:
                 Fs = np.stack([p[2] for p in pred], axis=1)  # (M, S, n, n)
-                Q = st.system.motion.noise(float(st.dts[k - 1]))
+                motion, dt = transition(st.system, k)
+                Q = motion.Q(dt)
                 J = np.einsum("miab,mijbc,mjdc->mijad", Fs, J, Fs) + Q
         A = np.broadcast_to(eye, (M, S, n, n)).copy()
         for i in range(S):

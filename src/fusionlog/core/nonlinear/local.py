@@ -27,8 +27,52 @@ import numpy as np
 
 from ...errors import NumericalError
 from ..linalg import mT, sym
-from .measurement import Stacked, wrap_angles
-from .motion import Motion
+from ..model import System
+from ..models import LinearMotion, MotionModel, SensorModel
+from ..models.polar import angle_mask, wrap_angles
+
+
+@dataclass(frozen=True)
+class Stacked:
+    """Several sensors as one measurement z = [h_1(x); ...; h_S(x)] (eq. 30: the CKF's one
+    update per instant with every sensor that measures then); R block-diagonal."""
+
+    sensors: tuple[SensorModel, ...]
+
+    @property
+    def dim(self) -> int:
+        return sum(s.dim for s in self.sensors)
+
+    @property
+    def angles(self) -> np.ndarray:
+        return np.concatenate([angle_mask(s) for s in self.sensors])
+
+    @property
+    def R(self) -> np.ndarray:
+        R, start = np.zeros((self.dim, self.dim)), 0
+        for s in self.sensors:
+            R[start : start + s.dim, start : start + s.dim] = s.R
+            start += s.dim
+        return R
+
+    def h(self, x: np.ndarray) -> np.ndarray:
+        return np.concatenate([s.h(x) for s in self.sensors], axis=-1)
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        return np.concatenate([s.jacobian(x) for s in self.sensors], axis=-2)
+
+
+def transition(system: System, k: int) -> tuple[MotionModel, float]:
+    """The motion model and interval from instant k-1 to k of a system on its instants
+    (`System.on_times`): a linear one with that interval's F and Q, or the nonlinear model."""
+    if system.motion_model is None:
+        return LinearMotion(system.F_at(k), system.GQG_at(k), 1.0), 1.0
+    return system.motion_model, system.dt_at(k)
+
+
+def ukf_params(system: System) -> UkfParams | None:
+    """The UKF's parameters of a system whose filter is the UKF, else None (the EKF)."""
+    return UkfParams(*system.ukf) if system.filter == "UKF" else None
 
 
 @dataclass(frozen=True)
@@ -74,12 +118,12 @@ def sigma_points(x: np.ndarray, P: np.ndarray, c: float, what: str) -> np.ndarra
 
 
 def predict(
-    motion: Motion, x: np.ndarray, P: np.ndarray, dt: float, ukf: UkfParams | None
+    motion: MotionModel, dt: float, x: np.ndarray, P: np.ndarray, ukf: UkfParams | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """x-, P- and the effective F and the cross-covariance C = cov(x_{k-1}, x_k) (the RTS
     smoother's) of one prediction over dt. Linear motion: F x, F P F^T + Q for both filters
     (the unscented transform is exact there)."""
-    Q = motion.noise(dt)
+    Q = motion.Q(dt)
     if ukf is None or motion.linear:
         F = motion.jacobian(x, dt)
         C = P @ mT(F)

@@ -23,15 +23,15 @@ from __future__ import annotations
 import numpy as np
 
 from ..linalg import mT, spd_inv, sym
-from .system import NonlinearSystem, intervals
+from ..model import System
+from .local import transition
 
 
 class PcrbAccumulator:
     """Sums over runs of the expectations above, block by block; `bound()` runs the recursion."""
 
-    def __init__(self, system: NonlinearSystem, times: np.ndarray) -> None:
-        self.system = system
-        self.dts = intervals(times)
+    def __init__(self, system: System, times: np.ndarray) -> None:
+        self.system = system = system.on_times(times)
         K1, n = len(times), system.n
         self.runs = 0
         self.info = np.zeros((K1, n, n))  # sum of D_z(k)
@@ -51,9 +51,9 @@ class PcrbAccumulator:
             self.info += np.einsum("mkai,mkaj,mk->kij", H, RiH, present[..., j].astype(float))
         if not self.linear_motion:
             for k in range(1, truth.shape[1]):
-                dt = float(self.dts[k - 1])
-                F = sys.motion.jacobian(truth[:, k - 1], dt)
-                QiF = np.linalg.solve(sys.motion.noise(dt), F)
+                motion, dt = transition(sys, k)
+                F = motion.jacobian(truth[:, k - 1], dt)
+                QiF = np.linalg.solve(motion.Q(dt), F)
                 self.FtQF[k] += np.einsum("mai,maj->ij", F, QiF)
                 self.F[k] += F.sum(axis=0)
 
@@ -65,10 +65,10 @@ class PcrbAccumulator:
         J = spd_inv(self.system.truth_initial.cov, "the initial covariance") + Dz[0]
         out[0] = spd_inv(J, "the Fisher information")
         for k in range(1, len(Dz)):
-            dt = float(self.dts[k - 1])
-            Q = self.system.motion.noise(dt)
+            motion, dt = transition(self.system, k)
+            Q = motion.Q(dt)
             if self.linear_motion:
-                F = self.system.motion.matrices(dt)[0]
+                F = motion.F(dt)
                 J = spd_inv(sym(Q + F @ out[k - 1] @ F.T), "Q + F J^-1 F'") + Dz[k]
             else:
                 Qi = spd_inv(Q, "the process noise covariance Q")

@@ -1,9 +1,8 @@
-"""Motion models x_k = f(x_{k-1}, dt) + w, w ~ N(0, Q(dt)), evaluated for many states at once.
+"""The coordinated-turn motion model (DESIGN.md, "Nonlinear sensors and motion").
 
-`LinearMotion` is F x with the scenario's F, Q (and, for instants other than k dt, its continuous
-model discretised by Van Loan's method). `CoordinatedTurn` is the nearly coordinated turn on the
-state [x, vx, y, vy, omega] (Bar-Shalom, Li, Kirubarajan, "Estimation with Applications to Tracking
-and Navigation", Sec. 11.7): with theta = omega dt, a = sin(theta)/omega, b = (1 - cos theta)/omega,
+The nearly coordinated turn on the state [x, vx, y, vy, omega] (Bar-Shalom, Li, Kirubarajan,
+"Estimation with Applications to Tracking and Navigation", Sec. 11.7): with theta = omega dt,
+a = sin(theta)/omega, b = (1 - cos theta)/omega,
 
     x' = x + a vx - b vy,   vx' = cos(theta) vx - sin(theta) vy,
     y' = y + b vx + a vy,   vy' = sin(theta) vx + cos(theta) vy,   omega' = omega,
@@ -14,9 +13,11 @@ white-acceleration block [[dt^3/3, dt^2/2], [dt^2/2, dt]] per axis and q_turn dt
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
+
+from .base import MotionModel, register_motion
 
 #: |omega dt| below which a, b and their omega-derivatives come from their Taylor series: there
 #: the closed forms lose ~eps/theta^2 to cancellation, the series' first omitted term is
@@ -27,41 +28,6 @@ SMALL_TURN = 1e-2
 def cv_block(dt: float) -> np.ndarray:
     """The white-acceleration noise of one axis [p, v] over dt, per unit spectral density."""
     return np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]])
-
-
-@dataclass(frozen=True)
-class LinearMotion:
-    """x_k = F x_{k-1} + w: F, Q at dt (Q in state space, G Q G^T), and the continuous model
-    (A, Qc) when there is one, for intervals other than dt."""
-
-    F: np.ndarray
-    Q: np.ndarray
-    dt: float
-    continuous: tuple[np.ndarray, np.ndarray] | None = None
-    _cache: dict = field(default_factory=dict, compare=False, repr=False)
-    linear: bool = True
-
-    def matrices(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """F and Q over an interval dt (the scenario's own at dt)."""
-        # the log's times are whole nanoseconds: an interval within that of dt is dt
-        if abs(dt - self.dt) <= 1e-9 or self.continuous is None:
-            return self.F, self.Q
-        key = round(dt, 9)
-        if key not in self._cache:
-            from ..timing import van_loan
-
-            self._cache[key] = van_loan(*self.continuous, dt)
-        return self._cache[key]
-
-    def f(self, x: np.ndarray, dt: float) -> np.ndarray:
-        return x @ self.matrices(dt)[0].T
-
-    def jacobian(self, x: np.ndarray, dt: float) -> np.ndarray:
-        F = self.matrices(dt)[0]
-        return np.broadcast_to(F, x.shape[:-1] + F.shape)
-
-    def noise(self, dt: float) -> np.ndarray:
-        return self.matrices(dt)[1]
 
 
 def _turn_terms(omega: np.ndarray, dt: float) -> tuple[np.ndarray, ...]:
@@ -80,13 +46,19 @@ def _turn_terms(omega: np.ndarray, dt: float) -> tuple[np.ndarray, ...]:
     return a, b, da, db, c, s
 
 
+@register_motion
 @dataclass(frozen=True)
-class CoordinatedTurn:
+class CoordinatedTurn(MotionModel):
     """The coordinated turn on [x, vx, y, vy, omega] (module docstring)."""
+
+    kind = "coordinated-turn"
 
     q: tuple[float, float]  # white-acceleration spectral densities along x and y
     q_turn: float  # of the turn rate
-    linear: bool = False
+
+    @property
+    def n(self) -> int:
+        return 5
 
     def f(self, x: np.ndarray, dt: float) -> np.ndarray:
         px, vx, py, vy, om = np.moveaxis(x, -1, 0)
@@ -108,12 +80,9 @@ class CoordinatedTurn:
         J[..., 3, 1], J[..., 3, 3], J[..., 3, 4] = s, c, dt * (c * vx - s * vy)
         return J
 
-    def noise(self, dt: float) -> np.ndarray:
+    def Q(self, dt: float) -> np.ndarray:
         Q = np.zeros((5, 5))
         Q[0:2, 0:2] = self.q[0] * cv_block(dt)
         Q[2:4, 2:4] = self.q[1] * cv_block(dt)
         Q[4, 4] = self.q_turn * dt
         return Q
-
-
-Motion = LinearMotion | CoordinatedTurn
