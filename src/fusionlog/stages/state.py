@@ -32,6 +32,7 @@ from fusionlog.scenario import Scenario, load_model, system_from_dict, system_to
 from .common import block_runs
 from .kind import Array, Estimator, Evaluator, Kind, Model, Prov, Readings, Sens, StepWriter, Topics
 from .noise import with_message_covariances
+from .nonlinear import PcrbPart, estimate_block
 
 #: Sample estimates per architecture drawn in the state-plane view.
 PLANE_POINTS = 300
@@ -90,7 +91,7 @@ class StateKind(Kind):
     ) -> Estimator:
         topics = [f"/sensors/{s.name}" for s in system.sensors]
         system = with_message_covariances(on_times(system, sensors), sensors)
-        return _StateEstimator(system, steps, runs, archs, topics)
+        return _StateEstimator(system, steps, runs, archs, topics, sensors.times())
 
     def evaluator(self, sc: Scenario, est: McapFile, prov: Prov, sens: Sens = None) -> Evaluator:
         return _StateEvaluator(sc, est, prov, sens)
@@ -98,9 +99,16 @@ class StateKind(Kind):
 
 class _StateEstimator(Estimator):
     def __init__(
-        self, system: System, steps: int, runs: int, archs: list[str], topics: list[str]
+        self,
+        system: System,
+        steps: int,
+        runs: int,
+        archs: list[str],
+        topics: list[str],
+        times: np.ndarray,
     ) -> None:
         self.system, self.K, self.M, self.archs, self.topics = system, steps, runs, archs, topics
+        self.times = times
         self.plans: dict[tuple[str, bytes], Plan] = {}
         self.pattern: np.ndarray | None = None  # the measurement pattern shared by every run
         self.per_run = False
@@ -110,6 +118,10 @@ class _StateEstimator(Estimator):
 
     def estimate(self, run_offset: int, data: dict[str, np.ndarray]) -> dict[str, StepWriter]:
         z = np.concatenate([data[t] for t in self.topics], axis=-1)
+        if not self.system.linear:  # EKF/UKF: every run has its own linearisation
+            self.per_run = True
+            est = {a: estimate_block(self.system, a, z, self.times, run_offset) for a in self.archs}
+            return {a: _estimate_writer(mean, cov, False) for a, (mean, cov) in est.items()}
         block_pattern = shared_pattern(z)
         if block_pattern is None or (
             self.pattern is not None and (block_pattern != self.pattern).any()
@@ -161,6 +173,8 @@ def _analysable(prov: dict[str, str], filter_sys: System, truth_sys: System):
     does not have leave no exact analysis. `per run`: the runs' patterns differ (the mask is
     then None: each block's plans are built from its sensor readings).
     """
+    if not (filter_sys.linear and truth_sys.linear):  # no exact analysis: the PCRB instead
+        return None
     pattern = prov.get("measurement_pattern", "complete")
     names = [s.name for s in truth_sys.sensors]
     if any(s.name not in names for s in filter_sys.sensors):
@@ -252,6 +266,10 @@ class _StateEvaluator(Evaluator):
             for s in self.filter_sys.sensors:
                 self.scheduled[s.name] = sens.topic_steps(f"/sensors/{s.name}")
                 self.measured[s.name] = np.zeros(self.K + 1)
+        # Nonlinear models: the posterior Cramer-Rao bound, from the truth and the readings.
+        self.pcrb = None if truth_sys.linear else PcrbPart(truth_sys, est.times())
+        if self.pcrb is not None:
+            self.sensor_topics = self.pcrb.topics
         self.n_samples = min(sc.sample_runs, self.M)
         self.samples: dict[int, tuple[np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = {}
         self.plane_pts: dict[str, np.ndarray] = {}
@@ -270,6 +288,8 @@ class _StateEvaluator(Evaluator):
             raise FusionlogError(f"/truth has {x.shape[-1]} values per run, not {self.sc.system.n}")
         if self.measured and sensors is not None:
             self._add_consistency(sensors, estimates)
+        if self.pcrb is not None and truth is not None:
+            self.pcrb.add(x, sensors)
         if self.conditional:
             if sensors is None or any(t not in sensors for t in self.sensor_topics):
                 # a block without its readings: the run average would miss its runs
@@ -364,6 +384,8 @@ class _StateEvaluator(Evaluator):
             )
             self._series[a] = res.series(**kw)
             arch_summary[a] = res.summary(**kw)
+            if self.pcrb is not None:  # no exact analysis: `expected` is null, the PCRB stands
+                arch_summary[a]["expected"] = None
             if conditional:  # DESIGN.md "summary.json": conditional on the drawn patterns
                 arch_summary[a]["expected"]["conditional"] = True
             if a in nis:
@@ -379,6 +401,8 @@ class _StateEvaluator(Evaluator):
             "confidence": self.sc.confidence,
             "architectures": arch_summary,
         }
+        if self.pcrb is not None:  # DESIGN.md: no exact analysis, the PCRB beside the values
+            self._summary["pcrb"] = self.pcrb.summary()
         return self._summary
 
     def _plane(self) -> dict[str, Any] | None:
@@ -423,4 +447,5 @@ class _StateEvaluator(Evaluator):
             nis=self.nis.series(self.sc.confidence) if self.nis is not None else None,
             traces=None if self.has_truth else {a: t / self.M for a, t in self.trace.items()},
             measured=self.measured_points,
+            pcrb=None if self.pcrb is None else self.pcrb.per_state(),
         )

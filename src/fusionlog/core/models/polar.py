@@ -59,6 +59,7 @@ class PolarSensor(SensorModel):
     n: int
     R: np.ndarray  # (m, m), in m^2 and rad^2
     timing: SensorTiming = SensorTiming()
+    position_states: tuple[str, str] = ("x", "y")  # the names of the states `idx`
 
     @property
     def dim(self) -> int:
