@@ -165,7 +165,18 @@ def block_estimates(
     architecture's estimates and the shared measurement pattern (None when runs differ) of runs
     [run_offset, run_offset + runs): as the estimate stage computes them."""
     x, z, plans, pattern = _block(job, run_offset, runs)
-    return x, z, {a: run_plan(plan, z) for a, plan in plans.items()}, pattern
+    return x, z, {a: _run(job, a, plan, z, run_offset) for a, plan in plans.items()}, pattern
+
+
+def _run(job: Job, arch: str, plan: Plan | None, z: np.ndarray, run_offset: int) -> Estimate:
+    """An architecture's estimates of a block: its plan applied, or for a nonlinear system
+    (no plan: every run has its own linearisation) the EKF/UKF architecture run."""
+    if plan is not None:
+        return run_plan(plan, z)
+    from .nonlinear import estimate_block
+
+    c = _compiled(job)
+    return Estimate(*estimate_block(c.system, arch, z, job.scenario.times, run_offset))
 
 
 def _block(
@@ -180,6 +191,8 @@ def _block(
     z = np.concatenate(zs, axis=-1)
     pattern = shared_pattern(z)
     K = sc.instants - 1
+    if not c.system.linear:  # no plans: `_run` runs the EKF/UKF architectures
+        return x, z, dict.fromkeys(job.archs), pattern
     plans = {
         a: _plan(job, c, a, pattern)
         if pattern is not None
@@ -214,12 +227,13 @@ def block_sums(job: Job, run_offset: int, runs: int) -> BlockSums:
     sums = {}
     empty = MetricsWorkspace()
     for a, plan in plans.items():
-        e = run_plan(plan, z)
+        e = _run(job, a, plan, z, run_offset)
         acc = MetricsAccumulator(x.shape[1], x.shape[2], workspace=ws)
         acc.add(x, e.mean, e.cov)
         acc.workspace = empty  # the scratch arrays stay here: only the sums travel
         sums[a] = acc
-    expected = _conditional(job, plans, runs) if job.conditional else None
+    exact = job.conditional and _compiled(job).system.linear
+    expected = _conditional(job, plans, runs) if exact else None
     key = None if pattern is None else np.packbits(pattern).tobytes()
     return BlockSums(run_offset, runs, sums, key, time.perf_counter() - t0, expected)
 
@@ -271,7 +285,7 @@ def exact_mask(scenario: Scenario) -> tuple[bool, np.ndarray | None]:
     sensor with dropouts makes the runs differ, and then there is none (yet: a per-run exact
     analysis would average each run's)."""
     system = scenario.system
-    if any(s.timing.dropout > 0 for s in system.sensors):
+    if not system.linear or any(s.timing.dropout > 0 for s in system.sensors):
         return False, None
     measures = scenario.schedule.measures
     if measures.all():
