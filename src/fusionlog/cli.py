@@ -148,6 +148,13 @@ _arch = click.option(
     help="Architecture (repeatable): CKF, HKF, MSC, MSC-GMF, SKF[:sensor], CI, FBS; "
     "BAYES, DS for identity scenarios.",
 )
+_filter = click.option(
+    "--filter",
+    "filter_name",
+    type=click.Choice(["EKF", "UKF"]),
+    help="Local filter of every architecture (overrides [estimate] filter; on a linear "
+    "scenario both equal the KF).",
+)
 _workers = click.option(
     "--workers",
     type=click.IntRange(min=0),
@@ -212,9 +219,10 @@ def import_(replay, output, force) -> None:
 @click.option("-o", "--output", type=OUTPUT, required=True, help="Estimates MCAP file to write.")
 @_arch
 @click.option("--model", type=PATH, help="Filter model TOML replacing the recorded scenario's.")
+@_filter
 @_force
 @_block
-def estimate(sensors, output, archs, model, force, block_runs) -> None:
+def estimate(sensors, output, archs, model, filter_name, force, block_runs) -> None:
     """Replay SENSORS.mcap through fusion architectures into an estimates MCAP file."""
     from fusionlog.stages.estimate import run_estimate
 
@@ -223,6 +231,7 @@ def estimate(sensors, output, archs, model, force, block_runs) -> None:
         output,
         archs=list(archs),
         model_path=model,
+        filter_name=filter_name,
         force=force,
         block=block_runs,
         command=_command_line(),
@@ -256,11 +265,14 @@ def evaluate(sensors, estimates, output, summary_path, force, block_runs) -> Non
 @_steps
 @_seed
 @_arch
+@_filter
 @_force
 @_block
 @_workers
 @_scheduler
-def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers, scheduler) -> None:
+def run(
+    scenario, out_dir, runs, steps, seed, archs, filter_name, force, block_runs, workers, scheduler
+) -> None:
     """Simulate, estimate and evaluate SCENARIO.toml; print the results table.
 
     With --workers or --scheduler the runs are computed on Dask in blocks whose metric sums
@@ -269,8 +281,9 @@ def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers,
     _one_executor(workers, scheduler)
     if workers is not None or scheduler is not None:
         _run_distributed(
-            scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers, scheduler
-        )
+            scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers, scheduler,
+            filter_name,
+        )  # fmt: skip
         return
     from fusionlog.report import format_table
     from fusionlog.stages.kinds import kind_of
@@ -284,6 +297,7 @@ def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers,
         sc,
         d,
         archs=archs,
+        filter_name=filter_name,
         force=force,
         block=block_runs,
         command=_command_line(),
@@ -298,12 +312,18 @@ def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers,
     click.echo(f"{stages} -> {d}")
 
 
-def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, workers, scheduler):
+def _run_distributed(
+    scenario, out_dir, runs, steps, seed, archs, force, block, workers, scheduler, filter_name
+):
     """`run --workers/--scheduler`: evaluation.rrd and summary.json from metric sums."""
+    import dataclasses
+
     from fusionlog.report import format_table
     from fusionlog.stages.distributed_run import DISTRIBUTED_OUTPUTS, run_distributed
+    from fusionlog.stages.nonlinear import with_filter
 
     sc = _scenario(scenario, runs, steps, seed)
+    sc = dataclasses.replace(sc, system=with_filter(sc.system, filter_name))
     d = out_dir if out_dir is not None else Path("recordings") / sc.name
     _warn_stale([d / name for name in DISTRIBUTED_OUTPUTS])
     res = run_distributed(
