@@ -13,7 +13,7 @@ import numpy as np
 from fusionlog.core.model import System
 from fusionlog.errors import FusionlogError
 
-__all__ = ["PcrbPart", "estimate_block", "with_filter"]
+__all__ = ["PcrbPart", "estimate_block", "step_writers", "with_filter"]
 
 
 def with_filter(system: Any, name: str | None) -> Any:
@@ -35,12 +35,38 @@ def estimate_block(
     """Means (M, K+1, n) and per-run covariances (M, K+1, n, n) of a block of runs."""
     from fusionlog.core.nonlinear import estimate
 
+    _require_filter(system)
+    tr = estimate(system, arch, z, times, run_offset)
+    return tr.mean, tr.cov
+
+
+def step_writers(
+    system: System, archs: list[str], z: np.ndarray, times: np.ndarray, run_offset: int
+) -> dict[str, Any]:
+    """The estimate stage's writers of a block: each architecture's filter advances one
+    instant when its message for that instant is written (the estimator's writers are called
+    for k = 0..K in order), so only one instant of covariances is held, not all of them."""
+    from fusionlog.core.nonlinear import estimate_steps
+
+    _require_filter(system)
+
+    def writer(arch: str) -> Any:
+        steps = estimate_steps(system, arch, z, times, run_offset)
+
+        def write(w: Any, topic: str, k: int, t: float, off: int) -> None:
+            mean, cov = next(steps)
+            w.write_estimate(topic, k, t, off, mean, cov)
+
+        return write
+
+    return {a: writer(a) for a in archs}
+
+
+def _require_filter(system: System) -> None:
     if system.filter is None:  # a --model file without [estimate] filter
         raise FusionlogError(
             'the model is nonlinear: give [estimate] filter = "EKF" or "UKF", or --filter'
         )
-    tr = estimate(system, arch, z, times, run_offset)
-    return tr.mean, tr.cov
 
 
 class PcrbPart:

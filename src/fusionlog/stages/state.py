@@ -32,7 +32,7 @@ from fusionlog.scenario import Scenario, load_model, system_from_dict, system_to
 from .common import block_runs
 from .kind import Array, Estimator, Evaluator, Kind, Model, Prov, Readings, Sens, StepWriter, Topics
 from .noise import with_message_covariances
-from .nonlinear import PcrbPart, estimate_block
+from .nonlinear import PcrbPart, step_writers
 
 #: Sample estimates per architecture drawn in the state-plane view.
 PLANE_POINTS = 300
@@ -120,8 +120,7 @@ class _StateEstimator(Estimator):
         z = np.concatenate([data[t] for t in self.topics], axis=-1)
         if not self.system.linear:  # EKF/UKF: every run has its own linearisation
             self.per_run = True
-            est = {a: estimate_block(self.system, a, z, self.times, run_offset) for a in self.archs}
-            return {a: _estimate_writer(mean, cov, False) for a, (mean, cov) in est.items()}
+            return step_writers(self.system, self.archs, z, self.times, run_offset)
         block_pattern = shared_pattern(z)
         if block_pattern is None or (
             self.pattern is not None and (block_pattern != self.pattern).any()

@@ -5,7 +5,7 @@ where no exact analysis exists (`pcrb`). The models themselves (range-bearing se
 coordinated turn) are components in `core.models`.
 """
 
-from .architectures import Track, estimate
+from .architectures import Track, estimate, estimate_steps
 from .local import Stacked, UkfParams, predict, sigma_points, update, update_ekf, update_ukf
 from .pcrb import PcrbAccumulator, pcrb_summary
 
@@ -15,6 +15,7 @@ __all__ = [
     "Track",
     "UkfParams",
     "estimate",
+    "estimate_steps",
     "pcrb_summary",
     "predict",
     "sigma_points",

@@ -23,6 +23,7 @@ on (M, n) means and (M, n, n) covariances, never a loop over runs.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +31,7 @@ import numpy as np
 from ...errors import NumericalError
 from ..ci import ci_omegas
 from ..fusion import gmf_weight_matrix
+from ..kernels import lanes
 from ..linalg import mT, spd_inv, sym
 from ..model import System
 from ..models.polar import PolarSensor
@@ -43,6 +45,27 @@ class Track:
 
     mean: np.ndarray
     cov: np.ndarray
+
+
+#: An architecture's estimates, one instant at a time: (mean (M, n), covariances (M, n, n)).
+Steps = Iterator[tuple[np.ndarray, np.ndarray]]
+
+
+class _Out:
+    """The estimates as they are made: the means (M, K+1, n), and the covariances on lanes
+    (K+1, n, n, M), so that storing a step's (which the filters keep on lanes) is one copy;
+    the track sees them as (M, K+1, n, n)."""
+
+    def __init__(self, M: int, K1: int, n: int) -> None:
+        self.mean = np.empty((M, K1, n))
+        self._cov = np.empty((K1, n, n, M))
+
+    def put(self, k: int, x: np.ndarray, P: np.ndarray) -> None:
+        self.mean[:, k] = x
+        self._cov[k] = lanes(P)
+
+    def track(self) -> Track:
+        return Track(self.mean, np.moveaxis(self._cov, -1, 0))
 
 
 class _Steps:
@@ -101,6 +124,19 @@ def estimate(
 ) -> Track:
     """Estimates of every run (z: (M, K+1, m), NaN = absent) with architecture `arch`;
     `run_offset` (the block's first run) only names runs in errors."""
+    M, K1 = z.shape[:2]
+    out = _Out(M, K1, system.n)
+    for k, (x, P) in enumerate(estimate_steps(system, arch, z, times, run_offset)):
+        out.put(k, x, P)
+    return out.track()
+
+
+def estimate_steps(
+    system: System, arch: str, z: np.ndarray, times: np.ndarray, run_offset: int = 0
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """`estimate` one instant at a time: (mean (M, n), covariances (M, n, n)) for k = 0..K,
+    each computed when asked for (the filters keep one instant in memory, not all; FBS, a
+    smoother, all of them)."""
     names = [s.name for s in system.sensors]
     base, sensor = parse_arch(arch, names)
     st = _Steps(system, z, times, run_offset)
@@ -115,12 +151,10 @@ def estimate(
     return _track_to_track(st, base)
 
 
-def _filter(st: _Steps, which: list[int], keep: list | None = None) -> Track:
+def _filter(st: _Steps, which: list[int], keep: list | None = None) -> Steps:
     """One filter on the sensors `which`; with `keep`, each step's (x-, P-, C) is appended."""
-    M, K1 = st.z.shape[:2]
     x, P = st.start()
-    mean, cov = np.empty((M, K1, st.system.n)), np.empty((M, K1, st.system.n, st.system.n))
-    for k in range(K1):
+    for k in range(st.z.shape[1]):
         if k:
             x, P, _, C = st.predict(k, x, P)
             if keep is not None:
@@ -128,30 +162,31 @@ def _filter(st: _Steps, which: list[int], keep: list | None = None) -> Track:
         u = st.update(k, which, x, P)
         if u is not None:
             x, P = u.x, u.P
-        mean[:, k], cov[:, k] = x, P
-    return Track(mean, cov)
+        yield x, P
 
 
-def _smoother(st: _Steps) -> Track:
+def _smoother(st: _Steps) -> Steps:
     """The extended / unscented RTS smoother on the CKF (module docstring)."""
     keep: list = []
-    tr = _filter(st, list(range(len(st.system.sensors))), keep)
+    M, K1 = st.z.shape[:2]
+    out = _Out(M, K1, st.system.n)
+    for k, (x, P) in enumerate(_filter(st, list(range(len(st.system.sensors))), keep)):
+        out.put(k, x, P)
+    tr = out.track()
     mean, cov = tr.mean, tr.cov
     for k in range(mean.shape[1] - 2, -1, -1):
         xp, Pp, C = keep[k]  # the prediction from k to k + 1
         G = mT(np.linalg.solve(Pp, mT(C)))
         mean[:, k] += np.einsum("mij,mj->mi", G, mean[:, k + 1] - xp)
         cov[:, k] = sym(cov[:, k] + G @ (cov[:, k + 1] - Pp) @ mT(G))
-    return tr
-
-
-def _hkf(st: _Steps) -> Track:
-    """Eqs. (36)-(40) with EKF/UKF locals restarting from the fused prediction."""
-    M, K1 = st.z.shape[:2]
-    n = st.system.n
-    x, P = st.start()
-    mean, cov = np.empty((M, K1, n)), np.empty((M, K1, n, n))
     for k in range(K1):
+        yield mean[:, k], cov[:, k]
+
+
+def _hkf(st: _Steps) -> Steps:
+    """Eqs. (36)-(40) with EKF/UKF locals restarting from the fused prediction."""
+    x, P = st.start()
+    for k in range(st.z.shape[1]):
         if k:
             x, P, _, _ = st.predict(k, x, P)
         Yp = spd_inv(P, "the predicted covariance")
@@ -166,11 +201,10 @@ def _hkf(st: _Steps) -> Track:
             y += np.einsum("mij,mj->mi", Yj, u.x) - yp
         P = spd_inv(Y, "the fused information")
         x = np.einsum("mij,mj->mi", P, y)
-        mean[:, k], cov[:, k] = x, P
-    return Track(mean, cov)
+        yield x, P
 
 
-def _track_to_track(st: _Steps, base: str) -> Track:
+def _track_to_track(st: _Steps, base: str) -> Steps:
     """MSC, MSC-GMF, CI, AVG: one local filter per sensor, fused at every instant."""
     M, K1 = st.z.shape[:2]
     n, S = st.system.n, len(st.system.sensors)
@@ -178,14 +212,13 @@ def _track_to_track(st: _Steps, base: str) -> Track:
     x0, P0 = st.start()
     xs, Ps = [x0] * S, [P0] * S
     J = np.broadcast_to(P0[:, None, None], (M, S, S, n, n)).copy() if joint else None
-    mean, cov = np.empty((M, K1, n)), np.empty((M, K1, n, n))
     eye = np.eye(n)
     for k in range(K1):
         if k:
             pred = [st.predict(k, xs[i], Ps[i]) for i in range(S)]
             xs, Ps = [p[0] for p in pred], [p[1] for p in pred]
             if joint:
-                Fs = np.stack([p[2] for p in pred], axis=1)  # (M, S, n, n)
+                Fs = np.stack([np.broadcast_to(p[2], (M, n, n)) for p in pred], axis=1)
                 motion, dt = transition(st.system, k)
                 Q = motion.Q(dt)
                 J = np.einsum("miab,mijbc,mjdc->mijad", Fs, J, Fs) + Q
@@ -199,8 +232,7 @@ def _track_to_track(st: _Steps, base: str) -> Track:
             J = np.einsum("miab,mijbc,mjdc->mijad", A, J, A)
             for i in range(S):
                 J[:, i, i] = Ps[i]  # the local's own covariance (equal for the EKF)
-        mean[:, k], cov[:, k] = _fuse(base, np.stack(xs, 1), np.stack(Ps, 1), J)
-    return Track(mean, cov)
+        yield _fuse(base, np.stack(xs, 1), np.stack(Ps, 1), J)
 
 
 def _fuse(

@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import NumericalError
-from ..linalg import mT, sym
+from ..kernels import cholesky, cholesky_solve, lanes, unlanes
+from ..linalg import mm, mT, solve, sym
 from ..model import System
 from ..models import LinearMotion, MotionModel, SensorModel
 from ..models.polar import angle_mask, wrap_angles
@@ -124,10 +125,14 @@ def predict(
     smoother's) of one prediction over dt. Linear motion: F x, F P F^T + Q for both filters
     (the unscented transform is exact there)."""
     Q = motion.Q(dt)
-    if ukf is None or motion.linear:
+    if motion.linear:  # one F for every run: shared-factor products
+        F = motion.F(dt)
+        C = mm(P, F.T)
+        return x @ F.T, sym(mm(F, C) + Q), F, C
+    if ukf is None:
         F = motion.jacobian(x, dt)
-        C = P @ mT(F)
-        return motion.f(x, dt), sym(F @ C + Q), F, C
+        C = mm(P, mT(F))
+        return motion.f(x, dt), sym(mm(F, C) + Q), F, C
     n = x.shape[-1]
     c, Wm, Wc = ukf.weights(n)
     X = sigma_points(x, P, c, "the covariance before a prediction")
@@ -137,7 +142,7 @@ def predict(
     dX = X - x[:, None]
     Pp = sym(np.einsum("j,mja,mjb->mab", Wc, dY, dY) + Q)
     C = np.einsum("j,mja,mjb->mab", Wc, dX, dY)
-    F = mT(np.linalg.solve(P, C))  # statistical linearisation: C = P F^T
+    F = mT(solve(P, C, hermitian=True))  # statistical linearisation: C = P F^T
     return xp, Pp, F, C
 
 
@@ -145,26 +150,55 @@ def _masked(z: np.ndarray, model: Stacked) -> tuple[np.ndarray, np.ndarray, np.n
     """(present (M, m), z with NaN as 0, R with no coupling between present and absent rows)."""
     present = ~np.isnan(z)
     R = model.R
+    if present.all():  # the usual case: R shared by the runs
+        return present, z, R
     Rm = np.where(present[:, :, None] == present[:, None, :], R, 0.0)
     return present, np.where(present, z, 0.0), Rm
 
 
 def _gain(P_xz: np.ndarray, S: np.ndarray) -> np.ndarray:
     """K = Pxz S^-1 as a solve with S (symmetric positive definite)."""
-    return mT(np.linalg.solve(S, mT(P_xz)))
+    return mT(solve(S, mT(P_xz), hermitian=True, what="the innovation covariance"))
 
 
 def update_ekf(model: Stacked, x: np.ndarray, P: np.ndarray, z: np.ndarray) -> Update:
-    """EKF update at the prediction, Joseph form (module docstring)."""
+    """EKF update at the prediction, Joseph form (module docstring).
+
+    Computed on lanes (`core.kernels`: every matrix entry one contiguous vector over the runs)
+    and only over the columns `q` of the state that some row of H touches (a radar sees x and
+    y, not the velocities): P H^T = P[:, q] H[:, q]^T, S = H[:, q] (P H^T)[q] + R, K from S's
+    Cholesky factor, and (I - K H) P (I - K H)^T = A P - (A P)[:, q] (K H[:, q])^T with
+    A P = P - (K H[:, q]) P[q] — the Joseph form's products, without those by zero columns.
+    """
     present, z0, R = _masked(z, model)
-    H = model.jacobian(x) * present[:, :, None]
-    y = wrap_angles(z0 - model.h(x), model.angles) * present
-    PHt = P @ mT(H)
-    S = sym(H @ PHt + R)
-    K = _gain(PHt, S)
-    A = np.eye(x.shape[-1]) - K @ H
-    Pu = sym(A @ P @ mT(A) + K @ R @ mT(K))
-    return Update(x + np.einsum("mij,mj->mi", K, y), Pu, K, H)
+    n = x.shape[-1]
+    H = model.jacobian(x)
+    y = wrap_angles(z0 - model.h(x), model.angles)
+    if not present.all():
+        H, y = H * present[:, :, None], y * present
+    Hl, Pl = lanes(H), lanes(P)  # (m, n, M), (n, n, M)
+    q = [c for c in range(n) if Hl[:, c].any()]
+    Hq = np.ascontiguousarray(Hl[:, q])  # (m, |q|, M)
+    PHt = np.einsum("iqM,rqM->irM", Pl[:, q], Hq)  # (n, m, M)
+    S = np.einsum("rqM,qsM->rsM", Hq, PHt[q])
+    S += R[:, :, None] if R.ndim == 2 else lanes(R)
+    S = 0.5 * (S + S.swapaxes(0, 1))
+    with np.errstate(all="ignore"):
+        L, ok = cholesky(S)
+        Kt = cholesky_solve(L, PHt.swapaxes(0, 1))  # (m, n, M) = S^-1 H P
+    if not ok.all():  # a badly conditioned S: those runs by LAPACK's solve (or pinv)
+        bad = np.flatnonzero(~ok)
+        Sb, Bb = unlanes(S)[bad], unlanes(PHt.swapaxes(0, 1))[bad]
+        Kt[..., bad] = lanes(solve(Sb, Bb, hermitian=True, what="the innovation covariance"))
+    K = Kt.swapaxes(0, 1)  # (n, m, M)
+    KH = np.einsum("irM,rqM->iqM", K, Hq)  # (n, |q|, M)
+    AP = Pl - np.einsum("iqM,qjM->ijM", KH, Pl[q])
+    Pu = AP - np.einsum("iqM,jqM->ijM", AP[:, q], KH)
+    KR = np.einsum("irM,rs->isM", K, R) if R.ndim == 2 else np.einsum("irM,rsM->isM", K, lanes(R))
+    Pu += np.einsum("isM,jsM->ijM", KR, K)
+    Pu = 0.5 * (Pu + Pu.swapaxes(0, 1))
+    xu = x + np.einsum("irM,Mr->Mi", K, y)
+    return Update(xu, unlanes(Pu), unlanes(K), H)
 
 
 def update_ukf(
@@ -186,8 +220,8 @@ def update_ukf(
     Pxz = np.einsum("j,mja,mjb->mab", Wc, dX, dZ)
     K = _gain(Pxz, S)
     y = wrap_angles(z0 - zhat, angles) * present
-    Pu = sym(P - K @ S @ mT(K))
-    H = mT(np.linalg.solve(P, Pxz))  # statistical linearisation: Pxz = P H^T
+    Pu = sym(P - mm(mm(K, S), mT(K)))
+    H = mT(solve(P, Pxz, hermitian=True))  # statistical linearisation: Pxz = P H^T
     return Update(x + np.einsum("mij,mj->mi", K, y), Pu, K, H)
 
 
