@@ -15,8 +15,14 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(BIN)/fusionlog run pipeline/ajgl2009.toml --force
 
+# The numerical modules once more under other OpenBLAS kernels (tests/other_kernels.py).
+NUMERIC := tests/test_exact.py tests/test_exact_per_run.py tests/test_per_run.py \
+	tests/test_architectures.py tests/test_numerics.py tests/test_fusion.py \
+	tests/test_reference_filterpy.py tests/test_metrics.py tests/test_replay_sources.py
+
 test: $(STAMP)
 	$(BIN)/pytest
+	$(BIN)/python tests/other_kernels.py $(NUMERIC)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py

@@ -13,9 +13,11 @@ matrix).
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from conditioning import assert_agree, sensitivity
 from conftest import random_spd, random_system
 from filterpy.kalman import KalmanFilter
 
@@ -100,9 +102,20 @@ def test_every_run_equals_the_shared_plan_of_its_own_pattern(path, arch):
     est = estimate(system, z, arch)
     assert est.cov.ndim == 4
     for r in range(0, M, 9):
-        own = run_plan(build_plan(system, arch, K, ~np.isnan(z[r])), z[r : r + 1])
-        assert_close(est.mean[r], own.mean[0], RTOL, f"{arch} run {r}: mean")
-        assert_close(est.cov[r], own.cov, RTOL, f"{arch} run {r}: cov")
+
+        def own_estimate(s, r=r):
+            e = run_plan(build_plan(s, arch, K, ~np.isnan(z[r])), z[r : r + 1])
+            return SimpleNamespace(mean=e.mean[0], cov=e.cov)
+
+        own = own_estimate(system)
+        # The two paths solve the same problems in other orders: they agree to what rounding
+        # can move the answer by (the generalised Millman system here is near singular).
+        sens = sensitivity(own_estimate, system, ("mean", "cov"))
+        for f in ("mean", "cov"):
+            tol = sens.tolerance(f, RTOL)
+            assert_agree(
+                getattr(est, f)[r], getattr(own, f), tol, sens.unsettled, f"{arch} {r} {f}"
+            )
 
 
 def test_build_plan_gathers_the_nodes_into_per_run_maps(path):

@@ -311,8 +311,15 @@ def test_local_cluster_gives_the_identical_table(in_process: Path, tmp_path: Pat
 def test_a_point_is_fusionlog_run_with_the_point_seed(in_process: Path, tmp_path: Path) -> None:
     rows = [r for r in table(in_process).to_pylist() if r["scenario.dt"] == 2.0]
     summary = json.loads((in_process / "summary.json").read_text())
+    # Computed here from the contract, not by the code under test: SeedSequence(seed,
+    # spawn_key=(point,)), its first 64-bit word shifted to 63 bits (a TOML integer).
+    want = [
+        int(np.random.SeedSequence(2009, spawn_key=(i,)).generate_state(1, np.uint64)[0]) >> 1
+        for i in range(len(summary["points"]))
+    ]
+    assert [p["seed"] for p in summary["points"]] == want
+    assert len(set(want)) == len(want) > 1  # every point its own runs
     seed = summary["points"][1]["seed"]
-    assert seed == point_seed(2009, 1)
     toml = tmp_path / "dt2.toml"
     toml.write_text(AJGL.read_text().replace("dt = 1.0 ", "dt = 2.0 "))
     ok("run", toml, "--runs", "2500", "--seed", str(seed), *ARCHS, "--out-dir", tmp_path / "r")

@@ -239,7 +239,16 @@ def constant_velocity(dt: float, n0: float) -> tuple[np.ndarray, np.ndarray]:
     return F, Q
 
 
-__all__ = ["NotLinear", "Prior", "Sensor", "System", "ajgl2009", "constant_velocity"]
+def nominal_R(covariances: np.ndarray) -> np.ndarray:
+    """The nominal R (m, m) of a sensor whose readings carry their own covariance and that has
+    no R of its own: the mean of its messages' finite covariances (N, m, m). The one rule
+    (the import records it in the resolved scenario; the filters use it wherever a message
+    has none)."""
+    have = np.isfinite(covariances).all(axis=(-2, -1))
+    return covariances[have].mean(axis=0)
+
+
+__all__ = ["NotLinear", "Prior", "Sensor", "System", "ajgl2009", "constant_velocity", "nominal_R"]
 
 
 def ajgl2009(ts: float = 1.0, n_sensors: int = 3) -> System:

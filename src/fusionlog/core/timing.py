@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
+    "TIME_UNITS",
     "SensorTiming",
     "Schedule",
     "constant_velocity_continuous",
@@ -35,6 +36,8 @@ __all__ = [
 
 #: Times are whole nanoseconds (an MCAP log_time).
 NS = 1_000_000_000
+#: Nanoseconds per unit of the time units a recorded log may give (``time_unit``).
+TIME_UNITS = {"s": NS, "ms": 1_000_000, "us": 1_000, "ns": 1}
 #: A period or offset within this relative distance of a whole number of dt is that number.
 GRID_RTOL = 1e-9
 

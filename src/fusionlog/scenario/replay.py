@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from fusionlog.core.model import Sensor, System
+from fusionlog.core.timing import TIME_UNITS
 
 from . import toml
 from .base import Header, Scenario
@@ -50,7 +51,6 @@ _SCENARIO_KEYS = ("name", "description", "state_names", "dt")
 _STREAM_KEYS = ("source", "topic", "values", "time", "time_unit")
 _SENSOR_REQUIRED = ("name", "H", "source", "values")
 _SENSOR_OPTIONAL = ("topic", "time", "time_unit", "R", "covariance", "covariance_index")
-TIME_UNITS = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
 
 
 @dataclass(frozen=True)

@@ -13,9 +13,10 @@ import dataclasses
 
 import numpy as np
 
-from fusionlog.core.model import System
+from fusionlog.core.model import System, nominal_R
 from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap import McapFile
+from fusionlog.io.mcap.topics import sensor_topic
 
 __all__ = ["with_message_covariances"]
 
@@ -24,7 +25,7 @@ def with_message_covariances(system: System, log: McapFile) -> System:
     """`system` with the per-instant R of the log's sensor messages (itself when none has)."""
     covs = {}
     for j, sen in enumerate(system.sensors):
-        topic = f"/sensors/{sen.name}"
+        topic = sensor_topic(sen.name)
         c = log.message_covariances(topic) if topic in log.topics else None
         if c is not None:
             covs[j] = c
@@ -38,8 +39,7 @@ def with_message_covariances(system: System, log: McapFile) -> System:
     sensors = list(system.sensors)
     for j, c in covs.items():
         if not _finite(sensors[j].R):
-            have = np.isfinite(c).all(axis=(-2, -1))
-            sensors[j] = dataclasses.replace(sensors[j], R=c[have].mean(axis=0))
+            sensors[j] = dataclasses.replace(sensors[j], R=nominal_R(c))
     nominal = dataclasses.replace(system, sensors=tuple(sensors))
     Rs = np.repeat(nominal.R[None], log.steps(), axis=0)
     for j, c in covs.items():

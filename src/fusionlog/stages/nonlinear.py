@@ -10,10 +10,11 @@ from typing import Any
 
 import numpy as np
 
+from fusionlog.core.architectures import PlanCache
 from fusionlog.core.model import System
 from fusionlog.errors import FusionlogError
 
-__all__ = ["PcrbPart", "estimate_block", "step_writers", "with_filter"]
+__all__ = ["PcrbPart", "step_writers", "with_filter"]
 
 
 def with_filter(system: Any, name: str | None) -> Any:
@@ -29,26 +30,18 @@ def with_filter(system: Any, name: str | None) -> Any:
     return dataclasses.replace(system, filter=name)
 
 
-def estimate_block(
-    system: System, arch: str, z: np.ndarray, times: np.ndarray, run_offset: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Means (M, K+1, n) and per-run covariances (M, K+1, n, n) of a block of runs."""
-    from fusionlog.core.nonlinear import estimate
-
-    _require_filter(system)
-    tr = estimate(system, arch, z, times, run_offset)
-    return tr.mean, tr.cov
-
-
 def step_writers(
-    system: System, archs: list[str], z: np.ndarray, times: np.ndarray, run_offset: int
+    plans: PlanCache, archs: list[str], z: np.ndarray, run_offset: int
 ) -> dict[str, Any]:
-    """The estimate stage's writers of a block: each architecture's filter advances one
-    instant when its message for that instant is written (the estimator's writers are called
-    for k = 0..K in order), so only one instant of covariances is held, not all of them."""
+    """The estimate stage's writers of a block (`plans`: the system and instants): each
+    architecture's filter advances one instant when its message for that instant is written
+    (the estimator's writers are called for k = 0..K in order), so only one instant of per-run
+    covariances is held, not all of them (`core.nonlinear.estimate_steps`)."""
     from fusionlog.core.nonlinear import estimate_steps
 
-    _require_filter(system)
+    system = plans.system
+    K1 = z.shape[1]
+    times = plans.times if plans.times is not None else np.arange(K1) * system.dt
 
     def writer(arch: str) -> Any:
         steps = estimate_steps(system, arch, z, times, run_offset)
@@ -60,13 +53,6 @@ def step_writers(
         return write
 
     return {a: writer(a) for a in archs}
-
-
-def _require_filter(system: System) -> None:
-    if system.filter is None:  # a --model file without [estimate] filter
-        raise FusionlogError(
-            'the model is nonlinear: give [estimate] filter = "EKF" or "UKF", or --filter'
-        )
 
 
 class PcrbPart:

@@ -12,6 +12,7 @@ from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapWriter
 from fusionlog.scenario import Scenario
 
+from .common import sha256_of
 from .estimate import estimate_to
 from .evaluate import evaluate_into
 from .simulate import simulate_to
@@ -65,15 +66,21 @@ def run_pipeline(
                 simulate_to(sc, w, block=block, command=command)
             seconds["simulate"] = time.perf_counter() - t0
         t1 = time.perf_counter()
+        # the scenario the sensors file records is `sc` (parsed once, by the caller) and its
+        # digest is taken once: the estimate and evaluate steps do not read them again
+        sensors = o.temp_path(outs["sensors.mcap"])
+        digest = sha256_of(sensors)
         with McapWriter(o.open(outs["estimates.mcap"])) as w:
             estimate_to(
-                o.temp_path(outs["sensors.mcap"]),
+                sensors,
                 w,
                 archs=archs or list(sc.architectures),
                 filter_name=filter_name,
                 block=block,
                 command=command,
                 sensors_name="sensors.mcap",
+                recorded=sc,
+                sensors_sha256=digest,
             )
         seconds["estimate"] = time.perf_counter() - t1
         t2 = time.perf_counter()
@@ -84,6 +91,8 @@ def run_pipeline(
             outs["evaluation.rrd"],
             outs["summary.json"],
             block=block,
+            scenario=sc,
+            sensors_sha256=digest,
         )
         o.commit()
         seconds["evaluate"] = time.perf_counter() - t2

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...errors import NumericalError
+from ...errors import FusionlogError, NumericalError
 from ..ci import ci_omegas
 from ..fusion import gmf_weight_matrix
 from ..kernels import lanes
@@ -139,6 +139,11 @@ def estimate_steps(
     smoother, all of them)."""
     names = [s.name for s in system.sensors]
     base, sensor = parse_arch(arch, names)
+    if system.filter is None and not system.linear:
+        raise FusionlogError(
+            'the model is nonlinear and has no local filter: give [estimate] filter = "EKF" or '
+            '"UKF", or --filter'
+        )
     st = _Steps(system, z, times, run_offset)
     if base == "CKF":
         return _filter(st, list(range(len(names))))

@@ -43,6 +43,8 @@ from typing import IO, Any
 import numpy as np
 import rerun.blueprint as rrb
 
+from fusionlog.core.evaluation import Evaluation
+
 from .consistency import NisSeries, check_consistency, consistency_views, write_consistency
 from .legend import legend_box, place_legend
 from .plane import check_plane, write_plane
@@ -50,7 +52,7 @@ from .stream import SeriesWriter, check_axes, entity_path, recording_error, reco
 from .style import BOUND_COLOR, CKF, TRUTH_COLOR, arch_color, arch_width, class_color
 from .views import query, tabbed_blueprint, time_series_view
 
-__all__ = ["write_recording"]
+__all__ = ["write_evaluation", "write_recording"]
 
 #: Per-architecture series: name -> shape, with s steps and n states.
 _SHAPES = {
@@ -113,9 +115,33 @@ def write_recording(
     Raises FusionlogError if the data are inconsistent (before anything is written) and
     OutputError if writing `file` fails.
     """
-    times = np.asarray(times, dtype=float)
-    state_names = [str(s) for s in state_names]
-    samples = sample_runs or {}
+    ev = Evaluation(
+        dict(summary), times, tuple(state_names), confidence, dict(series), nees_bounds,
+        dict(sample_runs or {}), plane, dict(availability or {}), dict(nis or {}),
+        None if traces is None else dict(traces), dict(measured or {}), dict(properties or {}),
+        pcrb,
+    )  # fmt: skip
+    write_evaluation(file, ev, scenario_name, seed, recording_id)
+
+
+def write_evaluation(
+    file: IO[bytes],
+    ev: Evaluation,
+    scenario_name: str | None = None,
+    seed: int | None = None,
+    recording_id: str | None = None,
+) -> None:
+    """Write the recording of an evaluation (`core.evaluation.Evaluation`) into `file`; the
+    recording is named by the summary's scenario and seed unless given (see
+    `write_recording` for what each part draws and the errors)."""
+    if scenario_name is None:
+        scenario_name, seed = ev.summary["scenario"], ev.summary["seed"]
+    times = np.asarray(ev.times, dtype=float)
+    state_names = [str(s) for s in ev.state_names]
+    series, nees_bounds, confidence, plane = ev.series, ev.nees_bounds, ev.confidence, ev.plane
+    samples, summary, properties = ev.samples, ev.summary, ev.properties
+    availability, nis, traces, measured = ev.availability, ev.nis, ev.traces, ev.measured
+    pcrb = ev.pcrb
     _check(file, times, state_names, series, nees_bounds, samples)
     if pcrb is not None and np.shape(pcrb) != (times.shape[0], len(state_names)):
         raise recording_error(file, f"PCRB has shape {np.shape(pcrb)}, want (K+1, n)")

@@ -1,0 +1,171 @@
+"""The Python API: the pipeline on numpy arrays, nothing written to disk unless asked.
+
+    import fusionlog as fl
+    sc = fl.load("pipeline/ajgl2009.toml")       # a validated scenario
+    sim = fl.simulate(sc, runs=1000, seed=3)      # .times (K+1,), .truth (M, K+1, n),
+                                                  # .measurements {sensor: (M, K+1, m)}, NaN = none
+    est = fl.estimate(sc, sim, ["CKF", "MSC"])    # {arch: .mean (M, K+1, n), .cov}
+    ev = fl.evaluate(sc, sim, est)                # .summary, .table(), .save("evaluation.rrd")
+
+The CLI is an adapter over the same functions: `simulate` is the simulate stage's hook (the
+random streams belong to chunks of runs, so the runs are those `fusionlog simulate` writes),
+`estimate` is `core.architectures.estimate_block` in the estimate stage's blocks of runs with
+one plan cache, and `evaluate` is the state evaluator fed the same blocks: the same scenario,
+runs and seed give the CLI's numbers.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .core.architectures import Estimate, PlanCache, estimate_block
+from .core.evaluation import Evaluation
+from .core.names import check_architectures
+from .errors import FusionlogError
+from .io.mcap import estimates_topic, sensor_topic
+from .scenario import Scenario, load_scenario, scenario_with
+from .stages.common import block_runs
+from .stages.kinds import kind_of
+from .stages.state_eval import SensorLog, StateEvaluator
+
+__all__ = ["Estimates", "Evaluation", "Simulation", "estimate", "evaluate", "load", "simulate"]
+
+
+@dataclass
+class Simulation:
+    """Simulated runs of a scenario.
+
+    `times` (K+1,) seconds; `truth` (M, K+1, n); `measurements[sensor]` (M, K+1, m) in the
+    sensor's units, NaN where it did not measure (its timing) or lost the reading (dropout);
+    `scenario` the scenario with the runs, steps and seed used.
+    """
+
+    scenario: Scenario
+    times: np.ndarray
+    truth: np.ndarray
+    measurements: dict[str, np.ndarray]
+
+    @property
+    def z(self) -> np.ndarray:
+        """The stacked measurements of eq. (30), (M, K+1, m), in the system's sensor order."""
+        return np.concatenate(list(self.measurements.values()), axis=-1)
+
+
+class Estimates(dict[str, Estimate]):
+    """{architecture: Estimate}: `.mean` (M, K+1, n), `.cov` (K+1, n, n) when every run shares
+    it, else (M, K+1, n, n). `provenance` is what the estimates file records of the
+    measurement pattern (which exact analysis applies)."""
+
+    provenance: dict[str, str]
+
+
+def load(path: str | os.PathLike[str]) -> Scenario:
+    """The validated scenario of a TOML file (DESIGN.md "Scenario TOML"); FusionlogError with
+    the file, key and reason when it is not valid."""
+    return load_scenario(path)
+
+
+def simulate(
+    scenario: Scenario | str | os.PathLike[str],
+    runs: int | None = None,
+    seed: int | None = None,
+    steps: int | None = None,
+) -> Simulation:
+    """Simulate `runs` runs (default the scenario's) of K = `steps` steps with `seed`: the
+    runs `fusionlog simulate --runs --steps --seed` writes to its sensors file. `scenario` is
+    a loaded scenario or the path of its file (`load`)."""
+    if not isinstance(scenario, Scenario):
+        scenario = load(scenario)
+    if scenario.kind != "state" or scenario.replay is not None:
+        raise FusionlogError(
+            f"{scenario.path or scenario.name}: the Python API simulates state scenarios "
+            "(a replay's data are read by `fusionlog import`)"
+        )
+    sc = scenario_with(scenario, runs=runs, steps=steps, seed=seed)
+    x, zs = kind_of(sc.kind).simulate(sc, 0, sc.runs)
+    names = [s.name for s in sc.system.sensors]
+    return Simulation(sc, sc.times, x, dict(zip(names, zs, strict=True)))
+
+
+def _blocks(sim: Simulation) -> list[tuple[int, int]]:
+    """(offset, runs) of the stages' blocks of runs (`stages.common.block_runs`)."""
+    M, K = sim.truth.shape[0], len(sim.times) - 1
+    B = block_runs(K, M, None)
+    return [(off, min(B, M - off)) for off in range(0, M, B)]
+
+
+def estimate(
+    scenario: Scenario, sim: Simulation, architectures: Sequence[str] | None = None
+) -> Estimates:
+    """Each architecture's estimates of the simulated runs (default: the scenario's
+    `[estimate] architectures`), as `fusionlog estimate` computes them."""
+    system = scenario.system
+    archs = check_architectures(
+        list(architectures or scenario.architectures), system, "architectures"
+    )
+    z = sim.z
+    if z.shape[-1] != system.m:
+        raise FusionlogError(
+            f"measurements of {z.shape[-1]} components, the sensors have {system.m}"
+        )
+    cache = PlanCache.of(system, sim.times)
+    parts: dict[str, list[Estimate]] = {a: [] for a in archs}
+    for off, n in _blocks(sim):
+        block = estimate_block(cache.system, archs, z[off : off + n], cache=cache)
+        for a, e in block.estimates.items():
+            parts[a].append(e)
+    out = Estimates({a: _joined(es) for a, es in parts.items()})
+    out.provenance = cache.provenance()
+    return out
+
+
+def _joined(es: list[Estimate]) -> Estimate:
+    """One estimate of the blocks' runs (a covariance shared by every block stays shared)."""
+    if len(es) == 1:
+        return es[0]
+    mean = np.concatenate([e.mean for e in es])
+    if all(e.shared_cov and e.cov is es[0].cov for e in es):
+        return Estimate(mean, es[0].cov)
+    covs = [e.cov if not e.shared_cov else np.broadcast_to(e.cov, e.mean.shape[:1] + e.cov.shape)
+            for e in es]  # fmt: skip
+    return Estimate(mean, np.concatenate(covs))
+
+
+def evaluate(scenario: Scenario, sim: Simulation, estimates: Estimates) -> Evaluation:
+    """MSE (eq. 45), ANEES, DM (eq. 47) with their exact expected values, NIS where it says
+    something, and sample runs: what `fusionlog evaluate` puts in summary.json and the
+    recording (written only by `Evaluation.save`)."""
+    sc = sim.scenario  # the scenario with the runs, steps and seed simulated
+    if scenario.system.n != sc.system.n:
+        raise FusionlogError(
+            f"{scenario.name}: {scenario.system.n} states, the runs have {sc.system.n}"
+        )
+    system = sc.system.on_times(sim.times)
+    # the estimates' record of their measurement pattern (plain dicts: none known, per run)
+    prov = (
+        estimates.provenance
+        if isinstance(estimates, Estimates)
+        else {"measurement_pattern": "per-run"}
+    )
+    scheduled = None  # the sensors' availability, where their own timing makes it say something
+    if any(not s.timing.default for s in system.sensors):
+        measures = sc.schedule.measures  # (K+1, S)
+        scheduled = {s.name: measures[:, j] for j, s in enumerate(system.sensors)}
+    M = sim.truth.shape[0]
+    log = SensorLog(True, scheduled)
+    ev = StateEvaluator(sc, list(estimates), system, system, M, sim.times, prov, log, sc.name)
+    topics = {sensor_topic(name): z for name, z in sim.measurements.items()}
+    for off, n in _blocks(sim):
+        ests = {estimates_topic(a): _runs(e, off, n) for a, e in estimates.items()}
+        readings = {t: z[off : off + n] for t, z in topics.items()}
+        ev.add(off, sim.truth[off : off + n], ests, readings)
+    return ev.evaluation({"command": "fusionlog.evaluate"})
+
+
+def _runs(e: Estimate, off: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, cov) of runs [off, off + n) of an estimate."""
+    return e.mean[off : off + n], e.cov if e.shared_cov else e.cov[off : off + n]
