@@ -40,6 +40,8 @@ def test_radar_ckf_is_above_the_pcrb_and_consistent(tmp_path: Path) -> None:
     assert re.search(r"^PCRB \(bound\)\s+\d", res.stdout, re.M)
     table = ok("summary", tmp_path / "evaluation.rrd").stdout
     assert "PCRB (bound)" in table
+    # a summary with null `expected` beside its PCRB is a valid summary to compare
+    ok("compare", tmp_path / "summary.json", tmp_path / "summary.json")
 
 
 def test_coordinated_turn_with_both_filters(tmp_path: Path) -> None:
