@@ -270,7 +270,8 @@ def check_summary(doc: Any, *, strict: bool = False) -> dict[str, Any]:
     ``non_finite`` note; and where the schema (DESIGN.md) wants a number, anything else -- a
     string, a boolean, a list, an object, or null outside ``expected`` (null there means "no
     exact analysis") that no note explains. ``expected`` itself may be null only beside a
-    top-level ``pcrb`` (a nonlinear model's summary, DESIGN.md). Keys the schema does not know are not checked.
+    top-level ``pcrb`` (a nonlinear model's summary, DESIGN.md). Keys the schema does not know
+    are not checked.
     Without ``strict``, non-finite floats (an in-memory summary) are accepted as values.
     """
     if not isinstance(doc, Mapping):
