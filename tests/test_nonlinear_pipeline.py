@@ -116,6 +116,25 @@ def test_sweep_over_a_radar_position(tmp_path: Path) -> None:
     rows = pq.read_table(tmp_path / "sweep.parquet").to_pylist()
     assert len(rows) == 2 * 8
     assert all(r["expected_mse"] is None and r["mse"] > 0 for r in rows)
+    # each point's PCRB is that of `fusionlog run` with the point's seed (the same runs)
+    points = _summary(tmp_path)["points"]
+    far = _radar_text().replace("position = [5000.0, 0.0]", "position = [2500.0, 500.0]")
+    f = tmp_path / "point1.toml"
+    f.write_text(far)
+    ok("run", f, "--out-dir", tmp_path / "p1", "--runs", "40", "--seed", str(points[1]["seed"]),
+       "--arch", "CKF")  # fmt: skip
+    assert points[1]["pcrb"]["mse"] == pytest.approx(_summary(tmp_path / "p1")["pcrb"]["mse"])
+
+
+def test_distributed_run_has_the_plain_runs_pcrb(tmp_path: Path) -> None:
+    """`run --workers 0` (blocks computed apart, merged as sums): the PCRB of all the runs,
+    as a plain run's."""
+    ok("run", RADAR, "--out-dir", tmp_path / "d", "--runs", "300", "--workers", "0",
+       "--block-runs", "64", "--arch", "CKF")  # fmt: skip
+    ok("run", RADAR, "--out-dir", tmp_path / "p", "--runs", "300", "--arch", "CKF")
+    d, p = _summary(tmp_path / "d"), _summary(tmp_path / "p")
+    assert d["pcrb"]["mse"] == pytest.approx(p["pcrb"]["mse"], rel=1e-12)
+    assert d["architectures"]["CKF"]["mse"] == pytest.approx(p["architectures"]["CKF"]["mse"])
 
 
 def test_the_system_round_trips_through_its_record() -> None:

@@ -44,6 +44,7 @@ from .montecarlo import (
     exact_mask,
     fold,
 )
+from .nonlinear import simulated_readings
 from .state_eval import StateEvaluator
 
 __all__ = ["DISTRIBUTED_OUTPUTS", "DistributedRun", "run_distributed"]
@@ -133,6 +134,9 @@ def run_distributed(
         # the workers' sums of the other runs (and, for per-run patterns, their runs' exact
         # sums: the evaluator's own are the sample runs')
         ev.merge(totals, conditional)
+        if not system.linear:  # the PCRB of the workers' runs: their truth, simulated here
+            for off, n in remote:
+                ev.add_bound(*simulated_readings(sc, off, n))
         evaluation = ev.evaluation(prov)
         summary = evaluation.summary
         text = dumps(summary, indent=2) + "\n"  # before the recording, as evaluate does

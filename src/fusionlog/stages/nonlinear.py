@@ -14,7 +14,7 @@ from fusionlog.core.architectures import PlanCache
 from fusionlog.core.model import System
 from fusionlog.errors import FusionlogError
 
-__all__ = ["PcrbPart", "step_writers", "with_filter"]
+__all__ = ["PcrbPart", "scenario_bound", "simulated_readings", "step_writers", "with_filter"]
 
 
 def with_filter(system: Any, name: str | None) -> Any:
@@ -90,3 +90,32 @@ class PcrbPart:
         """The bound on each state's MSE per instant (K+1, n)."""
         b = self.bound
         return None if b is None else np.diagonal(b, axis1=-2, axis2=-1).copy()
+
+
+def simulated_readings(
+    scenario: Any, run_offset: int, runs: int
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Truth and each sensor's readings {topic: (runs, K+1, dim)} of runs [run_offset, +runs),
+    simulated: what the PCRB needs of runs whose estimates live elsewhere (Dask workers)."""
+    from fusionlog.io.mcap import sensor_topic
+
+    from .kinds import kind_of
+
+    x, zs = kind_of(scenario.kind).simulate(scenario, run_offset, runs)
+    names = [s.name for s in scenario.system.sensors]
+    return x, {sensor_topic(n): z for n, z in zip(names, zs, strict=True)}
+
+
+def scenario_bound(scenario: Any) -> dict[str, Any] | None:
+    """summary.json's "pcrb" of a scenario with a nonlinear model, from all its runs simulated
+    block by block (the bound needs their truth and which measurements they made, no
+    estimate: a sweep's point, computed where the points are summarised); None when the
+    model is linear (its exact analysis stands instead)."""
+    if scenario.kind != "state" or scenario.system.linear:
+        return None
+    from .montecarlo import blocks
+
+    part = PcrbPart(scenario.system, scenario.times)
+    for off, n in blocks(scenario):
+        part.add(*simulated_readings(scenario, off, n))
+    return part.summary()

@@ -192,6 +192,12 @@ class StateEvaluator(Evaluator):
         if expected:
             self._merge_expected(expected)
 
+    def add_bound(self, truth: np.ndarray, sensors: dict[str, np.ndarray]) -> None:
+        """Runs whose metric sums were merged (`merge`): their truth and sensor readings, for
+        what needs no estimate, the PCRB of a nonlinear model (nothing otherwise)."""
+        if self.pcrb is not None:
+            self.pcrb.add(truth, sensors)
+
     def _merge_expected(self, expected: dict[str, Any]) -> None:
         for a, ce in expected.items():
             if a in self.conditional:
