@@ -25,6 +25,7 @@ CASES = [
     ("tests/golden/small.toml", 300, None, 5),
     ("pipeline/ajgl2009_dropout.toml", 200, 12, 2),
     ("pipeline/multirate.toml", 150, 8, 4),
+    ("pipeline/replay_robot.toml", None, None, None),  # a recorded log: per-message R, NIS
 ]
 
 #: Per entry, both sides sum the same numbers in the same blocks; what can differ is the
@@ -40,12 +41,24 @@ def _close(a, b, what: str) -> None:
     np.testing.assert_allclose(a, b, rtol=RTOL, atol=0, err_msg=what)
 
 
+def _leaves(d: dict, at: str = "") -> dict[str, float]:
+    """The numbers of a nested summary entry by their key path."""
+    out: dict[str, float] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out |= _leaves(v, f"{at}{k}.")
+        else:
+            out[at + k] = v
+    return out
+
+
 @pytest.mark.parametrize(("path", "runs", "steps", "seed"), CASES)
 def test_api_gives_the_cli_numbers_and_writes_nothing(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, path: str, runs: int, steps, seed: int
 ) -> None:
     out = tmp_path / "cli"
-    args = ["--runs", runs, "--seed", seed] + (["--steps", steps] if steps is not None else [])
+    args = [] if runs is None else ["--runs", runs, "--seed", seed]
+    args += [] if steps is None else ["--steps", steps]
     ok("run", ROOT / path, "--out-dir", out, *args)
     cli_summary = json.loads((out / "summary.json").read_text())
 
@@ -58,17 +71,24 @@ def test_api_gives_the_cli_numbers_and_writes_nothing(
     ev = fl.evaluate(sc, sim, est)
     assert list(work.iterdir()) == []  # nothing touched the disk
 
-    assert ev.summary["runs"] == runs and ev.summary["seed"] == seed
+    assert (ev.summary["runs"], ev.summary["seed"]) == (cli_summary["runs"], cli_summary["seed"])
     assert list(ev.summary["architectures"]) == list(cli_summary["architectures"])
     for a, mine in ev.summary["architectures"].items():
         theirs = cli_summary["architectures"][a]
-        for key in ("mse", "anees", "dm"):
-            _close(mine[key], theirs[key], f"{path} {a} {key}")
-            _close(mine["expected"].get(key), theirs["expected"].get(key), f"{a} expected {key}")
-        assert mine["expected"].get("conditional") == theirs["expected"].get("conditional")
+        assert mine.keys() == theirs.keys()
+        for key in ("mse", "anees", "dm", "mean_trace"):
+            _close(mine.get(key), theirs.get(key), f"{path} {a} {key}")
+        if "expected" in theirs:
+            for key in ("mse", "anees", "dm"):
+                _close(mine["expected"][key], theirs["expected"][key], f"{a} expected {key}")
+            assert mine["expected"].get("conditional") == theirs["expected"].get("conditional")
+        if "nis" in theirs:  # truth-free consistency of a recorded log (per sensor, or one)
+            assert _leaves(mine["nis"]).keys() == _leaves(theirs["nis"]).keys()
+            for k, v in _leaves(theirs["nis"]).items():
+                _close(_leaves(mine["nis"])[k], v, f"{a} nis {k}")
 
     ckf = McapFile(out / "estimates.mcap")
-    for off, n, data in ckf.iter_run_blocks(["/estimates/CKF"], runs):
+    for off, n, data in ckf.iter_run_blocks(["/estimates/CKF"], sim.runs):
         mean, cov = data["/estimates/CKF"]
         np.testing.assert_allclose(est["CKF"].mean[off : off + n], mean, rtol=RTOL, atol=1e-12)
         api_cov = est["CKF"].cov if est["CKF"].shared_cov else est["CKF"].cov[off : off + n]
@@ -112,5 +132,8 @@ def test_readme_example_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) ->
     assert code is not None, "README: no python block in the Python API section"
     monkeypatch.chdir(tmp_path)
     os.symlink(ROOT / "pipeline", tmp_path / "pipeline")
-    exec(compile(code.group(1), "README.md", "exec"), {})
+    shown: list[str] = []
+    exec(compile(code.group(1), "README.md", "exec"), {"print": lambda *a: shown.append(repr(a))})
     assert (tmp_path / "evaluation.rrd").exists()
+    # the shapes its comment states
+    assert shown[0] == repr(((200, 21, 2), (21, 2, 2))), shown[0]

@@ -18,18 +18,20 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from .core.architectures import Estimate, PlanCache, estimate_block
 from .core.evaluation import Evaluation
+from .core.model import System
 from .core.names import check_architectures
 from .errors import FusionlogError
 from .io.mcap import estimates_topic, sensor_topic
 from .scenario import Scenario, load_scenario, scenario_with
 from .stages.common import block_runs
 from .stages.kinds import kind_of
+from .stages.noise import with_covariances
 from .stages.state_eval import SensorLog, StateEvaluator
 
 __all__ = ["Estimates", "Evaluation", "Simulation", "estimate", "evaluate", "load", "simulate"]
@@ -37,22 +39,38 @@ __all__ = ["Estimates", "Evaluation", "Simulation", "estimate", "evaluate", "loa
 
 @dataclass
 class Simulation:
-    """Simulated runs of a scenario.
+    """Runs of a scenario: simulated, or a replay's recorded readings (one run).
 
-    `times` (K+1,) seconds; `truth` (M, K+1, n); `measurements[sensor]` (M, K+1, m) in the
-    sensor's units, NaN where it did not measure (its timing) or lost the reading (dropout);
-    `scenario` the scenario with the runs, steps and seed used.
+    `times` (K+1,) seconds; `truth` (M, K+1, n), NaN where a replay's truth has no reading
+    (None: a replay without truth); `measurements[sensor]` (M, K+1, m) in the sensor's units,
+    NaN where it did not measure (its timing) or lost the reading (dropout); `scheduled
+    [sensor]` (K+1,) bool, the instants it measures at; `covariances[sensor]` (K+1, m, m) the
+    R a recorded sensor's messages carry (NaN at instants without one); `scenario` the
+    scenario with the runs, steps and seed used.
     """
 
     scenario: Scenario
     times: np.ndarray
-    truth: np.ndarray
+    truth: np.ndarray | None
     measurements: dict[str, np.ndarray]
+    scheduled: dict[str, np.ndarray] = field(default_factory=dict)
+    covariances: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def z(self) -> np.ndarray:
         """The stacked measurements of eq. (30), (M, K+1, m), in the system's sensor order."""
         return np.concatenate(list(self.measurements.values()), axis=-1)
+
+    @property
+    def runs(self) -> int:
+        """M."""
+        return next(iter(self.measurements.values())).shape[0]
+
+    def system(self) -> System:
+        """The scenario's system on these instants, with the per-instant R of recorded
+        covariances (what the filters run with: `stages.noise.with_covariances`)."""
+        system = self.scenario.system.on_times(self.times)
+        return with_covariances(system, self.covariances, len(self.times), self.scenario.name)
 
 
 class Estimates(dict[str, Estimate]):
@@ -80,20 +98,49 @@ def simulate(
     a loaded scenario or the path of its file (`load`)."""
     if not isinstance(scenario, Scenario):
         scenario = load(scenario)
-    if scenario.kind != "state" or scenario.replay is not None:
+    if scenario.kind != "state":
         raise FusionlogError(
-            f"{scenario.path or scenario.name}: the Python API simulates state scenarios "
-            "(a replay's data are read by `fusionlog import`)"
+            f"{scenario.path or scenario.name}: the Python API runs state scenarios "
+            f"(not {scenario.kind})"
         )
+    if scenario.replay is not None:
+        return _recorded(scenario)
     sc = scenario_with(scenario, runs=runs, steps=steps, seed=seed)
     x, zs = kind_of(sc.kind).simulate(sc, 0, sc.runs)
     names = [s.name for s in sc.system.sensors]
-    return Simulation(sc, sc.times, x, dict(zip(names, zs, strict=True)))
+    measures = sc.schedule.measures  # (K+1, S)
+    scheduled = {name: measures[:, j] for j, name in enumerate(names)}
+    return Simulation(sc, sc.times, x, dict(zip(names, zs, strict=True)), scheduled)
+
+
+def _recorded(scenario: Scenario) -> Simulation:
+    """A replay's readings on their instants (what `fusionlog import` writes), as one run."""
+    from .stages.replay import read_replay  # the decoders: only replays need them
+
+    data = read_replay(scenario)
+    sc = data.scenario
+    K1, n = len(data.instants), sc.system.n
+    measurements, scheduled, covariances = {}, {}, {}
+    for sen, r in zip(sc.system.sensors, data.sensors, strict=True):
+        z = np.full((1, K1, sen.dim), np.nan)
+        z[0, r.at] = r.values
+        measurements[sen.name] = z
+        scheduled[sen.name] = np.zeros(K1, dtype=bool)
+        scheduled[sen.name][r.at] = True
+        if r.cov is not None:
+            covariances[sen.name] = np.full((K1, sen.dim, sen.dim), np.nan)
+            covariances[sen.name][r.at] = r.cov
+    truth = None
+    if data.truth:
+        truth = np.full((1, K1, n), np.nan)
+        truth[0, data.truth["at"]] = data.truth["values"]
+    times = (data.instants - data.instants[0]) / 1e9
+    return Simulation(sc, times, truth, measurements, scheduled, covariances)
 
 
 def _blocks(sim: Simulation) -> list[tuple[int, int]]:
     """(offset, runs) of the stages' blocks of runs (`stages.common.block_runs`)."""
-    M, K = sim.truth.shape[0], len(sim.times) - 1
+    M, K = sim.runs, len(sim.times) - 1
     B = block_runs(K, M, None)
     return [(off, min(B, M - off)) for off in range(0, M, B)]
 
@@ -112,7 +159,7 @@ def estimate(
         raise FusionlogError(
             f"measurements of {z.shape[-1]} components, the sensors have {system.m}"
         )
-    cache = PlanCache.of(system, sim.times)
+    cache = PlanCache(sim.system(), len(sim.times) - 1)
     parts: dict[str, list[Estimate]] = {a: [] for a in archs}
     for off, n in _blocks(sim):
         block = estimate_block(cache.system, archs, z[off : off + n], cache=cache)
@@ -144,25 +191,25 @@ def evaluate(scenario: Scenario, sim: Simulation, estimates: Estimates) -> Evalu
         raise FusionlogError(
             f"{scenario.name}: {scenario.system.n} states, the runs have {sc.system.n}"
         )
-    system = sc.system.on_times(sim.times)
+    system = sim.system()
     # the estimates' record of their measurement pattern (plain dicts: none known, per run)
     prov = (
         estimates.provenance
         if isinstance(estimates, Estimates)
         else {"measurement_pattern": "per-run"}
     )
-    scheduled = None  # the sensors' availability, where their own timing makes it say something
-    if any(not s.timing.default for s in system.sensors):
-        measures = sc.schedule.measures  # (K+1, S)
-        scheduled = {s.name: measures[:, j] for j, s in enumerate(system.sensors)}
-    M = sim.truth.shape[0]
-    log = SensorLog(True, scheduled)
-    ev = StateEvaluator(sc, list(estimates), system, system, M, sim.times, prov, log, sc.name)
+    # the sensors' availability, where it says something (their own timing, a recording)
+    timed = sc.replay is not None or any(not s.timing.default for s in system.sensors)
+    log = SensorLog(sim.truth is not None, sim.scheduled if timed else None)
+    ev = StateEvaluator(
+        sc, list(estimates), system, system, sim.runs, sim.times, prov, log, sc.name
+    )
     topics = {sensor_topic(name): z for name, z in sim.measurements.items()}
     for off, n in _blocks(sim):
         ests = {estimates_topic(a): _runs(e, off, n) for a, e in estimates.items()}
         readings = {t: z[off : off + n] for t, z in topics.items()}
-        ev.add(off, sim.truth[off : off + n], ests, readings)
+        truth = None if sim.truth is None else sim.truth[off : off + n]
+        ev.add(off, truth, ests, readings)
     return ev.evaluation({"command": "fusionlog.evaluate"})
 
 

@@ -118,6 +118,17 @@ class System:
         """The stacked measurement Jacobian at states x (..., n): (..., m, n)."""
         return np.concatenate([s.jacobian(x) for s in self.sensors], axis=-2)
 
+    def residual(self, z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
+        """The stacked innovation z - z_hat (..., m), each sensor's asked of its model (angles
+        wrapped)."""
+        if self.linear:
+            return z - z_hat
+        parts = [
+            s.residual(z[..., sl], z_hat[..., sl])
+            for s, sl in zip(self.sensors, self.sensor_slices, strict=True)
+        ]
+        return np.concatenate(parts, axis=-1)
+
     @property
     def time_invariant(self) -> bool:
         """The same F and G Q G^T between every two instants, and the same R at every one."""
