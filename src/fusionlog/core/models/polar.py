@@ -5,8 +5,8 @@ A sensor at `position` p measures the target's planar position (the states `idx`
     range = sqrt(dx^2 + dy^2),  bearing = atan2(dy, dx) wrapped to (-pi, pi],  (dx, dy) = x_idx - p
 
 with analytic Jacobians  d range/d(x, y) = (dx, dy)/r,  d bearing/d(x, y) = (-dy, dx)/r^2. The
-bearing components are angles: wherever two of them are subtracted the difference is wrapped
-(`wrap_angles`, with `angle_mask` saying which components of any sensor are angles).
+bearing components are angles: wherever two measurements are subtracted (`residual`, what every
+filter asks of a sensor model) the bearings' difference is wrapped (`wrap_angles`).
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ __all__ = [
     "PolarSensor",
     "RangeBearingSensor",
     "RangeSensor",
-    "angle_mask",
     "wrap",
     "wrap_angles",
 ]
@@ -75,6 +74,10 @@ class PolarSensor(SensorModel):
     def ranges(self, x: np.ndarray) -> np.ndarray:
         """The distances from the sensor to states x (...,)."""
         return np.hypot(*self._delta(x))
+
+    def residual(self, z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
+        """z - z_hat with the bearing wrapped to (-pi, pi]."""
+        return wrap_angles(z - z_hat, self.angles)
 
     def h(self, x: np.ndarray) -> np.ndarray:
         dx, dy = self._delta(x)
@@ -129,10 +132,3 @@ class BearingSensor(PolarSensor):
 POLAR_KINDS: dict[str, type[PolarSensor]] = {
     c.kind: c for c in (RangeBearingSensor, RangeSensor, BearingSensor)
 }
-
-
-def angle_mask(sensor: SensorModel) -> np.ndarray:
-    """Which components of a sensor's measurement are angles (m,) bool."""
-    if isinstance(sensor, PolarSensor):
-        return sensor.angles
-    return np.zeros(sensor.dim, dtype=bool)

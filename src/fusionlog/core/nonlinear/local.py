@@ -10,6 +10,9 @@ Wi = 1/(2(n+lambda)). The points are drawn afresh from the predicted mean and co
 update; the weighted mean of angle components is taken on residuals about the central point's
 image, wrapped; the update is x+ = x + K (z - z_hat), P+ = P - K S K^T with K = Pxz S^-1.
 
+Every difference of two measurements is the sensor model's `residual` (a bearing's wrapped to
+(-pi, pi]): the one place that knows which components are angles.
+
 Both report the *linearised gain* of an update: K and the effective H (the Jacobian for the EKF,
 the statistical linearisation Pxz^T P^-1 for the UKF) and of a prediction the effective F, which
 the architectures that carry cross-covariances (MSC-GMF, AVG) propagate errors through.
@@ -30,7 +33,6 @@ from ..kernels import cholesky, cholesky_solve, lanes, unlanes
 from ..linalg import mm, mT, solve, sym
 from ..model import System
 from ..models import LinearMotion, MotionModel, SensorModel
-from ..models.polar import angle_mask, wrap_angles
 
 
 @dataclass(frozen=True)
@@ -44,9 +46,14 @@ class Stacked:
     def dim(self) -> int:
         return sum(s.dim for s in self.sensors)
 
-    @property
-    def angles(self) -> np.ndarray:
-        return np.concatenate([angle_mask(s) for s in self.sensors])
+    def residual(self, z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
+        """z - z_hat (..., m), each sensor's asked of its model (bearings wrapped)."""
+        out, start = [], 0
+        for s in self.sensors:
+            sl = slice(start, start + s.dim)
+            out.append(s.residual(z[..., sl], z_hat[..., sl]))
+            start += s.dim
+        return np.concatenate(out, axis=-1)
 
     @property
     def R(self) -> np.ndarray:
@@ -173,7 +180,7 @@ def update_ekf(model: Stacked, x: np.ndarray, P: np.ndarray, z: np.ndarray) -> U
     present, z0, R = _masked(z, model)
     n = x.shape[-1]
     H = model.jacobian(x)
-    y = wrap_angles(z0 - model.h(x), model.angles)
+    y = model.residual(z0, model.h(x))
     if not present.all():
         H, y = H * present[:, :, None], y * present
     Hl, Pl = lanes(H), lanes(P)  # (m, n, M), (n, n, M)
@@ -207,19 +214,19 @@ def update_ukf(
     """UKF update with sigma points drawn from (x, P) (module docstring)."""
     present, z0, R = _masked(z, model)
     n = x.shape[-1]
-    angles = model.angles
     c, Wm, Wc = ukf.weights(n)
     X = sigma_points(x, P, c, "the predicted covariance")
     Z = model.h(X)  # (M, 2n+1, m)
     # the weighted mean about the central point's image: angles averaged as wrapped residuals
-    D = wrap_angles(Z - Z[:, :1], angles)
-    zhat = wrap_angles(Z[:, 0] + np.einsum("j,mjk->mk", Wm, D), angles)
-    dZ = wrap_angles(Z - zhat[:, None], angles) * present[:, None]
+    # (z_hat itself need not be wrapped: it enters only through residuals)
+    D = model.residual(Z, Z[:, :1])
+    zhat = Z[:, 0] + np.einsum("j,mjk->mk", Wm, D)
+    dZ = model.residual(Z, zhat[:, None]) * present[:, None]
     dX = X - x[:, None]
     S = sym(np.einsum("j,mja,mjb->mab", Wc, dZ, dZ) + R)
     Pxz = np.einsum("j,mja,mjb->mab", Wc, dX, dZ)
     K = _gain(Pxz, S)
-    y = wrap_angles(z0 - zhat, angles) * present
+    y = model.residual(z0, zhat) * present
     Pu = sym(P - mm(mm(K, S), mT(K)))
     H = mT(solve(P, Pxz, hermitian=True))  # statistical linearisation: Pxz = P H^T
     return Update(x + np.einsum("mij,mj->mi", K, y), Pu, K, H)
