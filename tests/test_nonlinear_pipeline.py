@@ -200,3 +200,35 @@ def test_turn_scenario_errors() -> None:
         )
         truth = f"[truth]\ninitial_mean = [0.0, 15.0, 500.0, 0.0, 0.05]\ninitial_cov = {cov}\n"
         scenario_from_text(text[:start] + truth + text[end:])
+
+
+def test_python_api_gives_the_cli_numbers_on_irregular_instants(tmp_path: Path) -> None:
+    """`fl.load/simulate/estimate/evaluate` on a nonlinear scenario with a radar every 1.5 s
+    from 0.5 s (irregular instants) and dropouts: the CLI's summary and CKF estimates."""
+    import fusionlog as fl
+    from fusionlog.io.mcap import McapFile
+
+    text = (
+        RADAR.read_text()
+        .replace("position = [5000.0, 0.0]", "position = [5000.0, 0.0]\nperiod = 1.5\noffset = 0.5")
+        .replace("position = [0.0, 0.0]", "position = [0.0, 0.0]\ndropout = 0.1")
+    )
+    f = tmp_path / "radar.toml"
+    f.write_text(text)
+    ok("run", f, "--out-dir", tmp_path / "cli", "--runs", "50", "--steps", "9",
+       "--arch", "CKF", "--arch", "MSC-GMF")  # fmt: skip
+    cli_summary = _summary(tmp_path / "cli")
+    sc = fl.load(f)
+    sim = fl.simulate(sc, runs=50, seed=sc.seed, steps=9)
+    est = fl.estimate(sc, sim, ["CKF", "MSC-GMF"])
+    ev = fl.evaluate(sc, sim, est)
+    assert ev.summary["pcrb"]["mse"] == pytest.approx(cli_summary["pcrb"]["mse"], rel=1e-12)
+    for a in ("CKF", "MSC-GMF"):
+        assert ev.summary["architectures"][a]["mse"] == pytest.approx(
+            cli_summary["architectures"][a]["mse"], rel=1e-12
+        )
+    mf = McapFile(tmp_path / "cli" / "estimates.mcap")
+    _, _, data = next(mf.iter_run_blocks(["/estimates/CKF"], 10**6))
+    mean, cov = data["/estimates/CKF"]
+    np.testing.assert_allclose(est["CKF"].mean, mean, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(est["CKF"].cov, cov, rtol=0, atol=1e-9)

@@ -39,9 +39,7 @@ def step_writers(
     covariances is held, not all of them (`core.nonlinear.estimate_steps`)."""
     from fusionlog.core.nonlinear import estimate_steps
 
-    system = plans.system
-    K1 = z.shape[1]
-    times = plans.times if plans.times is not None else np.arange(K1) * system.dt
+    system, times = plans.system, plans.times  # the system is on the log's instants
 
     def writer(arch: str) -> Any:
         steps = estimate_steps(system, arch, z, times, run_offset)

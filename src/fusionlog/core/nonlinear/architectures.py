@@ -72,9 +72,12 @@ class _Steps:
     """What every architecture needs of the instants: the intervals, the stacked measurement
     columns of each sensor, and which sensors measure at an instant in some run."""
 
-    def __init__(self, system: System, z: np.ndarray, times: np.ndarray, off: int):
-        self.times = np.asarray(times, dtype=float)
-        self.system, self.z, self.off = system.on_times(self.times), z, off
+    def __init__(self, system: System, z: np.ndarray, times: np.ndarray | None, off: int):
+        if times is not None:
+            system = system.on_times(np.asarray(times, dtype=float))
+        self.system, self.z, self.off = system, z, off
+        # the instants, for messages only: a system already on its instants knows its intervals
+        self.times = _instants(system, z.shape[1]) if times is None else np.asarray(times, float)
         m = self.system.m
         self.cols = [np.arange(m)[sl] for sl in self.system.sensor_slices]
         self.measures = np.stack(
@@ -119,10 +122,18 @@ class _Steps:
         return np.tile(pr.mean, (M, 1)), np.tile(pr.cov, (M, 1, 1))
 
 
+def _instants(system: System, K1: int) -> np.ndarray:
+    """The instants of a system on its instants: k dt, or the sums of its intervals."""
+    if system.intervals is not None:
+        return np.concatenate([[0.0], np.cumsum(system.intervals)])
+    return np.arange(K1) * system.dt
+
+
 def estimate(
-    system: System, arch: str, z: np.ndarray, times: np.ndarray, run_offset: int = 0
+    system: System, arch: str, z: np.ndarray, times: np.ndarray | None, run_offset: int = 0
 ) -> Track:
-    """Estimates of every run (z: (M, K+1, m), NaN = absent) with architecture `arch`;
+    """Estimates of every run (z: (M, K+1, m), NaN = absent) with architecture `arch` on the
+    instants `times` (K+1,) s (None: `system` is already on its instants, `System.on_times`);
     `run_offset` (the block's first run) only names runs in errors."""
     M, K1 = z.shape[:2]
     out = _Out(M, K1, system.n)
@@ -132,7 +143,7 @@ def estimate(
 
 
 def estimate_steps(
-    system: System, arch: str, z: np.ndarray, times: np.ndarray, run_offset: int = 0
+    system: System, arch: str, z: np.ndarray, times: np.ndarray | None, run_offset: int = 0
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """`estimate` one instant at a time: (mean (M, n), covariances (M, n, n)) for k = 0..K,
     each computed when asked for (the filters keep one instant in memory, not all; FBS, a

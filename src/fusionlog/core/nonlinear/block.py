@@ -23,10 +23,8 @@ def nonlinear_block(
     run_offset: int,
 ) -> Block:
     """Each architecture's estimates of the block z (runs, K+1, m) on the cache's system and
-    instants (k dt unless the cache has its times), and their metric sums given the truth."""
-    system = cache.system
-    K1 = z.shape[1]
-    times = cache.times if cache.times is not None else np.arange(K1) * system.dt
+    instants (its system is on them: `PlanCache.of`), and their metric sums given the truth."""
+    system, times = cache.system, cache.times
     sums: dict[str, Any] | None = None
     if truth is not None:
         from ..metrics import MetricsAccumulator, MetricsWorkspace  # scipy: on first use only
