@@ -4,15 +4,14 @@ What the evaluator accumulated over every block, finished: the summary.json dict
 "summary.json": MSE eq. 45, ANEES, DM eq. 47, the exact expected values, NIS), the per-step
 series of each architecture (metrics per architecture and step, with their exact values), the
 NEES band, a few sample runs and what the recording's other views draw. `io.rrd` writes it
-(`write_evaluation`), `report` prints it (`format_table`); the two methods here are those
-adapters, imported when called, so the value itself stays plain data.
+(`write_evaluation`), `report` prints its summary (`format_table`); the Python API's
+`fusionlog.Evaluation` adds those two as methods (`table`, `save`): the value here stays data.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -59,21 +58,3 @@ class Evaluation:
     def architectures(self) -> list[str]:
         """The architectures evaluated, in the summary's order."""
         return list(self.summary["architectures"])
-
-    def table(self) -> str:
-        """The results table `fusionlog summary` prints (`report.format_table`)."""
-        from fusionlog.report import format_table
-
-        return format_table(self.summary)
-
-    def save(self, path: str | Path, *, force: bool = False) -> Path:
-        """Write the Rerun recording to `path` (atomically; an existing file only with
-        `force`): `io.rrd.write_evaluation`. Returns the path."""
-        from fusionlog.io.atomic import Outputs
-        from fusionlog.io.rrd import write_evaluation
-
-        path = Path(path)
-        with Outputs([path], force=force) as outs:
-            write_evaluation(outs.open(path), self)
-            outs.commit()
-        return path

@@ -428,13 +428,8 @@ class MetricsResult:
             a = np.asarray(arr, dtype=float)
             if a.shape != shape:
                 raise ValueError(f"expected {key} must have shape {shape}, got {a.shape}")
-            sel = a[self.valid_steps]
-            if key == "mse":
-                # mean over states of the per-state means over steps (eq. 45 on the expected MSE)
-                per_state = [_finite_mean(sel[:, i]) for i in range(self.n_states)]
-                out[key] = None if any(v is None for v in per_state) else float(np.mean(per_state))
-            else:
-                out[key] = _finite_mean(sel)
+            valid = self.valid_steps
+            out[key] = expected_means(a, valid) if key == "mse" else finite_mean(a[valid])
         return out
 
     def summary(
@@ -485,7 +480,16 @@ class MetricsResult:
         return out
 
 
-def _finite_mean(a: np.ndarray) -> float | None:
+def expected_means(mse_per_state: np.ndarray, valid: np.ndarray) -> float | None:
+    """The overall expected MSE (eq. 45 on the exact per-step (K+1, n)): the mean over states of
+    each state's finite mean over the steps `valid` (K+1,); None where a state has none."""
+    sel = mse_per_state[valid]
+    per_state = [finite_mean(sel[:, i]) for i in range(sel.shape[1])]
+    return None if any(v is None for v in per_state) else float(np.mean(per_state))
+
+
+def finite_mean(a: np.ndarray) -> float | None:
+    """The mean of the finite entries of `a` (None: there are none)."""
     a = a[np.isfinite(a)]
     return float(a.mean()) if a.size else None
 

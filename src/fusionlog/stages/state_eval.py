@@ -12,6 +12,7 @@ the stages hand it arrays (`add`) or other processes' sums (`merge`), and write 
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -54,8 +55,6 @@ def exact_setup(prov: dict[str, str], filter_sys: System, truth_sys: System):
     does not have leave no exact analysis. `per run`: the runs' patterns differ (the mask is
     then None: each block's plans are built from its sensor readings).
     """
-    import json
-
     pattern = prov.get("measurement_pattern", "complete")
     names = [s.name for s in truth_sys.sensors]
     if any(s.name not in names for s in filter_sys.sensors):
