@@ -237,7 +237,7 @@ def _track_to_track(st: _Steps, base: str) -> Steps:
                 Fs = np.stack([np.broadcast_to(p[2], (M, n, n)) for p in pred], axis=1)
                 motion, dt = transition(st.system, k)
                 Q = motion.Q(dt)
-                J = np.einsum("miab,mijbc,mjdc->mijad", Fs, J, Fs) + Q
+                J = _congruence(Fs, J) + Q
         A = np.broadcast_to(eye, (M, S, n, n)).copy()
         for i in range(S):
             u = st.update(k, [i], xs[i], Ps[i])
@@ -245,10 +245,17 @@ def _track_to_track(st: _Steps, base: str) -> Steps:
                 xs[i], Ps[i] = u.x, u.P
                 A[:, i] -= u.K @ u.H
         if joint:
-            J = np.einsum("miab,mijbc,mjdc->mijad", A, J, A)
+            J = _congruence(A, J)
             for i in range(S):
                 J[:, i, i] = Ps[i]  # the local's own covariance (equal for the EKF)
         yield _fuse(base, np.stack(xs, 1), np.stack(Ps, 1), J)
+
+
+def _congruence(T: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """J_ij <- T_i J_ij T_j^T for every block of the joint covariance J (M, S, S, n, n), with
+    T (M, S, n, n): two stacked products (a three-operand einsum would loop in Python's
+    order over the small axes)."""
+    return (T[:, :, None] @ J) @ mT(T)[:, None]
 
 
 def _fuse(
