@@ -148,13 +148,8 @@ _arch = click.option(
     help="Architecture (repeatable): CKF, HKF, MSC, MSC-GMF, SKF[:sensor], CI, FBS; "
     "BAYES, DS for identity scenarios.",
 )
-_filter = click.option(
-    "--filter",
-    "filter_name",
-    type=click.Choice(["EKF", "UKF"]),
-    help="Local filter of every architecture (overrides [estimate] filter; on a linear "
-    "scenario both equal the KF).",
-)
+_filter = click.option("--filter", "filter_name", type=click.Choice(["EKF", "UKF"]),
+                       help="Local filter of every architecture ([estimate] filter).")  # fmt: skip
 _workers = click.option(
     "--workers",
     type=click.IntRange(min=0),
@@ -316,14 +311,10 @@ def _run_distributed(
     scenario, out_dir, runs, steps, seed, archs, force, block, workers, scheduler, filter_name
 ):
     """`run --workers/--scheduler`: evaluation.rrd and summary.json from metric sums."""
-    import dataclasses
-
     from fusionlog.report import format_table
     from fusionlog.stages.distributed_run import DISTRIBUTED_OUTPUTS, run_distributed
-    from fusionlog.stages.nonlinear import with_filter
 
     sc = _scenario(scenario, runs, steps, seed)
-    sc = dataclasses.replace(sc, system=with_filter(sc.system, filter_name))
     d = out_dir if out_dir is not None else Path("recordings") / sc.name
     _warn_stale([d / name for name in DISTRIBUTED_OUTPUTS])
     res = run_distributed(
@@ -335,6 +326,7 @@ def _run_distributed(
         force=force,
         block=block,
         command=_command_line(),
+        filter_name=filter_name,
     )
     click.echo(f"{sc.name}: M = {sc.runs} runs, K = {sc.instants - 1}, seed {sc.seed}")
     click.echo(format_table(res.summary))
