@@ -6,7 +6,6 @@ stderr naming the file and the problem; a traceback only with --debug), 130 inte
 
 from __future__ import annotations
 
-import json
 import shlex
 import signal
 import sys
@@ -72,6 +71,16 @@ class _Group(click.Group):
             signum = e.signum if isinstance(e, Terminated) else signal.SIGINT
             click.echo("fusionlog: interrupted; no partial output was left behind", err=True)
             ctx.exit(128 + int(signum))
+        except click.UsageError as e:  # one line too, not click's usage block
+            if debug:
+                raise
+            sub = e.ctx.info_name if e.ctx is not None and e.ctx.parent is not None else None
+            where = f"fusionlog {sub}" if sub else "fusionlog"
+            click.echo(
+                f"fusionlog: error: {_one_line(e.format_message())} (see: {where} --help)",
+                err=True,
+            )
+            ctx.exit(EXIT_BAD_INPUT)
         except (click.exceptions.Exit, click.ClickException, click.Abort):
             raise
         except MemoryError:
@@ -159,7 +168,17 @@ _workers = click.option(
 _scheduler = click.option(
     "--scheduler",
     metavar="ADDRESS",
-    help="Compute the runs, in blocks, on the running Dask cluster at ADDRESS (tcp://host:port).",
+    help="Compute the runs, in blocks, on the running Dask cluster at ADDRESS (tcp://host:port "
+    "or tls://host:port).",
+)
+_scheduler_timeout = click.option(
+    "--scheduler-timeout",
+    type=float,
+    default=10.0,
+    show_default=True,
+    metavar="SECONDS",
+    help="With --scheduler: how long to wait for the scheduler to answer, and for a worker "
+    "when it has none (also while the runs are computed).",
 )
 
 
@@ -265,9 +284,11 @@ def evaluate(sensors, estimates, output, summary_path, force, block_runs) -> Non
 @_block
 @_workers
 @_scheduler
+@_scheduler_timeout
 def run(
-    scenario, out_dir, runs, steps, seed, archs, filter_name, force, block_runs, workers, scheduler
-) -> None:
+    scenario, out_dir, runs, steps, seed, archs, filter_name, force, block_runs, workers,
+    scheduler, scheduler_timeout,
+) -> None:  # fmt: skip
     """Simulate, estimate and evaluate SCENARIO.toml; print the results table.
 
     With --workers or --scheduler the runs are computed on Dask in blocks whose metric sums
@@ -275,10 +296,8 @@ def run(
     carry every estimate back); the sample runs are computed here."""
     _one_executor(workers, scheduler)
     if workers is not None or scheduler is not None:
-        _run_distributed(
-            scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers, scheduler,
-            filter_name,
-        )  # fmt: skip
+        _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block_runs,
+                         workers, scheduler, scheduler_timeout, filter_name)  # fmt: skip
         return
     from fusionlog.report import format_table
     from fusionlog.stages.kinds import kind_of
@@ -308,7 +327,8 @@ def run(
 
 
 def _run_distributed(
-    scenario, out_dir, runs, steps, seed, archs, force, block, workers, scheduler, filter_name
+    scenario, out_dir, runs, steps, seed, archs, force, block, workers, scheduler, timeout,
+    filter_name,
 ):
     """`run --workers/--scheduler`: evaluation.rrd and summary.json from metric sums."""
     from fusionlog.report import format_table
@@ -323,6 +343,7 @@ def _run_distributed(
         archs=list(archs),
         workers=workers,
         scheduler=scheduler,
+        scheduler_timeout=timeout,
         force=force,
         block=block,
         command=_command_line(),
@@ -349,6 +370,7 @@ def _run_distributed(
 @_arch
 @_workers
 @_scheduler
+@_scheduler_timeout
 @click.option(
     "--exact-only",
     is_flag=True,
@@ -357,7 +379,10 @@ def _run_distributed(
 )
 @_force
 @_block
-def sweep(scenario, vary, runs, out_dir, archs, workers, scheduler, exact_only, force, block_runs):
+def sweep(
+    scenario, vary, runs, out_dir, archs, workers, scheduler, scheduler_timeout, exact_only,
+    force, block_runs,
+):  # fmt: skip
     """Evaluate SCENARIO.toml over a grid of parameter values, on Dask: writes sweep.parquet,
     sweep.rrd and summary.json (no MCAP logs: workers return metric sums).
 
@@ -375,6 +400,7 @@ def sweep(scenario, vary, runs, out_dir, archs, workers, scheduler, exact_only, 
         archs=list(archs),
         workers=workers,
         scheduler=scheduler,
+        scheduler_timeout=scheduler_timeout,
         exact_only=exact_only,
         force=force,
         block=block_runs,
@@ -416,21 +442,6 @@ def summary(recording, as_json) -> None:
     click.echo(table)
 
 
-def _load_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError as e:
-        raise FusionlogError(f"{path}: no such file") from e
-    except (OSError, UnicodeDecodeError) as e:
-        raise FusionlogError(f"{path}: cannot read ({e})") from e
-    except json.JSONDecodeError as e:
-        raise FusionlogError(f"{path}: not valid JSON (line {e.lineno}: {e.msg})") from e
-    except RecursionError:
-        raise FusionlogError(f"{path}: nested too deeply to be a summary") from None
-    except ValueError as e:  # Python refuses integers of more than 4300 digits
-        raise FusionlogError(f"{path}: cannot read a number ({str(e).split(';')[0]})") from None
-
-
 def _tolerance(name: str, default: float, text: str):
     """--rtol / --atol: a finite number >= 0 (else a usage error, exit 2)."""
 
@@ -457,11 +468,11 @@ def compare(actual, golden, rtol, atol) -> None:
 
     A file that is not a well-formed summary (not strict JSON, a metric that is not a number)
     is bad input (exit 2), not a regression."""
-    from fusionlog.report import check_summary, compare_summaries
+    from fusionlog.report import check_summary, compare_summaries, load_json
 
     docs = []
     for path in (actual, golden):
-        doc = _load_json(path)
+        doc = load_json(path)
         if not isinstance(doc, dict) or not isinstance(doc.get("architectures"), dict):
             raise FusionlogError(f"{path}: not a fusionlog summary (no 'architectures' object)")
         try:

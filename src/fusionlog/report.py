@@ -7,13 +7,17 @@ values back as floats (shown "inf", "nan"), so Infinity in both files is equal.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
+from fusionlog.errors import FusionlogError
+from fusionlog.inputs import check_input
 from fusionlog.jsonout import NON_FINITE, join_path, resolve_non_finite, to_strict_json
 
-__all__ = ["check_summary", "check_tolerance", "compare_summaries", "format_table"]
+__all__ = ["check_summary", "check_tolerance", "compare_summaries", "format_table", "load_json"]
 
 #: (header, getter) of the table columns, after the architecture name.
 _COLUMNS: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -421,3 +425,20 @@ def compare_summaries(
         if arch not in g_arch:
             out.append(f"{arch}: architecture extra (in actual, not in golden)")
     return out
+
+
+def load_json(path: Path) -> Any:
+    """A JSON file for `fusionlog compare`; every way it can fail is one FusionlogError line."""
+    check_input(path)  # a FIFO or a device would block or never end
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError as e:
+        raise FusionlogError(f"{path}: no such file") from e
+    except (OSError, UnicodeDecodeError) as e:
+        raise FusionlogError(f"{path}: cannot read ({e})") from e
+    except json.JSONDecodeError as e:
+        raise FusionlogError(f"{path}: not valid JSON (line {e.lineno}: {e.msg})") from e
+    except RecursionError:
+        raise FusionlogError(f"{path}: nested too deeply to be a summary") from None
+    except ValueError as e:  # Python refuses integers of more than 4300 digits
+        raise FusionlogError(f"{path}: cannot read a number ({str(e).split(';')[0]})") from None

@@ -159,8 +159,8 @@ def state_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None
     h = header(ctx, sc, model=False)
 
     system = _system(ctx, doc, sc, need_truth=True)
-    check_schedule(ctx, system, h.steps, "scenario.steps")
     architectures = architectures_section(ctx, doc, system)
+    check_schedule(ctx, system, h.steps, "scenario.steps", len(architectures))
     confidence, sample_runs, plane_view = evaluate_section(ctx, doc)
     if plane_view and system.n != 2:
         raise ctx.err("evaluate.plane_view", f"needs a 2-D state, this one has {system.n}")
@@ -246,7 +246,7 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
             "[truth] (initial_mean, initial_cov) to draw the true x_0 from",
         )
 
-    sensors = _sensors(ctx, doc, n, tuple(state_names))
+    sensors = _sensors(ctx, doc, n, tuple(state_names), dt)
     cross_R = correlations_section(ctx, doc, sensors)
     linear = motion is None and all(s.linear for s in sensors)
     filt, ukf = nonlinear.filter_section(ctx, doc, n, linear)
@@ -292,13 +292,13 @@ def prior_section(ctx: Ctx, doc: dict[str, Any], F: np.ndarray) -> Prior | None:
 
 
 def _sensors(
-    ctx: Ctx, doc: dict[str, Any], n: int, states: tuple[str, ...]
+    ctx: Ctx, doc: dict[str, Any], n: int, states: tuple[str, ...], dt: float
 ) -> tuple[SensorModel, ...]:
     """The sensor models of the [[sensors]] tables, each parsed by its kind's syntax."""
     allowed = sensor_tables.allowed_keys()
     tables = toml.named_tables(ctx, doc, "sensors", ("name",), " (name, H, R)", allowed[1:])
     return tuple(
-        sensor_tables.sensor_from_table(ctx, t, where, nm, n, states) for where, t, nm in tables
+        sensor_tables.sensor_from_table(ctx, t, where, nm, n, states, dt) for where, t, nm in tables
     )
 
 

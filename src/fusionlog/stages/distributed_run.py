@@ -35,7 +35,7 @@ from fusionlog.jsonout import dumps
 from fusionlog.scenario import Scenario
 
 from .common import provenance
-from .distributed import executor
+from .distributed import CONNECT_TIMEOUT, executor
 from .kinds import kind_of
 from .montecarlo import (
     Job,
@@ -82,6 +82,7 @@ def run_distributed(
     archs: Sequence[str] = (),
     workers: int | None = None,
     scheduler: str | None = None,
+    scheduler_timeout: float = CONNECT_TIMEOUT,
     force: bool = False,
     block: int | None = None,
     command: str = "fusionlog run",
@@ -108,7 +109,8 @@ def run_distributed(
     local = min(sc.runs, max(sc.sample_runs, PLANE_RUNS if sc.plane_view else 0, 1))
     remote = _remote_blocks(sc, local, block)
     t0 = time.perf_counter()
-    with Outputs(targets, force=force, inputs=inputs) as outs, executor(workers, scheduler) as ex:
+    ex = executor(workers, scheduler, timeout=scheduler_timeout)  # the address checked first
+    with Outputs(targets, force=force, inputs=inputs) as outs, ex:
         totals: dict[str, Any] = {}  # arch -> the workers' sums, merged in block order
         conditional: dict[str, Any] = {}  # arch -> their conditional expected sums
         patterns: set[bytes | None] = set()  # the blocks' shared patterns (two: per-run)

@@ -226,7 +226,8 @@ def expected_overall(ex: Any) -> dict[str, float | None]:
     where its Monte Carlo estimates are defined, the steps `MetricsResult.expected_overall`
     averages over (non-finite entries skipped likewise)."""
     from fusionlog.core.exact import ConditionalExpected
-    from fusionlog.core.metrics import expected_means, finite_mean
+    from fusionlog.core.linalg import finite_mean
+    from fusionlog.core.metrics import expected_means
 
     # a run average counts the runs defined at each step
     valid = ex.count > 0 if isinstance(ex, ConditionalExpected) else ex.defined

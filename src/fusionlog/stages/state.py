@@ -24,6 +24,7 @@ from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap import TRUTH, McapFile, McapWriter, arch_of, sensor_topic
 from fusionlog.io.mcap.topics import ESTIMATES_PREFIX
 from fusionlog.scenario import Scenario, load_model, system_from_dict, system_to_dict
+from fusionlog.scenario.model import bytes_per_instant
 
 from .common import block_runs
 from .kind import Estimator, Kind, Model, Prov, Sens, StepWriter
@@ -39,9 +40,7 @@ class StateKind(Kind):
         return {"system": json.dumps(system_to_dict(scenario.system))}
 
     def bytes_per_run_step(self, scenario: Scenario) -> int:
-        # truth and measurements in float64, and the plans' per-step maps of the estimate stage
-        s: System = scenario.system
-        return 8 * (s.n + s.m) * 4 + 8 * s.n * (s.n + s.m) * len(scenario.architectures)
+        return bytes_per_instant(scenario.system, len(scenario.architectures))
 
     def sensor_names(self, system: System) -> list[str]:
         return [s.name for s in system.sensors]

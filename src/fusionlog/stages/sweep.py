@@ -35,7 +35,7 @@ from fusionlog import __version__
 from fusionlog.io.atomic import Outputs
 from fusionlog.jsonout import dumps
 
-from .distributed import executor
+from .distributed import CONNECT_TIMEOUT, executor
 from .grid import GridPoint, Vary, grid_points, parse_vary
 from .kinds import kind_of
 from .montecarlo import (
@@ -98,6 +98,7 @@ def run_sweep(
     archs: Sequence[str] = (),
     workers: int | None = None,
     scheduler: str | None = None,
+    scheduler_timeout: float = CONNECT_TIMEOUT,
     exact_only: bool = False,
     force: bool = False,
     block: int | None = None,
@@ -121,7 +122,7 @@ def run_sweep(
     targets = [d / name for name in OUTPUTS]
     if warn_stale is not None:
         warn_stale(targets)
-    ex = executor(workers, scheduler, local_default=exact_only)
+    ex = executor(workers, scheduler, local_default=exact_only, timeout=scheduler_timeout)
     t = [time.perf_counter()]
     busy = 0.0
     # The outputs are checked before the cluster starts: a sweep that cannot write its results

@@ -44,6 +44,7 @@ import numpy as np
 import rerun.blueprint as rrb
 
 from fusionlog.core.evaluation import Evaluation
+from fusionlog.core.linalg import overflow_is_inf
 
 from .consistency import NisSeries, check_consistency, consistency_views, write_consistency
 from .legend import legend_box, place_legend
@@ -211,6 +212,7 @@ def _check(
                 raise bad(f"sample run {m}, {arch}: mean/std must have shape {(s, n)}")
 
 
+@overflow_is_inf  # inf - inf: NaN, drawn as a gap
 def _write_metrics(
     w: SeriesWriter,
     state_names: list[str],
@@ -262,6 +264,7 @@ def _write_sample_runs(w: SeriesWriter, state_names: list[str], sample_runs: Sam
                 w.line(entity_path(*base, "lower"), mu - 2 * sd, arch, col, 0.75)
 
 
+@overflow_is_inf  # inf - inf: NaN, drawn as a gap
 def _blueprint(
     state_names: list[str],
     series: Mapping[str, Mapping[str, np.ndarray]],
