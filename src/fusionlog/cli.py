@@ -285,10 +285,8 @@ def evaluate(sensors, estimates, output, summary_path, force, block_runs) -> Non
 @_workers
 @_scheduler
 @_scheduler_timeout
-def run(
-    scenario, out_dir, runs, steps, seed, archs, filter_name, force, block_runs, workers,
-    scheduler, scheduler_timeout,
-) -> None:  # fmt: skip
+def run(scenario, out_dir, runs, steps, seed, archs, filter_name, force, block_runs, workers,
+        scheduler, scheduler_timeout) -> None:  # fmt: skip
     """Simulate, estimate and evaluate SCENARIO.toml; print the results table.
 
     With --workers or --scheduler the runs are computed on Dask in blocks whose metric sums
@@ -326,10 +324,8 @@ def run(
     click.echo(f"{stages} -> {d}")
 
 
-def _run_distributed(
-    scenario, out_dir, runs, steps, seed, archs, force, block, workers, scheduler, timeout,
-    filter_name,
-):
+def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, workers,
+                     scheduler, timeout, filter_name):  # fmt: skip
     """`run --workers/--scheduler`: evaluation.rrd and summary.json from metric sums."""
     from fusionlog.report import format_table
     from fusionlog.stages.distributed_run import DISTRIBUTED_OUTPUTS, run_distributed

@@ -20,7 +20,6 @@ from fusionlog.core.models import CoordinatedTurn, SensorModel
 from fusionlog.core.models.polar import POLAR_KINDS, PolarSensor
 
 from . import toml
-from .model import sensor_timing
 from .toml import Ctx
 
 __all__ = [
@@ -76,8 +75,8 @@ def polar_sensor(
         )
     R = toml.covariance_checks(ctx, R, f"{where}.R", strict=True)
     idx = (states.index(pos_states[0]), states.index(pos_states[1]))
-    timing = sensor_timing(ctx, t, where)
-    return cls(name, toml.readonly(position), idx, n, R, timing, tuple(pos_states))
+    # the timing keys are read by `sensors.sensor_from_table`, for every kind
+    return cls(name, toml.readonly(position), idx, n, R, position_states=tuple(pos_states))
 
 
 def polar_dict(s: SensorModel) -> dict[str, Any]:
