@@ -157,6 +157,8 @@ _arch = click.option(
     help="Architecture (repeatable): CKF, HKF, MSC, MSC-GMF, SKF[:sensor], CI, FBS; "
     "BAYES, DS for identity scenarios.",
 )
+_filter = click.option("--filter", "filter_name", type=click.Choice(["EKF", "UKF"]),
+                       help="Local filter of every architecture ([estimate] filter).")  # fmt: skip
 _workers = click.option(
     "--workers",
     type=click.IntRange(min=0),
@@ -231,9 +233,10 @@ def import_(replay, output, force) -> None:
 @click.option("-o", "--output", type=OUTPUT, required=True, help="Estimates MCAP file to write.")
 @_arch
 @click.option("--model", type=PATH, help="Filter model TOML replacing the recorded scenario's.")
+@_filter
 @_force
 @_block
-def estimate(sensors, output, archs, model, force, block_runs) -> None:
+def estimate(sensors, output, archs, model, filter_name, force, block_runs) -> None:
     """Replay SENSORS.mcap through fusion architectures into an estimates MCAP file."""
     from fusionlog.stages.estimate import run_estimate
 
@@ -242,6 +245,7 @@ def estimate(sensors, output, archs, model, force, block_runs) -> None:
         output,
         archs=list(archs),
         model_path=model,
+        filter_name=filter_name,
         force=force,
         block=block_runs,
         command=_command_line(),
@@ -275,15 +279,14 @@ def evaluate(sensors, estimates, output, summary_path, force, block_runs) -> Non
 @_steps
 @_seed
 @_arch
+@_filter
 @_force
 @_block
 @_workers
 @_scheduler
 @_scheduler_timeout
-def run(
-    scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers, scheduler,
-    scheduler_timeout,
-) -> None:  # fmt: skip
+def run(scenario, out_dir, runs, steps, seed, archs, filter_name, force, block_runs, workers,
+        scheduler, scheduler_timeout) -> None:  # fmt: skip
     """Simulate, estimate and evaluate SCENARIO.toml; print the results table.
 
     With --workers or --scheduler the runs are computed on Dask in blocks whose metric sums
@@ -292,7 +295,7 @@ def run(
     _one_executor(workers, scheduler)
     if workers is not None or scheduler is not None:
         _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block_runs,
-                         workers, scheduler, scheduler_timeout)  # fmt: skip
+                         workers, scheduler, scheduler_timeout, filter_name)  # fmt: skip
         return
     from fusionlog.report import format_table
     from fusionlog.stages.kinds import kind_of
@@ -306,6 +309,7 @@ def run(
         sc,
         d,
         archs=archs,
+        filter_name=filter_name,
         force=force,
         block=block_runs,
         command=_command_line(),
@@ -320,9 +324,8 @@ def run(
     click.echo(f"{stages} -> {d}")
 
 
-def _run_distributed(
-    scenario, out_dir, runs, steps, seed, archs, force, block, workers, scheduler, timeout
-):
+def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, workers,
+                     scheduler, timeout, filter_name):  # fmt: skip
     """`run --workers/--scheduler`: evaluation.rrd and summary.json from metric sums."""
     from fusionlog.report import format_table
     from fusionlog.stages.distributed_run import DISTRIBUTED_OUTPUTS, run_distributed
@@ -340,6 +343,7 @@ def _run_distributed(
         force=force,
         block=block,
         command=_command_line(),
+        filter_name=filter_name,
     )
     click.echo(f"{sc.name}: M = {sc.runs} runs, K = {sc.instants - 1}, seed {sc.seed}")
     click.echo(format_table(res.summary))

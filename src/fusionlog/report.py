@@ -87,6 +87,8 @@ def format_table(summary: Mapping[str, Any]) -> str:
         rows.append(
             [str(arch)] + [_fmt(_get(entry, keys), percent=h == "in band") for h, keys in _COLUMNS]
         )
+    if isinstance(summary.get("pcrb"), Mapping):  # nonlinear models: the bound on the MSE
+        rows.append(["PCRB (bound)", _fmt(_get(summary, ("pcrb", "mse")))] + ["—"] * 6)
     return _layout(header, rows)
 
 
@@ -271,7 +273,9 @@ def check_summary(doc: Any, *, strict: bool = False) -> dict[str, Any]:
     number (JSON has no NaN/Infinity: it must be null and listed in ``non_finite``); a malformed
     ``non_finite`` note; and where the schema (DESIGN.md) wants a number, anything else -- a
     string, a boolean, a list, an object, or null outside ``expected`` (null there means "no
-    exact analysis") that no note explains. Keys the schema does not know are not checked.
+    exact analysis") that no note explains. ``expected`` itself may be null only beside a
+    top-level ``pcrb`` (a nonlinear model's summary, DESIGN.md). Keys the schema does not know
+    are not checked.
     Without ``strict``, non-finite floats (an in-memory summary) are accepted as values.
     """
     if not isinstance(doc, Mapping):
@@ -304,6 +308,8 @@ def check_summary(doc: Any, *, strict: bool = False) -> dict[str, Any]:
             path = join_path(where, str(key))
             if key in _ARCH_NUMBERS:
                 _want_number(v, path, nullable=False)
+            elif key == "expected" and v is None and "pcrb" in out:
+                continue  # a nonlinear model: no exact analysis, the PCRB stands instead
             elif key in _ARCH_GROUPS:
                 container, nullable, nesting = _ARCH_GROUPS[key]
                 if not isinstance(v, list | tuple if container is list else Mapping):

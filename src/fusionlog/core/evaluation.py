@@ -34,7 +34,7 @@ class Evaluation:
     `availability[sensor]` (K+1,) share of runs measured; `nis[arch][part]`: (run-averaged
     NIS, band lower, band upper); `traces[arch]` (K+1,) tr P without truth; `measured[state]
     [sensor]` (K+1,) the first sample run's direct readings; `properties`: the recording's
-    (scenario text, provenance).
+    (scenario text, provenance); `pcrb` (K+1, n) the PCRB on each state's MSE.
     """
 
     summary: dict[str, Any]
@@ -50,6 +50,9 @@ class Evaluation:
     traces: dict[str, np.ndarray] | None = None
     measured: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)
     properties: dict[str, Any] = field(default_factory=dict)
+    #: (K+1, n): the posterior Cramér-Rao bound on each state's MSE, where there is no exact
+    #: analysis (nonlinear models; summary.json's "pcrb")
+    pcrb: np.ndarray | None = None
 
     @property
     def architectures(self) -> list[str]:

@@ -248,7 +248,7 @@ def check_schedule(
                 f"sensor {sen.name!r} never measures within [0, {horizon}] s "
                 f"(offset {toml.fmt(sen.timing.offset)} s, {steps_key} = {steps})",
             )
-    if not sched.regular and system.continuous is None:
+    if not sched.regular and system.continuous is None and system.motion_model is None:
         raise ctx.err(
             "model.F",
             "explicit F, Q hold for dt only, but the sensors' periods and offsets are not "

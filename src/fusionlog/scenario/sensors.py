@@ -20,6 +20,7 @@ from fusionlog.core.models import SENSOR_KINDS, LinearSensor, SensorModel
 
 from . import toml
 from .model import TIMING_KEYS, sensor_timing
+from .nonlinear import polar_dict, polar_sensor
 from .toml import Ctx
 
 __all__ = [
@@ -82,6 +83,10 @@ def _linear_dict(s: SensorModel) -> dict[str, Any]:
 #: kind -> its syntax; every kind here has a model in `core.models.SENSOR_KINDS`.
 SENSOR_SYNTAX: dict[str, SensorSyntax] = {
     "linear": SensorSyntax(("H", "R"), (), _linear, _linear_dict),
+    **{
+        kind: SensorSyntax(("position", "R"), ("position_states",), polar_sensor, polar_dict)
+        for kind in ("range-bearing", "range", "bearing")
+    },
 }
 
 

@@ -271,13 +271,15 @@ def architectures(
     doc: dict[str, Any],
     default: tuple[str, ...],
     check: Any,
+    other_keys: tuple[str, ...] = (),
 ) -> tuple[str, ...]:
     """``[estimate] architectures``: a non-empty list of distinct names, each accepted by
-    ``check(name)`` (which raises ValueError with the reason); `default` when absent."""
+    ``check(name)`` (which raises ValueError with the reason); `default` when absent.
+    `other_keys`: the section's other keys the caller validates (a state's filter, ukf)."""
     est = table(ctx, doc, "estimate", required=False)
     if est is None:
         return default
-    check_keys(ctx, est, "estimate", ("architectures",))
+    check_keys(ctx, est, "estimate", ("architectures", *other_keys))
     if "architectures" not in est:
         return default
     archs = est["architectures"]

@@ -211,7 +211,7 @@ def exact_mask(scenario: Scenario) -> tuple[bool, np.ndarray | None]:
     sensor with dropouts makes the runs differ, and then there is none (yet: a per-run exact
     analysis would average each run's)."""
     system = scenario.system
-    if any(s.timing.dropout > 0 for s in system.sensors):
+    if not system.linear or any(s.timing.dropout > 0 for s in system.sensors):
         return False, None
     measures = scenario.schedule.measures
     if measures.all():

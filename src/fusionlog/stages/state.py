@@ -29,6 +29,7 @@ from fusionlog.scenario.model import bytes_per_instant
 from .common import block_runs
 from .kind import Estimator, Kind, Model, Prov, Sens, StepWriter
 from .noise import with_message_covariances
+from .nonlinear import step_writers
 from .state_eval import SensorLog, StateEvaluator
 
 
@@ -78,7 +79,8 @@ class StateKind(Kind):
     ) -> Estimator:
         topics = [sensor_topic(s.name) for s in system.sensors]
         system = with_message_covariances(system.on_times(sensors.times()), sensors)
-        return _StateEstimator(PlanCache(system, steps), runs, archs, topics)
+        plans = PlanCache(system, steps, times=sensors.times())
+        return _StateEstimator(plans, runs, archs, topics)
 
     def evaluator(
         self, sc: Scenario, est: McapFile, prov: Prov, sens: Sens = None
@@ -136,6 +138,9 @@ class _StateEstimator(Estimator):
 
     def estimate(self, run_offset: int, data: dict[str, np.ndarray]) -> dict[str, StepWriter]:
         z = np.concatenate([data[t] for t in self.topics], axis=-1)
+        if not self.plans.system.linear:  # EKF/UKF: each instant computed as it is written
+            self.plans.patterns.append(None)  # per-run covariances (provenance)
+            return step_writers(self.plans, self.archs, z, run_offset)
         block = estimate_block(self.plans.system, self.archs, z, cache=self.plans)
         return {
             a: _estimate_writer(e.mean, e.cov, e.shared_cov) for a, e in block.estimates.items()

@@ -29,6 +29,7 @@ from fusionlog.scenario import Scenario
 
 from .common import block_runs
 from .kind import Array, Evaluator, Readings, Topics
+from .nonlinear import PcrbPart
 
 __all__ = ["SensorLog", "StateEvaluator", "exact_setup"]
 
@@ -132,6 +133,10 @@ class StateEvaluator(Evaluator):
             if sc.replay is not None:
                 self.nis = NisAccumulator(filter_sys, self.known, self.K + 1)
             self.measured = {s.name: np.zeros(self.K + 1) for s in filter_sys.sensors}
+        # Nonlinear models: the posterior Cramer-Rao bound, from the truth and the readings.
+        self.pcrb = None if truth_sys.linear else PcrbPart(truth_sys, self.times)
+        if self.pcrb is not None:
+            self.sensor_topics = self.pcrb.topics
         self.n_samples = min(sc.sample_runs, self.M)
         self.samples: dict[int, Any] = {}
         self.plane_pts: dict[str, np.ndarray] = {}
@@ -149,6 +154,8 @@ class StateEvaluator(Evaluator):
             raise FusionlogError(f"/truth has {x.shape[-1]} values per run, not {n}")
         if self.measured and sensors is not None:
             self._add_consistency(sensors, estimates)
+        if self.pcrb is not None and truth is not None:
+            self.pcrb.add(x, sensors)
         if self.conditional:
             if sensors is None or any(t not in sensors for t in self.sensor_topics):
                 # a block without its readings: the run average would miss its runs
@@ -183,6 +190,12 @@ class StateEvaluator(Evaluator):
             self.accs[a].merge(acc)
         if expected:
             self._merge_expected(expected)
+
+    def add_bound(self, truth: np.ndarray, sensors: dict[str, np.ndarray]) -> None:
+        """Runs whose metric sums were merged (`merge`): their truth and sensor readings, for
+        what needs no estimate, the PCRB of a nonlinear model (nothing otherwise)."""
+        if self.pcrb is not None:
+            self.pcrb.add(truth, sensors)
 
     def _merge_expected(self, expected: dict[str, Any]) -> None:
         for a, ce in expected.items():
@@ -246,6 +259,8 @@ class StateEvaluator(Evaluator):
             )
             series[a] = res.series(**kw)
             arch_summary[a] = res.summary(**kw)
+            if self.pcrb is not None:  # no exact analysis: `expected` is null, the PCRB stands
+                arch_summary[a]["expected"] = None
             if conditional:  # DESIGN.md "summary.json": conditional on the drawn patterns
                 arch_summary[a]["expected"]["conditional"] = True
             if a in nis:
@@ -261,6 +276,8 @@ class StateEvaluator(Evaluator):
             "confidence": self.sc.confidence,
             "architectures": arch_summary,
         }
+        if self.pcrb is not None:  # DESIGN.md: no exact analysis, the PCRB beside the values
+            summary["pcrb"] = self.pcrb.summary()
         return summary, series, bounds
 
     def _plane(self) -> dict[str, Any] | None:
@@ -303,4 +320,5 @@ class StateEvaluator(Evaluator):
             traces=None if self.has_truth else {a: t / self.M for a, t in self.trace.items()},
             measured=self.measured_points,
             properties={"scenario": self.sc.source, "provenance": provenance or self.prov},
+            pcrb=None if self.pcrb is None else self.pcrb.per_state(),
         )

@@ -219,6 +219,14 @@ def _point_summary(
     return out
 
 
+def _bound(scenario: Any) -> dict[str, Any]:
+    """A nonlinear point's PCRB ({"pcrb": ...}, `nonlinear.scenario_bound`), else nothing."""
+    from .nonlinear import scenario_bound
+
+    bound = scenario_bound(scenario)
+    return {} if bound is None else {"pcrb": bound}
+
+
 def _lowest(points: list[dict[str, Any]]) -> dict[str, Any]:
     """Each architecture's grid point of lowest MSE: the exact value where every point has
     one, else the Monte Carlo one."""
@@ -267,6 +275,7 @@ def _summary(
             "steps": p.scenario.instants - 1,
             "architectures": _point_summary(job, e, s, exact_only),
         }
+        | _bound(p.scenario)
         for p, job, e, s in zip(points, jobs, expected, sums, strict=True)
     ]
     return {
