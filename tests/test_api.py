@@ -3,6 +3,7 @@ same scenario, runs and seed, nothing written unless asked, and the README's exa
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -111,6 +112,19 @@ def test_shapes_and_units(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> No
     assert list(tmp_path.iterdir()) == []
 
 
+def test_another_model_for_the_filters(tmp_path: Path) -> None:
+    """`estimate` / `evaluate` with a model other than the truth's (as `fusionlog estimate
+    --model`): its sensors taken by name, the expected values of the mismatched filter."""
+    sc = fl.load(ROOT / "tests/golden/small.toml")
+    sim = fl.simulate(sc, runs=50, seed=2)
+    one = dataclasses.replace(sc, system=sc.system.subset([1]))  # the filters see s2 only
+    est = fl.estimate(one, sim, ["CKF"])
+    alone = fl.estimate(sc, sim, ["SKF:s2"])
+    np.testing.assert_allclose(est["CKF"].mean, alone["SKF:s2"].mean, rtol=1e-13, atol=1e-13)
+    ev = fl.evaluate(one, sim, est)
+    assert ev.summary["architectures"]["CKF"]["expected"]["mse"] is not None
+
+
 def test_save_writes_the_recording_only_when_asked(tmp_path: Path) -> None:
     sc = fl.load(ROOT / "tests/golden/small.toml")
     sim = fl.simulate(sc, runs=20, seed=1)
@@ -132,5 +146,8 @@ def test_readme_example_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) ->
     assert code is not None, "README: no python block in the Python API section"
     monkeypatch.chdir(tmp_path)
     os.symlink(ROOT / "pipeline", tmp_path / "pipeline")
-    exec(compile(code.group(1), "README.md", "exec"), {})
+    shown: list[str] = []
+    exec(compile(code.group(1), "README.md", "exec"), {"print": lambda *a: shown.append(repr(a))})
     assert (tmp_path / "evaluation.rrd").exists()
+    # the shapes its comment states
+    assert shown[0] == repr(((200, 21, 2), (21, 2, 2))), shown[0]

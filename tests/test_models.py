@@ -100,6 +100,25 @@ def test_a_nonlinear_sensor_is_simulated_and_refused_by_the_plans() -> None:
     assert issubclass(NotLinear, FusionlogError)
 
 
+@dataclass(frozen=True)
+class _Bearing(_Range):
+    """A bearing-like test double whose residual wraps to (-pi, pi]."""
+
+    kind = "test-bearing"
+
+    def residual(self, z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
+        return np.pi - np.mod(np.pi - (z - z_hat), 2 * np.pi)
+
+
+def test_the_system_asks_each_sensor_for_its_residual() -> None:
+    base = ajgl2009()
+    system = dataclasses.replace(base, sensors=(base.sensors[0], _Bearing("b", np.eye(1))))
+    z = np.array([[1.0, np.pi - 0.1]])
+    z_hat = np.array([[0.25, -np.pi + 0.1]])
+    np.testing.assert_allclose(system.residual(z, z_hat), [[0.75, -0.2]], rtol=1e-12)
+    np.testing.assert_array_equal(base.residual(z[:, :1], z_hat[:, :1]), [[0.75]])
+
+
 def test_unknown_sensor_kind_is_one_line(tmp_path) -> None:
     src = tmp_path / "s.toml"
     src.write_text(

@@ -68,7 +68,7 @@ def test_tum_format(tmp_path: Path) -> None:
         ("46534.478375790000428", "s", 46534478375790),  # more digits than a double holds
         ("0.0000000015", "s", 2),  # half to even
         ("0.0000000025", "s", 2),
-        ("-1.5", "ms", -1_500_000),
+        ("0.0000000035", "s", 4),  # half to even: up
         ("1.5e-3", "s", 1_500_000),
         (".25", "us", 250),
     ],

@@ -19,11 +19,12 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
+from .core import evaluation
 from .core.architectures import Estimate, PlanCache, estimate_block
-from .core.evaluation import Evaluation
 from .core.model import System
 from .core.names import check_architectures
 from .errors import FusionlogError
@@ -58,20 +59,24 @@ class Simulation:
     #: a replay's truth: {"states", "matched", "unmatched"} (summary.json `truth`), else None
     truth_info: dict | None = None
 
-    @property
-    def z(self) -> np.ndarray:
-        """The stacked measurements of eq. (30), (M, K+1, m), in the system's sensor order."""
-        return np.concatenate(list(self.measurements.values()), axis=-1)
+    def z(self, system: System) -> np.ndarray:
+        """The stacked measurements of eq. (30) of `system`'s sensors (taken by name, in its
+        order), (M, K+1, m)."""
+        missing = [s.name for s in system.sensors if s.name not in self.measurements]
+        if missing:
+            have = ", ".join(self.measurements)
+            raise FusionlogError(f"no measurements of sensor {missing[0]!r} (have: {have})")
+        return np.concatenate([self.measurements[s.name] for s in system.sensors], axis=-1)
 
     @property
     def runs(self) -> int:
         """M."""
         return next(iter(self.measurements.values())).shape[0]
 
-    def system(self) -> System:
-        """The scenario's system on these instants, with the per-instant R of recorded
-        covariances (what the filters run with: `stages.noise.with_covariances`)."""
-        system = self.scenario.system.on_times(self.times)
+    def on_instants(self, system: System) -> System:
+        """`system` on these instants, with the per-instant R of the recorded covariances
+        (what filters run with on these data: `stages.noise.with_covariances`)."""
+        system = system.on_times(self.times)
         return with_covariances(system, self.covariances, len(self.times), self.scenario.name)
 
 
@@ -81,6 +86,29 @@ class Estimates(dict[str, Estimate]):
     measurement pattern (which exact analysis applies)."""
 
     provenance: dict[str, str]
+
+
+class Evaluation(evaluation.Evaluation):
+    """An evaluation (`core.evaluation.Evaluation`: `.summary` the summary.json dict, per-step
+    `.series` per architecture, `.samples`, ...) with the adapters a notebook wants."""
+
+    def table(self) -> str:
+        """The results table `fusionlog summary` prints (`report.format_table`)."""
+        from .report import format_table
+
+        return format_table(self.summary)
+
+    def save(self, path: str | os.PathLike[str], *, force: bool = False) -> Path:
+        """Write the Rerun recording to `path` (atomically, `io.atomic.Outputs`; an existing
+        file only with `force`): `io.rrd.write_evaluation`. Returns the path."""
+        from .io.atomic import Outputs
+        from .io.rrd import write_evaluation  # rerun: slow to import, needed only here
+
+        target = Path(path)
+        with Outputs([target], force=force) as outs:
+            write_evaluation(outs.open(target), self)
+            outs.commit()
+        return target
 
 
 def load(path: str | os.PathLike[str]) -> Scenario:
@@ -151,18 +179,16 @@ def _blocks(sim: Simulation) -> list[tuple[int, int]]:
 def estimate(
     scenario: Scenario, sim: Simulation, architectures: Sequence[str] | None = None
 ) -> Estimates:
-    """Each architecture's estimates of the simulated runs (default: the scenario's
-    `[estimate] architectures`), as `fusionlog estimate` computes them."""
+    """Each architecture's estimates of the runs (default: the scenario's `[estimate]
+    architectures`), as `fusionlog estimate` computes them. `scenario` is the filters' model:
+    the one simulated, or another (`fusionlog estimate --model`), whose sensors are taken
+    from `sim` by name."""
     system = scenario.system
     archs = check_architectures(
         list(architectures or scenario.architectures), system, "architectures"
     )
-    z = sim.z
-    if z.shape[-1] != system.m:
-        raise FusionlogError(
-            f"measurements of {z.shape[-1]} components, the sensors have {system.m}"
-        )
-    cache = PlanCache(sim.system(), len(sim.times) - 1)
+    z = sim.z(system)
+    cache = PlanCache(sim.on_instants(system), len(sim.times) - 1)
     parts: dict[str, list[Estimate]] = {a: [] for a in archs}
     for off, n in _blocks(sim):
         block = estimate_block(cache.system, archs, z[off : off + n], cache=cache)
@@ -188,13 +214,10 @@ def _joined(es: list[Estimate]) -> Estimate:
 def evaluate(scenario: Scenario, sim: Simulation, estimates: Estimates) -> Evaluation:
     """MSE (eq. 45), ANEES, DM (eq. 47) with their exact expected values, NIS where it says
     something, and sample runs: what `fusionlog evaluate` puts in summary.json and the
-    recording (written only by `Evaluation.save`)."""
-    sc = sim.scenario  # the scenario with the runs, steps and seed simulated
-    if scenario.system.n != sc.system.n:
-        raise FusionlogError(
-            f"{scenario.name}: {scenario.system.n} states, the runs have {sc.system.n}"
-        )
-    system = sim.system()
+    recording (written only by `Evaluation.save`). `scenario` is the model the estimates
+    were made with (`estimate`); the truth is `sim`'s."""
+    sc = sim.scenario  # the truth's: the runs, steps and seed simulated
+    filter_sys, truth_sys = sim.on_instants(scenario.system), sim.on_instants(sc.system)
     # the estimates' record of their measurement pattern (plain dicts: none known, per run)
     prov = (
         estimates.provenance
@@ -202,10 +225,10 @@ def evaluate(scenario: Scenario, sim: Simulation, estimates: Estimates) -> Evalu
         else {"measurement_pattern": "per-run"}
     )
     # the sensors' availability, where it says something (their own timing, a recording)
-    timed = sc.replay is not None or any(not s.timing.default for s in system.sensors)
+    timed = sc.replay is not None or any(not s.timing.default for s in sc.system.sensors)
     log = SensorLog(sim.truth is not None, sim.scheduled if timed else None, sim.truth_info)
     ev = StateEvaluator(
-        sc, list(estimates), system, system, sim.runs, sim.times, prov, log, sc.name
+        sc, list(estimates), filter_sys, truth_sys, sim.runs, sim.times, prov, log, sc.name
     )
     topics = {sensor_topic(name): z for name, z in sim.measurements.items()}
     for off, n in _blocks(sim):
@@ -213,7 +236,7 @@ def evaluate(scenario: Scenario, sim: Simulation, estimates: Estimates) -> Evalu
         readings = {t: z[off : off + n] for t, z in topics.items()}
         truth = None if sim.truth is None else sim.truth[off : off + n]
         ev.add(off, truth, ests, readings)
-    return ev.evaluation({"command": "fusionlog.evaluate"})
+    return Evaluation(**vars(ev.evaluation({"command": "fusionlog.evaluate"})))
 
 
 def _runs(e: Estimate, off: int, n: int) -> tuple[np.ndarray, np.ndarray]:

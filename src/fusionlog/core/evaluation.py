@@ -4,15 +4,14 @@ What the evaluator accumulated over every block, finished: the summary.json dict
 "summary.json": MSE eq. 45, ANEES, DM eq. 47, the exact expected values, NIS), the per-step
 series of each architecture (metrics per architecture and step, with their exact values), the
 NEES band, a few sample runs and what the recording's other views draw. `io.rrd` writes it
-(`write_evaluation`), `report` prints it (`format_table`); the two methods here are those
-adapters, imported when called, so the value itself stays plain data.
+(`write_evaluation`), `report` prints its summary (`format_table`); the Python API's
+`fusionlog.Evaluation` adds those two as methods (`table`, `save`): the value here stays data.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,9 +34,9 @@ class Evaluation:
     `availability[sensor]` (K+1,) share of runs measured; `nis[arch][part]`: (run-averaged
     NIS, band lower, band upper); `traces[arch]` (K+1,) tr P without truth; `measured[state]
     [sensor]` (K+1,) the first sample run's direct readings; `properties`: the recording's
-    (scenario text, provenance). `innovations[arch][sensor]` (K+1, r): a replayed log's
-    normalised innovations, None for a scenario; with them the recording takes the layout of
-    one log (`io.rrd.replay`).
+    (scenario text, provenance); `pcrb` (K+1, n) the PCRB on each state's MSE.
+    `innovations[arch][sensor]` (K+1, r): a replayed log's normalised innovations, None for a
+    scenario; with them the recording takes the layout of one log (`io.rrd.replay`).
     """
 
     summary: dict[str, Any]
@@ -53,27 +52,12 @@ class Evaluation:
     traces: dict[str, np.ndarray] | None = None
     measured: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)
     properties: dict[str, Any] = field(default_factory=dict)
+    #: (K+1, n): the posterior Cramér-Rao bound on each state's MSE, where there is no exact
+    #: analysis (nonlinear models; summary.json's "pcrb")
+    pcrb: np.ndarray | None = None
     innovations: dict[str, dict[str, np.ndarray]] | None = None
 
     @property
     def architectures(self) -> list[str]:
         """The architectures evaluated, in the summary's order."""
         return list(self.summary["architectures"])
-
-    def table(self) -> str:
-        """The results table `fusionlog summary` prints (`report.format_table`)."""
-        from fusionlog.report import format_table
-
-        return format_table(self.summary)
-
-    def save(self, path: str | Path, *, force: bool = False) -> Path:
-        """Write the Rerun recording to `path` (atomically; an existing file only with
-        `force`): `io.rrd.write_evaluation`. Returns the path."""
-        from fusionlog.io.atomic import Outputs
-        from fusionlog.io.rrd import write_evaluation
-
-        path = Path(path)
-        with Outputs([path], force=force) as outs:
-            write_evaluation(outs.open(path), self)
-            outs.commit()
-        return path

@@ -57,6 +57,16 @@ class System:
     #: The stacked measurement noise covariance of eq. (31) at each instant (K+1, m, m), where
     #: it varies (a recorded log whose messages carry their own covariance); None: R always.
     Rs: np.ndarray | None = None
+    #: A nonlinear motion model (`core.models`, e.g. the coordinated turn), which then replaces
+    #: F, Q (kept as its linearisation at the zero state over dt and its Q(dt)); None: F, Q.
+    motion_model: MotionModel | None = None
+    #: The local filter of every architecture when a model is nonlinear: "EKF" | "UKF" (None:
+    #: the KF), and the UKF's (alpha, beta, kappa) (DESIGN.md, "Nonlinear sensors and motion").
+    filter: str | None = None
+    ukf: tuple[float, float, float] = (1.0, 2.0, 0.0)
+    #: With a nonlinear motion on irregular instants (`on_times`), the interval before each
+    #: instant k >= 1 (K,); None: dt.
+    intervals: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if not self.state_names:
@@ -75,8 +85,10 @@ class System:
 
     @property
     def motion(self) -> MotionModel:
-        """The motion model (`core.models`): here the linear one of F, G Q G^T over dt (and the
-        continuous model, for other intervals)."""
+        """The motion model (`core.models`): `motion_model`, or the linear one of F, G Q G^T over
+        dt (and the continuous model, for other intervals)."""
+        if self.motion_model is not None:
+            return self.motion_model
         return LinearMotion(self.F, self.GQG, self.dt, self.continuous)
 
     @property
@@ -106,6 +118,17 @@ class System:
         """The stacked measurement Jacobian at states x (..., n): (..., m, n)."""
         return np.concatenate([s.jacobian(x) for s in self.sensors], axis=-2)
 
+    def residual(self, z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
+        """The stacked innovation z - z_hat (..., m), each sensor's asked of its model (angles
+        wrapped)."""
+        if self.linear:
+            return z - z_hat
+        parts = [
+            s.residual(z[..., sl], z_hat[..., sl])
+            for s, sl in zip(self.sensors, self.sensor_slices, strict=True)
+        ]
+        return np.concatenate(parts, axis=-1)
+
     @property
     def time_invariant(self) -> bool:
         """The same F and G Q G^T between every two instants, and the same R at every one."""
@@ -114,6 +137,16 @@ class System:
     def F_at(self, k: int) -> np.ndarray:
         """Transition from instant k-1 to instant k (k >= 1)."""
         return self.F if self.Fs is None else self.Fs[k - 1]
+
+    def dt_at(self, k: int) -> float:
+        """The interval from instant k-1 to instant k (k >= 1) of a nonlinear motion."""
+        return self.dt if self.intervals is None else float(self.intervals[k - 1])
+
+    def propagate(self, x: np.ndarray, k: int) -> np.ndarray:
+        """The noise-free transition of states x (..., n) from instant k-1 to k: F x, or f(x)."""
+        if self.motion_model is None:
+            return x @ self.F_at(k).T
+        return self.motion_model.f(x, self.dt_at(k))
 
     def GQG_at(self, k: int) -> np.ndarray:
         """Process noise covariance (state space) from instant k-1 to instant k (k >= 1)."""
@@ -134,6 +167,12 @@ class System:
         discretisation: its F and Q apply between every two instants, whatever their times
         (a scenario with irregular instants refuses such a model when it is loaded)."""
         times = np.asarray(times, dtype=float)
+        if self.motion_model is not None:  # f(x, dt) and Q(dt) take any interval
+            if np.array_equal(times, np.arange(len(times)) * self.dt):
+                return dataclasses.replace(self, intervals=None, Qs=None)
+            deltas = np.diff(times)
+            Qs = np.stack([self.motion_model.Q(float(d)) for d in deltas])
+            return dataclasses.replace(self, intervals=deltas, Qs=Qs)
         if self.continuous is None or np.array_equal(times, np.arange(len(times)) * self.dt):
             return self if self.Fs is None else dataclasses.replace(self, Fs=None, Qs=None)
         from .timing import van_loan

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .linalg import mT, sym
+from .linalg import mT, overflow_is_inf, sym
 from .model import System
 
 __all__ = ["Innovations", "innovations", "whiteness"]
@@ -43,6 +43,7 @@ class Innovations:
 BLOCK = 32_768
 
 
+@overflow_is_inf  # an outlier near 1e308: its NIS is inf, reported as non-finite
 def innovations(
     system: System,
     mean: np.ndarray,
@@ -114,6 +115,7 @@ def _block(system, mean, cov, z, rows, R, k0: int, k1: int):
     return nis, dof, np.where(use[..., None] & present, u, np.nan)
 
 
+@overflow_is_inf
 def whiteness(normalised: np.ndarray, lags: int = 10) -> dict[str, float]:
     """Sample autocorrelation of each normalised-innovation component at lags 1..L, averaged
     over the runs' sequences of present values, against the white-noise band +-1.96/sqrt(N).

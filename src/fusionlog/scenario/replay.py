@@ -242,7 +242,11 @@ def _covariance(ctx: Ctx, t: dict[str, Any], where: str, m: int) -> tuple[str | 
             raise ctx.err(f"{where}.covariance_index", "only used with covariance")
         return None, None
     field = toml.string(ctx, t["covariance"], f"{where}.covariance")
-    idx = t.get("covariance_index", list(range(m)))
+    if "covariance_index" not in t:
+        # never a default of [0..m-1]: the data say whether the matrix is exactly m x m (else
+        # the reader asks for covariance_index instead of reading the wrong entries)
+        return field, None
+    idx = t["covariance_index"]
     if (
         not isinstance(idx, list)
         or len(idx) != m

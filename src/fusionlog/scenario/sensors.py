@@ -9,6 +9,7 @@ else: the architectures ask the model (`core.models.base`).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -19,6 +20,7 @@ from fusionlog.core.models import SENSOR_KINDS, LinearSensor, SensorModel
 
 from . import toml
 from .model import TIMING_KEYS, sensor_timing
+from .nonlinear import polar_dict, polar_sensor
 from .toml import Ctx
 
 __all__ = [
@@ -37,7 +39,8 @@ DEFAULT_KIND = "linear"
 class SensorSyntax:
     """A sensor kind's table: `keys` required besides ``name`` (and the optional timing keys and
     ``kind``), `optional` ones, `parse` (ctx, table, key path, name, n, state names) -> the
-    model, and `to_dict` the model -> the table's keys besides name, kind and timing."""
+    model (its timing left at the default: `sensor_from_table` sets it), and `to_dict` the
+    model -> the table's keys besides name, kind and timing."""
 
     keys: tuple[str, ...]
     optional: tuple[str, ...]
@@ -69,7 +72,7 @@ def _linear(
     ctx: Ctx, t: dict[str, Any], where: str, name: str, n: int, states: tuple[str, ...]
 ) -> SensorModel:
     H, R = sensor_matrices(ctx, t, where, n)
-    return LinearSensor(name, H, R, sensor_timing(ctx, t, where))
+    return LinearSensor(name, H, R)
 
 
 def _linear_dict(s: SensorModel) -> dict[str, Any]:
@@ -80,6 +83,10 @@ def _linear_dict(s: SensorModel) -> dict[str, Any]:
 #: kind -> its syntax; every kind here has a model in `core.models.SENSOR_KINDS`.
 SENSOR_SYNTAX: dict[str, SensorSyntax] = {
     "linear": SensorSyntax(("H", "R"), (), _linear, _linear_dict),
+    **{
+        kind: SensorSyntax(("position", "R"), ("position_states",), polar_sensor, polar_dict)
+        for kind in ("range-bearing", "range", "bearing")
+    },
 }
 
 
@@ -90,9 +97,16 @@ def allowed_keys() -> tuple[str, ...]:
 
 
 def sensor_from_table(
-    ctx: Ctx, t: dict[str, Any], where: str, name: str, n: int, states: tuple[str, ...]
+    ctx: Ctx,
+    t: dict[str, Any],
+    where: str,
+    name: str,
+    n: int,
+    states: tuple[str, ...],
+    dt: float,
 ) -> SensorModel:
-    """The sensor model of a ``[[sensors]]`` table (its keys checked against its kind)."""
+    """The sensor model of a ``[[sensors]]`` table (its keys checked against its kind; the
+    timing keys, common to every kind, read here against the scenario's dt)."""
     kind = t.get("kind", DEFAULT_KIND)
     if kind not in SENSOR_SYNTAX or kind not in SENSOR_KINDS:
         known = ", ".join(k for k in SENSOR_SYNTAX if k in SENSOR_KINDS)
@@ -100,7 +114,8 @@ def sensor_from_table(
     syn = SENSOR_SYNTAX[kind]
     allowed = ("name", *syn.keys, *syn.optional, *TIMING_KEYS, "kind")
     toml.check_keys(ctx, t, where, allowed, required=("name", *syn.keys))
-    return syn.parse(ctx, t, where, name, n, states)
+    model = syn.parse(ctx, t, where, name, n, states)
+    return dataclasses.replace(model, timing=sensor_timing(ctx, t, where, dt))
 
 
 def sensor_to_dict(s: SensorModel) -> dict[str, Any]:

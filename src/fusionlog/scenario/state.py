@@ -40,8 +40,8 @@ from fusionlog.core.models import SensorModel
 from fusionlog.core.names import STATE_ARCHITECTURES, parse_arch
 from fusionlog.core.timing import SensorTiming
 
+from . import nonlinear, toml
 from . import sensors as sensor_tables
-from . import toml
 from .base import DEFAULT_CONFIDENCE, DEFAULT_SAMPLE_RUNS, Scenario, header
 from .model import (
     MODEL_KINDS,
@@ -91,6 +91,8 @@ def system_to_dict(system: System) -> dict[str, Any]:
         "scenario": {"dt": float(system.dt), "state_names": list(system.state_names)},
         "model": {"F": toml.tolist(system.F), "Q": toml.tolist(system.Q)},
     }
+    if system.motion_model is not None:
+        d["model"] = nonlinear.turn_dict(system.motion_model)
     if system.G is not None:
         d["model"]["G"] = toml.tolist(system.G)
     if system.prior is not None:
@@ -112,6 +114,8 @@ def system_to_dict(system: System) -> dict[str, Any]:
         {"sensors": [names[i], names[j]], "cov": toml.tolist(c)}
         for (i, j), c in sorted(system.cross_R.items())
     ]
+    if system.filter is not None:
+        d["estimate"] = nonlinear.estimate_dict(system)
     return d
 
 
@@ -155,8 +159,8 @@ def state_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None
     h = header(ctx, sc, model=False)
 
     system = _system(ctx, doc, sc, need_truth=True)
-    check_schedule(ctx, system, h.steps, "scenario.steps")
     architectures = architectures_section(ctx, doc, system)
+    check_schedule(ctx, system, h.steps, "scenario.steps", len(architectures))
     confidence, sample_runs, plane_view = evaluate_section(ctx, doc)
     if plane_view and system.n != 2:
         raise ctx.err("evaluate.plane_view", f"needs a 2-D state, this one has {system.n}")
@@ -200,7 +204,16 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
         if not dt > 0:
             raise ctx.err("scenario.dt", f"must be > 0, got {toml.fmt(dt)}")
 
-    F, Q, G, state_names, dt, continuous = model_section(ctx, doc, state_names, dt)
+    md = doc.get("model")
+    motion = None
+    if isinstance(md, dict) and md.get("kind") == "coordinated-turn":
+        motion, state_names, dt = nonlinear.turn_section(ctx, md, state_names, dt)
+        # F, Q: its linearisation at the zero state (constant velocity) and Q over dt; the
+        # filters and the simulation ask the motion model itself
+        F, Q = motion.jacobian(np.zeros(motion.n), dt).copy(), motion.Q(dt)
+        G, continuous = None, None
+    else:
+        F, Q, G, state_names, dt, continuous = model_section(ctx, doc, state_names, dt)
     n = F.shape[0]
 
     prior = prior_section(ctx, doc, F)
@@ -233,10 +246,12 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
             "[truth] (initial_mean, initial_cov) to draw the true x_0 from",
         )
 
-    sensors = _sensors(ctx, doc, n, tuple(state_names))
+    sensors = _sensors(ctx, doc, n, tuple(state_names), dt)
     cross_R = correlations_section(ctx, doc, sensors)
+    linear = motion is None and all(s.linear for s in sensors)
+    filt, ukf = nonlinear.filter_section(ctx, doc, n, linear)
 
-    return System(
+    system = System(
         F=F,
         Q=Q,
         G=G,
@@ -247,7 +262,12 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
         dt=dt,
         state_names=state_names,
         continuous=continuous,
+        motion_model=motion,
+        filter=filt,
+        ukf=ukf,
     )
+    nonlinear.check_nonlinear(ctx, system, bool(cross_R))
+    return system
 
 
 def prior_section(ctx: Ctx, doc: dict[str, Any], F: np.ndarray) -> Prior | None:
@@ -272,13 +292,13 @@ def prior_section(ctx: Ctx, doc: dict[str, Any], F: np.ndarray) -> Prior | None:
 
 
 def _sensors(
-    ctx: Ctx, doc: dict[str, Any], n: int, states: tuple[str, ...]
+    ctx: Ctx, doc: dict[str, Any], n: int, states: tuple[str, ...], dt: float
 ) -> tuple[SensorModel, ...]:
     """The sensor models of the [[sensors]] tables, each parsed by its kind's syntax."""
     allowed = sensor_tables.allowed_keys()
     tables = toml.named_tables(ctx, doc, "sensors", ("name",), " (name, H, R)", allowed[1:])
     return tuple(
-        sensor_tables.sensor_from_table(ctx, t, where, nm, n, states) for where, t, nm in tables
+        sensor_tables.sensor_from_table(ctx, t, where, nm, n, states, dt) for where, t, nm in tables
     )
 
 
@@ -366,7 +386,9 @@ def correlations_section(
 
 def architectures_section(ctx: Ctx, doc: dict[str, Any], system: System) -> tuple[str, ...]:
     names = tuple(s.name for s in system.sensors)
-    return toml.architectures(ctx, doc, STATE_ARCHITECTURES, lambda a: parse_arch(a, names))
+    return toml.architectures(
+        ctx, doc, STATE_ARCHITECTURES, lambda a: parse_arch(a, names), ("filter", "ukf")
+    )
 
 
 def evaluate_section(ctx: Ctx, doc: dict[str, Any]) -> tuple[float, int, bool]:

@@ -29,14 +29,14 @@ def block_runs(steps: int, runs: int, requested: int | None = None) -> int:
     return max(1, min(runs, RUN_STEPS_PER_BLOCK // (steps + 1)))
 
 
-def progress(items: Iterable[T], total: int, desc: str) -> Iterator[T]:
+def progress(items: Iterable[T], total: int, desc: str, unit: str = "block") -> Iterator[T]:
     """A progress bar on a terminal, silence when stderr is piped or captured."""
     if not sys.stderr.isatty():  # what tqdm(disable=True) would do, without importing it
         yield from items
         return
     from tqdm import tqdm  # here: ~0.03 s of import that a piped or captured run never needs
 
-    yield from tqdm(items, total=total, desc=desc, unit="block", leave=False)
+    yield from tqdm(items, total=total, desc=desc, unit=unit, leave=False)
 
 
 def sha256_of(path: Path) -> str:

@@ -16,6 +16,7 @@ to rounding (the sums are added in another order).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import time
 import uuid
@@ -34,7 +35,7 @@ from fusionlog.jsonout import dumps
 from fusionlog.scenario import Scenario
 
 from .common import provenance
-from .distributed import executor
+from .distributed import CONNECT_TIMEOUT, executor
 from .kinds import kind_of
 from .montecarlo import (
     Job,
@@ -44,6 +45,7 @@ from .montecarlo import (
     exact_mask,
     fold,
 )
+from .nonlinear import simulated_readings, with_filter
 from .state_eval import StateEvaluator
 
 __all__ = ["DISTRIBUTED_OUTPUTS", "DistributedRun", "run_distributed"]
@@ -80,14 +82,19 @@ def run_distributed(
     archs: Sequence[str] = (),
     workers: int | None = None,
     scheduler: str | None = None,
+    scheduler_timeout: float = CONNECT_TIMEOUT,
     force: bool = False,
     block: int | None = None,
     command: str = "fusionlog run",
+    filter_name: str | None = None,
 ) -> DistributedRun:
     """Evaluate every run of `scenario` on Dask into ``out_dir/evaluation.rrd`` and
     ``out_dir/summary.json`` (both or neither). `workers` N: a LocalCluster of N processes
-    (0: this process); `scheduler`: a running cluster; neither: one process per CPU."""
+    (0: this process); `scheduler`: a running cluster; neither: one process per CPU.
+    `filter_name` (--filter) sets the local filter."""
     sc = scenario
+    if filter_name is not None:
+        sc = dataclasses.replace(sc, system=with_filter(sc.system, filter_name))
     if sc.kind != "state":
         raise FusionlogError(
             f"{sc.path or sc.name}: --workers/--scheduler run state scenarios; "
@@ -107,7 +114,8 @@ def run_distributed(
     local = min(sc.runs, max(sc.sample_runs, PLANE_RUNS if sc.plane_view else 0, 1))
     remote = _remote_blocks(sc, local, block)
     t0 = time.perf_counter()
-    with Outputs(targets, force=force, inputs=inputs) as outs, executor(workers, scheduler) as ex:
+    ex = executor(workers, scheduler, timeout=scheduler_timeout)  # the address checked first
+    with Outputs(targets, force=force, inputs=inputs) as outs, ex:
         totals: dict[str, Any] = {}  # arch -> the workers' sums, merged in block order
         conditional: dict[str, Any] = {}  # arch -> their conditional expected sums
         patterns: set[bytes | None] = set()  # the blocks' shared patterns (two: per-run)
@@ -138,6 +146,9 @@ def run_distributed(
         # the workers' sums of the other runs (and, for per-run patterns, their runs' exact
         # sums: the evaluator's own are the sample runs')
         ev.merge(totals, conditional)
+        if not system.linear:  # the PCRB of the workers' runs: their truth, simulated here
+            for off, n in remote:
+                ev.add_bound(*simulated_readings(sc, off, n))
         evaluation = ev.evaluation(prov)
         summary = evaluation.summary
         text = dumps(summary, indent=2) + "\n"  # before the recording, as evaluate does

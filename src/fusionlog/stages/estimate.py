@@ -45,6 +45,7 @@ def estimate_to(
     *,
     archs: list[str] | None = None,
     model_path: Path | None = None,
+    filter_name: str | None = None,
     block: int | None = None,
     command: str = "fusionlog estimate",
     sensors_name: str | None = None,
@@ -54,12 +55,20 @@ def estimate_to(
     """Estimate every run of `sensors_path` with each architecture into an open writer:
     /estimates/<ARCH>, one message per step per block of runs. `recorded` is the scenario
     recorded in the sensors file and `sensors_sha256` its digest, when the caller (`run`, which
-    wrote it) has them: each is then not read again."""
+    wrote it) has them: each is then not read again. `filter_name` (--filter) sets the local
+    filter of a state model."""
     mf = McapFile(sensors_path)
     if recorded is None:
         recorded = scenario_from_file(mf)
     kind = kind_of(_kind_name(recorded, model_path))
     model = kind.model(mf, recorded, model_path)
+    if filter_name is not None:
+        from fusionlog.scenario import system_to_dict
+
+        from .nonlinear import with_filter
+
+        system = with_filter(model.system, filter_name)
+        model = model._replace(system=system, json=json.dumps(system_to_dict(system)))
     system = model.system
     topics = kind.check_sensor_topics(mf, system)
     archs = kind.check_architectures(archs or model.architectures, system, "--arch")
@@ -100,6 +109,7 @@ def run_estimate(
     *,
     archs: list[str] | None = None,
     model_path: Path | None = None,
+    filter_name: str | None = None,
     force: bool = False,
     block: int | None = None,
     command: str = "fusionlog estimate",
@@ -110,7 +120,13 @@ def run_estimate(
     with Outputs([out], force=force, inputs=inputs) as outs:
         with McapWriter(outs.open(out)) as w:
             res = estimate_to(
-                sensors_path, w, archs=archs, model_path=model_path, block=block, command=command
+                sensors_path,
+                w,
+                archs=archs,
+                model_path=model_path,
+                filter_name=filter_name,
+                block=block,
+                command=command,
             )
         outs.commit()
     res.path = out

@@ -211,7 +211,7 @@ def exact_mask(scenario: Scenario) -> tuple[bool, np.ndarray | None]:
     sensor with dropouts makes the runs differ, and then there is none (yet: a per-run exact
     analysis would average each run's)."""
     system = scenario.system
-    if any(s.timing.dropout > 0 for s in system.sensors):
+    if not system.linear or any(s.timing.dropout > 0 for s in system.sensors):
         return False, None
     measures = scenario.schedule.measures
     if measures.all():
@@ -226,17 +226,13 @@ def expected_overall(ex: Any) -> dict[str, float | None]:
     where its Monte Carlo estimates are defined, the steps `MetricsResult.expected_overall`
     averages over (non-finite entries skipped likewise)."""
     from fusionlog.core.exact import ConditionalExpected
+    from fusionlog.core.linalg import finite_mean
+    from fusionlog.core.metrics import expected_means
 
     # a run average counts the runs defined at each step
     valid = ex.count > 0 if isinstance(ex, ConditionalExpected) else ex.defined
-
-    def mean(a: np.ndarray) -> float | None:
-        a = a[np.isfinite(a)]
-        return float(a.mean()) if a.size else None
-
-    per_state = [mean(ex.mse_per_state[valid, i]) for i in range(ex.mse_per_state.shape[1])]
-    mse = None if any(v is None for v in per_state) else float(np.mean(per_state))
-    return {"mse": mse, "anees": mean(ex.nees[valid]), "dm": mean(ex.dm[valid])}
+    mse = expected_means(ex.mse_per_state, valid)
+    return {"mse": mse, "anees": finite_mean(ex.nees[valid]), "dm": finite_mean(ex.dm[valid])}
 
 
 @_one_blas_thread

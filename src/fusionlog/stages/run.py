@@ -10,11 +10,12 @@ from typing import Any
 
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapWriter
-from fusionlog.scenario import Scenario
+from fusionlog.scenario import Scenario, check_budget
 
 from .common import sha256_of
 from .estimate import estimate_to
 from .evaluate import evaluate_into
+from .kinds import kind_of
 from .simulate import simulate_to
 
 #: The outputs of a run, in the order they are written.
@@ -34,6 +35,7 @@ def run_pipeline(
     out_dir: Path,
     *,
     archs: list[str],
+    filter_name: str | None = None,
     force: bool = False,
     block: int | None = None,
     command: str = "fusionlog run",
@@ -47,6 +49,8 @@ def run_pipeline(
     if sc.replay is not None:
         inputs += [s.source for s in sc.replay.sensors]
         inputs += [sc.replay.truth.source] if sc.replay.truth is not None else []
+    else:  # before the output folder is made: a run that cannot fit leaves nothing behind
+        check_budget(sc, kind_of(sc.kind).bytes_per_run_step(sc), "simulating")
     seconds: dict[str, float] = {}
     notes: list[str] = []
     with Outputs(list(outs.values()), force=force, inputs=inputs) as o:
@@ -74,6 +78,7 @@ def run_pipeline(
                 sensors,
                 w,
                 archs=archs or list(sc.architectures),
+                filter_name=filter_name,
                 block=block,
                 command=command,
                 sensors_name="sensors.mcap",

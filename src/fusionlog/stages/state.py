@@ -24,10 +24,12 @@ from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap import TRUTH, McapFile, McapWriter, arch_of, sensor_topic
 from fusionlog.io.mcap.topics import ESTIMATES_PREFIX
 from fusionlog.scenario import Scenario, load_model, system_from_dict, system_to_dict
+from fusionlog.scenario.model import bytes_per_instant
 
 from .common import block_runs
 from .kind import Estimator, Kind, Model, Prov, Sens, StepWriter
 from .noise import with_message_covariances
+from .nonlinear import step_writers
 from .state_eval import SensorLog, StateEvaluator
 
 
@@ -38,9 +40,7 @@ class StateKind(Kind):
         return {"system": json.dumps(system_to_dict(scenario.system))}
 
     def bytes_per_run_step(self, scenario: Scenario) -> int:
-        # truth and measurements in float64, and the plans' per-step maps of the estimate stage
-        s: System = scenario.system
-        return 8 * (s.n + s.m) * 4 + 8 * s.n * (s.n + s.m) * len(scenario.architectures)
+        return bytes_per_instant(scenario.system, len(scenario.architectures))
 
     def sensor_names(self, system: System) -> list[str]:
         return [s.name for s in system.sensors]
@@ -79,7 +79,8 @@ class StateKind(Kind):
     ) -> Estimator:
         topics = [sensor_topic(s.name) for s in system.sensors]
         system = with_message_covariances(system.on_times(sensors.times()), sensors)
-        return _StateEstimator(PlanCache(system, steps), runs, archs, topics)
+        plans = PlanCache(system, steps, times=sensors.times())
+        return _StateEstimator(plans, runs, archs, topics)
 
     def evaluator(
         self, sc: Scenario, est: McapFile, prov: Prov, sens: Sens = None
@@ -138,6 +139,9 @@ class _StateEstimator(Estimator):
 
     def estimate(self, run_offset: int, data: dict[str, np.ndarray]) -> dict[str, StepWriter]:
         z = np.concatenate([data[t] for t in self.topics], axis=-1)
+        if not self.plans.system.linear:  # EKF/UKF: each instant computed as it is written
+            self.plans.patterns.append(None)  # per-run covariances (provenance)
+            return step_writers(self.plans, self.archs, z, run_offset)
         block = estimate_block(self.plans.system, self.archs, z, cache=self.plans)
         return {
             a: _estimate_writer(e.mean, e.cov, e.shared_cov) for a, e in block.estimates.items()

@@ -12,6 +12,7 @@ the stages hand it arrays (`add`) or other processes' sums (`merge`), and write 
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -28,6 +29,7 @@ from fusionlog.scenario import Scenario
 
 from .common import block_runs
 from .kind import Array, Evaluator, Readings, Topics
+from .nonlinear import PcrbPart
 
 __all__ = ["SensorLog", "StateEvaluator", "exact_setup"]
 
@@ -56,8 +58,6 @@ def exact_setup(prov: dict[str, str], filter_sys: System, truth_sys: System):
     does not have leave no exact analysis. `per run`: the runs' patterns differ (the mask is
     then None: each block's plans are built from its sensor readings).
     """
-    import json
-
     if truth_sys.initial is None and truth_sys.prior is None:
         return None  # a replay without [prior]: no initial distribution to propagate
     pattern = prov.get("measurement_pattern", "complete")
@@ -150,6 +150,10 @@ class StateEvaluator(Evaluator):
             if sc.replay is not None:
                 self.nis = NisAccumulator(filter_sys, self.known, self.K + 1)
             self.measured = {s.name: np.zeros(self.K + 1) for s in filter_sys.sensors}
+        # Nonlinear models: the posterior Cramer-Rao bound, from the truth and the readings.
+        self.pcrb = None if truth_sys.linear else PcrbPart(truth_sys, self.times)
+        if self.pcrb is not None:
+            self.sensor_topics = self.pcrb.topics
         self.n_samples = min(sc.sample_runs, self.M)
         self.samples: dict[int, Any] = {}
         self.plane_pts: dict[str, np.ndarray] = {}
@@ -167,6 +171,8 @@ class StateEvaluator(Evaluator):
             raise FusionlogError(f"/truth has {x.shape[-1]} values per run, not {n}")
         if self.measured and sensors is not None:
             self._add_consistency(sensors, estimates)
+        if self.pcrb is not None and truth is not None:
+            self.pcrb.add(x, sensors)
         if self.conditional:
             if sensors is None or any(t not in sensors for t in self.sensor_topics):
                 # a block without its readings: the run average would miss its runs
@@ -238,6 +244,12 @@ class StateEvaluator(Evaluator):
         if expected:
             self._merge_expected(expected)
 
+    def add_bound(self, truth: np.ndarray, sensors: dict[str, np.ndarray]) -> None:
+        """Runs whose metric sums were merged (`merge`): their truth and sensor readings, for
+        what needs no estimate, the PCRB of a nonlinear model (nothing otherwise)."""
+        if self.pcrb is not None:
+            self.pcrb.add(truth, sensors)
+
     def _merge_expected(self, expected: dict[str, Any]) -> None:
         for a, ce in expected.items():
             if a in self.conditional:
@@ -303,6 +315,8 @@ class StateEvaluator(Evaluator):
                 # a replay's truth may cover only some instants: the mean trace is of every
                 # instant's reported covariance, as in estimates.mcap
                 arch_summary[a]["mean_trace"] = self._mean_trace(a)
+            if self.pcrb is not None:  # no exact analysis: `expected` is null, the PCRB stands
+                arch_summary[a]["expected"] = None
             if conditional:  # DESIGN.md "summary.json": conditional on the drawn patterns
                 arch_summary[a]["expected"]["conditional"] = True
             if a in nis:
@@ -320,6 +334,8 @@ class StateEvaluator(Evaluator):
         }
         if self.truth_info is not None and self.has_truth:
             summary["truth"] = dict(self.truth_info)
+        if self.pcrb is not None:  # DESIGN.md: no exact analysis, the PCRB beside the values
+            summary["pcrb"] = self.pcrb.summary()
         return summary, series, bounds
 
     def _plane(self) -> dict[str, Any] | None:
@@ -367,4 +383,5 @@ class StateEvaluator(Evaluator):
                 else None
             ),
             properties={"scenario": self.sc.source, "provenance": provenance or self.prov},
+            pcrb=None if self.pcrb is None else self.pcrb.per_state(),
         )

@@ -68,6 +68,9 @@ class PlanCache:
     steps: int
     criterion: str = "trace"
     plans: dict[tuple[str, bytes], Plan] = field(default_factory=dict, repr=False)
+    #: the instants (K+1,) in seconds, where they are not k dt (a nonlinear model's filters
+    #: take each interval from them; the plans have them in `system` already)
+    times: np.ndarray | None = field(default=None, repr=False)
     #: each block's shared pattern (`np.packbits` of the mask; None: the block's runs differed)
     patterns: list[bytes | None] = field(default_factory=list, repr=False)
 
@@ -89,7 +92,7 @@ class PlanCache:
             system = dataclasses.replace(system, Rs=np.asarray(R, dtype=float))
         if steps is None:
             raise ValueError("give the instants (times) or the number of steps")
-        return cls(system, steps)
+        return cls(system, steps, times=None if times is None else np.asarray(times, float))
 
     def plan(self, arch: str, pattern: np.ndarray | None = None) -> Plan:
         """The plan of `arch` for a mask (K+1, m) shared by all runs (None: all present),
@@ -171,6 +174,7 @@ def estimate_block(
     cache: PlanCache | None = None,
     workspace: Any = None,
     keep: bool = True,
+    run_offset: int = 0,
 ) -> Block:
     """Estimate a block of runs with each architecture in `archs`.
 
@@ -185,9 +189,19 @@ def estimate_block(
     run's exact statistics conditional on its measurement pattern (eq. 35's joint covariance
     propagated through the plan, `core.exact.analyse`), summed. `keep=False` drops the
     estimates once reduced (only the sums leave a worker).
+
+    A nonlinear system (`System.linear` false) has no plans: its architectures run with EKF or
+    UKF local filters (`core.nonlinear`), every run with its own covariances, and there is no
+    exact analysis (`expected` None); `run_offset` (the block's first run) names runs in its
+    errors.
     """
     if cache is None:
         cache = PlanCache.of(system, times, R, steps=z.shape[1] - 1)
+    if not cache.system.linear:  # EKF/UKF: no plans, every run has its own linearisation
+        from ..nonlinear.block import nonlinear_block
+
+        cache.patterns.append(None)  # the estimates' provenance: per run
+        return nonlinear_block(cache, archs, z, truth, workspace, keep, run_offset)
     plans, pattern = cache.block_plans(archs, z, per_run_maps=expected_of is not None)
     runs = z.shape[0]
     estimates: dict[str, Estimate] = {}

@@ -1,6 +1,7 @@
 """Model components (sensors, motion) and their registries: see `base`.
 
-Importing this package registers the kinds it ships (`linear`); a new kind is a module here
+Importing this package registers the kinds it ships (`linear`; `range-bearing`, `range`,
+`bearing` in `polar`; `coordinated-turn` in `turn`); a new kind is a module here
 with a class decorated by `register_sensor` / `register_motion`, imported below.
 """
 
@@ -14,8 +15,14 @@ from .base import (
     register_sensor,
 )
 from .linear import LinearMotion, LinearSensor
+from .polar import BearingSensor, RangeBearingSensor, RangeSensor
+from .turn import CoordinatedTurn
 
 __all__ = [
+    "BearingSensor",
+    "CoordinatedTurn",
+    "RangeBearingSensor",
+    "RangeSensor",
     "MOTION_KINDS",
     "SENSOR_KINDS",
     "LinearMotion",

@@ -7,7 +7,8 @@ objects, never a matrix attribute of a particular kind:
 * ``h(x)`` / ``f(x, dt)`` on states (..., n), the value the local filter predicts;
 * ``jacobian(x)`` / ``jacobian(x, dt)``, (..., m, n) / (..., n, n), the linearisation an
   extended filter uses (the same matrix everywhere for a linear kind);
-* ``R`` / ``Q(dt)``, the noise covariances.
+* ``R`` / ``Q(dt)``, the noise covariances;
+* ``residual(z, z_hat)``, the innovation (wrapped where a component is an angle).
 
 A *linear* kind (``linear = True``) also exposes its matrix (``H`` of a sensor, ``F(dt)`` of a
 motion): the compiled plans of `core.architectures` (gains that do not depend on the data) and
@@ -74,6 +75,11 @@ class SensorModel(ABC):
     @abstractmethod
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         """dh/dx at states x (..., n): (..., m, n)."""
+
+    def residual(self, z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
+        """z - z_hat (..., m): the innovation a filter forms. A kind whose components are
+        angles overrides it to wrap them to (-pi, pi] (a bearing's residual)."""
+        return z - z_hat
 
 
 class MotionModel(ABC):

@@ -21,6 +21,7 @@ from fusionlog.errors import DamagedFile, FusionlogError
 from .extract import Extractor
 from .fields import PathError, leaf_fields
 from .series import Collector, Series, fail
+from .source import MAX_MCAP_BYTES, open_source
 from .topics import one_line
 
 __all__ = ["bag_path", "bag_topics", "is_bag", "read_bag"]
@@ -48,6 +49,10 @@ def _open(source: Path, what: str | None) -> Iterator[Any]:
         raise FusionlogError(f"{prefix}no such file or folder")
     if path.is_dir() and not (path / "metadata.yaml").is_file():
         raise FusionlogError(f"{prefix}a ROS 2 bag folder needs its metadata.yaml")
+    # every file rosbags will open is a regular file of bounded size (never a FIFO, a device)
+    files = [path] if not path.is_dir() else [p for p in path.iterdir() if not p.is_dir()]
+    for f in files:
+        open_source(f, what, MAX_MCAP_BYTES, "a ROS bag").close()
     try:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()

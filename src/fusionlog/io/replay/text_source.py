@@ -19,16 +19,16 @@ from __future__ import annotations
 
 import csv
 import difflib
+import io
 import math
 import re
 from collections.abc import Iterator, Sequence
 from decimal import ROUND_HALF_EVEN, Context, Decimal, InvalidOperation
 from pathlib import Path
 
-from fusionlog.errors import FusionlogError
-
 from .fields import INT64_MAX, TIME_UNITS
 from .series import Collector, Series, fail
+from .source import MAX_TEXT_BYTES, bounded_lines, open_source
 
 __all__ = ["DELIMITERS", "TUM_COLUMNS", "read_text"]
 
@@ -78,7 +78,10 @@ def time_ns(text: str, unit: str) -> int | None:
             raise ValueError("not a number") from None
         if not d.is_finite():
             return None
-        ns = int(_CTX.multiply(d, factor).to_integral_value(rounding=ROUND_HALF_EVEN))
+        try:
+            ns = int(_CTX.multiply(d, factor).to_integral_value(rounding=ROUND_HALF_EVEN))
+        except ArithmeticError:  # decimal.Overflow: beyond any clock
+            raise ValueError("outside the range of 64-bit nanoseconds") from None
     if not -INT64_MAX - 1 <= ns <= INT64_MAX:
         raise ValueError("outside the range of 64-bit nanoseconds")
     return ns
@@ -138,14 +141,9 @@ def _sniff(source: Path, what: str, lines: list[tuple[int, str]]) -> str:
 
 
 def _open(source: Path, what: str):
-    try:
-        return open(source, newline="", encoding="utf-8-sig")  # closed by the caller's with
-    except FileNotFoundError:
-        raise FusionlogError(f"{source}: {what}: no such file") from None
-    except IsADirectoryError:
-        raise FusionlogError(f"{source}: {what}: is a directory") from None
-    except OSError as e:
-        raise FusionlogError(f"{source}: {what}: cannot read: {e.strerror or e}") from None
+    """The table as text: a regular file of bounded size (`.source.open_source`)."""
+    raw = open_source(source, what, MAX_TEXT_BYTES, "a text table")
+    return io.TextIOWrapper(raw, encoding="utf-8-sig", newline="")  # closed by the caller
 
 
 def read_text(
@@ -166,7 +164,7 @@ def read_text(
         source, what, len(values), False, "row", lambda k: f"line {k}", "empty, NaN or infinite"
     )
     with _open(source, what) as f:
-        lines = _Lines(f, comments=columns is not None)
+        lines = _Lines(bounded_lines(f, MAX_TEXT_BYTES, source, what), comments=columns is not None)
         it = iter(lines)
         try:
             sample = []

@@ -16,6 +16,8 @@ entity-path parts, see :func:`~fusionlog.io.rrd.stream.entity_path`: ``SKF:s2`` 
 ``metrics/expected/mse/<state>/<ARCH>``         exact expected MSE (covariance analysis)
 ``metrics/expected/nees/<ARCH>``                exact expected NEES
 ``metrics/expected/dm/<ARCH>``                  exact expected Mahalanobis distance
+``metrics/pcrb/mse/<state>``                    the posterior Cramér-Rao bound on the MSE
+                                                (nonlinear models: no exact analysis)
 ``runs/<m>/<state>/truth``                      true state of sample run m
 ``runs/<m>/<state>/<ARCH>/mean``                estimate of sample run m
 ``runs/<m>/<state>/<ARCH>/upper``, ``/lower``   mean +- 2 sigma, sigma = sqrt(P_ii)
@@ -42,6 +44,7 @@ import numpy as np
 import rerun.blueprint as rrb
 
 from fusionlog.core.evaluation import Evaluation
+from fusionlog.core.linalg import overflow_is_inf
 
 from .consistency import NisSeries, check_consistency, consistency_views, write_consistency
 from .decimation import decimation
@@ -88,6 +91,7 @@ def write_recording(
     nis: NisSeries | None = None,
     traces: Mapping[str, np.ndarray] | None = None,
     measured: Mapping[int, Mapping[str, np.ndarray]] | None = None,
+    pcrb: np.ndarray | None = None,
 ) -> None:
     """Write the evaluation recording into the binary file object `file`.
 
@@ -108,7 +112,8 @@ def write_recording(
     Without truth (a replay of a recorded log), `series` may be empty and `traces` ({ARCH:
     (K+1,) trace of P}) gives Fig. 6's curves. measured: {state index: {sensor: (K+1,)}},
     the first sample run's readings of sensors that measure a state directly (dots
-    ``runs/0/<state>/measured/<sensor>`` under the estimates).
+    ``runs/0/<state>/measured/<sensor>`` under the estimates). pcrb: (K+1, n), the posterior
+    Cramér-Rao bound on each state's MSE, drawn as a line on the MSE views.
 
     Raises FusionlogError if the data are inconsistent (before anything is written) and
     OutputError if writing `file` fails.
@@ -117,6 +122,7 @@ def write_recording(
         dict(summary), times, tuple(state_names), confidence, dict(series), nees_bounds,
         dict(sample_runs or {}), plane, dict(availability or {}), dict(nis or {}),
         None if traces is None else dict(traces), dict(measured or {}), dict(properties or {}),
+        pcrb,
     )  # fmt: skip
     write_evaluation(file, ev, scenario_name, seed, recording_id)
 
@@ -138,7 +144,10 @@ def write_evaluation(
     series, nees_bounds, confidence, plane = ev.series, ev.nees_bounds, ev.confidence, ev.plane
     samples, summary, properties = ev.samples, ev.summary, ev.properties
     availability, nis, traces, measured = ev.availability, ev.nis, ev.traces, ev.measured
+    pcrb = ev.pcrb
     _check(file, times, state_names, series, nees_bounds, samples)
+    if pcrb is not None and np.shape(pcrb) != (times.shape[0], len(state_names)):
+        raise recording_error(file, f"PCRB has shape {np.shape(pcrb)}, want (K+1, n)")
     if plane is not None:
         check_plane(file, times.shape[0], plane)
     avail = {k: np.asarray(v, dtype=float) for k, v in (availability or {}).items()}
@@ -156,7 +165,9 @@ def write_evaluation(
                                      nees_bounds, all_traces, timeline)  # fmt: skip
     else:
         extra = consistency_views(nis, avail, bool(traces))
-        blueprint = _blueprint(state_names, series, samples, plane is not None, extra, timeline)
+        blueprint = _blueprint(
+            state_names, series, samples, plane is not None, extra, timeline, pcrb is not None
+        )
     # a long log: overview series decimated, the first run's states kept (io/rrd/decimation.py)
     n_full = sum(len(state_names) * (1 + len(est)) for _, est in samples.values())
     n_full += sum(len(by) for by in (measured or {}).values())
@@ -167,6 +178,9 @@ def write_evaluation(
     with recording_stream(file, blueprint, *args) as w:
         w.stride = stride
         _write_metrics(w, state_names, series, nees_bounds, confidence)
+        for i, state in enumerate(state_names if pcrb is not None else []):
+            p = entity_path("metrics", "pcrb", "mse", state)
+            w.line(p, np.asarray(pcrb, dtype=float)[:, i], "PCRB", BOUND_COLOR, 2.5)
         _write_sample_runs(w, state_names, samples)
         for i, by_sensor in (measured or {}).items():
             for j, (sensor, v) in enumerate(by_sensor.items()):
@@ -217,6 +231,7 @@ def _check(
                 raise bad(f"sample run {m}, {arch}: mean/std must have shape {(s, n)}")
 
 
+@overflow_is_inf  # inf - inf: NaN, drawn as a gap
 def _write_metrics(
     w: SeriesWriter,
     state_names: list[str],
@@ -268,6 +283,7 @@ def _write_sample_runs(w: SeriesWriter, state_names: list[str], sample_runs: Sam
                 w.line(entity_path(*base, "lower"), mu - 2 * sd, arch, col, 0.75)
 
 
+@overflow_is_inf  # inf - inf: NaN, drawn as a gap
 def _blueprint(
     state_names: list[str],
     series: Mapping[str, Mapping[str, np.ndarray]],
@@ -275,6 +291,7 @@ def _blueprint(
     plane: bool = False,
     extra_tabs: list | None = None,
     timeline: str = "step",
+    pcrb: bool = False,
 ) -> rrb.Blueprint:
     """Tabs: [state plane], Overview (Figs. 4, 5, 6, NEES, DM), [sample runs].
 
@@ -299,10 +316,12 @@ def _blueprint(
         for i in range(n)
     ]
     at4 = legend(mse, archs, n, n_columns)
+    reference = "grey: PCRB" if pcrb else "dots: expected"
     fig4 = [
         time_series_view(
-            f"Fig. 4: MSE of {s} (lines: Monte Carlo, dots: expected)",
-            [query("metrics", "mse", s) + "/**", query("metrics", "expected", "mse", s) + "/**"],
+            f"Fig. 4: MSE of {s} (lines: Monte Carlo, {reference})",
+            [query("metrics", "mse", s) + "/**", query("metrics", "expected", "mse", s) + "/**"]
+            + ([query("metrics", "pcrb", "mse", s)] if pcrb else []),
             legend=i == at4[0],
             corner=at4[1],
         )
