@@ -87,8 +87,14 @@ def plane_states(
     return 0, min(1, len(state_names) - 1)
 
 
+#: Rerun draws 2-D positions in float32: points beyond its range cannot be drawn.
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
 def _strip(xy: np.ndarray) -> np.ndarray:
-    return xy[np.isfinite(xy).all(axis=1)]
+    """The drawable points of a path: finite, within float32 (a recorded 1e300 is data, not
+    a place in the plane; the time series still show it)."""
+    return xy[(np.abs(xy) <= _FLOAT32_MAX).all(axis=1)]
 
 
 def write_replay(
