@@ -7,7 +7,8 @@ Run from the repository root (the files are committed; run it again only to rema
     .venv/bin/python pipeline/data/make_more_logs.py            # writes into pipeline/data/
     .venv/bin/python pipeline/data/make_more_logs.py --out DIR  # writes into DIR
 
-Deterministic (fixed seeds and base times). It needs numpy, rosbags and pymap3d only (not
+Deterministic (fixed seeds and base times; no BLAS/LAPACK kernels, geodetic values rounded to
+1e-10 degrees, so the same bytes on every CPU). It needs numpy, rosbags and pymap3d only (not
 fusionlog), so the files are what the ROS and TUM tools would write.
 
 What it simulates: a target with a nearly-constant-velocity model (white acceleration of
@@ -43,6 +44,7 @@ tum_slam.txt 600 rows; tum_mocap.txt 2001 rows.
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 import numpy as np
@@ -63,6 +65,20 @@ def _cv(dt: float, q: float) -> tuple[np.ndarray, np.ndarray]:
     return F, Q
 
 
+def _chol2(C: np.ndarray) -> np.ndarray:
+    """Lower Cholesky factor of a 2x2 covariance, written out: the files must be the same bytes
+    on every machine, and LAPACK/BLAS kernels (chosen by CPU) round differently."""
+    l11 = math.sqrt(C[0, 0])
+    l21 = C[1, 0] / l11
+    return np.array([[l11, 0.0], [l21, math.sqrt(C[1, 1] - l21 * l21)]])
+
+
+def _mul2(A: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """A @ v for a 2x2 A, one IEEE operation at a time (see `_chol2`)."""
+    a, b = float(v[0]), float(v[1])
+    return np.array([A[0, 0] * a + A[0, 1] * b, A[1, 0] * a + A[1, 1] * b])
+
+
 def _simulate(rng: np.random.Generator, t_ns: np.ndarray, x0: np.ndarray) -> np.ndarray:
     """States (len(t_ns), axes, 2) at the sorted distinct times t_ns; x0 (axes, 2)."""
     out = np.empty((len(t_ns), *x0.shape))
@@ -70,9 +86,9 @@ def _simulate(rng: np.random.Generator, t_ns: np.ndarray, x0: np.ndarray) -> np.
     out[0] = x
     for k in range(1, len(t_ns)):
         F, Q = _cv((int(t_ns[k]) - int(t_ns[k - 1])) * 1e-9, Q_C)
-        L = np.linalg.cholesky(Q)
+        L = _chol2(Q)
         for a in range(x.shape[0]):
-            x[a] = F @ x[a] + L @ rng.standard_normal(2)
+            x[a] = _mul2(F, x[a]) + _mul2(L, rng.standard_normal(2))
         out[k] = x
     return out
 
@@ -112,11 +128,14 @@ def write_gps(out: Path) -> None:
 
     msgs = []  # (record time, topic, message)
     for i, (t, k) in enumerate(zip(fix_t, at["fix"], strict=True)):
-        s = 1.0 + 1.5 * (0.5 + 0.5 * np.sin(2 * np.pi * (t - GPS_BASE_NS) * 1e-9 / 40.0))
+        s = 1.0 + 1.5 * (0.5 + 0.5 * math.sin(2 * math.pi * (int(t) - GPS_BASE_NS) * 1e-9 / 40.0))
         unknown = i in FIX_NO_COV
         sd = np.array([2.0, 2.0, 4.0]) if unknown else np.array([s, s, 2 * s])
         e, n, u = np.array([x[k, 0, 0], x[k, 1, 0], 0.0]) + sd * rng.standard_normal(3)
         lat, lon, alt = pymap3d.enu2geodetic(e, n, u, LAT0, LON0, ALT0)
+        # to 1e-10 degrees (about 10 µm) and 1e-6 m: the same bytes whatever the CPU's
+        # vectorised sin/cos round their last bit to
+        lat, lon, alt = round(float(lat), 10), round(float(lon), 10), round(float(alt), 6)
         cov = np.zeros(9) if unknown else np.diag(sd**2).ravel()
         msg = Fix(
             header=header(i, t, "gps"),
