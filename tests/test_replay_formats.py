@@ -408,3 +408,15 @@ def test_sweep_on_a_replay_is_a_one_line_error(logs: Path) -> None:
     res = cli("sweep", f, "--vary", "model.n0=0.1,0.2", "--workers", "0", "--out-dir", logs / "o")
     one_line_error(res, "a replay is one recorded run")
     assert not (logs / "o").exists()
+
+
+def test_the_example_logs_are_remade_byte_for_byte(tmp_path: Path) -> None:
+    """pipeline/data/make_more_logs.py writes the committed ROS 1 bag, truth table and TUM
+    files again, the same bytes (no CPU-dependent kernels in it)."""
+    import runpy
+
+    root = Path(__file__).resolve().parents[1]
+    script = root / "pipeline" / "data" / "make_more_logs.py"
+    runpy.run_path(str(script), run_name="make_more_logs")["main"](["--out", str(tmp_path)])
+    for name in ("gps_ros1.bag", "gps_truth.tsv", "tum_slam.txt", "tum_mocap.txt"):
+        assert (tmp_path / name).read_bytes() == (root / "pipeline" / "data" / name).read_bytes()
