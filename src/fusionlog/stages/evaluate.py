@@ -54,6 +54,10 @@ def evaluate_into(
     )
     for (off, _runs, sdata), (_, _, edata) in progress(blocks, -(-M // B), "evaluate"):
         ev.add(off, sdata.pop(TRUTH, None), edata, sdata)
+        # a block's arrays (of a long log: all its estimates, covariances included) are freed
+        # before the next block is read and before the recording is encoded (what it draws,
+        # the evaluator keeps)
+        del sdata, edata
     evaluation = ev.evaluation(prov)
     summary = evaluation.summary
     # The summary is made first: a recording is never committed beside a summary that failed.

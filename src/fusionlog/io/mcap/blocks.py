@@ -34,7 +34,6 @@ class _Est:
 
     mean: np.ndarray
     shared: np.ndarray | None = None  # (S, n, n) while every file block had one shared cov
-    shared_raw: bytes | None = None  # its bytes, to compare with the next file block's
     per_run: np.ndarray | None = None  # (runs, S, n, n) once covariances differ between runs
 
     def to_per_run(self, runs: int) -> None:
@@ -43,6 +42,18 @@ class _Est:
         self.per_run = np.empty((runs, m[1], m[2], m[2]))
         if self.shared is not None:
             self.per_run[:] = self.shared
+
+
+def _same_bits(a: np.ndarray, b: np.ndarray, piece: int = 1 << 16) -> bool:
+    """``a.tobytes() == b.tobytes()`` (bit for bit: NaNs alike, -0.0 unlike 0.0), compared
+    piece by piece rather than through two copies of the whole arrays."""
+    if a.shape != b.shape:
+        return False
+    fa, fb = a.reshape(-1), b.reshape(-1)
+    return all(
+        fa[i : i + piece].tobytes() == fb[i : i + piece].tobytes()
+        for i in range(0, fa.size, piece)
+    )
 
 
 @dataclass
@@ -248,19 +259,23 @@ class Assembly:
             cov, some = self.shared[ti], self.has_shared[ti]
             if cov is None:
                 continue
+            # The file's last window: nothing is read into the buffer again, so the output
+            # block takes it as it is (a long log's covariances: 128 MB at 10^6 instants, n = 4)
+            last = w.b >= self.total
+            if last:
+                self.shared[ti] = None
             for blk, dst, _ in self.overlaps(w):
                 est: _Est = blk.arrays[ti]
                 if self.any_per_run[ti]:  # est.per_run exists: add the steps that were shared
                     est.per_run[dst, some] = cov[some]  # type: ignore[index]
                     continue
                 if est.per_run is None:
-                    raw = cov.tobytes()
-                    if est.shared_raw is None:
+                    if est.shared is None:
                         # A copy per output block: writable, and not aliased between blocks
-                        # that the caller may modify.
-                        est.shared_raw, est.shared = raw, cov.copy()
+                        # that the caller may modify (the last window's buffer is nobody's).
+                        est.shared = cov if last and len(self.pending) == 1 else cov.copy()
                         continue
-                    if est.shared_raw == raw:
+                    if _same_bits(est.shared, cov):
                         continue
                     # Shared within each file block but different between them.
                     est.to_per_run(blk.hi - blk.lo)

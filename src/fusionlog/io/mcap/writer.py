@@ -163,6 +163,7 @@ class McapWriter:
         """Stop writing: nothing more reaches the file (which its owner deletes). Raises only
         what a signal that came meanwhile raises."""
         writer, self._writer = self._writer, None
+        self._forget()
         if writer is not None:
             if self._sink.error is None:
                 self._sink.error = OutputError(f"{self.name}: writing was abandoned")
@@ -184,6 +185,7 @@ class McapWriter:
             return
         try:
             layout = self._layout()
+            self._forget()
             if layout is not None:
                 self._writer.write_metadata(LAYOUT_META, layout.to_metadata())
                 self._check_sink()
@@ -202,6 +204,14 @@ class McapWriter:
         except BaseException:
             self.abort()
             raise
+
+    def _forget(self) -> None:
+        """Drop the per-message bookkeeping (a long log's: ~200 MB of Python objects at 10^6
+        instants), which only writing and the layout need, so that a closed writer still
+        referenced by its caller does not hold it through the stages that follow."""
+        self._seen = set()
+        self._first_times = {}
+        self._first_steps = {}
 
     def _layout(self) -> Layout | None:
         """The file's structure as written; None where the first block of runs does not have
