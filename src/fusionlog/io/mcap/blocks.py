@@ -51,8 +51,7 @@ def _same_bits(a: np.ndarray, b: np.ndarray, piece: int = 1 << 16) -> bool:
         return False
     fa, fb = a.reshape(-1), b.reshape(-1)
     return all(
-        fa[i : i + piece].tobytes() == fb[i : i + piece].tobytes()
-        for i in range(0, fa.size, piece)
+        fa[i : i + piece].tobytes() == fb[i : i + piece].tobytes() for i in range(0, fa.size, piece)
     )
 
 
