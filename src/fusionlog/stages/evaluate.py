@@ -11,7 +11,7 @@ from fusionlog.io.mcap import TRUTH
 from fusionlog.jsonout import dumps
 from fusionlog.scenario import Scenario
 
-from .common import open_evaluation_inputs, progress
+from .common import open_evaluation_inputs, progress, release_freed_memory
 from .kinds import kind_of
 
 
@@ -58,7 +58,12 @@ def evaluate_into(
         # before the next block is read and before the recording is encoded (what it draws,
         # the evaluator keeps)
         del sdata, edata
+    del blocks  # a zip keeps its last result tuple, and with it the last block's arrays
     evaluation = ev.evaluation(prov)
+    # What the recording draws is in `evaluation`; the accumulators and the open files (a long
+    # log's times, twice) are not kept while the recording is encoded, the run's peak.
+    del ev, sens, est
+    release_freed_memory()
     summary = evaluation.summary
     # The summary is made first: a recording is never committed beside a summary that failed.
     text = dumps(summary, indent=2) + "\n" if summary_path is not None else None

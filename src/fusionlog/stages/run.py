@@ -12,7 +12,7 @@ from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapWriter
 from fusionlog.scenario import Scenario, check_budget
 
-from .common import sha256_of
+from .common import release_freed_memory, sha256_of
 from .estimate import estimate_to
 from .evaluate import evaluate_into
 from .kinds import kind_of
@@ -69,6 +69,7 @@ def run_pipeline(
             with McapWriter(o.open(outs["sensors.mcap"])) as w:
                 simulate_to(sc, w, block=block, command=command)
             seconds["simulate"] = time.perf_counter() - t0
+        release_freed_memory()
         t1 = time.perf_counter()
         # the scenario the sensors file records is `sc` (parsed once, by the caller) and its
         # digest is taken once: the estimate and evaluate steps do not read them again
@@ -87,6 +88,7 @@ def run_pipeline(
                 sensors_sha256=digest,
             )
         seconds["estimate"] = time.perf_counter() - t1
+        release_freed_memory()
         t2 = time.perf_counter()
         summary = evaluate_into(
             o.temp_path(outs["sensors.mcap"]),

@@ -166,7 +166,9 @@ class StateEvaluator(Evaluator):
     def add(self, off: int, truth: Array, estimates: Topics, sensors: Readings = None) -> None:
         n = self.truth_sys.n
         runs = next(iter(estimates.values()))[0].shape[0]
-        x = truth if truth is not None else np.full((runs, self.K + 1, n), np.nan)
+        # no truth: NaN everywhere, one value broadcast (a long log's would be 32 MB per 10^6
+        # instants, kept by the first run's sample until the recording is written)
+        x = truth if truth is not None else np.broadcast_to(np.nan, (runs, self.K + 1, n))
         if x.shape[-1] != n:
             raise FusionlogError(f"/truth has {x.shape[-1]} values per run, not {n}")
         if self.measured and sensors is not None:
