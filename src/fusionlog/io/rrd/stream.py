@@ -9,20 +9,24 @@ series sent with ``send_columns`` (:class:`SeriesWriter`), never point by point.
 
 **How the bytes reach the disk.** Rerun's file sink (``RecordingStream.save``) only *logs* a
 failed write ("No space left on device"), leaves a truncated file and can hang in
-``disconnect()`` on a full disk. So a recording is never given a path: it is encoded into a
-Rerun binary stream in memory (``RecordingStream.binary_stream()``) and the bytes are written
-with Python file I/O into the file object the caller gives (a
+``disconnect()`` on a full disk. So a recording is never given a path on a disk: Rerun's file
+sink writes into a named pipe in a private temporary folder, and a thread (:class:`_Pump`)
+copies what comes out of it with Python file I/O into the file object the caller gives (a
 :class:`fusionlog.io.atomic.CheckedFile`), where the first failed write raises
-:class:`fusionlog.errors.OutputError`. The stream is read once, at the end: in rerun-sdk 0.41
-every ``BinaryStream.read`` returns a complete RRD stream (header, messages, footer with its
-own manifest), and concatenated pieces are not one readable recording ("More than one RRD
-manifest", a CRC error in ``RrdReader``). The peak memory is therefore the encoded recording,
-about the size of the series it holds.
+:class:`fusionlog.errors.OutputError` (the pump keeps draining the pipe, so Rerun never blocks,
+and the error is raised when the recording ends). The encoded recording is never held whole:
+an in-memory ``binary_stream()`` held it twice at the end (Rerun's buffer and the ``bytes``
+of its ``read``; a long log's 200 MB recording: about 0.1 GiB more peak memory), and reading
+that stream in parts gives complete RRD streams that do not concatenate into one recording
+(rerun-sdk 0.41: "More than one RRD manifest", a CRC error).
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
+import tempfile
+import threading
 import uuid
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import IO, Any
@@ -140,7 +144,8 @@ def recording_stream(
 ) -> Iterator[SeriesWriter]:
     """A recording (application id, recording id, name, default blueprint, properties) whose
     series the block sends through the yielded :class:`SeriesWriter`; when the block completes
-    the encoded recording is written into `file`. If the block raises, nothing is written.
+    the recording is complete in `file` (written as it is encoded). If the block raises,
+    `file` holds an incomplete recording, which its owner discards (`Outputs` commits nothing).
     `axes` replaces the timelines ``step`` and ``time`` (see :class:`SeriesWriter`).
 
     The default blueprint goes into the same file, as ``save(default_blueprint=...)`` puts it:
@@ -151,16 +156,58 @@ def recording_stream(
         recording_id=recording_id or recording_id_for(scenario_name, seed),
         send_properties=False,  # no wall-clock start_time: identical inputs give identical data
     )
-    stream = rec.binary_stream()  # in memory: no sink that only logs its errors
-    try:
-        rec.send_blueprint(blueprint, make_active=False, make_default=True)
-        rec.send_recording_name(scenario_name)
-        _send_properties(rec, scenario_name, seed, summary, properties)
-        yield SeriesWriter(rec, times, axes)
-        data = stream.read(flush=True) or b""
-    finally:
-        rec.disconnect()  # closes the in-memory sink only: nothing here touches a disk
-    write_all(file, data)
+    with (
+        tempfile.TemporaryDirectory(prefix="fusionlog-rrd-") as folder,
+        _Pump(folder, file) as pipe,
+    ):
+        rec.save(pipe)  # Rerun's file sink, into the pipe: nothing of Rerun's touches a disk
+        try:
+            rec.send_blueprint(blueprint, make_active=False, make_default=True)
+            rec.send_recording_name(scenario_name)
+            _send_properties(rec, scenario_name, seed, summary, properties)
+            yield SeriesWriter(rec, times, axes)
+            rec.flush()
+        finally:
+            rec.disconnect()  # closes the pipe's writing end: the pump sees its end
+
+
+class _Pump:
+    """A named pipe whose bytes a thread copies into `file` (see the module's docstring).
+
+    The pipe is opened at both ends here before Rerun opens it, so that neither Rerun's open
+    nor the pump's reads wait on the other: the pump sees the end of the data when every
+    writer has closed it (Rerun's sink at ``disconnect``, this object's own end at exit). The
+    first failed write is kept and raised at exit; the pipe is drained to its end regardless.
+    """
+
+    def __init__(self, folder: str, file: IO[bytes]) -> None:
+        self.path = os.path.join(folder, "recording.rrd")
+        self.file = file
+        self.error: BaseException | None = None
+
+    def __enter__(self) -> str:
+        os.mkfifo(self.path, 0o600)
+        self._read = os.open(self.path, os.O_RDONLY | os.O_NONBLOCK)
+        os.set_blocking(self._read, True)
+        self._hold = os.open(self.path, os.O_WRONLY)  # no end of data before Rerun's writes
+        self._thread = threading.Thread(target=self._run, name="fusionlog-rrd", daemon=True)
+        self._thread.start()
+        return self.path
+
+    def _run(self) -> None:
+        with open(self._read, "rb", buffering=0) as pipe:
+            while chunk := pipe.read(_PIECE):
+                if self.error is None:
+                    try:
+                        write_all(self.file, chunk)
+                    except BaseException as e:  # raised at exit, in the caller's thread
+                        self.error = e
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        os.close(self._hold)
+        self._thread.join()
+        if exc_type is None and self.error is not None:
+            raise self.error
 
 
 class SeriesWriter:
