@@ -194,3 +194,20 @@ def test_outputs_on_a_full_tmpfs(tiny_tmpfs: Path, force: bool) -> None:
         assert summary.read_text() == "{}\n"
     else:
         assert names == []
+
+
+def test_the_pipe_folder_is_removed_after_a_write_and_after_a_failure(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Rerun's file sink writes into a named pipe in a private temporary folder (io/rrd/stream.py)
+    monkeypatch.setattr("tempfile.tempdir", str(tmp_path))
+    target = tmp_path / "out" / "ev.rrd"
+    target.parent.mkdir()
+    with Outputs([target], force=True) as outs:
+        write_recording(outs.open(target), **synthetic())
+        outs.commit()
+    assert target.stat().st_size > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    err = bounded(lambda: write_recording(FullDisk(5000), **synthetic()))
+    assert isinstance(err, OutputError), repr(err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
