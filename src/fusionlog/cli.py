@@ -152,7 +152,8 @@ _workers = click.option(
     "--workers",
     type=click.IntRange(min=0),
     help="Compute the runs, in blocks, on a Dask LocalCluster of N worker processes "
-    "(0: in this process, without Dask).",
+    "(0: in this process, without Dask). Default: run, this process; sweep, one worker per "
+    "CPU when the work is estimated above 5 s in one process, else this process.",
 )
 _scheduler = click.option(
     "--scheduler",
@@ -350,7 +351,10 @@ def sweep(scenario, vary, runs, out_dir, archs, workers, scheduler, exact_only, 
     sweep.rrd and summary.json (no MCAP logs: workers return metric sums).
 
     Without --workers or --scheduler the runs go to a LocalCluster of one worker process per
-    CPU (--exact-only: this process)."""
+    CPU when their work is estimated above 5 s in one process (runs x instants x
+    architectures, dropout scenarios 40x dearer), else they run in this process, as do
+    --exact-only sweeps and any sweep on one CPU: starting a cluster costs more than it
+    gives back on work of a few seconds."""
     from fusionlog.report import format_table
     from fusionlog.stages.sweep import run_sweep
 
