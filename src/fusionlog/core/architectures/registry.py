@@ -125,12 +125,27 @@ NODES_AT_MOST = 0.8
 
 def group_by_history(present: np.ndarray) -> HistoryNodes | None:
     """The runs of the per-run mask `present` (M, K+1, m) grouped by history, or None when
-    that would not pay (`NODES_AT_MOST`; over 16 components the grouping itself is slow)."""
+    that would not pay (`NODES_AT_MOST`; over 16 components the grouping itself is slow).
+
+    The architectures of one estimate (and the exact analysis after them) are built on the
+    same mask one after the other: the last mask's grouping is kept and reused when the next
+    mask is the same, byte for byte (comparing 10^4 runs' masks costs ~1 % of grouping them,
+    23 ms at 20 % dropouts). The nodes are only read by the builders and the executor."""
+    global _LAST_GROUPING
     M, K1, m = present.shape
     if m > 16:
         return None
+    key = (NODES_AT_MOST, present.shape, np.packbits(present).tobytes())
+    last = _LAST_GROUPING
+    if last is not None and last[0] == key:
+        return last[1]
     nodes = HistoryNodes.of(present)
-    return nodes if nodes.count <= NODES_AT_MOST * M * K1 else None
+    grouping = nodes if nodes.count <= NODES_AT_MOST * M * K1 else None
+    _LAST_GROUPING = (key, grouping)  # one assignment: safe beside other threads
+    return grouping
+
+
+_LAST_GROUPING: tuple[tuple[float, tuple[int, ...], bytes], HistoryNodes | None] | None = None
 
 
 def check_model(system: System) -> None:
