@@ -145,26 +145,6 @@ def test_bad_keys_and_points_are_one_line_before_anything_runs(
     assert not (tmp_path / "o").exists()
 
 
-def test_default_executor_follows_the_size_of_the_work(tmp_path: Path, monkeypatch) -> None:
-    """Without --workers: a sweep of a few seconds runs here (a cluster's start would cost
-    more); a large one would go to a LocalCluster (only the decision is checked: no cluster)."""
-    from fusionlog.stages import sweep
-
-    res = ok("sweep", AJGL, "--vary", "scenario.dt=1,2", "--runs", "100", "--arch", "CKF",
-             "--out-dir", tmp_path / "small")  # fmt: skip
-    assert "in this process" in res.stdout
-    small = grid_points(AJGL, [parse_vary("scenario.dt=1,2")], runs=100)
-    large = grid_points(AJGL, [parse_vary("scenario.dt=1,2")], runs=10**7)
-    archs = [("CKF", "MSC")] * 2
-    assert sweep.estimated_seconds(large, archs) == pytest.approx(
-        10**5 * sweep.estimated_seconds(small, archs)
-    )
-    monkeypatch.setattr(sweep, "default_workers", lambda: 2)
-    assert sweep.small_work(small, archs) and not sweep.small_work(large, archs)
-    monkeypatch.setattr(sweep, "default_workers", lambda: 1)
-    assert sweep.small_work(large, archs)
-
-
 def test_usage_errors(tmp_path: Path) -> None:
     res = cli("sweep", AJGL, "--vary", "scenario.dt=1", "--workers", "1", "--scheduler", "x:1")
     assert res.exit_code == 2 and "give one of them" in res.stderr
