@@ -48,7 +48,7 @@ REGISTRY: dict[str, Architecture] = {
         ),
         Architecture("MSC", build_msc, "local KFs, Millman's formula, eqs. (32)-(34)"),
         Architecture("SKF", build_skf, "KF on one sensor", takes_sensor=True),
-        Architecture("CI", build_ci, "local KFs, covariance intersection", on_nodes=False),
+        Architecture("CI", build_ci, "local KFs, covariance intersection"),
         Architecture("FBS", build_fbs, "fixed-interval smoother, eqs. (25)-(28)"),
         Architecture("AVG", build_avg, "local KFs, plain average with its true covariance"),
     )
