@@ -32,8 +32,6 @@ class Architecture:
     build: Callable[[BuildRequest], Plan]
     summary: str
     takes_sensor: bool = False
-    #: Whether the builder can work on history nodes (`HistoryNodes`) per run.
-    on_nodes: bool = True
 
 
 #: In the order of the default `[estimate] architectures` list: the paper's Table I, then
@@ -107,7 +105,7 @@ def build_plan(
     if present is None:
         present = np.ones((steps + 1, system.m), dtype=bool)
     request = BuildRequest(system, arch, present, sensor, criterion, step=None)
-    if present.ndim == 3 and REGISTRY[base].on_nodes:
+    if present.ndim == 3:
         request.nodes = group_by_history(present)
     with numerical_errors(lambda: _where(request)):
         check_model(system)
