@@ -25,6 +25,7 @@ from ...errors import NumericalError
 from ..fusion import gmf_weight_matrix
 from ..linalg import (
     all_finite,
+    apply_shared,
     bc,
     buffer,
     inv_or_nan,
@@ -176,8 +177,10 @@ def _diag_congruence(A: np.ndarray, J: np.ndarray) -> np.ndarray:
     S = J.shape[-1] // n
     Jb = lanes(J).reshape((S, n, S, n) + J.shape[:-2])
     out = buffer((S, n, S, n), J.shape[:-2])
-    if A.ndim == 2:
-        np.einsum("iajc...,dc->iajd...", np.einsum("ab,ibjc...->iajc...", A, Jb), A, out=out)
+    if A.ndim == 2:  # F: A J_ij A^T for every block, on whole slabs of J
+        AJ = buffer((S, n, S, n), J.shape[:-2])
+        apply_shared(A, Jb, 1, AJ)
+        apply_shared(A, AJ, 3, out)
     else:
         Ai = np.moveaxis(lanes(A), -1, 0)  # (S, n, n) + batch
         AJ = np.einsum("iab...,ibjc...->iajc...", Ai, Jb)
