@@ -306,7 +306,8 @@ def executor(
 ) -> Executor:
     """The executor the options ask for: ``scheduler`` a running cluster; ``workers`` 0 this
     process, N a LocalCluster of N processes; neither: a LocalCluster of one process per CPU,
-    or this process when `local_default` (work too small to be worth starting a cluster)."""
+    or this process when `local_default` (work too small to be worth starting a cluster). A
+    LocalCluster starts in the background while this process works (`warm_start`)."""
     if workers is not None and scheduler is not None:
         raise FusionlogError("--workers and --scheduler: give one of them, not both")
     if workers is not None and workers < 0:
@@ -315,4 +316,6 @@ def executor(
         return DaskExecutor(scheduler=scheduler)
     if workers == 0 or (workers is None and local_default):
         return LocalExecutor()
-    return DaskExecutor(workers=workers)
+    from .warm_start import WarmStartExecutor  # (it builds on this module)
+
+    return WarmStartExecutor(DaskExecutor(workers=workers))
