@@ -236,10 +236,15 @@ def per_run_dropout(
 
     add("simdkalman CKF", lambda: simdkalman_ckf(skf, system, zd), "filtered, NaN = missing step")
     add("simdkalman RTS", lambda: simdkalman_ckf(skf, system, zd, smoothed=True), "smoothed")
+
+    def alone(arch: str):
+        """One architecture as if it were the only one: the runs grouped by history anew (an
+        estimate of several architectures groups them once, see registry.group_by_history)."""
+        getattr(registry, "forget_grouping", lambda: None)()  # (a tree without the cache)
+        return estimate(system, zd, arch)
+
     for arch in STATE_ARCHITECTURES:
-        add(
-            f"fusionlog {arch}", lambda a=arch: estimate(system, zd, a), "estimate(), per-run plans"
-        )
+        add(f"fusionlog {arch}", lambda a=arch: alone(a), "estimate(), per-run plans")
     sk, sks = rows["simdkalman CKF"]["median_s"], rows["simdkalman RTS"]["median_s"]
     for arch in STATE_ARCHITECTURES:
         r = rows[f"fusionlog {arch}"]

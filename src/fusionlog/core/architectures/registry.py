@@ -146,6 +146,13 @@ def group_by_history(present: np.ndarray) -> HistoryNodes | None:
 _LAST_GROUPING: tuple[tuple[float, tuple[int, ...], bytes], HistoryNodes | None] | None = None
 
 
+def forget_grouping() -> None:
+    """Drop the kept grouping (a benchmark timing one architecture at a time calls this, so
+    that every timed build groups its runs as a lone architecture would)."""
+    global _LAST_GROUPING
+    _LAST_GROUPING = None
+
+
 def check_model(system: System) -> None:
     """Refuse a model whose matrices are not finite (an accepted entry of 1e308 can overflow
     where the model is assembled, e.g. in G Q G')."""
