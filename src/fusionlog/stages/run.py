@@ -96,5 +96,7 @@ def run_pipeline(
 
 def _import_evaluation() -> None:
     """Import the evaluation's heavy modules (see run_pipeline)."""
-    import fusionlog.core.metrics  # noqa: F401  (scipy.special)
+    import scipy.special  # noqa: F401  (the chi-square quantiles of core.metrics)
+
+    import fusionlog.core.metrics  # noqa: F401
     import fusionlog.io.rrd  # noqa: F401  (rerun, pyarrow)
