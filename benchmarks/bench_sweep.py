@@ -212,6 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=None, help="alternating repeats (3)")
     ap.add_argument("--overhead-tasks", type=int, default=200)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--sweep-only", action="store_true", help="only 1. (the executors)")
     args = ap.parse_args(argv)
     runs = args.runs or (20_000 if args.quick else 200_000)
     repeats = args.repeats or (1 if args.quick else 3)
@@ -247,6 +248,10 @@ def main(argv: list[str] | None = None) -> int:
           f"{d['0']['wall']:.2f} s, --workers 2 {d['2']['wall']:.2f} s; load average "
           f"{os.getloadavg()[0]:.1f}")  # fmt: skip
 
+    if args.sweep_only:
+        if args.json is not None:
+            args.json.write_text(json.dumps(out, indent=2, default=str))
+        return 0 if ok else 1
     print(f"2. per-task overhead, LocalCluster of 1 worker, {args.overhead_tasks} tasks")
     o = out["overhead"] = bench_overhead(args.overhead_tasks)
     print(f"  round trip {1e3 * o['roundtrip_s']:.2f} ms, of which the task itself "
