@@ -3,7 +3,6 @@ one folder, the four outputs committed together or not at all."""
 
 from __future__ import annotations
 
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,11 +48,6 @@ def run_pipeline(
         inputs += [sc.replay.truth.source] if sc.replay.truth is not None else []
     seconds: dict[str, float] = {}
     notes: list[str] = []
-    # What only the evaluation needs (rerun, pyarrow, scipy.special: about half of a paper
-    # run's start-up) is imported beside the simulation and estimation, whose numpy work
-    # leaves the interpreter free much of the time; the evaluation then finds it imported
-    # (Python's import lock makes it wait for an import under way rather than repeat it).
-    threading.Thread(target=_import_evaluation, name="fusionlog: imports", daemon=True).start()
     with Outputs(list(outs.values()), force=force, inputs=inputs) as o:
         t0 = time.perf_counter()
         if sc.replay is not None:
@@ -93,10 +87,3 @@ def run_pipeline(
         seconds["evaluate"] = time.perf_counter() - t2
     return RunResult(sc, summary, seconds, notes)
 
-
-def _import_evaluation() -> None:
-    """Import the evaluation's heavy modules (see run_pipeline)."""
-    import scipy.special  # noqa: F401  (the chi-square quantiles of core.metrics)
-
-    import fusionlog.core.metrics  # noqa: F401
-    import fusionlog.io.rrd  # noqa: F401  (rerun, pyarrow)
