@@ -86,4 +86,3 @@ def run_pipeline(
         o.commit()
         seconds["evaluate"] = time.perf_counter() - t2
     return RunResult(sc, summary, seconds, notes)
-
