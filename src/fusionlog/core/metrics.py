@@ -51,9 +51,8 @@ __all__ = [
 
 def chi2_quantile(q: float | np.ndarray, dof: float | np.ndarray) -> np.ndarray:
     """Chi-square quantile: what `scipy.stats.chi2.ppf(q, dof)` computes (it calls this same
-    routine), without importing scipy.stats, which costs ~0.5 s of every evaluate's start-up.
-    scipy.special itself (~0.25 s) is imported here, not with the module: a Dask worker only
-    accumulates the sums and never needs it."""
+    routine), without importing scipy.stats (~0.5 s); scipy.special (~0.25 s) only here, not
+    with the module: a Dask worker only accumulates the sums and never needs it."""
     from scipy import special
 
     return special.chdtri(dof, 1.0 - np.asarray(q, dtype=float))
