@@ -1,3 +1,16 @@
 """fusionlog: multi-sensor state estimation experiments logged to MCAP and Rerun."""
 
 __version__ = "0.1.0"
+
+#: The Python API (`fusionlog.api`), loaded on first use: `import fusionlog.cli` stays light.
+_API = ("Estimates", "Evaluation", "Simulation", "estimate", "evaluate", "load", "simulate")
+
+__all__ = list(_API)
+
+
+def __getattr__(name: str):
+    if name in _API:
+        from . import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'fusionlog' has no attribute {name!r}")

@@ -6,7 +6,6 @@ stderr naming the file and the problem; a traceback only with --debug), 130 inte
 
 from __future__ import annotations
 
-import json
 import shlex
 import signal
 import sys
@@ -74,6 +73,16 @@ class _Group(click.Group):
             signum = e.signum if isinstance(e, Terminated) else signal.SIGINT
             click.echo("fusionlog: interrupted; no partial output was left behind", err=True)
             ctx.exit(128 + int(signum))
+        except click.UsageError as e:  # one line too, not click's usage block
+            if debug:
+                raise
+            sub = e.ctx.info_name if e.ctx is not None and e.ctx.parent is not None else None
+            where = f"fusionlog {sub}" if sub else "fusionlog"
+            click.echo(
+                f"fusionlog: error: {_one_line(e.format_message())} (see: {where} --help)",
+                err=True,
+            )
+            ctx.exit(EXIT_BAD_INPUT)
         except (click.exceptions.Exit, click.ClickException, click.Abort):
             raise
         except MemoryError:
@@ -150,6 +159,8 @@ _arch = click.option(
     help="Architecture (repeatable): CKF, HKF, MSC, MSC-GMF, SKF[:sensor], CI, FBS; "
     "BAYES, DS for identity scenarios.",
 )
+_filter = click.option("--filter", "filter_name", type=click.Choice(["EKF", "UKF"]),
+                       help="Local filter of every architecture ([estimate] filter).")  # fmt: skip
 _workers = click.option(
     "--workers",
     type=click.IntRange(min=0),
@@ -160,7 +171,17 @@ _workers = click.option(
 _scheduler = click.option(
     "--scheduler",
     metavar="ADDRESS",
-    help="Compute the runs, in blocks, on the running Dask cluster at ADDRESS (tcp://host:port).",
+    help="Compute the runs, in blocks, on the running Dask cluster at ADDRESS (tcp://host:port "
+    "or tls://host:port).",
+)
+_scheduler_timeout = click.option(
+    "--scheduler-timeout",
+    type=float,
+    default=10.0,
+    show_default=True,
+    metavar="SECONDS",
+    help="With --scheduler: how long to wait for the scheduler to answer, and for a worker "
+    "when it has none (also while the runs are computed).",
 )
 
 
@@ -215,9 +236,10 @@ def import_(replay, output, force) -> None:
 @click.option("-o", "--output", type=OUTPUT, required=True, help="Estimates MCAP file to write.")
 @_arch
 @click.option("--model", type=PATH, help="Filter model TOML replacing the recorded scenario's.")
+@_filter
 @_force
 @_block
-def estimate(sensors, output, archs, model, force, block_runs) -> None:
+def estimate(sensors, output, archs, model, filter_name, force, block_runs) -> None:
     """Replay SENSORS.mcap through fusion architectures into an estimates MCAP file."""
     from fusionlog.stages.estimate import run_estimate
 
@@ -226,6 +248,7 @@ def estimate(sensors, output, archs, model, force, block_runs) -> None:
         output,
         archs=list(archs),
         model_path=model,
+        filter_name=filter_name,
         force=force,
         block=block_runs,
         command=_command_line(),
@@ -259,11 +282,14 @@ def evaluate(sensors, estimates, output, summary_path, force, block_runs) -> Non
 @_steps
 @_seed
 @_arch
+@_filter
 @_force
 @_block
 @_workers
 @_scheduler
-def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers, scheduler) -> None:
+@_scheduler_timeout
+def run(scenario, out_dir, runs, steps, seed, archs, filter_name, force, block_runs, workers,
+        scheduler, scheduler_timeout) -> None:  # fmt: skip
     """Simulate, estimate and evaluate SCENARIO.toml; print the results table.
 
     With --workers or --scheduler the runs are computed on Dask in blocks whose metric sums
@@ -271,9 +297,8 @@ def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers,
     carry every estimate back); the sample runs are computed here."""
     _one_executor(workers, scheduler)
     if workers is not None or scheduler is not None:
-        _run_distributed(
-            scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers, scheduler
-        )
+        _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block_runs,
+                         workers, scheduler, scheduler_timeout, filter_name)  # fmt: skip
         return
     from fusionlog.report import format_table
     from fusionlog.stages.kinds import kind_of
@@ -287,6 +312,7 @@ def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers,
         sc,
         d,
         archs=archs,
+        filter_name=filter_name,
         force=force,
         block=block_runs,
         command=_command_line(),
@@ -301,7 +327,8 @@ def run(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers,
     click.echo(f"{stages} -> {d}")
 
 
-def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, workers, scheduler):
+def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, workers,
+                     scheduler, timeout, filter_name):  # fmt: skip
     """`run --workers/--scheduler`: evaluation.rrd and summary.json from metric sums."""
     from fusionlog.report import format_table
     from fusionlog.stages.distributed_run import DISTRIBUTED_OUTPUTS, run_distributed
@@ -315,9 +342,11 @@ def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, 
         archs=list(archs),
         workers=workers,
         scheduler=scheduler,
+        scheduler_timeout=timeout,
         force=force,
         block=block,
         command=_command_line(),
+        filter_name=filter_name,
     )
     click.echo(f"{sc.name}: M = {sc.runs} runs, K = {sc.instants - 1}, seed {sc.seed}")
     click.echo(format_table(res.summary))
@@ -340,6 +369,7 @@ def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, 
 @_arch
 @_workers
 @_scheduler
+@_scheduler_timeout
 @click.option(
     "--exact-only",
     is_flag=True,
@@ -348,7 +378,10 @@ def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, 
 )
 @_force
 @_block
-def sweep(scenario, vary, runs, out_dir, archs, workers, scheduler, exact_only, force, block_runs):
+def sweep(
+    scenario, vary, runs, out_dir, archs, workers, scheduler, scheduler_timeout, exact_only,
+    force, block_runs,
+):  # fmt: skip
     """Evaluate SCENARIO.toml over a grid of parameter values, on Dask: writes sweep.parquet,
     sweep.rrd and summary.json (no MCAP logs: workers return metric sums).
 
@@ -369,6 +402,7 @@ def sweep(scenario, vary, runs, out_dir, archs, workers, scheduler, exact_only, 
         archs=list(archs),
         workers=workers,
         scheduler=scheduler,
+        scheduler_timeout=scheduler_timeout,
         exact_only=exact_only,
         force=force,
         block=block_runs,
@@ -410,21 +444,6 @@ def summary(recording, as_json) -> None:
     click.echo(table)
 
 
-def _load_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError as e:
-        raise FusionlogError(f"{path}: no such file") from e
-    except (OSError, UnicodeDecodeError) as e:
-        raise FusionlogError(f"{path}: cannot read ({e})") from e
-    except json.JSONDecodeError as e:
-        raise FusionlogError(f"{path}: not valid JSON (line {e.lineno}: {e.msg})") from e
-    except RecursionError:
-        raise FusionlogError(f"{path}: nested too deeply to be a summary") from None
-    except ValueError as e:  # Python refuses integers of more than 4300 digits
-        raise FusionlogError(f"{path}: cannot read a number ({str(e).split(';')[0]})") from None
-
-
 def _tolerance(name: str, default: float, text: str):
     """--rtol / --atol: a finite number >= 0 (else a usage error, exit 2)."""
 
@@ -451,11 +470,11 @@ def compare(actual, golden, rtol, atol) -> None:
 
     A file that is not a well-formed summary (not strict JSON, a metric that is not a number)
     is bad input (exit 2), not a regression."""
-    from fusionlog.report import check_summary, compare_summaries
+    from fusionlog.report import check_summary, compare_summaries, load_json
 
     docs = []
     for path in (actual, golden):
-        doc = _load_json(path)
+        doc = load_json(path)
         if not isinstance(doc, dict) or not isinstance(doc.get("architectures"), dict):
             raise FusionlogError(f"{path}: not a fusionlog summary (no 'architectures' object)")
         try:

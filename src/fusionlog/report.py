@@ -7,13 +7,17 @@ values back as floats (shown "inf", "nan"), so Infinity in both files is equal.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
+from fusionlog.errors import FusionlogError
+from fusionlog.inputs import check_input
 from fusionlog.jsonout import NON_FINITE, join_path, resolve_non_finite, to_strict_json
 
-__all__ = ["check_summary", "check_tolerance", "compare_summaries", "format_table"]
+__all__ = ["check_summary", "check_tolerance", "compare_summaries", "format_table", "load_json"]
 
 #: (header, getter) of the table columns, after the architecture name.
 _COLUMNS: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -83,6 +87,8 @@ def format_table(summary: Mapping[str, Any]) -> str:
         rows.append(
             [str(arch)] + [_fmt(_get(entry, keys), percent=h == "in band") for h, keys in _COLUMNS]
         )
+    if isinstance(summary.get("pcrb"), Mapping):  # nonlinear models: the bound on the MSE
+        rows.append(["PCRB (bound)", _fmt(_get(summary, ("pcrb", "mse")))] + ["—"] * 6)
     return _layout(header, rows)
 
 
@@ -267,7 +273,9 @@ def check_summary(doc: Any, *, strict: bool = False) -> dict[str, Any]:
     number (JSON has no NaN/Infinity: it must be null and listed in ``non_finite``); a malformed
     ``non_finite`` note; and where the schema (DESIGN.md) wants a number, anything else -- a
     string, a boolean, a list, an object, or null outside ``expected`` (null there means "no
-    exact analysis") that no note explains. Keys the schema does not know are not checked.
+    exact analysis") that no note explains. ``expected`` itself may be null only beside a
+    top-level ``pcrb`` (a nonlinear model's summary, DESIGN.md). Keys the schema does not know
+    are not checked.
     Without ``strict``, non-finite floats (an in-memory summary) are accepted as values.
     """
     if not isinstance(doc, Mapping):
@@ -300,6 +308,8 @@ def check_summary(doc: Any, *, strict: bool = False) -> dict[str, Any]:
             path = join_path(where, str(key))
             if key in _ARCH_NUMBERS:
                 _want_number(v, path, nullable=False)
+            elif key == "expected" and v is None and "pcrb" in out:
+                continue  # a nonlinear model: no exact analysis, the PCRB stands instead
             elif key in _ARCH_GROUPS:
                 container, nullable, nesting = _ARCH_GROUPS[key]
                 if not isinstance(v, list | tuple if container is list else Mapping):
@@ -415,3 +425,20 @@ def compare_summaries(
         if arch not in g_arch:
             out.append(f"{arch}: architecture extra (in actual, not in golden)")
     return out
+
+
+def load_json(path: Path) -> Any:
+    """A JSON file for `fusionlog compare`; every way it can fail is one FusionlogError line."""
+    check_input(path)  # a FIFO or a device would block or never end
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError as e:
+        raise FusionlogError(f"{path}: no such file") from e
+    except (OSError, UnicodeDecodeError) as e:
+        raise FusionlogError(f"{path}: cannot read ({e})") from e
+    except json.JSONDecodeError as e:
+        raise FusionlogError(f"{path}: not valid JSON (line {e.lineno}: {e.msg})") from e
+    except RecursionError:
+        raise FusionlogError(f"{path}: nested too deeply to be a summary") from None
+    except ValueError as e:  # Python refuses integers of more than 4300 digits
+        raise FusionlogError(f"{path}: cannot read a number ({str(e).split(';')[0]})") from None

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import NumericalError
-from .architectures import Plan, StepMap
+from .architectures import BlockDiagonal, Plan, StepMap
 from .linalg import mT, numerical_errors, sym, wide_diagonal
 from .model import System
 from .quadratic_form import (
@@ -91,7 +91,7 @@ def _coupling(plan: Plan, truth: System) -> bool:
     same_F = np.array_equal(model.F, truth.F) and (
         model.Fs is truth.Fs or (model.Fs is not None and np.array_equal(model.Fs, truth.Fs))
     )
-    return not (same_F and np.array_equal(model.H, truth.H))
+    return not (same_F and np.array_equal(model.linear_measurement(), truth.linear_measurement()))
 
 
 def _mv(A: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -135,7 +135,7 @@ def _forward_moments(plan: Plan, truth: System) -> tuple[list, list, int, int]:
     them too (the same objects in the lists). Per-run maps give per-run moments (runs, ...).
     """
     n = truth.n
-    Ht = truth.H
+    Ht = truth.linear_measurement()
     init = truth.truth_initial
     nx = n if _coupling(plan, truth) else 0
     D0 = plan.D0
@@ -204,7 +204,7 @@ def analyse(plan: Plan, truth: System, *, chunk_runs: int = CHUNK_RUNS) -> Expec
     """
     if not plan.per_run:
         return _checked(plan, truth)
-    nodes = getattr(plan, "nodes", None)  # maps per measurement history, see plan_of_runs
+    nodes = plan.nodes  # maps per measurement history, see plan_of_runs
     M = len(nodes[0]) if nodes is not None else plan.reported_cov.shape[0]
     parts = [
         _checked(plan_of_runs(plan, slice(a, min(a + chunk_runs, M))), truth, first_run=a)
@@ -246,7 +246,7 @@ def plan_of_runs(plan: Plan, runs: slice | int) -> Plan:
     shared (the analysis tests steps for identity); block-diagonal ones are made dense. A plan
     whose steps hold maps per measurement history (`nodes`: each run's node at every step)
     gives each run its node's maps."""
-    nodes = getattr(plan, "nodes", None)
+    nodes = plan.nodes
     cut: dict[tuple[int, int], np.ndarray] = {}
 
     def c(a, k: int = -1) -> np.ndarray:
@@ -254,7 +254,7 @@ def plan_of_runs(plan: Plan, runs: slice | int) -> Plan:
         key = (id(a), k if nodes is not None else -1)
         if key not in cut:
             sel = runs if nodes is None or k < 0 else nodes[k][runs]
-            if hasattr(a, "blocks"):  # a block-diagonal map kept as its blocks
+            if isinstance(a, BlockDiagonal):  # a block-diagonal map kept as its blocks
                 b = a.blocks[sel] if a.ndim == 3 else a.blocks
                 cut[key] = dataclasses.replace(a, blocks=b).dense()
             else:
@@ -312,7 +312,7 @@ def _analyse(plan: Plan, truth: System, where) -> Expected:
             mse[..., settled + 1 :, :, :] = mse[..., settled, None, :, :]
     else:
         sm = plan.smoother
-        Ht = truth.H
+        Ht = truth.linear_measurement()
         Bk = np.zeros((n, n))
         Ceta = np.zeros((n, n))
         steady = False  # backward statistics stopped changing under a repeated map

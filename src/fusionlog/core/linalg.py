@@ -20,7 +20,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from functools import partial
+from functools import partial, wraps
+from typing import Any
 
 import numpy as np
 
@@ -331,3 +332,22 @@ def sum_after(a: np.ndarray, X: np.ndarray) -> np.ndarray:
             out += X[..., j, :, :]
         return out
     return np.concatenate([a[..., None, :, :], X], axis=-3).sum(axis=-3)
+
+
+def overflow_is_inf(f: Callable[..., Any]) -> Callable[..., Any]:
+    """`f` with numpy's overflow and invalid-value warnings off, for code whose inf and NaN are
+    the answer (metrics of a diverging model, entries near 1e308) and are reported as
+    non-finite by the caller; a fresh error state per call."""
+
+    @wraps(f)
+    def quiet(*args: Any, **kwargs: Any) -> Any:
+        with np.errstate(over="ignore", invalid="ignore"):
+            return f(*args, **kwargs)
+
+    return quiet
+
+
+def finite_mean(a: np.ndarray) -> float | None:
+    """The mean of the finite entries of `a` (None: there are none)."""
+    a = a[np.isfinite(a)]
+    return float(a.mean()) if a.size else None

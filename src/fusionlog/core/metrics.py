@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import NumericalError
-from .linalg import spd_inv_scaled, wide_diagonal
+from .linalg import finite_mean, overflow_is_inf, spd_inv_scaled, wide_diagonal
 
 __all__ = [
     "MetricsAccumulator",
@@ -142,6 +142,7 @@ class MetricsAccumulator:
         return self.runs - self.count
 
     # ------------------------------------------------------------------ accumulate
+    @overflow_is_inf
     def add(self, x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> None:
         """Add a block of whole runs.
 
@@ -244,6 +245,7 @@ class MetricsAccumulator:
         per_run[3] += dm @ ones_w
         return per_run
 
+    @overflow_is_inf
     def merge(self, other: MetricsAccumulator) -> MetricsAccumulator:
         """Add another accumulator's sums into this one (same steps and states); returns self."""
         if (other.n_steps, other.n_states) != (self.n_steps, self.n_states):
@@ -269,6 +271,7 @@ class MetricsAccumulator:
         return self
 
     # ------------------------------------------------------------------ results
+    @overflow_is_inf
     def finalize(self, confidence: float = 0.95) -> MetricsResult:
         """Per-step and overall metrics; `confidence` sets the two-sided chi-square NEES band."""
         if not 0.0 < confidence < 1.0:
@@ -432,13 +435,8 @@ class MetricsResult:
             a = np.asarray(arr, dtype=float)
             if a.shape != shape:
                 raise ValueError(f"expected {key} must have shape {shape}, got {a.shape}")
-            sel = a[self.valid_steps]
-            if key == "mse":
-                # mean over states of the per-state means over steps (eq. 45 on the expected MSE)
-                per_state = [_finite_mean(sel[:, i]) for i in range(self.n_states)]
-                out[key] = None if any(v is None for v in per_state) else float(np.mean(per_state))
-            else:
-                out[key] = _finite_mean(sel)
+            valid = self.valid_steps
+            out[key] = expected_means(a, valid) if key == "mse" else finite_mean(a[valid])
         return out
 
     def summary(
@@ -489,9 +487,12 @@ class MetricsResult:
         return out
 
 
-def _finite_mean(a: np.ndarray) -> float | None:
-    a = a[np.isfinite(a)]
-    return float(a.mean()) if a.size else None
+def expected_means(mse_per_state: np.ndarray, valid: np.ndarray) -> float | None:
+    """The overall expected MSE (eq. 45 on the exact per-step (K+1, n)): the mean over states of
+    each state's finite mean over the steps `valid` (K+1,); None where a state has none."""
+    sel = mse_per_state[valid]
+    per_state = [finite_mean(sel[:, i]) for i in range(sel.shape[1])]
+    return None if any(v is None for v in per_state) else float(np.mean(per_state))
 
 
 def _num(v: float) -> float:

@@ -12,21 +12,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .timing import Schedule, SensorTiming, schedule
+from .models import LinearMotion, LinearSensor, MotionModel, NotLinear, SensorModel
+from .timing import Schedule, schedule
 
-
-@dataclass(frozen=True)
-class Sensor:
-    """One sensor of eq. (13): z = H x + v, v ~ N(0, R), measuring when `timing` says."""
-
-    name: str
-    H: np.ndarray  # (m, n)
-    R: np.ndarray  # (m, m)
-    timing: SensorTiming = SensorTiming()
-
-    @property
-    def dim(self) -> int:
-        return self.H.shape[0]
+#: The linear sensor of eq. (13) (`core.models.LinearSensor`), by its historical name.
+Sensor = LinearSensor
 
 
 @dataclass(frozen=True)
@@ -54,7 +44,7 @@ class System:
 
     F: np.ndarray
     Q: np.ndarray
-    sensors: tuple[Sensor, ...]
+    sensors: tuple[SensorModel, ...]
     prior: Prior | None = None
     G: np.ndarray | None = None
     cross_R: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
@@ -67,6 +57,16 @@ class System:
     #: The stacked measurement noise covariance of eq. (31) at each instant (K+1, m, m), where
     #: it varies (a recorded log whose messages carry their own covariance); None: R always.
     Rs: np.ndarray | None = None
+    #: A nonlinear motion model (`core.models`, e.g. the coordinated turn), which then replaces
+    #: F, Q (kept as its linearisation at the zero state over dt and its Q(dt)); None: F, Q.
+    motion_model: MotionModel | None = None
+    #: The local filter of every architecture when a model is nonlinear: "EKF" | "UKF" (None:
+    #: the KF), and the UKF's (alpha, beta, kappa) (DESIGN.md, "Nonlinear sensors and motion").
+    filter: str | None = None
+    ukf: tuple[float, float, float] = (1.0, 2.0, 0.0)
+    #: With a nonlinear motion on irregular instants (`on_times`), the interval before each
+    #: instant k >= 1 (K,); None: dt.
+    intervals: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if not self.state_names:
@@ -84,6 +84,52 @@ class System:
         return self.G @ self.Q @ self.G.T
 
     @property
+    def motion(self) -> MotionModel:
+        """The motion model (`core.models`): `motion_model`, or the linear one of F, G Q G^T over
+        dt (and the continuous model, for other intervals)."""
+        if self.motion_model is not None:
+            return self.motion_model
+        return LinearMotion(self.F, self.GQG, self.dt, self.continuous)
+
+    @property
+    def linear(self) -> bool:
+        """Whether every sensor (and the motion) is linear: what compiled plans and the exact
+        analysis need."""
+        return self.motion.linear and all(s.linear for s in self.sensors)
+
+    def linear_measurement(self) -> np.ndarray:
+        """The stacked measurement matrix of eq. (30), (m, n), asked of the sensor models; the
+        one place that refuses a nonlinear sensor (`NotLinear`) where a matrix is needed."""
+        for s in self.sensors:
+            if not s.linear:
+                raise NotLinear(
+                    f"sensor {s.name} ({s.kind}) is nonlinear: it has no measurement matrix "
+                    "(the compiled plans and the exact analysis need linear sensors)"
+                )
+        return np.vstack([s.H for s in self.sensors])
+
+    def h(self, x: np.ndarray) -> np.ndarray:
+        """The stacked noise-free measurement (eq. 30) of states x (..., n): (..., m)."""
+        if self.linear:  # one product: what the simulation always computed
+            return x @ self.H.T
+        return np.concatenate([s.h(x) for s in self.sensors], axis=-1)
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """The stacked measurement Jacobian at states x (..., n): (..., m, n)."""
+        return np.concatenate([s.jacobian(x) for s in self.sensors], axis=-2)
+
+    def residual(self, z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
+        """The stacked innovation z - z_hat (..., m), each sensor's asked of its model (angles
+        wrapped)."""
+        if self.linear:
+            return z - z_hat
+        parts = [
+            s.residual(z[..., sl], z_hat[..., sl])
+            for s, sl in zip(self.sensors, self.sensor_slices, strict=True)
+        ]
+        return np.concatenate(parts, axis=-1)
+
+    @property
     def time_invariant(self) -> bool:
         """The same F and G Q G^T between every two instants, and the same R at every one."""
         return self.Fs is None and self.Rs is None
@@ -91,6 +137,16 @@ class System:
     def F_at(self, k: int) -> np.ndarray:
         """Transition from instant k-1 to instant k (k >= 1)."""
         return self.F if self.Fs is None else self.Fs[k - 1]
+
+    def dt_at(self, k: int) -> float:
+        """The interval from instant k-1 to instant k (k >= 1) of a nonlinear motion."""
+        return self.dt if self.intervals is None else float(self.intervals[k - 1])
+
+    def propagate(self, x: np.ndarray, k: int) -> np.ndarray:
+        """The noise-free transition of states x (..., n) from instant k-1 to k: F x, or f(x)."""
+        if self.motion_model is None:
+            return x @ self.F_at(k).T
+        return self.motion_model.f(x, self.dt_at(k))
 
     def GQG_at(self, k: int) -> np.ndarray:
         """Process noise covariance (state space) from instant k-1 to instant k (k >= 1)."""
@@ -111,6 +167,12 @@ class System:
         discretisation: its F and Q apply between every two instants, whatever their times
         (a scenario with irregular instants refuses such a model when it is loaded)."""
         times = np.asarray(times, dtype=float)
+        if self.motion_model is not None:  # f(x, dt) and Q(dt) take any interval
+            if np.array_equal(times, np.arange(len(times)) * self.dt):
+                return dataclasses.replace(self, intervals=None, Qs=None)
+            deltas = np.diff(times)
+            Qs = np.stack([self.motion_model.Q(float(d)) for d in deltas])
+            return dataclasses.replace(self, intervals=deltas, Qs=Qs)
         if self.continuous is None or np.array_equal(times, np.arange(len(times)) * self.dt):
             return self if self.Fs is None else dataclasses.replace(self, Fs=None, Qs=None)
         from .timing import van_loan
@@ -144,8 +206,8 @@ class System:
 
     @property
     def H(self) -> np.ndarray:
-        """Stacked measurement matrix of eq. (30)."""
-        return np.vstack([s.H for s in self.sensors])
+        """Stacked measurement matrix of eq. (30) (`linear_measurement`)."""
+        return self.linear_measurement()
 
     @property
     def R(self) -> np.ndarray:
@@ -186,6 +248,18 @@ def constant_velocity(dt: float, n0: float) -> tuple[np.ndarray, np.ndarray]:
     F = np.array([[1.0, dt], [0.0, 1.0]])
     Q = np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]) * n0
     return F, Q
+
+
+def nominal_R(covariances: np.ndarray) -> np.ndarray:
+    """The nominal R (m, m) of a sensor whose readings carry their own covariance and that has
+    no R of its own: the mean of its messages' finite covariances (N, m, m). The one rule
+    (the import records it in the resolved scenario; the filters use it wherever a message
+    has none)."""
+    have = np.isfinite(covariances).all(axis=(-2, -1))
+    return covariances[have].mean(axis=0)
+
+
+__all__ = ["NotLinear", "Prior", "Sensor", "System", "ajgl2009", "constant_velocity", "nominal_R"]
 
 
 def ajgl2009(ts: float = 1.0, n_sensors: int = 3) -> System:

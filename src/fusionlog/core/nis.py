@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .linalg import mT, sym
+from .linalg import mT, overflow_is_inf, sym
 from .model import System
 
 __all__ = ["Innovations", "innovations", "whiteness"]
@@ -38,6 +38,7 @@ class Innovations:
     normalised: np.ndarray
 
 
+@overflow_is_inf  # an outlier near 1e308: its NIS is inf, reported as non-finite
 def innovations(
     system: System,
     mean: np.ndarray,
@@ -52,7 +53,7 @@ def innovations(
     per instant where it varies: `System.R_at`)."""
     M, K1, _ = z.shape
     n = system.n
-    H = system.H[rows]
+    H = system.linear_measurement()[rows]
     r = len(rows)
     # The predictions of every instant at once: x_k^- = F_k x_{k-1}, P_k^- = F_k P F_k' + Q_k
     # (k >= 1), the prior at k = 0 (none without a prior).
@@ -95,6 +96,7 @@ def innovations(
     return Innovations(nis, dof, out)
 
 
+@overflow_is_inf
 def whiteness(normalised: np.ndarray, lags: int = 10) -> dict[str, float]:
     """Sample autocorrelation of each normalised-innovation component at lags 1..L, averaged
     over the runs' sequences of present values, against the white-noise band +-1.96/sqrt(N).

@@ -57,8 +57,8 @@ def _draw(
         x = np.empty((R, steps + 1, n))
         x[:, 0] = init.mean + e0 @ psd_sqrt(init.cov).T
         for k in range(steps):
-            x[:, k + 1] = x[:, k] @ system.F_at(k + 1).T + w[:, k]
-        z = x @ system.H.T + v
+            x[:, k + 1] = system.propagate(x[:, k], k + 1) + w[:, k]
+        z = system.h(x) + v
     for what, a in (("the true state", x), ("the measurement", z)):
         if not np.isfinite(a).all():
             # Non-finite values would be read as missing measurements downstream: refuse them.

@@ -21,22 +21,32 @@ measurement independently with probability dropout_j (DESIGN.md, "Scenario TOML"
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 __all__ = [
+    "TIME_UNITS",
     "SensorTiming",
     "Schedule",
     "constant_velocity_continuous",
+    "instant_counts",
     "schedule",
     "van_loan",
 ]
 
 #: Times are whole nanoseconds (an MCAP log_time).
 NS = 1_000_000_000
+#: Nanoseconds per unit of the time units a recorded log may give (``time_unit``).
+TIME_UNITS = {"s": NS, "ms": 1_000_000, "us": 1_000, "ns": 1}
 #: A period or offset within this relative distance of a whole number of dt is that number.
 GRID_RTOL = 1e-9
+#: Periods and offsets (other than offset 0) lie in [MIN_PERIOD_S, MAX_PERIOD_S]: one
+#: nanosecond is the resolution of the schedule (an MCAP log_time), and 10^9 s (31.7 years)
+#: keeps every sampling time far inside the 64-bit nanosecond clock (2^63 ns = 292 years).
+MIN_PERIOD_S = 1e-9
+MAX_PERIOD_S = 1e9
 
 
 @dataclass(frozen=True)
@@ -68,19 +78,48 @@ class Schedule:
         return len(self.times) - 1
 
 
-def _whole(x: float, dt: float) -> int | None:
-    """x / dt when it is a whole number (to GRID_RTOL), else None."""
+def _whole(x: float, dt: float, *, zero: bool) -> int | None:
+    """x / dt when it is a whole number (to GRID_RTOL), else None; 0 only when `zero` (an
+    offset: a period of a tiny fraction of dt is not "every instant")."""
     q = x / dt
     r = round(q)
+    if r == 0 and not (zero and x == 0):
+        return None
     return int(r) if abs(q - r) <= GRID_RTOL * max(1.0, abs(q)) else None
+
+
+def _grid(dt: float, timings: tuple[SensorTiming, ...]) -> list[tuple[int, int]] | None:
+    """Each sensor's (period, offset) in whole dt, or None when the instants are irregular."""
+    grid = []
+    for t in timings:
+        p = 1 if t.period is None else _whole(t.period, dt, zero=False)
+        o = _whole(t.offset, dt, zero=True)
+        if p is None or o is None:
+            return None
+        grid.append((p, o))
+    return grid
+
+
+def instant_counts(dt: float, steps: int, timings: tuple[SensorTiming, ...]) -> list[int] | None:
+    """How many sampling times each sensor has on a horizon of `steps` dt, computed without
+    allocating anything (so that a scenario can be refused before its schedule is built);
+    None when the instants stay k dt (steps + 1 of them). On irregular instants the schedule
+    holds at most 1 + their sum instants (fewer where sensors' times coincide)."""
+    if _grid(dt, timings) is not None:
+        return None
+    counts = []
+    for t in timings:
+        p = dt if t.period is None else t.period
+        counts.append(max(0, math.floor((steps * dt - t.offset) / p * (1 + GRID_RTOL)) + 1))
+    return counts
 
 
 def schedule(dt: float, steps: int, timings: tuple[SensorTiming, ...]) -> Schedule:
     """The instants of a horizon of `steps` dt and each sensor's measuring instants."""
     S = len(timings)
     periods = [dt if t.period is None else t.period for t in timings]
-    grid = [(_whole(p, dt), _whole(t.offset, dt)) for p, t in zip(periods, timings, strict=True)]
-    if all(p is not None and o is not None for p, o in grid):
+    grid = _grid(dt, timings)
+    if grid is not None:
         k = np.arange(steps + 1)
         measures = np.zeros((steps + 1, S), dtype=bool)
         for j, (p, o) in enumerate(grid):
@@ -89,9 +128,9 @@ def schedule(dt: float, steps: int, timings: tuple[SensorTiming, ...]) -> Schedu
     # Irregular: sampling times in whole nanoseconds, their union with t = 0.
     end = round(steps * dt * NS)
     per_sensor = []
-    for p, t in zip(periods, timings, strict=True):
-        count = int(np.floor((steps * dt - t.offset) / p * (1 + GRID_RTOL))) + 1
-        ns = np.rint((t.offset + np.arange(max(count, 0)) * p) * NS).astype(np.int64)
+    counts = instant_counts(dt, steps, timings) or []
+    for p, t, count in zip(periods, timings, counts, strict=True):
+        ns = np.rint((t.offset + np.arange(count) * p) * NS).astype(np.int64)
         per_sensor.append(ns[ns <= end])
     all_ns = np.unique(np.concatenate([np.zeros(1, np.int64), *per_sensor]))
     measures = np.zeros((len(all_ns), S), dtype=bool)

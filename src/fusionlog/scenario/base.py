@@ -27,7 +27,15 @@ from fusionlog.errors import ValidationError
 from . import toml
 from .toml import Ctx
 
-__all__ = ["KINDS", "Scenario", "Header", "header", "scenario_with", "check_budget"]
+__all__ = [
+    "KINDS",
+    "Scenario",
+    "Header",
+    "header",
+    "scenario_with",
+    "check_budget",
+    "memory_shortfall",
+]
 
 #: The kinds of scenario.
 KINDS: tuple[str, ...] = ("state", "identity")
@@ -79,7 +87,10 @@ class Scenario:
 
     @property
     def instants(self) -> int:
-        """K + 1, the number of instants (steps + 1 on the regular grid)."""
+        """K + 1, the number of instants (steps + 1 on the regular grid; counted without
+        building anything for a kind without sensor timing)."""
+        if getattr(self.system, "schedule", None) is None:
+            return self.steps + 1
         return len(self.schedule.times)
 
     @classmethod
@@ -153,14 +164,23 @@ def check_budget(scenario: Scenario, bytes_per_run_step: int, what: str) -> None
     run): one run of K+1 instants, ``bytes_per_run_step`` each, must fit in half of the
     machine's memory, or the stage would end in a MemoryError far into the work.
     """
-    need = scenario.instants * bytes_per_run_step
-    have = _memory_bytes()
-    if have and need > have // 2:
+    why = memory_shortfall(scenario.instants, bytes_per_run_step)
+    if why is not None:
         raise ValidationError(
             f"{scenario.path or scenario.name}: {what} of {scenario.instants} instants needs "
-            f"about {need / 2**30:.1f} GiB for a single run, this machine has "
-            f"{have / 2**30:.1f} GiB: use fewer steps"
+            f"{why}: use fewer steps"
         )
+
+
+def memory_shortfall(instants: int, bytes_per_instant: int) -> str | None:
+    """None when one run of `instants` instants, `bytes_per_instant` each, fits in half of
+    this machine's memory; else what it needs and what there is (the one memory decision,
+    made by the loader before a schedule is built and by the stages with their own costs)."""
+    need = instants * bytes_per_instant
+    have = _memory_bytes()
+    if not have or need <= have // 2:
+        return None
+    return f"about {need / 2**30:.3g} GiB for a single run, this machine has {have / 2**30:.1f} GiB"
 
 
 def _memory_bytes() -> int:
@@ -201,5 +221,5 @@ def scenario_with(
     if steps is not None and hasattr(new.system, "schedule"):
         from .model import check_schedule  # the state kind's sensors: timing on the new horizon
 
-        check_schedule(ctx, new.system, new.steps, steps_key)
+        check_schedule(ctx, new.system, new.steps, steps_key, len(new.architectures))
     return new

@@ -16,10 +16,17 @@ from typing import Any
 import numpy as np
 
 from fusionlog.core.model import System, constant_velocity
-from fusionlog.core.timing import SensorTiming, constant_velocity_continuous, van_loan
+from fusionlog.core.timing import (
+    MAX_PERIOD_S,
+    MIN_PERIOD_S,
+    SensorTiming,
+    constant_velocity_continuous,
+    instant_counts,
+    van_loan,
+)
 
 from . import toml
-from .base import MAX_INDEX
+from .base import MAX_INDEX, memory_shortfall
 from .toml import Ctx
 
 __all__ = [
@@ -27,6 +34,7 @@ __all__ = [
     "MODEL_KINDS",
     "TIMING_KEYS",
     "Model",
+    "bytes_per_instant",
     "check_schedule",
     "model_section",
     "sensor_timing",
@@ -160,34 +168,79 @@ def _square(
     return M, state_names
 
 
-def sensor_timing(ctx: Ctx, t: dict[str, Any], where: str) -> SensorTiming:
+def sensor_timing(ctx: Ctx, t: dict[str, Any], where: str, dt: float) -> SensorTiming:
     """A sensor's period, offset (s) and dropout probability; the horizon is checked later,
-    when the instants are known (`check_schedule`)."""
+    when the instants are known (`check_schedule`). Periods and offsets other than 0 lie in
+    [1 ns, 10^9 s] (`core.timing`); without a period the period is dt, so 0 <= offset < dt."""
     period = None
     if "period" in t:
         period = toml.number(ctx, t["period"], f"{where}.period")
-        if not period > 0:
-            raise ctx.err(f"{where}.period", f"must be > 0, got {toml.fmt(period)}")
+        _in_range(ctx, period, f"{where}.period")
     offset = toml.number(ctx, t.get("offset", 0.0), f"{where}.offset")
-    if offset < 0:
-        raise ctx.err(f"{where}.offset", f"must be >= 0, got {toml.fmt(offset)}")
-    if period is not None and not offset < period:
-        raise ctx.err(
-            f"{where}.offset",
-            f"must be < period ({toml.fmt(period)} s), got {toml.fmt(offset)}",
+    if offset != 0:
+        _in_range(ctx, offset, f"{where}.offset")
+    if not offset < (dt if period is None else period):
+        what = (
+            f"period ({toml.fmt(period)} s)"
+            if period is not None
+            else (f"the period, which is dt = {toml.fmt(dt)} s without a period key")
         )
+        raise ctx.err(f"{where}.offset", f"must be < {what}, got {toml.fmt(offset)}")
     dropout = toml.number(ctx, t.get("dropout", 0.0), f"{where}.dropout")
     if not 0.0 <= dropout < 1.0:
         raise ctx.err(f"{where}.dropout", f"must be in [0, 1), got {toml.fmt(dropout)}")
     return SensorTiming(period, offset, dropout)
 
 
-def check_schedule(ctx: Ctx, system: System, steps: int, steps_key: str) -> None:
-    """The sensors' timing on a horizon of `steps` dt: every sensor measures at least once,
-    irregular instants have a model that can be discretised for any interval, and the
-    instants fit a log's uint32 step index."""
-    sched = system.schedule(steps)
+def _in_range(ctx: Ctx, value: float, key: str) -> None:
+    if key.endswith(".period") and not value > 0:
+        raise ctx.err(key, f"must be > 0, got {toml.fmt(value)}")
+    if value < 0:
+        raise ctx.err(key, f"must be >= 0, got {toml.fmt(value)}")
+    if not MIN_PERIOD_S <= value <= MAX_PERIOD_S:
+        raise ctx.err(
+            key,
+            f"{toml.fmt(value)} s is outside [1e-09, 1e+09] s (one nanosecond, the resolution "
+            "of a log's time, to about 31.7 years)",
+        )
+
+
+def bytes_per_instant(system: System, architectures: int) -> int:
+    """Memory one run holds per instant (truth and measurements in float64, and the plans'
+    per-step maps of the estimate stage): the budget of `scenario.base.memory_shortfall`."""
+    s = system
+    return 8 * (s.n + s.m) * 4 + 8 * s.n * (s.n + s.m) * architectures
+
+
+def check_schedule(
+    ctx: Ctx, system: System, steps: int, steps_key: str, architectures: int = 1
+) -> None:
+    """The sensors' timing on a horizon of `steps` dt: the instants fit in memory and a log's
+    uint32 step index (counted before anything is built), every sensor measures at least
+    once, and irregular instants have a model that can be discretised for any interval."""
+    timings = tuple(s.timing for s in system.sensors)
+    counts = instant_counts(system.dt, steps, timings)
     horizon = toml.fmt(steps * system.dt)
+    if counts is None:
+        key, instants, what = steps_key, steps + 1, f"{steps + 1} instants need"
+    else:
+        j = max(range(len(counts)), key=counts.__getitem__)
+        period = timings[j].period if timings[j].period is not None else system.dt
+        key = f"sensors[{j}].period"
+        instants = 1 + sum(counts)
+        what = (
+            f"up to {instants} instants (sensor {system.sensors[j].name!r} measures every "
+            f"{toml.fmt(period)} s over {horizon} s)"
+        )
+        if counts[j] > MAX_INDEX:
+            raise ctx.err(key, f"{what}: more than a uint32 step index holds")
+        what += " need"
+    # the schedule's own arrays (times, the sensors' sampling times, which sensor measures)
+    per_instant = bytes_per_instant(system, architectures) + 24 + len(timings)
+    why = memory_shortfall(instants, per_instant)
+    if why is not None:
+        raise ctx.err(key, f"{what} {why}")
+    sched = system.schedule(steps)
     for j, sen in enumerate(system.sensors):
         if not sched.measures[:, j].any():
             raise ctx.err(
@@ -195,7 +248,7 @@ def check_schedule(ctx: Ctx, system: System, steps: int, steps_key: str) -> None
                 f"sensor {sen.name!r} never measures within [0, {horizon}] s "
                 f"(offset {toml.fmt(sen.timing.offset)} s, {steps_key} = {steps})",
             )
-    if not sched.regular and system.continuous is None:
+    if not sched.regular and system.continuous is None and system.motion_model is None:
         raise ctx.err(
             "model.F",
             "explicit F, Q hold for dt only, but the sensors' periods and offsets are not "

@@ -29,16 +29,17 @@ from typing import Any
 import numpy as np
 
 from fusionlog.core.model import Sensor, System
+from fusionlog.core.timing import TIME_UNITS
 
 from . import toml
 from .base import Header, Scenario
 from .model import model_section
+from .sensors import sensor_matrices
 from .state import (
     architectures_section,
     correlations_section,
     evaluate_section,
     prior_section,
-    sensor_matrices,
 )
 from .toml import Ctx
 
@@ -50,7 +51,6 @@ _SCENARIO_KEYS = ("name", "description", "state_names", "dt")
 _STREAM_KEYS = ("source", "topic", "values", "time", "time_unit")
 _SENSOR_REQUIRED = ("name", "H", "source", "values")
 _SENSOR_OPTIONAL = ("topic", "time", "time_unit", "R", "covariance", "covariance_index")
-TIME_UNITS = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
 
 
 @dataclass(frozen=True)
@@ -123,7 +123,11 @@ def _covariance(ctx: Ctx, t: dict[str, Any], where: str, m: int) -> tuple[str | 
             raise ctx.err(f"{where}.covariance_index", "only used with covariance")
         return None, None
     field = toml.string(ctx, t["covariance"], f"{where}.covariance")
-    idx = t.get("covariance_index", list(range(m)))
+    if "covariance_index" not in t:
+        # never a default of [0..m-1]: the data say whether the matrix is exactly m x m (else
+        # the reader asks for covariance_index instead of reading the wrong entries)
+        return field, None
+    idx = t["covariance_index"]
     if (
         not isinstance(idx, list)
         or len(idx) != m

@@ -35,18 +35,18 @@ from typing import Any
 
 import numpy as np
 
-from fusionlog.core.model import Prior, Sensor, System
+from fusionlog.core.model import Prior, System
+from fusionlog.core.models import SensorModel
 from fusionlog.core.names import STATE_ARCHITECTURES, parse_arch
 from fusionlog.core.timing import SensorTiming
 
-from . import toml
+from . import nonlinear, toml
+from . import sensors as sensor_tables
 from .base import DEFAULT_CONFIDENCE, DEFAULT_SAMPLE_RUNS, Scenario, header
 from .model import (
     MODEL_KINDS,
-    TIMING_KEYS,
     check_schedule,
     model_section,
-    sensor_timing,
 )
 from .toml import Ctx
 
@@ -55,7 +55,6 @@ __all__ = [
     "correlations_section",
     "evaluate_section",
     "prior_section",
-    "sensor_matrices",
     "MODEL_KINDS",
     "model_from_doc",
     "state_from_doc",
@@ -76,7 +75,6 @@ _TOP_KEYS = (
 _SCENARIO_KEYS = ("name", "description", "steps", "runs", "seed", "dt", "state_names")
 _PRIOR_KEYS = ("mean", "cov")
 _TRUTH_KEYS = ("initial_mean", "initial_cov")
-_SENSOR_KEYS = ("name", "H", "R")
 _CORRELATION_KEYS = ("sensors", "cov")
 _EVALUATE_KEYS = ("confidence", "sample_runs", "plane_view")
 
@@ -93,6 +91,8 @@ def system_to_dict(system: System) -> dict[str, Any]:
         "scenario": {"dt": float(system.dt), "state_names": list(system.state_names)},
         "model": {"F": toml.tolist(system.F), "Q": toml.tolist(system.Q)},
     }
+    if system.motion_model is not None:
+        d["model"] = nonlinear.turn_dict(system.motion_model)
     if system.G is not None:
         d["model"]["G"] = toml.tolist(system.G)
     if system.prior is not None:
@@ -108,13 +108,14 @@ def system_to_dict(system: System) -> dict[str, Any]:
         A, Qc = system.continuous
         d["continuous"] = {"A": toml.tolist(A), "Qc": toml.tolist(Qc)}
     d["sensors"] = [
-        {"name": s.name, "H": toml.tolist(s.H), "R": toml.tolist(s.R)} | _timing_dict(s.timing)
-        for s in system.sensors
+        sensor_tables.sensor_to_dict(s) | _timing_dict(s.timing) for s in system.sensors
     ]
     d["correlations"] = [
         {"sensors": [names[i], names[j]], "cov": toml.tolist(c)}
         for (i, j), c in sorted(system.cross_R.items())
     ]
+    if system.filter is not None:
+        d["estimate"] = nonlinear.estimate_dict(system)
     return d
 
 
@@ -158,8 +159,8 @@ def state_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None
     h = header(ctx, sc, model=False)
 
     system = _system(ctx, doc, sc, need_truth=True)
-    check_schedule(ctx, system, h.steps, "scenario.steps")
     architectures = architectures_section(ctx, doc, system)
+    check_schedule(ctx, system, h.steps, "scenario.steps", len(architectures))
     confidence, sample_runs, plane_view = evaluate_section(ctx, doc)
     if plane_view and system.n != 2:
         raise ctx.err("evaluate.plane_view", f"needs a 2-D state, this one has {system.n}")
@@ -203,7 +204,16 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
         if not dt > 0:
             raise ctx.err("scenario.dt", f"must be > 0, got {toml.fmt(dt)}")
 
-    F, Q, G, state_names, dt, continuous = model_section(ctx, doc, state_names, dt)
+    md = doc.get("model")
+    motion = None
+    if isinstance(md, dict) and md.get("kind") == "coordinated-turn":
+        motion, state_names, dt = nonlinear.turn_section(ctx, md, state_names, dt)
+        # F, Q: its linearisation at the zero state (constant velocity) and Q over dt; the
+        # filters and the simulation ask the motion model itself
+        F, Q = motion.jacobian(np.zeros(motion.n), dt).copy(), motion.Q(dt)
+        G, continuous = None, None
+    else:
+        F, Q, G, state_names, dt, continuous = model_section(ctx, doc, state_names, dt)
     n = F.shape[0]
 
     prior = prior_section(ctx, doc, F)
@@ -236,10 +246,12 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
             "[truth] (initial_mean, initial_cov) to draw the true x_0 from",
         )
 
-    sensors = _sensors(ctx, doc, n)
+    sensors = _sensors(ctx, doc, n, tuple(state_names), dt)
     cross_R = correlations_section(ctx, doc, sensors)
+    linear = motion is None and all(s.linear for s in sensors)
+    filt, ukf = nonlinear.filter_section(ctx, doc, n, linear)
 
-    return System(
+    system = System(
         F=F,
         Q=Q,
         G=G,
@@ -250,7 +262,12 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
         dt=dt,
         state_names=state_names,
         continuous=continuous,
+        motion_model=motion,
+        filter=filt,
+        ukf=ukf,
     )
+    nonlinear.check_nonlinear(ctx, system, bool(cross_R))
+    return system
 
 
 def prior_section(ctx: Ctx, doc: dict[str, Any], F: np.ndarray) -> Prior | None:
@@ -274,37 +291,19 @@ def prior_section(ctx: Ctx, doc: dict[str, Any], F: np.ndarray) -> Prior | None:
     return None
 
 
-def sensor_matrices(
-    ctx: Ctx, t: dict[str, Any], where: str, n: int
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """A sensor table's H (m x n; a flat list for one row) and R (m x m, a scalar for one
-    row; None when the table has no R)."""
-    H = toml.matrix(ctx, t["H"], f"{where}.H", scalar=n == 1, row=True)
-    if H.shape[1] != n:
-        raise ctx.err(f"{where}.H", f"shape {toml.shape(H)}, expected {H.shape[0]}x{n} (m x n)")
-    m = H.shape[0]
-    if "R" not in t:
-        return toml.readonly(H), None
-    R = toml.matrix(ctx, t["R"], f"{where}.R", scalar=m == 1)
-    if R.shape != (m, m):
-        raise ctx.err(
-            f"{where}.R",
-            f"shape {toml.shape(R)}, expected {m}x{m} (H has {m} row{'s' * (m > 1)})",
-        )
-    return toml.readonly(H), toml.covariance_checks(ctx, R, f"{where}.R", strict=True)
-
-
-def _sensors(ctx: Ctx, doc: dict[str, Any], n: int) -> tuple[Sensor, ...]:
-    sensors: list[Sensor] = []
-    tables = toml.named_tables(ctx, doc, "sensors", _SENSOR_KEYS, " (name, H, R)", TIMING_KEYS)
-    for where, t, name in tables:
-        H, R = sensor_matrices(ctx, t, where, n)
-        sensors.append(Sensor(name, H, R, sensor_timing(ctx, t, where)))
-    return tuple(sensors)
+def _sensors(
+    ctx: Ctx, doc: dict[str, Any], n: int, states: tuple[str, ...], dt: float
+) -> tuple[SensorModel, ...]:
+    """The sensor models of the [[sensors]] tables, each parsed by its kind's syntax."""
+    allowed = sensor_tables.allowed_keys()
+    tables = toml.named_tables(ctx, doc, "sensors", ("name",), " (name, H, R)", allowed[1:])
+    return tuple(
+        sensor_tables.sensor_from_table(ctx, t, where, nm, n, states, dt) for where, t, nm in tables
+    )
 
 
 def correlations_section(
-    ctx: Ctx, doc: dict[str, Any], sensors: tuple[Sensor, ...]
+    ctx: Ctx, doc: dict[str, Any], sensors: tuple[SensorModel, ...]
 ) -> dict[tuple[int, int], np.ndarray]:
     items = doc.get("correlations", [])
     if isinstance(items, dict):
@@ -387,7 +386,9 @@ def correlations_section(
 
 def architectures_section(ctx: Ctx, doc: dict[str, Any], system: System) -> tuple[str, ...]:
     names = tuple(s.name for s in system.sensors)
-    return toml.architectures(ctx, doc, STATE_ARCHITECTURES, lambda a: parse_arch(a, names))
+    return toml.architectures(
+        ctx, doc, STATE_ARCHITECTURES, lambda a: parse_arch(a, names), ("filter", "ukf")
+    )
 
 
 def evaluate_section(ctx: Ctx, doc: dict[str, Any]) -> tuple[float, int, bool]:

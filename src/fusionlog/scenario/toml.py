@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from fusionlog.errors import ValidationError
+from fusionlog.inputs import check_input
 
 #: Names that end up in MCAP topics, Rerun entity paths and folder names.
 _NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
@@ -40,6 +41,7 @@ class Ctx:
 
 
 def read_text(file: str) -> str:
+    check_input(file)  # a FIFO or a device would block or never end
     try:
         with open(file, "rb") as fh:
             data = fh.read()
@@ -239,7 +241,7 @@ def covariance_checks(ctx: Ctx, A: np.ndarray, where: str, *, strict: bool) -> n
     asym = float(np.max(np.abs(A - A.T)))
     if asym > SYM_RTOL * float(np.max(np.abs(A))):
         raise ctx.err(where, f"not symmetric (max |{label} - {label}^T| = {asym:.3g})")
-    A = 0.5 * (A + A.T)
+    A = 0.5 * A + 0.5 * A.T  # not (A + A^T) / 2: entries near 1e308 would overflow
     lo = min_eig_excess(A, strict=strict)
     if lo is not None:
         kind = "positive definite" if strict else "positive semidefinite"
@@ -250,7 +252,7 @@ def covariance_checks(ctx: Ctx, A: np.ndarray, where: str, *, strict: bool) -> n
 def min_eig_excess(A: np.ndarray, *, strict: bool) -> float | None:
     """The smallest eigenvalue if it violates definiteness, else None. Eigenvalues within
     DEF_RTOL * n * max|eig| of zero count as zero."""
-    w = np.linalg.eigvalsh(0.5 * (A + A.T))
+    w = np.linalg.eigvalsh(0.5 * A + 0.5 * A.T)
     tol = DEF_RTOL * A.shape[0] * float(np.max(np.abs(w)))
     lo = float(w[0])
     bad = lo <= tol if strict else lo < -tol
@@ -269,13 +271,15 @@ def architectures(
     doc: dict[str, Any],
     default: tuple[str, ...],
     check: Any,
+    other_keys: tuple[str, ...] = (),
 ) -> tuple[str, ...]:
     """``[estimate] architectures``: a non-empty list of distinct names, each accepted by
-    ``check(name)`` (which raises ValueError with the reason); `default` when absent."""
+    ``check(name)`` (which raises ValueError with the reason); `default` when absent.
+    `other_keys`: the section's other keys the caller validates (a state's filter, ukf)."""
     est = table(ctx, doc, "estimate", required=False)
     if est is None:
         return default
-    check_keys(ctx, est, "estimate", ("architectures",))
+    check_keys(ctx, est, "estimate", ("architectures", *other_keys))
     if "architectures" not in est:
         return default
     archs = est["architectures"]

@@ -12,6 +12,7 @@ from typing import TypeVar
 from fusionlog import __version__
 from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap import McapFile
+from fusionlog.io.mcap.topics import TRUTH
 from fusionlog.scenario import Scenario, scenario_from_metadata
 
 SCENARIO_META = "fusionlog.scenario"
@@ -28,14 +29,14 @@ def block_runs(steps: int, runs: int, requested: int | None = None) -> int:
     return max(1, min(runs, RUN_STEPS_PER_BLOCK // (steps + 1)))
 
 
-def progress(items: Iterable[T], total: int, desc: str) -> Iterator[T]:
+def progress(items: Iterable[T], total: int, desc: str, unit: str = "block") -> Iterator[T]:
     """A progress bar on a terminal, silence when stderr is piped or captured."""
     if not sys.stderr.isatty():  # what tqdm(disable=True) would do, without importing it
         yield from items
         return
     from tqdm import tqdm  # here: ~0.03 s of import that a piped or captured run never needs
 
-    yield from tqdm(items, total=total, desc=desc, unit="block", leave=False)
+    yield from tqdm(items, total=total, desc=desc, unit=unit, leave=False)
 
 
 def sha256_of(path: Path) -> str:
@@ -79,26 +80,32 @@ def scenario_from_file(mf: McapFile) -> Scenario | None:
 
 
 def open_evaluation_inputs(
-    sensors_path: Path, estimates_path: Path
+    sensors_path: Path,
+    estimates_path: Path,
+    recorded: Scenario | None = None,
+    sensors_sha256: str | None = None,
 ) -> tuple[McapFile, McapFile, dict[str, str], Scenario]:
     """What every evaluation checks first: both files readable, the truth and the scenario
     present, the estimates made from this very sensors file and of the same size.
-    Returns the two files, the estimates' provenance record and the recorded scenario."""
+    Returns the two files, the estimates' provenance record and the recorded scenario
+    (`recorded` and the sensors file's digest when the caller has them: not read again)."""
     sens = McapFile(sensors_path)
     est = McapFile(estimates_path)
-    sc = scenario_from_file(sens) if SCENARIO_META in sens.metadata else None
-    if "/truth" not in sens.topics and (sc is None or sc.replay is None):
+    sc = recorded
+    if sc is None and SCENARIO_META in sens.metadata:
+        sc = scenario_from_file(sens)
+    if TRUTH not in sens.topics and (sc is None or sc.replay is None):
         # a replayed recording without [truth] is evaluated without it (NIS); a simulation
         # always has its truth
         raise FusionlogError(f"{sensors_path}: no /truth topic, nothing to evaluate against")
     if sc is None:
         raise FusionlogError(f"{sensors_path}: no {SCENARIO_META} metadata (not a simulation)")
     prov = est.metadata.get(PROVENANCE_META, {})
-    recorded = prov.get("sensors_sha256")
-    if recorded is not None and recorded != sha256_of(Path(sensors_path)):
+    digest = prov.get("sensors_sha256")
+    if digest is not None and digest != (sensors_sha256 or sha256_of(Path(sensors_path))):
         raise FusionlogError(
             f"{estimates_path}: was estimated from another sensors file "
-            f"({prov.get('sensors_file', '?')}, sha256 {recorded[:12]}...), not {sensors_path}"
+            f"({prov.get('sensors_file', '?')}, sha256 {digest[:12]}...), not {sensors_path}"
         )
     if est.steps() != sens.steps() or est.runs() != sens.runs():
         raise FusionlogError(

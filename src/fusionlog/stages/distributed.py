@@ -17,16 +17,19 @@ and runs in this process never load it.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import logging
 import os
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from fusionlog.errors import FusionlogError
 
+from .cluster import WorkerWatch, check_address, probe_scheduler
 from .common import progress
 
 __all__ = ["DaskExecutor", "Executor", "LocalExecutor", "Task", "default_workers", "executor"]
@@ -99,9 +102,15 @@ class DaskExecutor(Executor):
     """Tasks on a Dask cluster: a LocalCluster of `workers` processes (one thread each) on
     127.0.0.1, or the running scheduler at `scheduler` (its workers as they are)."""
 
-    def __init__(self, workers: int | None = None, scheduler: str | None = None) -> None:
+    def __init__(
+        self,
+        workers: int | None = None,
+        scheduler: str | None = None,
+        timeout: float = CONNECT_TIMEOUT,
+    ) -> None:
         self._n = workers
         self._address = scheduler
+        self._timeout = timeout
         self._cluster: Any = None
         self._client: Any = None
         self._closing: threading.Thread | None = None
@@ -116,7 +125,8 @@ class DaskExecutor(Executor):
             ) from None
         try:
             if self._address is None:
-                n = self._n or default_workers()
+                cpus = default_workers()
+                n = min(self._n or cpus, cpus)
                 # One thread per process: the blocks are numpy work that holds the GIL often,
                 # and Dask's nanny already limits each worker's BLAS to one thread.
                 with _sigint_ignored(), dask.config.set(_LOCAL_CONFIG):
@@ -133,8 +143,12 @@ class DaskExecutor(Executor):
                     )
                 self._client = Client(self._cluster, set_as_default=False)
                 self.description = f"on a LocalCluster of {n} worker process{'es' * (n != 1)}"
+                if self._n is not None and self._n > n:
+                    # more processes than CPUs only compete for them (and each one's
+                    # heartbeats time out): capped, and said where the executor is printed
+                    self.description += f" (--workers {self._n} capped at the {n} CPUs)"
             else:
-                self._client = self._connect(Client, self._address)
+                self._client = self._connect(Client, self._address, self._timeout)
             self.workers = self._wait_for_workers()
         except BaseException:
             self.__exit__(None, None, None)
@@ -142,23 +156,28 @@ class DaskExecutor(Executor):
         return self
 
     @staticmethod
-    def _connect(client_cls: Any, address: str) -> Any:
-        # a quiet client: a scheduler going away at the end must not print warnings
-        logging.getLogger("distributed").setLevel(logging.ERROR)
+    def _connect(client_cls: Any, address: str, timeout: float) -> Any:
+        # a quiet client: a scheduler going away (at the end, or killed) must not print
+        # warnings and tracebacks of its own around our line
+        _quiet_dask()
+        # what answers there is a scheduler, asked before a Client exists: a Client that
+        # fails to connect prints Dask's Client.__del__ traceback when it is collected
+        probe_scheduler(address, timeout)
         try:
-            return client_cls(address, timeout=CONNECT_TIMEOUT, set_as_default=False)
+            return client_cls(address, timeout=timeout, set_as_default=False)
         except (OSError, TimeoutError, ValueError) as e:
             raise FusionlogError(
                 f"--scheduler {address}: cannot connect to a Dask scheduler ({_reason(e)})"
             ) from None
 
     def _wait_for_workers(self) -> int:
+        wait = WORKER_TIMEOUT if self._address is None else self._timeout
         try:
-            self._client.wait_for_workers(1, timeout=WORKER_TIMEOUT)
+            self._client.wait_for_workers(1, timeout=wait)
         except (TimeoutError, OSError) as e:
             raise FusionlogError(
                 f"{self._address or 'LocalCluster'}: no Dask worker joined within "
-                f"{WORKER_TIMEOUT} s ({_reason(e)})"
+                f"{wait:g} s ({_reason(e)})"
             ) from None
         info = self._client.scheduler_info(n_workers=-1)["workers"]
         threads = sum(int(w.get("nthreads", 1)) for w in info.values()) or 1
@@ -187,7 +206,8 @@ class DaskExecutor(Executor):
         self._client = self._cluster = None
         try:
             if client is not None:
-                client.close(timeout=CONNECT_TIMEOUT)
+                with contextlib.suppress(Exception):  # a scheduler already gone: nothing to close
+                    client.close(timeout=self._timeout)
         finally:
             if cluster is not None:
                 cluster.close(timeout=CONNECT_TIMEOUT)
@@ -195,17 +215,22 @@ class DaskExecutor(Executor):
     def map(self, tasks: Sequence[Task], desc: str) -> Iterator[Any]:
         # The first window is submitted now, not at the first next(): the caller may compute
         # something of its own meanwhile (distributed run: the sample runs).
-        return _OrderedResults(self._client, tasks, desc, max(2, WINDOW_PER_WORKER * self.workers))
+        where = f"--scheduler {self._address}" if self._address else "LocalCluster"
+        watch = WorkerWatch(self._client, where, self._timeout if self._address else WORKER_TIMEOUT)
+        window = max(2, WINDOW_PER_WORKER * self.workers)
+        return _OrderedResults(self._client, tasks, desc, window, watch)
 
 
 class _OrderedResults:
     """Results of tasks on a Dask client in task order, at most `window` tasks submitted and
     not yet yielded; close() (or an error while waiting) cancels what is still running."""
 
-    def __init__(self, client: Any, tasks: Sequence[Task], desc: str, window: int) -> None:
+    def __init__(
+        self, client: Any, tasks: Sequence[Task], desc: str, window: int, watch: WorkerWatch
+    ) -> None:
         from distributed import as_completed
 
-        self._client, self._tasks, self._window = client, tasks, window
+        self._client, self._tasks, self._window, self._watch = client, tasks, window, watch
         self._futures: dict[int, Any] = {}
         self._index: dict[str, int] = {}
         self._done: dict[int, Any] = {}
@@ -231,9 +256,13 @@ class _OrderedResults:
             raise StopIteration
         try:
             while self._yielded not in self._done:
+                # as_completed has no timeout: wait here, where the cluster can be watched
+                while not self._pending.has_ready():
+                    self._watch.check()
+                    time.sleep(0.005)  # a result is seldom late by more than this
                 fut = next(self._completed)
                 i = self._index.pop(fut.key)
-                self._done[i] = _result(fut, self._tasks[i])
+                self._done[i] = _result(fut, self._tasks[i], self._watch.where)
                 del self._futures[i]
                 fut.release()
         except BaseException:  # a failed task, Ctrl-C, SIGTERM: stop the others too
@@ -279,13 +308,27 @@ def _reason(e: BaseException) -> str:
     return f"{type(e).__name__}: {text}" if text else type(e).__name__
 
 
-def _result(fut: Any, task: Task) -> Any:
+def _quiet_dask() -> None:
+    """Dask's loggers (its config gives several their own level) silent below CRITICAL."""
+    for name in ["distributed", *logging.root.manager.loggerDict]:
+        if name == "distributed" or name.startswith("distributed."):
+            logging.getLogger(name).setLevel(logging.CRITICAL)
+
+
+def _result(fut: Any, task: Task, where: str) -> Any:
     """A finished task's result; a worker's failure as one line (a FusionlogError from the
     task stays what it is: a numerical error names the architecture and the step)."""
+    from distributed.comm import CommClosedError
+
     try:
         return fut.result()
     except FusionlogError:
         raise
+    except (CommClosedError, concurrent.futures.CancelledError) as e:  # the scheduler went away
+        why = "scheduler-connection-lost" if "scheduler-connection-lost" in str(e) else _reason(e)
+        raise FusionlogError(
+            f"{where}: lost the connection to the Dask scheduler ({why}); nothing was written"
+        ) from None
     except ImportError as e:
         raise FusionlogError(
             f"a Dask worker cannot run fusionlog ({_reason(e)}): install fusionlog, the same "
@@ -302,7 +345,11 @@ def _result(fut: Any, task: Task) -> Any:
 
 
 def executor(
-    workers: int | None, scheduler: str | None, *, local_default: bool = False
+    workers: int | None,
+    scheduler: str | None,
+    *,
+    local_default: bool = False,
+    timeout: float = CONNECT_TIMEOUT,
 ) -> Executor:
     """The executor the options ask for: ``scheduler`` a running cluster; ``workers`` 0 this
     process, N a LocalCluster of N processes; neither: a LocalCluster of one process per CPU,
@@ -312,8 +359,10 @@ def executor(
         raise FusionlogError("--workers and --scheduler: give one of them, not both")
     if workers is not None and workers < 0:
         raise FusionlogError(f"--workers: must be >= 0, got {workers}")
+    if not timeout > 0:
+        raise FusionlogError(f"--scheduler-timeout: must be > 0 seconds, got {timeout:g}")
     if scheduler is not None:
-        return DaskExecutor(scheduler=scheduler)
+        return DaskExecutor(scheduler=check_address(scheduler), timeout=timeout)
     if workers == 0 or (workers is None and local_default):
         return LocalExecutor()
     from .warm_start import WarmStartExecutor  # (it builds on this module)

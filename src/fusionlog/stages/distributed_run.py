@@ -16,6 +16,7 @@ to rounding (the sums are added in another order).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import time
 import uuid
@@ -26,13 +27,15 @@ from typing import Any
 
 import numpy as np
 
+from fusionlog.core.architectures.block import pattern_record
 from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
+from fusionlog.io.mcap import estimates_topic, sensor_topic
 from fusionlog.jsonout import dumps
 from fusionlog.scenario import Scenario
 
 from .common import provenance
-from .distributed import executor
+from .distributed import CONNECT_TIMEOUT, executor
 from .kinds import kind_of
 from .montecarlo import (
     Job,
@@ -41,8 +44,9 @@ from .montecarlo import (
     blocks,
     exact_mask,
     fold,
-    pattern_provenance,
 )
+from .nonlinear import simulated_readings, with_filter
+from .state_eval import StateEvaluator
 
 __all__ = ["DISTRIBUTED_OUTPUTS", "DistributedRun", "run_distributed"]
 
@@ -58,25 +62,6 @@ class DistributedRun:
     summary: dict[str, Any]
     executor: str
     seconds: float
-
-
-class _Unwritten:
-    """What an Evaluator reads of an estimates file, for estimates that were never written:
-    the topics, the instants, the runs and their times (the scenario's)."""
-
-    def __init__(self, scenario: Scenario, archs: Sequence[str]) -> None:
-        self.path = Path(f"<{scenario.name}: distributed run>")
-        self.topics = {f"/estimates/{a}": 0 for a in archs}
-        self._sc = scenario
-
-    def steps(self) -> int:
-        return self._sc.instants
-
-    def runs(self) -> int:
-        return self._sc.runs
-
-    def times(self) -> np.ndarray:
-        return self._sc.times
 
 
 def _remote_blocks(scenario: Scenario, local: int, block: int | None) -> list[tuple[int, int]]:
@@ -97,14 +82,19 @@ def run_distributed(
     archs: Sequence[str] = (),
     workers: int | None = None,
     scheduler: str | None = None,
+    scheduler_timeout: float = CONNECT_TIMEOUT,
     force: bool = False,
     block: int | None = None,
     command: str = "fusionlog run",
+    filter_name: str | None = None,
 ) -> DistributedRun:
     """Evaluate every run of `scenario` on Dask into ``out_dir/evaluation.rrd`` and
     ``out_dir/summary.json`` (both or neither). `workers` N: a LocalCluster of N processes
-    (0: this process); `scheduler`: a running cluster; neither: one process per CPU."""
+    (0: this process); `scheduler`: a running cluster; neither: one process per CPU.
+    `filter_name` (--filter) sets the local filter."""
     sc = scenario
+    if filter_name is not None:
+        sc = dataclasses.replace(sc, system=with_filter(sc.system, filter_name))
     if sc.kind != "state":
         raise FusionlogError(
             f"{sc.path or sc.name}: --workers/--scheduler run state scenarios; "
@@ -119,7 +109,8 @@ def run_distributed(
     local = min(sc.runs, max(sc.sample_runs, PLANE_RUNS if sc.plane_view else 0, 1))
     remote = _remote_blocks(sc, local, block)
     t0 = time.perf_counter()
-    with Outputs(targets, force=force, inputs=inputs) as outs, executor(workers, scheduler) as ex:
+    ex = executor(workers, scheduler, timeout=scheduler_timeout)  # the address checked first
+    with Outputs(targets, force=force, inputs=inputs) as outs, ex:
         totals: dict[str, Any] = {}  # arch -> the workers' sums, merged in block order
         conditional: dict[str, Any] = {}  # arch -> their conditional expected sums
         patterns: set[bytes | None] = set()  # the blocks' shared patterns (two: per-run)
@@ -140,27 +131,23 @@ def run_distributed(
             model_source="scenario",
             architectures=json.dumps(archs),
             runs_on=ex.description,
-            **pattern_provenance(sorted(patterns, key=repr), (sc.instants, sc.system.m)),
+            **pattern_record(sorted(patterns, key=repr), (sc.instants, sc.system.m)),
         )
-        ev = kind.evaluator(sc, _Unwritten(sc, archs), prov)
-        slices = dict(zip(kind.sensor_names(sc.system), sc.system.sensor_slices, strict=True))
-        readings = {f"/sensors/{name}": z[..., sl] for name, sl in slices.items()}
-        ev.add(0, x, {f"/estimates/{a}": (e.mean, e.cov) for a, e in est.items()}, readings)
-        accs = getattr(ev, "accs", None)
-        if not isinstance(accs, dict):  # pragma: no cover - the state Evaluator has them
-            raise TypeError("the state kind's Evaluator keeps no metric accumulators (accs)")
-        for a, acc in totals.items():
-            accs[a].merge(acc)
-        # the evaluator's run averages of each run's exact statistics (per-run patterns): the
-        # workers' join the sample runs'; without them it reports no expected values
-        own = getattr(ev, "conditional", None)
-        if isinstance(own, dict):
-            for a, ce in conditional.items():
-                if a in own:
-                    own[a].merge(ce)
-        summary = ev.summary()
+        system = sc.system.on_times(sc.times)
+        ev = StateEvaluator(sc, archs, system, system, sc.runs, sc.times, prov, source=sc.name)
+        readings = {sensor_topic(s.name): z[..., sl] for s, sl in zip(
+            system.sensors, system.sensor_slices, strict=True)}  # fmt: skip
+        ev.add(0, x, {estimates_topic(a): (e.mean, e.cov) for a, e in est.items()}, readings)
+        # the workers' sums of the other runs (and, for per-run patterns, their runs' exact
+        # sums: the evaluator's own are the sample runs')
+        ev.merge(totals, conditional)
+        if not system.linear:  # the PCRB of the workers' runs: their truth, simulated here
+            for off, n in remote:
+                ev.add_bound(*simulated_readings(sc, off, n))
+        evaluation = ev.evaluation(prov)
+        summary = evaluation.summary
         text = dumps(summary, indent=2) + "\n"  # before the recording, as evaluate does
-        ev.write_recording(outs.open(targets[0]), sc.times, prov)
+        kind.write_evaluation(outs.open(targets[0]), evaluation)
         outs.open(targets[1]).write(text.encode())
         outs.commit()
     return DistributedRun(Path(out_dir), summary, ex.description, time.perf_counter() - t0)

@@ -8,7 +8,8 @@ from pathlib import Path
 
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapFile, McapWriter
-from fusionlog.scenario import kind_of_text, toml
+from fusionlog.io.mcap.topics import estimates_topic
+from fusionlog.scenario import Scenario, kind_of_text, toml
 
 from .common import (
     PROVENANCE_META,
@@ -29,13 +30,10 @@ class EstimateResult:
     steps: int
 
 
-def _kind_name(mf: McapFile, model_path: Path | None) -> str:
+def _kind_name(recorded: Scenario | None, model_path: Path | None) -> str:
     """The kind recorded in the sensors file, else that of the --model file, else state."""
-    meta = mf.metadata.get(SCENARIO_META)
-    if meta is not None:
-        sc = scenario_from_file(mf)
-        assert sc is not None
-        return sc.kind
+    if recorded is not None:
+        return recorded.kind
     if model_path is not None:
         return kind_of_text(toml.read_text(str(model_path)), str(model_path))
     return "state"
@@ -47,16 +45,30 @@ def estimate_to(
     *,
     archs: list[str] | None = None,
     model_path: Path | None = None,
+    filter_name: str | None = None,
     block: int | None = None,
     command: str = "fusionlog estimate",
     sensors_name: str | None = None,
+    recorded: Scenario | None = None,
+    sensors_sha256: str | None = None,
 ) -> EstimateResult:
     """Estimate every run of `sensors_path` with each architecture into an open writer:
-    /estimates/<ARCH>, one message per step per block of runs."""
+    /estimates/<ARCH>, one message per step per block of runs. `recorded` is the scenario
+    recorded in the sensors file and `sensors_sha256` its digest, when the caller (`run`, which
+    wrote it) has them: each is then not read again. `filter_name` (--filter) sets the local
+    filter of a state model."""
     mf = McapFile(sensors_path)
-    kind = kind_of(_kind_name(mf, model_path))
-    recorded = scenario_from_file(mf)
+    if recorded is None:
+        recorded = scenario_from_file(mf)
+    kind = kind_of(_kind_name(recorded, model_path))
     model = kind.model(mf, recorded, model_path)
+    if filter_name is not None:
+        from fusionlog.scenario import system_to_dict
+
+        from .nonlinear import with_filter
+
+        system = with_filter(model.system, filter_name)
+        model = model._replace(system=system, json=json.dumps(system_to_dict(system)))
     system = model.system
     topics = kind.check_sensor_topics(mf, system)
     archs = kind.check_architectures(archs or model.architectures, system, "--arch")
@@ -73,14 +85,14 @@ def estimate_to(
         for k in range(K + 1):
             t = float(times[k])
             for a, write in writers.items():
-                write(w, f"/estimates/{a}", k, t, off)
+                write(w, estimates_topic(a), k, t, off)
     # Written last, when what the whole file holds is known (e.g. the measurement pattern).
     w.add_metadata(
         PROVENANCE_META,
         provenance(
             command,
             recorded.seed if recorded is not None else None,
-            sensors_sha256=sha256_of(Path(sensors_path)),
+            sensors_sha256=sensors_sha256 or sha256_of(Path(sensors_path)),
             sensors_file=sensors_name or Path(sensors_path).name,
             model_source=model.source,
             model=model.json,
@@ -97,6 +109,7 @@ def run_estimate(
     *,
     archs: list[str] | None = None,
     model_path: Path | None = None,
+    filter_name: str | None = None,
     force: bool = False,
     block: int | None = None,
     command: str = "fusionlog estimate",
@@ -107,7 +120,13 @@ def run_estimate(
     with Outputs([out], force=force, inputs=inputs) as outs:
         with McapWriter(outs.open(out)) as w:
             res = estimate_to(
-                sensors_path, w, archs=archs, model_path=model_path, block=block, command=command
+                sensors_path,
+                w,
+                archs=archs,
+                model_path=model_path,
+                filter_name=filter_name,
+                block=block,
+                command=command,
             )
         outs.commit()
     res.path = out

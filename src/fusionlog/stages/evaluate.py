@@ -7,7 +7,9 @@ from pathlib import Path
 from typing import Any
 
 from fusionlog.io.atomic import Outputs
+from fusionlog.io.mcap import TRUTH
 from fusionlog.jsonout import dumps
+from fusionlog.scenario import Scenario
 
 from .common import open_evaluation_inputs, progress
 from .kinds import kind_of
@@ -28,6 +30,8 @@ def evaluate_into(
     summary_path: Path | None = None,
     *,
     block: int | None = None,
+    scenario: Scenario | None = None,
+    sensors_sha256: str | None = None,
 ) -> dict[str, Any]:
     """Metrics of every architecture in `estimates_path` against the truth of `sensors_path`,
     written into the (uncommitted) outputs `out` (.rrd) and `summary_path` (JSON).
@@ -35,22 +39,26 @@ def evaluate_into(
     Metrics are sums over blocks of runs, so memory does not grow with M; what they are and
     which exact expected values stand beside them is the kind's business (its Evaluator).
     """
-    sens, est, prov, sc = open_evaluation_inputs(sensors_path, estimates_path)
-    ev = kind_of(sc.kind).evaluator(sc, est, prov, sens)
+    sens, est, prov, sc = open_evaluation_inputs(
+        sensors_path, estimates_path, scenario, sensors_sha256
+    )
+    kind = kind_of(sc.kind)
+    ev = kind.evaluator(sc, est, prov, sens)
     M = sens.runs()
     B = ev.block_runs(block)
-    truth = ["/truth"] if "/truth" in sens.topics else []  # a recorded log may have none
+    truth = [TRUTH] if TRUTH in sens.topics else []  # a recorded log may have none
     blocks = zip(
         sens.iter_run_blocks(truth + list(ev.sensor_topics), B),
         est.iter_run_blocks(ev.topics, B),
         strict=True,
     )
     for (off, _runs, sdata), (_, _, edata) in progress(blocks, -(-M // B), "evaluate"):
-        ev.add(off, sdata.pop("/truth", None), edata, sdata)
-    summary = ev.summary()
+        ev.add(off, sdata.pop(TRUTH, None), edata, sdata)
+    evaluation = ev.evaluation(prov)
+    summary = evaluation.summary
     # The summary is made first: a recording is never committed beside a summary that failed.
     text = dumps(summary, indent=2) + "\n" if summary_path is not None else None
-    ev.write_recording(outs.open(out), sens.times(), prov)
+    kind.write_evaluation(outs.open(out), evaluation)
     if summary_path is not None:
         outs.open(summary_path).write(text.encode())
     return summary

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -33,6 +34,7 @@ from fusionlog.core.identity.model import ARCHITECTURES, IdentitySystem
 from fusionlog.core.identity.simulate import simulate
 from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap import VALUES, McapFile, McapWriter
+from fusionlog.io.mcap.topics import TRUTH, estimates_topic, sensor_topic
 from fusionlog.scenario import Scenario, check_identity_architectures, load_model
 
 from .common import block_runs
@@ -111,6 +113,11 @@ class IdentityKind(Kind):
     ) -> Estimator:
         return _IdentityEstimator(system, steps, runs, archs, sensors.path)
 
+    def write_evaluation(self, file: BinaryIO, evaluation: Any) -> None:
+        from fusionlog.io.rrd import write_identity_recording  # rerun: slow to import
+
+        write_identity_recording(file, **evaluation.recording)
+
     def evaluator(self, sc: Scenario, est: McapFile, prov: Prov, sens: Sens = None) -> Evaluator:
         return _IdentityEvaluator(sc, est)
 
@@ -133,7 +140,7 @@ class _IdentityEstimator(Estimator):
         self, system: IdentitySystem, steps: int, runs: int, archs: list[str], path: Any
     ) -> None:
         self.system, self.K, self.M, self.archs, self.path = system, steps, runs, archs, path
-        self.topics = [f"/sensors/{s.name}" for s in system.sensors]
+        self.topics = [sensor_topic(s.name) for s in system.sensors]
 
     def block_runs(self, requested: int | None) -> int:
         return _block(self.K, self.M, self.system.n, requested)
@@ -162,6 +169,15 @@ class _IdentityEstimator(Estimator):
         return {"columns": json.dumps(columns(self.system.classes, self.archs))}
 
 
+@dataclass
+class IdentityEvaluation:
+    """A finished identity evaluation: the summary.json dict and what the recording draws
+    (`io.rrd.write_identity_recording`'s arguments)."""
+
+    summary: dict[str, Any]
+    recording: dict[str, Any]
+
+
 class _IdentityEvaluator(Evaluator):
     """Accuracy, log-loss, P(true), DS belief/plausibility/conflict; BAYES-DS disagreement."""
 
@@ -169,13 +185,13 @@ class _IdentityEvaluator(Evaluator):
         self.sc, self.path = sc, est.path
         n = sc.system.n
         d = dims(n)
-        self.archs = [a for a in ARCHITECTURES if f"/estimates/{a}" in est.topics]
+        self.archs = [a for a in ARCHITECTURES if estimates_topic(a) in est.topics]
         if not self.archs:
             have = ", ".join(sorted(est.topics)) or "none"
             raise FusionlogError(
                 f"{est.path}: no /estimates/BAYES or /estimates/DS topics (topics: {have})"
             )
-        self.topics = [f"/estimates/{a}" for a in self.archs]
+        self.topics = [estimates_topic(a) for a in self.archs]
         for a, t in zip(self.archs, self.topics, strict=True):
             if est.kind_of(t) != VALUES or est.dim_of(t) != d[a]:
                 raise FusionlogError(
@@ -183,6 +199,7 @@ class _IdentityEvaluator(Evaluator):
                     f"(fusionlog.Block with {d[a]} values per run for {n} classes)"
                 )
         self.K, self.M = est.steps() - 1, est.runs()
+        self.times = est.times()
         self.metrics = IdentityMetrics(
             self.K + 1, sc.system.classes, self.archs, min(sc.sample_runs, self.M)
         )
@@ -193,7 +210,7 @@ class _IdentityEvaluator(Evaluator):
     def add(self, off: int, truth: Array, estimates: Topics, sensors: Readings = None) -> None:
         n = self.sc.system.n
         try:
-            classes = report_indices(truth[:, 0, 0], n, "/truth", allow_nan=False)
+            classes = report_indices(truth[:, 0, 0], n, TRUTH, allow_nan=False)
         except ValueError as e:
             raise FusionlogError(f"{self.path}: runs from {off}: {e}") from None
         if (truth[..., 0] != truth[:, :1, 0]).any():
@@ -201,9 +218,8 @@ class _IdentityEvaluator(Evaluator):
         ests = {a: estimates[t] for a, t in zip(self.archs, self.topics, strict=True)}
         self.metrics.add(classes, ests, off)
 
-    def summary(self) -> dict[str, Any]:
+    def evaluation(self, provenance: dict[str, Any]) -> IdentityEvaluation:
         res = self.metrics.finish()
-        self._res = res
         out: dict[str, Any] = {
             "kind": "identity",
             "scenario": self.sc.name,
@@ -216,12 +232,6 @@ class _IdentityEvaluator(Evaluator):
         if res.disagreement is not None:
             out["disagreement"] = res.disagreement_overall
             out["final_disagreement"] = res.disagreement_final
-        self._summary = out
-        return out
-
-    def write_recording(self, file: BinaryIO, times: np.ndarray, provenance: dict) -> None:
-        from fusionlog.io.rrd import write_identity_recording  # rerun: slow to import
-
         definitions = {
             "columns": json.dumps(columns(self.sc.system.classes, self.archs)),
             "decision": "BAYES: largest posterior; DS: largest belief, ties by plausibility; "
@@ -230,19 +240,21 @@ class _IdentityEvaluator(Evaluator):
             "per_class": "identity/<kind>/<class>/<ARCH>: mean over the runs whose truth is "
             "<class>",
         }
-        write_identity_recording(
-            file,
-            scenario_name=self.sc.name,
-            seed=self.sc.seed,
-            times=times,
-            classes=self.sc.system.classes,
-            series=self._res.series,
-            disagreement=self._res.disagreement,
-            summary=self._summary,
-            sample_runs=self._res.samples,
-            properties={
-                "scenario": self.sc.source,
-                "provenance": provenance,
-                "identity": definitions,
-            },
+        return IdentityEvaluation(
+            out,
+            dict(
+                scenario_name=self.sc.name,
+                seed=self.sc.seed,
+                times=self.times,
+                classes=self.sc.system.classes,
+                series=res.series,
+                disagreement=res.disagreement,
+                summary=out,
+                sample_runs=res.samples,
+                properties={
+                    "scenario": self.sc.source,
+                    "provenance": provenance,
+                    "identity": definitions,
+                },
+            ),
         )

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from fusionlog.io.mcap import McapFile
 from fusionlog.io.mcap import recover as recover_file
+from fusionlog.io.mcap.topics import SENSORS_PREFIX
 
 __all__ = ["describe", "describe_damaged", "sensor_timing"]
 
@@ -57,7 +58,7 @@ def describe(file: Path) -> Iterator[str]:
             hz = f", {rate:.4g} Hz" if rate else ""
             kind = f"not a fusionlog stream ({enc}{hz}; replay it with a replay file)"
         yield f"  {t:32s} {mf.topics[t]:8d} messages  {mf.schema_of(t)}  {kind}"
-        if t.startswith("/sensors/") and t in ours:
+        if t.startswith(SENSORS_PREFIX) and t in ours:
             yield f"  {'':32s} {sensor_timing(mf, t)}"
     yield f"  metadata: {', '.join(sorted(mf.metadata)) or 'none'}"
 

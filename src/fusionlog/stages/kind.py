@@ -3,9 +3,9 @@
 The drivers (:mod:`.simulate`, :mod:`.estimate`, :mod:`.evaluate`) own what every kind shares:
 the block loop over runs, progress, provenance, the MCAP layout and atomic outputs. A kind
 (``state``: :mod:`.state`; ``identity``: :mod:`.identity`) subclasses :class:`Kind` and says
-how to simulate a block, how to estimate one (an :class:`Estimator`), and how to accumulate
-metrics and write the recording (an :class:`Evaluator`) — as Stone Soup's categorical state is
-just another state type whose updater subclasses the same base.
+how to simulate a block, how to estimate one (an :class:`Estimator`), how to accumulate
+metrics (an :class:`Evaluator`, which returns a value) and how to write that value -- as Stone
+Soup's categorical state is just another state type whose updater subclasses the same base.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from typing import Any, BinaryIO, NamedTuple
 import numpy as np
 
 from fusionlog.errors import FusionlogError
-from fusionlog.io.mcap import VALUES, McapFile, McapWriter
+from fusionlog.io.mcap import VALUES, McapFile, McapWriter, sensor_topic
 from fusionlog.scenario import Scenario
 
 
@@ -80,12 +80,9 @@ class Evaluator(ABC):
         does not have them)."""
 
     @abstractmethod
-    def summary(self) -> dict[str, Any]:
-        """The summary.json dict (DESIGN.md "summary.json")."""
-
-    @abstractmethod
-    def write_recording(self, file: BinaryIO, times: np.ndarray, provenance: dict) -> None:
-        """Serialise the Rerun recording into ``file``."""
+    def evaluation(self, provenance: dict[str, Any]) -> Any:
+        """Everything accumulated, finished: a value whose ``summary`` is the summary.json
+        dict (DESIGN.md "summary.json"), which the kind's `Kind.write_evaluation` writes."""
 
 
 class Kind(ABC):
@@ -139,7 +136,7 @@ class Kind(ABC):
         each present, a ``fusionlog.Block`` stream with the sensor's number of values."""
         topics = []
         for name, dim in self.sensor_dims(system):
-            t = f"/sensors/{name}"
+            t = sensor_topic(name)
             if t not in sensors.topics:
                 have = ", ".join(sorted(sensors.topics)) or "none"
                 raise FusionlogError(
@@ -159,6 +156,10 @@ class Kind(ABC):
         self, system: Any, steps: int, runs: int, archs: list[str], sensors: McapFile
     ) -> Estimator:
         """An estimator of every run with `archs`."""
+
+    @abstractmethod
+    def write_evaluation(self, file: BinaryIO, evaluation: Any) -> None:
+        """Serialise an `Evaluator.evaluation` as the kind's Rerun recording into ``file``."""
 
     @abstractmethod
     def evaluator(self, sc: Scenario, est: McapFile, prov: Prov, sens: Sens = None) -> Evaluator:

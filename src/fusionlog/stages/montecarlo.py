@@ -17,19 +17,17 @@ the jobs it has seen (``_CACHE``), so the blocks after the first of a job do not
 from __future__ import annotations
 
 import functools
-import json
 import sys
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import numpy as np
 
-from fusionlog.core.architectures import Estimate, Plan, build_plan, run_plan, shared_pattern
-from fusionlog.core.model import System
+from fusionlog.core.architectures import Estimate, PlanCache, estimate_block
 from fusionlog.memory import keep_freed_memory
 from fusionlog.scenario import Scenario
 
@@ -45,7 +43,6 @@ __all__ = [
     "exact_mask",
     "expected_overall",
     "fold",
-    "pattern_provenance",
     "point_expected",
 ]
 
@@ -84,13 +81,7 @@ class BlockSums:
     expected: dict[str, Any] | None = None
 
 
-@dataclass
-class _Compiled:
-    system: System  # on the scenario's instants
-    plans: dict[tuple[str, bytes], Plan] = field(default_factory=dict)
-
-
-_CACHE: OrderedDict[str, _Compiled] = OrderedDict()
+_CACHE: OrderedDict[str, PlanCache] = OrderedDict()
 _LOCK = threading.Lock()
 #: Scratch arrays of the metric sums, one set per thread (a `dask worker` may run several
 #: tasks at once in threads; a workspace must not be shared between them).
@@ -145,14 +136,15 @@ def blocks(scenario: Scenario, requested: int | None = None) -> list[tuple[int, 
     return [(off, min(size, M - off)) for off in range(0, M, size)]
 
 
-def _compiled(job: Job) -> _Compiled:
+def _plans(job: Job) -> PlanCache:
+    """The job's plan cache in this process (its system on the scenario's instants)."""
     with _LOCK:
         c = _CACHE.get(job.token)
         if c is not None:
             _CACHE.move_to_end(job.token)
             return c
     sc = job.scenario
-    c = _Compiled(sc.system.on_times(sc.times))
+    c = PlanCache.of(sc.system, sc.times)
     with _LOCK:
         c = _CACHE.setdefault(job.token, c)
         while len(_CACHE) > CACHED_JOBS:
@@ -160,85 +152,46 @@ def _compiled(job: Job) -> _Compiled:
     return c
 
 
+def _simulated(job: Job, run_offset: int, runs: int) -> tuple[np.ndarray, np.ndarray]:
+    """Truth (runs, K+1, n) and stacked readings (runs, K+1, m; NaN where absent) of runs
+    [run_offset, run_offset + runs), simulated with the kind's hook (those `run` writes)."""
+    sc = job.scenario
+    x, zs = kind_of(sc.kind).simulate(sc, run_offset, runs)
+    return x, np.concatenate(zs, axis=-1)
+
+
 @_one_blas_thread
 def block_estimates(
     job: Job, run_offset: int, runs: int
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Estimate], np.ndarray | None]:
-    """Truth (runs, K+1, n), the stacked readings (runs, K+1, m; NaN where absent), each
-    architecture's estimates and the shared measurement pattern (None when runs differ) of runs
-    [run_offset, run_offset + runs): as the estimate stage computes them."""
-    x, z, plans, pattern = _block(job, run_offset, runs)
-    return x, z, {a: run_plan(plan, z) for a, plan in plans.items()}, pattern
-
-
-def _block(
-    job: Job, run_offset: int, runs: int
-) -> tuple[np.ndarray, np.ndarray, dict[str, Plan], np.ndarray | None]:
-    """Truth, readings, each architecture's plan and the shared pattern of a block: one plan
-    per architecture and shared pattern (compiled once per job), or one built for the block's
-    runs when their patterns differ (what `core.architectures.estimate` does)."""
-    sc = job.scenario
-    c = _compiled(job)
-    x, zs = kind_of(sc.kind).simulate(sc, run_offset, runs)
-    z = np.concatenate(zs, axis=-1)
-    pattern = shared_pattern(z)
-    K = sc.instants - 1
-    plans = {
-        a: _plan(job, c, a, pattern)
-        if pattern is not None
-        else build_plan(c.system, a, K, ~np.isnan(z))
-        for a in job.archs
-    }
-    return x, z, plans, pattern
-
-
-def _plan(job: Job, c: _Compiled, arch: str, pattern: np.ndarray) -> Plan:
-    """The architecture's plan for a measurement pattern shared by all runs (compiled once per
-    job and pattern in this process; the exact analysis and the blocks share it)."""
-    key = (arch, np.packbits(pattern).tobytes())
-    plan = c.plans.get(key)
-    if plan is None:
-        K = job.scenario.instants - 1
-        plan = build_plan(c.system, arch, K, None if pattern.all() else pattern)
-        c.plans[key] = plan
-    return plan
+    """Truth, the stacked readings, each architecture's estimates and the shared measurement
+    pattern (None when runs differ) of a block: `estimate_block`, as the estimate stage."""
+    x, z = _simulated(job, run_offset, runs)
+    c = _plans(job)
+    block = estimate_block(c.system, job.archs, z, cache=c)
+    return x, z, block.estimates, block.pattern
 
 
 @_one_blas_thread
 def block_sums(job: Job, run_offset: int, runs: int) -> BlockSums:
-    """The metric sums of one block of runs (the task a worker runs)."""
-    from fusionlog.core.metrics import MetricsAccumulator, MetricsWorkspace
-
+    """The metric sums of one block of runs (the task a worker runs): `estimate_block` with
+    the truth, the estimates dropped once reduced (and, for a conditional job, its runs'
+    exact sums given their patterns)."""
     t0 = time.perf_counter()
-    x, z, plans, pattern = _block(job, run_offset, runs)
+    x, z = _simulated(job, run_offset, runs)
+    c = _plans(job)
     ws = getattr(_LOCAL, "workspace", None)
     if ws is None:
+        from fusionlog.core.metrics import MetricsWorkspace
+
         ws = _LOCAL.workspace = MetricsWorkspace()
-    sums = {}
-    empty = MetricsWorkspace()
-    for a, plan in plans.items():
-        e = run_plan(plan, z)
-        acc = MetricsAccumulator(x.shape[1], x.shape[2], workspace=ws)
-        acc.add(x, e.mean, e.cov)
-        acc.workspace = empty  # the scratch arrays stay here: only the sums travel
-        sums[a] = acc
-    expected = _conditional(job, plans, runs) if job.conditional else None
-    key = None if pattern is None else np.packbits(pattern).tobytes()
-    return BlockSums(run_offset, runs, sums, key, time.perf_counter() - t0, expected)
-
-
-def _conditional(job: Job, plans: dict[str, Plan], runs: int) -> dict[str, Any]:
-    """Each run's exact statistics given its pattern, summed (`core.exact.ConditionalExpected`,
-    as the state evaluator sums them): a plan shared by the block's runs is analysed once."""
-    from fusionlog.core.exact import ConditionalExpected, analyse
-
-    c = _compiled(job)
-    out = {}
-    for a, plan in plans.items():
-        ce = ConditionalExpected(job.scenario.instants, c.system.n)
-        ce.add(analyse(plan, c.system), 1 if plan.per_run else runs)
-        out[a] = ce
-    return out
+    expected_of = c.system if job.conditional else None
+    block = estimate_block(
+        c.system, job.archs, z, truth=x, expected_of=expected_of, cache=c, workspace=ws, keep=False
+    )
+    key = None if block.pattern is None else np.packbits(block.pattern).tobytes()
+    assert block.sums is not None
+    return BlockSums(run_offset, runs, block.sums, key, time.perf_counter() - t0, block.expected)
 
 
 def fold(totals: dict[str, Any], block: BlockSums, expected: dict[str, Any] | None = None) -> None:
@@ -255,26 +208,13 @@ def fold(totals: dict[str, Any], block: BlockSums, expected: dict[str, Any] | No
                 into[a] = acc
 
 
-def pattern_provenance(patterns: Sequence[bytes | None], shape: tuple[int, int]) -> dict[str, str]:
-    """The ``measurement_pattern`` the estimate stage records (its Estimator.provenance), from
-    the blocks' shared patterns: "complete", the mask as JSON, or "per-run" when any block's
-    runs differed or two blocks had different patterns."""
-    if not patterns or any(p is None for p in patterns) or len(set(patterns)) > 1:
-        return {"measurement_pattern": "per-run"}
-    mask = np.unpackbits(np.frombuffer(patterns[0], dtype=np.uint8))[: shape[0] * shape[1]]
-    mask = mask.reshape(shape).astype(bool)
-    if mask.all():
-        return {"measurement_pattern": "complete"}
-    return {"measurement_pattern": json.dumps(mask.astype(int).tolist())}
-
-
 def exact_mask(scenario: Scenario) -> tuple[bool, np.ndarray | None]:
     """(whether an exact analysis exists, the measurement mask it needs) from the scenario
     alone: the sensors' schedule gives a pattern shared by every run (None: complete); a
     sensor with dropouts makes the runs differ, and then there is none (yet: a per-run exact
     analysis would average each run's)."""
     system = scenario.system
-    if any(s.timing.dropout > 0 for s in system.sensors):
+    if not system.linear or any(s.timing.dropout > 0 for s in system.sensors):
         return False, None
     measures = scenario.schedule.measures
     if measures.all():
@@ -288,16 +228,14 @@ def expected_overall(ex: Any) -> dict[str, float | None]:
     steps where the architecture reports a covariance (some run does), which are the steps
     where its Monte Carlo estimates are defined, the steps `MetricsResult.expected_overall`
     averages over (non-finite entries skipped likewise)."""
-    # a run average (ConditionalExpected) counts the runs defined at each step
-    valid = ex.count > 0 if hasattr(ex, "count") else ex.defined
+    from fusionlog.core.exact import ConditionalExpected
+    from fusionlog.core.linalg import finite_mean
+    from fusionlog.core.metrics import expected_means
 
-    def mean(a: np.ndarray) -> float | None:
-        a = a[np.isfinite(a)]
-        return float(a.mean()) if a.size else None
-
-    per_state = [mean(ex.mse_per_state[valid, i]) for i in range(ex.mse_per_state.shape[1])]
-    mse = None if any(v is None for v in per_state) else float(np.mean(per_state))
-    return {"mse": mse, "anees": mean(ex.nees[valid]), "dm": mean(ex.dm[valid])}
+    # a run average counts the runs defined at each step
+    valid = ex.count > 0 if isinstance(ex, ConditionalExpected) else ex.defined
+    mse = expected_means(ex.mse_per_state, valid)
+    return {"mse": mse, "anees": finite_mean(ex.nees[valid]), "dm": finite_mean(ex.dm[valid])}
 
 
 @_one_blas_thread
@@ -309,7 +247,5 @@ def point_expected(job: Job) -> dict[str, dict[str, float | None] | None]:
     ok, mask = exact_mask(job.scenario)
     if not ok:
         return dict.fromkeys(job.archs)
-    c = _compiled(job)
-    if mask is None:
-        mask = np.ones((job.scenario.instants, c.system.m), dtype=bool)
-    return {a: expected_overall(analyse(_plan(job, c, a, mask), c.system)) for a in job.archs}
+    c = _plans(job)
+    return {a: expected_overall(analyse(c.plan(a, mask), c.system)) for a in job.archs}

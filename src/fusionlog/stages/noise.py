@@ -13,39 +13,49 @@ import dataclasses
 
 import numpy as np
 
-from fusionlog.core.model import System
+from fusionlog.core.model import System, nominal_R
 from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap import McapFile
+from fusionlog.io.mcap.topics import sensor_topic
 
-__all__ = ["with_message_covariances"]
+__all__ = ["with_covariances", "with_message_covariances"]
 
 
 def with_message_covariances(system: System, log: McapFile) -> System:
     """`system` with the per-instant R of the log's sensor messages (itself when none has)."""
     covs = {}
-    for j, sen in enumerate(system.sensors):
-        topic = f"/sensors/{sen.name}"
+    for sen in system.sensors:
+        topic = sensor_topic(sen.name)
         c = log.message_covariances(topic) if topic in log.topics else None
         if c is not None:
-            covs[j] = c
-    bad = [s.name for j, s in enumerate(system.sensors) if j not in covs and not _finite(s.R)]
+            covs[sen.name] = c
+    return with_covariances(system, covs, log.steps(), str(log.path))
+
+
+def with_covariances(
+    system: System, covs: dict[str, np.ndarray], instants: int, source: str
+) -> System:
+    """`system` with the per-instant stacked R (`System.Rs`, eq. 31) of its sensors' own
+    covariances `covs[name]` ((K+1, m, m), NaN at instants without one) over `instants` K+1
+    (itself when there are none); a sensor without an R of its own takes `nominal_R`."""
+    bad = [s.name for s in system.sensors if s.name not in covs and not _finite(s.R)]
     if bad:
         raise FusionlogError(
-            f"{log.path}: sensor {bad[0]!r} has no R and its messages carry no covariance"
+            f"{source}: sensor {bad[0]!r} has no R and its messages carry no covariance"
         )
     if not covs:
         return system
     sensors = list(system.sensors)
-    for j, c in covs.items():
-        if not _finite(sensors[j].R):
-            have = np.isfinite(c).all(axis=(-2, -1))
-            sensors[j] = dataclasses.replace(sensors[j], R=c[have].mean(axis=0))
+    for j, sen in enumerate(sensors):
+        if sen.name in covs and not _finite(sen.R):
+            sensors[j] = dataclasses.replace(sen, R=nominal_R(covs[sen.name]))
     nominal = dataclasses.replace(system, sensors=tuple(sensors))
-    Rs = np.repeat(nominal.R[None], log.steps(), axis=0)
-    for j, c in covs.items():
-        sl = nominal.sensor_slices[j]
-        have = np.isfinite(c).all(axis=(-2, -1))
-        Rs[have, sl, sl] = c[have]
+    Rs = np.repeat(nominal.R[None], instants, axis=0)
+    for sen, sl in zip(nominal.sensors, nominal.sensor_slices, strict=True):
+        if sen.name in covs:
+            c = covs[sen.name]
+            have = np.isfinite(c).all(axis=(-2, -1))
+            Rs[have, sl, sl] = c[have]
     return dataclasses.replace(nominal, Rs=Rs)
 
 

@@ -18,9 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
+from fusionlog.core.model import nominal_R
 from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapWriter
+from fusionlog.io.mcap.topics import TRUTH, sensor_topic
 from fusionlog.scenario import Scenario, Stream, check_budget, scenario_with
 
 from .common import PROVENANCE_META, SCENARIO_META, provenance, scenario_metadata, sha256_of
@@ -109,7 +111,7 @@ def read_replay(scenario: Scenario) -> ReplayData:
                 )
             cov = np.where(good[:, None, None], s.cov, R if np.isfinite(R).all() else 0.0)
             if not np.isfinite(R).all():
-                R = cov.mean(axis=0)  # the nominal R of a sensor given by its messages alone
+                R = nominal_R(cov)  # a sensor given by its messages alone
             if np.array_equal(cov, np.broadcast_to(R, cov.shape)):
                 cov = None  # R does not vary: no per-message covariance needed
         nominal.append(R)
@@ -132,7 +134,7 @@ def read_replay(scenario: Scenario) -> ReplayData:
         values[:, list(replay.truth_states)] = t.values[match]
         truth = {"at": pos[match], "values": values}
     new_sensors = tuple(
-        type(sen)(sen.name, sen.H, np.asarray(R), sen.timing)
+        dataclasses.replace(sen, R=np.asarray(R))
         for sen, R in zip(system.sensors, nominal, strict=True)
     )
     sc = dataclasses.replace(scenario, system=dataclasses.replace(system, sensors=new_sensors))
@@ -160,7 +162,7 @@ def import_to(data: ReplayData, w: McapWriter, *, command: str) -> int:
                      | ({str(sc.replay.truth.source)} if sc.replay.truth else set()))  # fmt: skip
     extra = {f"source_sha256:{p}": sha256_of(Path(p)) for p in sources}
     w.add_metadata(PROVENANCE_META, provenance(command, None, sources=json.dumps(sources), **extra))
-    topics = [f"/sensors/{s.name}" for s in sc.system.sensors]
+    topics = [sensor_topic(s.name) for s in sc.system.sensors]
     # readings per instant: (sensor, row) pairs, in instant order
     rows: list[list[tuple[int, int]]] = [[] for _ in instants]
     for j, s in enumerate(sensors):
@@ -172,7 +174,7 @@ def import_to(data: ReplayData, w: McapWriter, *, command: str) -> int:
     messages = 0
     for k, t in enumerate(times.tolist()):
         if truth_row[k] >= 0:
-            w.write_values("/truth", k, t, 0, truth["values"][truth_row[k]][None])
+            w.write_values(TRUTH, k, t, 0, truth["values"][truth_row[k]][None])
             messages += 1
         for j, r in rows[k]:
             s = sensors[j]

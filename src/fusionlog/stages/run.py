@@ -10,10 +10,12 @@ from typing import Any
 
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapWriter
-from fusionlog.scenario import Scenario
+from fusionlog.scenario import Scenario, check_budget
 
+from .common import sha256_of
 from .estimate import estimate_to
 from .evaluate import evaluate_into
+from .kinds import kind_of
 from .simulate import simulate_to
 
 #: The outputs of a run, in the order they are written.
@@ -33,6 +35,7 @@ def run_pipeline(
     out_dir: Path,
     *,
     archs: list[str],
+    filter_name: str | None = None,
     force: bool = False,
     block: int | None = None,
     command: str = "fusionlog run",
@@ -46,6 +49,8 @@ def run_pipeline(
     if sc.replay is not None:
         inputs += [s.source for s in sc.replay.sensors]
         inputs += [sc.replay.truth.source] if sc.replay.truth is not None else []
+    else:  # before the output folder is made: a run that cannot fit leaves nothing behind
+        check_budget(sc, kind_of(sc.kind).bytes_per_run_step(sc), "simulating")
     seconds: dict[str, float] = {}
     notes: list[str] = []
     with Outputs(list(outs.values()), force=force, inputs=inputs) as o:
@@ -64,14 +69,21 @@ def run_pipeline(
                 simulate_to(sc, w, block=block, command=command)
             seconds["simulate"] = time.perf_counter() - t0
         t1 = time.perf_counter()
+        # the scenario the sensors file records is `sc` (parsed once, by the caller) and its
+        # digest is taken once: the estimate and evaluate steps do not read them again
+        sensors = o.temp_path(outs["sensors.mcap"])
+        digest = sha256_of(sensors)
         with McapWriter(o.open(outs["estimates.mcap"])) as w:
             estimate_to(
-                o.temp_path(outs["sensors.mcap"]),
+                sensors,
                 w,
                 archs=archs or list(sc.architectures),
+                filter_name=filter_name,
                 block=block,
                 command=command,
                 sensors_name="sensors.mcap",
+                recorded=sc,
+                sensors_sha256=digest,
             )
         seconds["estimate"] = time.perf_counter() - t1
         t2 = time.perf_counter()
@@ -82,6 +94,8 @@ def run_pipeline(
             outs["evaluation.rrd"],
             outs["summary.json"],
             block=block,
+            scenario=sc,
+            sensors_sha256=digest,
         )
         o.commit()
         seconds["evaluate"] = time.perf_counter() - t2

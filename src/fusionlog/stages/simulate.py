@@ -9,6 +9,7 @@ import numpy as np
 
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapWriter
+from fusionlog.io.mcap.topics import TRUTH, sensor_topic
 from fusionlog.scenario import Scenario, check_budget
 
 from .common import (
@@ -40,7 +41,7 @@ def simulate_to(
     check_budget(scenario, kind.bytes_per_run_step(scenario), "simulating")
     B = block_runs(K, M, block)
     times = scenario.times  # the reader relies on exactly these
-    topics = [f"/sensors/{name}" for name in kind.sensor_names(scenario.system)]
+    topics = [sensor_topic(name) for name in kind.sensor_names(scenario.system)]
     # A sensor's topic has a message only at the instants it measures (its own rate).
     measures = scenario.schedule.measures
     if measures.shape[1] != len(topics):  # a kind without sensor timing: every instant
@@ -55,7 +56,7 @@ def simulate_to(
         x, z = kind.simulate(scenario, off, runs)
         for k in range(K + 1):
             t = float(times[k])
-            w.write_values("/truth", k, t, off, x[:, k])
+            w.write_values(TRUTH, k, t, off, x[:, k])
             for j in per_step[k]:
                 w.write_values(topics[j], k, t, off, z[j][:, k])
         messages += (K + 1) + int(measures.sum())

@@ -1,14 +1,10 @@
 """The state kind's stage hooks: linear Gaussian systems and the paper's fusion architectures.
 
-Simulation is :func:`fusionlog.core.simulate.simulate`; estimation compiles each architecture
-into a plan once per measurement pattern shared by a block's runs (:mod:`fusionlog.core.
-architectures`) and falls back to the per-run path when runs differ; evaluation accumulates
-MSE (eq. 45), NEES and the Mahalanobis distance (eq. 47) over blocks
-(:class:`fusionlog.core.metrics.MetricsAccumulator`) and puts the exact expected values of the
-covariance analysis (:func:`fusionlog.core.exact.analyse`) beside them: for a measurement pattern
-shared by every run, those of its plan; for per-run patterns (dropouts), the average of each
-run's exact values given its pattern (:class:`fusionlog.core.exact.ConditionalExpected`), its
-plan built from the block's sensor readings.
+The hooks are adapters: simulation is :func:`fusionlog.core.simulate.simulate`, estimation of a
+block read from MCAP is :func:`fusionlog.core.architectures.estimate_block` (with one
+`PlanCache` per command: a plan per architecture and measurement pattern), and evaluation is
+:class:`.state_eval.StateEvaluator`, which accumulates arrays and returns an `Evaluation` that
+:func:`fusionlog.io.rrd.write_evaluation` writes.
 """
 
 from __future__ import annotations
@@ -20,21 +16,21 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from fusionlog.core.architectures import Plan, build_plan, estimate, run_plan, shared_pattern
-from fusionlog.core.exact import ConditionalExpected, Expected, analyse
+from fusionlog.core.architectures import PlanCache, estimate_block
 from fusionlog.core.model import System
-from fusionlog.core.names import parse_arch
+from fusionlog.core.names import check_architectures
 from fusionlog.core.simulate import simulate
 from fusionlog.errors import FusionlogError
-from fusionlog.io.mcap import McapFile, McapWriter
+from fusionlog.io.mcap import TRUTH, McapFile, McapWriter, arch_of, sensor_topic
+from fusionlog.io.mcap.topics import ESTIMATES_PREFIX
 from fusionlog.scenario import Scenario, load_model, system_from_dict, system_to_dict
+from fusionlog.scenario.model import bytes_per_instant
 
 from .common import block_runs
-from .kind import Array, Estimator, Evaluator, Kind, Model, Prov, Readings, Sens, StepWriter, Topics
+from .kind import Estimator, Kind, Model, Prov, Sens, StepWriter
 from .noise import with_message_covariances
-
-#: Sample estimates per architecture drawn in the state-plane view.
-PLANE_POINTS = 300
+from .nonlinear import step_writers
+from .state_eval import SensorLog, StateEvaluator
 
 
 class StateKind(Kind):
@@ -44,20 +40,13 @@ class StateKind(Kind):
         return {"system": json.dumps(system_to_dict(scenario.system))}
 
     def bytes_per_run_step(self, scenario: Scenario) -> int:
-        # truth and measurements in float64, and the plans' per-step maps of the estimate stage
-        s: System = scenario.system
-        return 8 * (s.n + s.m) * 4 + 8 * s.n * (s.n + s.m) * len(scenario.architectures)
+        return bytes_per_instant(scenario.system, len(scenario.architectures))
 
     def sensor_names(self, system: System) -> list[str]:
         return [s.name for s in system.sensors]
 
     def check_architectures(self, names: Sequence[str], system: System, where: str) -> list[str]:
-        for a in names:
-            try:
-                parse_arch(a, [s.name for s in system.sensors])
-            except ValueError as e:
-                raise FusionlogError(f"{where}: {e}") from e
-        return list(dict.fromkeys(names))
+        return check_architectures(names, system, where)
 
     def simulate(
         self, scenario: Scenario, run_offset: int, runs: int
@@ -88,61 +77,79 @@ class StateKind(Kind):
     def estimator(
         self, system: System, steps: int, runs: int, archs: list[str], sensors: McapFile
     ) -> Estimator:
-        topics = [f"/sensors/{s.name}" for s in system.sensors]
-        system = with_message_covariances(on_times(system, sensors), sensors)
-        return _StateEstimator(system, steps, runs, archs, topics)
+        topics = [sensor_topic(s.name) for s in system.sensors]
+        system = with_message_covariances(system.on_times(sensors.times()), sensors)
+        plans = PlanCache(system, steps, times=sensors.times())
+        return _StateEstimator(plans, runs, archs, topics)
 
-    def evaluator(self, sc: Scenario, est: McapFile, prov: Prov, sens: Sens = None) -> Evaluator:
-        return _StateEvaluator(sc, est, prov, sens)
+    def evaluator(
+        self, sc: Scenario, est: McapFile, prov: Prov, sens: Sens = None
+    ) -> StateEvaluator:
+        """The evaluator of an estimates file: its architectures, the filters' model (recorded
+        in its provenance, else the scenario's) and the truth's, on its instants, with the
+        sensors log's per-message R where it has them."""
+        archs = [arch_of(t) for t in est.topics if t.startswith(ESTIMATES_PREFIX)]
+        if not archs:
+            have = ", ".join(sorted(est.topics)) or "none"
+            raise FusionlogError(f"{est.path}: no /estimates/<ARCH> topics (topics: {have})")
+        times = est.times()
+        truth_sys = sc.system.on_times(times)
+        filter_sys = (
+            system_from_dict(json.loads(prov["model"]), f"{est.path}: provenance model")
+            if "model" in prov
+            else sc.system
+        ).on_times(times)
+        log = None
+        if sens is not None:  # an imported log's per-message R, for the filter and the truth
+            filter_sys = with_message_covariances(filter_sys, sens)
+            truth_sys = with_message_covariances(truth_sys, sens)
+            log = _sensor_log(sc, filter_sys, sens)
+        return StateEvaluator(
+            sc, archs, filter_sys, truth_sys, est.runs(), times, prov, log, str(est.path)
+        )
+
+    def write_evaluation(self, file: BinaryIO, evaluation: Any) -> None:
+        from fusionlog.io.rrd import write_evaluation  # rerun: slow to import, needed only here
+
+        write_evaluation(file, evaluation)
+
+
+def _sensor_log(sc: Scenario, filter_sys: System, sens: McapFile) -> SensorLog:
+    """Whether the sensors log has the truth, and each sensor's scheduled instants where
+    availability says something: a replayed recording, or sensors with their own timing."""
+    timed = sc.replay is not None or any(not s.timing.default for s in sc.system.sensors)
+    topics = [sensor_topic(s.name) for s in filter_sys.sensors]
+    scheduled = None
+    if timed and all(t in sens.topics for t in topics):
+        scheduled = {
+            s.name: sens.topic_steps(t) for s, t in zip(filter_sys.sensors, topics, strict=True)
+        }
+    return SensorLog(TRUTH in sens.topics, scheduled)
 
 
 class _StateEstimator(Estimator):
-    def __init__(
-        self, system: System, steps: int, runs: int, archs: list[str], topics: list[str]
-    ) -> None:
-        self.system, self.K, self.M, self.archs, self.topics = system, steps, runs, archs, topics
-        self.plans: dict[tuple[str, bytes], Plan] = {}
-        self.pattern: np.ndarray | None = None  # the measurement pattern shared by every run
-        self.per_run = False
+    """Blocks read from a sensors file through `estimate_block`, one plan cache for all."""
+
+    def __init__(self, plans: PlanCache, runs: int, archs: list[str], topics: list[str]) -> None:
+        self.plans, self.M, self.archs, self.topics = plans, runs, archs, topics
 
     def block_runs(self, requested: int | None) -> int:
-        return block_runs(self.K, self.M, requested)
+        return block_runs(self.plans.steps, self.M, requested)
 
     def estimate(self, run_offset: int, data: dict[str, np.ndarray]) -> dict[str, StepWriter]:
         z = np.concatenate([data[t] for t in self.topics], axis=-1)
-        block_pattern = shared_pattern(z)
-        if block_pattern is None or (
-            self.pattern is not None and (block_pattern != self.pattern).any()
-        ):
-            self.per_run = True
-        elif self.pattern is None:
-            self.pattern = block_pattern
-        out: dict[str, StepWriter] = {}
-        for a in self.archs:
-            if block_pattern is not None:
-                key = (a, np.packbits(block_pattern).tobytes())
-                if key not in self.plans:
-                    mask = None if block_pattern.all() else block_pattern
-                    self.plans[key] = build_plan(self.system, a, self.K, mask)
-                est = run_plan(self.plans[key], z)
-            else:
-                est = estimate(self.system, z, a)
-            out[a] = _estimate_writer(est.mean, est.cov, est.shared_cov)
-        return out
+        if not self.plans.system.linear:  # EKF/UKF: each instant computed as it is written
+            self.plans.patterns.append(None)  # per-run covariances (provenance)
+            return step_writers(self.plans, self.archs, z, run_offset)
+        block = estimate_block(self.plans.system, self.archs, z, cache=self.plans)
+        return {
+            a: _estimate_writer(e.mean, e.cov, e.shared_cov) for a, e in block.estimates.items()
+        }
 
     def provenance(self) -> dict[str, str]:
         # The evaluator's exact analysis needs it: a shared pattern is analysed with the same
         # mask, per-run patterns are not.
-        if self.per_run or self.pattern is None:
-            return {"measurement_pattern": "per-run"}
-        if self.pattern.all():
-            return {"measurement_pattern": "complete"}
-        return {"measurement_pattern": json.dumps(self.pattern.astype(int).tolist())}
-
-
-def on_times(system: System, file: McapFile) -> System:
-    """The system on the instants of a log (`System.on_times`)."""
-    return system.on_times(file.times())
+        return self.plans.provenance()
 
 
 def _estimate_writer(mean: np.ndarray, cov: np.ndarray, shared: bool) -> StepWriter:
@@ -150,270 +157,3 @@ def _estimate_writer(mean: np.ndarray, cov: np.ndarray, shared: bool) -> StepWri
         w.write_estimate(topic, k, t, off, mean[:, k], cov[k] if shared else cov[:, k])
 
     return write
-
-
-def _analysable(prov: dict[str, str], filter_sys: System, truth_sys: System):
-    """(truth model as the filter saw it, measurement mask, per run) for the exact analysis, or
-    None.
-
-    The filter stacks its sensors in its own order, so the truth is re-ordered to match by
-    sensor name (a `--model` may list them differently or use only some); sensors the truth
-    does not have leave no exact analysis. `per run`: the runs' patterns differ (the mask is
-    then None: each block's plans are built from its sensor readings).
-    """
-    pattern = prov.get("measurement_pattern", "complete")
-    names = [s.name for s in truth_sys.sensors]
-    if any(s.name not in names for s in filter_sys.sensors):
-        return None
-    seen = truth_sys.subset([names.index(s.name) for s in filter_sys.sensors])
-    if any(a.dim != b.dim for a, b in zip(seen.sensors, filter_sys.sensors, strict=True)):
-        return None
-    if pattern == "per-run":
-        return seen, None, True
-    mask = None if pattern == "complete" else np.array(json.loads(pattern), dtype=bool)
-    return seen, mask, False
-
-
-def _known(arch: str, system: System) -> bool:
-    try:
-        parse_arch(arch, [s.name for s in system.sensors])
-    except ValueError:
-        return False
-    return True
-
-
-class _StateEvaluator(Evaluator):
-    """MSE, NEES, DM per architecture with exact expected values; sample runs; state plane."""
-
-    def __init__(
-        self, sc: Scenario, est: McapFile, prov: dict[str, str], sens: McapFile | None = None
-    ) -> None:
-        # here, not at the top: core.metrics imports scipy.special (~0.25 s), which only an
-        # evaluation needs, and this module is loaded by simulate and estimate too
-        from fusionlog.core.metrics import MetricsAccumulator
-
-        self.topics = [t for t in est.topics if t.startswith("/estimates/")]
-        if not self.topics:
-            have = ", ".join(sorted(est.topics)) or "none"
-            raise FusionlogError(f"{est.path}: no /estimates/<ARCH> topics (topics: {have})")
-        self.archs = [t.removeprefix("/estimates/") for t in self.topics]
-        self.sc, self.prov = sc, prov
-        truth_sys = on_times(sc.system, est)
-        filter_sys = (
-            system_from_dict(json.loads(prov["model"]), f"{est.path}: provenance model")
-            if "model" in prov
-            else sc.system
-        )
-        self.filter_sys = on_times(filter_sys, est)
-        if sens is not None:  # an imported log's per-message R, for the filter and the truth
-            self.filter_sys = with_message_covariances(self.filter_sys, sens)
-            truth_sys = with_message_covariances(truth_sys, sens)
-        if self.filter_sys.n != truth_sys.n:
-            raise FusionlogError(
-                f"{est.path}: estimates of {self.filter_sys.n} states, the truth has {truth_sys.n}"
-            )
-        self.K, self.M = est.steps() - 1, est.runs()
-        self.truth_sys = truth_sys
-        self.analysable = _analysable(prov, self.filter_sys, truth_sys)
-        n = truth_sys.n
-        self.accs = {a: MetricsAccumulator(self.K + 1, n) for a in self.archs}
-        # Per-run patterns: each run's exact values, summed block by block from its plan (the
-        # estimator's, rebuilt from the sensor readings: NaN = absent).
-        self.conditional: dict[str, ConditionalExpected] = {}
-        if self.analysable is not None and self.analysable[2]:
-            self.sensor_topics = [f"/sensors/{s.name}" for s in self.filter_sys.sensors]
-            self.conditional = {
-                a: ConditionalExpected(self.K + 1, n)
-                for a in self.archs
-                if _known(a, self.filter_sys)
-            }
-        # Truth-free consistency (NIS) and each sensor's availability, from the readings.
-        from .consistency import NisAccumulator  # core.metrics, as above
-
-        self.has_truth = sens is None or "/truth" in sens.topics
-        self.nis: Any = None  # a NisAccumulator
-        self.measured: dict[str, np.ndarray] = {}
-        self.scheduled: dict[str, np.ndarray] = {}
-        self.trace = {a: np.zeros(self.K + 1) for a in self.archs}
-        self.measured_points: dict[int, dict[str, np.ndarray]] = {}
-        # Only where they say something: a replayed recording (NIS), sensors with their own
-        # timing (availability); the paper's scenarios keep their summaries and recordings.
-        replay = sc.replay is not None
-        timed = replay or any(not s.timing.default for s in sc.system.sensors)
-        if (
-            timed
-            and sens is not None
-            and all(f"/sensors/{s.name}" in sens.topics for s in self.filter_sys.sensors)
-        ):
-            self.sensor_topics = [f"/sensors/{s.name}" for s in self.filter_sys.sensors]
-            known = [a for a in self.archs if _known(a, self.filter_sys)]
-            if replay:
-                self.nis = NisAccumulator(self.filter_sys, known, self.K + 1)
-            for s in self.filter_sys.sensors:
-                self.scheduled[s.name] = sens.topic_steps(f"/sensors/{s.name}")
-                self.measured[s.name] = np.zeros(self.K + 1)
-        self.n_samples = min(sc.sample_runs, self.M)
-        self.samples: dict[int, tuple[np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = {}
-        self.plane_pts: dict[str, np.ndarray] = {}
-        self.plane_truth: np.ndarray | None = None
-        self.plane_cov: dict[str, np.ndarray] = {}
-        self._series: dict[str, dict[str, np.ndarray]] = {}
-        self._bounds: tuple[np.ndarray, np.ndarray] | None = None
-
-    def block_runs(self, requested: int | None) -> int:
-        return block_runs(self.K, self.M, requested)
-
-    def add(self, off: int, truth: Array, estimates: Topics, sensors: Readings = None) -> None:
-        runs = next(iter(estimates.values()))[0].shape[0]
-        x = truth if truth is not None else np.full((runs, self.K + 1, self.sc.system.n), np.nan)
-        if x.shape[-1] != self.sc.system.n:
-            raise FusionlogError(f"/truth has {x.shape[-1]} values per run, not {self.sc.system.n}")
-        if self.measured and sensors is not None:
-            self._add_consistency(sensors, estimates)
-        if self.conditional:
-            if sensors is None or any(t not in sensors for t in self.sensor_topics):
-                # a block without its readings: the run average would miss its runs
-                self.conditional = {}
-            else:
-                z = np.concatenate([sensors[t] for t in self.sensor_topics], axis=-1)
-                self._add_conditional(z)
-        for a, t in zip(self.archs, self.topics, strict=True):
-            mean, cov = estimates[t]
-            if mean.shape[-1] != x.shape[-1]:
-                raise FusionlogError(
-                    f"{t}: estimates of {mean.shape[-1]} states, the truth has {x.shape[-1]}"
-                )
-            tr = np.trace(cov, axis1=-2, axis2=-1)  # (K+1,) shared by all runs, or (runs, K+1)
-            self.trace[a] += tr * x.shape[0] if cov.ndim == 3 else tr.sum(axis=0)
-            if self.has_truth:
-                self.accs[a].add(x, mean, cov)
-            if self.sc.plane_view and off == 0:
-                self.plane_truth = x[0]
-                self.plane_pts[a] = np.moveaxis(mean[:PLANE_POINTS], 0, 1)  # (K+1, P, 2)
-                self.plane_cov[a] = cov if cov.ndim == 3 else cov[0]
-            for r in range(off, min(off + x.shape[0], self.n_samples)):
-                c = cov if cov.ndim == 3 else cov[r - off]
-                std = np.sqrt(np.clip(np.diagonal(c, axis1=-2, axis2=-1), 0, None))
-                self.samples.setdefault(r, (x[r - off], {}))[1][a] = (mean[r - off], std)
-
-    def _add_consistency(self, sensors: dict[str, np.ndarray], estimates: dict[str, Any]) -> None:
-        """NIS of each architecture and the sensors' availability, for one block."""
-        if self.nis is not None:
-            z = np.concatenate([sensors[t] for t in self.sensor_topics], axis=-1)
-            self.nis.add(z, {a: estimates[f"/estimates/{a}"] for a in self.nis.archs})
-            if not self.measured_points:  # the first run's readings of a state, under its estimates
-                for s, t in zip(self.filter_sys.sensors, self.sensor_topics, strict=True):
-                    for row, h in enumerate(s.H):
-                        if np.count_nonzero(h) == 1 and h.max() == 1.0:
-                            state = int(np.argmax(h))
-                            self.measured_points.setdefault(state, {})[s.name] = sensors[t][
-                                0, :, row
-                            ]
-        for s, t in zip(self.filter_sys.sensors, self.sensor_topics, strict=True):
-            self.measured[s.name] += (~np.isnan(sensors[t]).any(axis=-1)).sum(axis=0)
-
-    def _add_conditional(self, z: np.ndarray) -> None:
-        """Each run's exact statistics given its measurement pattern (z: the block's stacked
-        readings, (runs, K+1, m)), added to the run sums; a pattern shared by the block's
-        runs is analysed once."""
-        seen = self.analysable[0]
-        pattern = shared_pattern(z)
-        for a, acc in self.conditional.items():
-            if pattern is not None:
-                mask = None if pattern.all() else pattern
-                acc.add(analyse(build_plan(self.filter_sys, a, self.K, mask), seen), z.shape[0])
-            else:
-                acc.add(analyse(build_plan(self.filter_sys, a, self.K, ~np.isnan(z)), seen))
-
-    def _expected(self, a: str) -> tuple[Expected | ConditionalExpected | None, bool]:
-        """The exact expected values of architecture `a` (None: there are none) and whether
-        they are conditional on the drawn patterns (the run average of each run's)."""
-        if self.analysable is None or not _known(a, self.filter_sys):
-            return None, False
-        truth_seen, mask, per_run = self.analysable
-        if not per_run:
-            return analyse(build_plan(self.filter_sys, a, self.K, mask), truth_seen), False
-        cond = self.conditional.get(a)
-        # every run the Monte Carlo metrics saw must be in the average (a caller that merges
-        # accumulators from elsewhere, without their readings, leaves none)
-        if cond is None or cond.runs != self.accs[a].runs:
-            return None, False
-        return cond, True
-
-    def summary(self) -> dict[str, Any]:
-        arch_summary = {}
-        nis = self.nis.summary(self.sc.confidence) if self.nis is not None else {}
-        for a in self.archs:
-            if not self.has_truth:  # a recorded log without truth: what needs none
-                mean_trace = float(np.nanmean(self.trace[a] / self.M))
-                arch_summary[a] = {"mean_trace": mean_trace} | ({"nis": nis[a]} if a in nis else {})
-                continue
-            res = self.accs[a].finalize(self.sc.confidence)
-            ex, conditional = self._expected(a)
-            kw = (
-                {"expected_mse": ex.mse_per_state, "expected_nees": ex.nees, "expected_dm": ex.dm}
-                if ex is not None
-                else {}
-            )
-            self._series[a] = res.series(**kw)
-            arch_summary[a] = res.summary(**kw)
-            if conditional:  # DESIGN.md "summary.json": conditional on the drawn patterns
-                arch_summary[a]["expected"]["conditional"] = True
-            if a in nis:
-                arch_summary[a]["nis"] = nis[a]
-            if self._bounds is None:
-                self._bounds = (res.nees_lower, res.nees_upper)
-        self._summary = {
-            "scenario": self.sc.name,
-            "seed": self.sc.seed,
-            "runs": self.M,
-            "steps": self.K,
-            "state_names": list(self.sc.state_names),
-            "confidence": self.sc.confidence,
-            "architectures": arch_summary,
-        }
-        return self._summary
-
-    def _plane(self) -> dict[str, Any] | None:
-        if not self.sc.plane_view or self.plane_truth is None:
-            return None
-        from fusionlog.core.metrics import chi2_quantile  # loaded by __init__ (see there)
-
-        inputs = {
-            f"input {s.name}": build_plan(self.filter_sys, f"SKF:{s.name}", self.K).reported_cov
-            for s in self.filter_sys.sensors
-        }
-        return {
-            "truth": self.plane_truth,
-            "estimates": self.plane_pts,
-            "ellipses": {**inputs, **self.plane_cov},
-            # the ellipse of a 2-D Gaussian at the confidence: chi-square with 2 dof
-            "scale": float(np.sqrt(chi2_quantile(self.sc.confidence, 2))),
-        }
-
-    def write_recording(self, file: BinaryIO, times: np.ndarray, provenance: dict) -> None:
-        from fusionlog.io.rrd import write_recording  # rerun: slow to import, needed only here
-
-        from .consistency import availability
-
-        write_recording(
-            file,
-            scenario_name=self.sc.name,
-            seed=self.sc.seed,
-            times=times,
-            state_names=self.sc.state_names,
-            series=self._series,
-            summary=self._summary,
-            nees_bounds=self._bounds,
-            confidence=self.sc.confidence,
-            sample_runs=self.samples,
-            properties={"scenario": self.sc.source, "provenance": provenance},
-            plane=self._plane(),
-            availability={
-                name: availability(self.measured[name], self.scheduled[name], self.M)
-                for name in self.measured
-            },
-            nis=self.nis.series(self.sc.confidence) if self.nis is not None else None,
-            traces=None if self.has_truth else {a: t / self.M for a, t in self.trace.items()},
-            measured=self.measured_points,
-        )

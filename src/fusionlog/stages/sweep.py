@@ -35,7 +35,7 @@ from fusionlog import __version__
 from fusionlog.io.atomic import Outputs
 from fusionlog.jsonout import dumps
 
-from .distributed import default_workers, executor
+from .distributed import CONNECT_TIMEOUT, default_workers, executor
 from .grid import GridPoint, Vary, grid_points, parse_vary
 from .kinds import kind_of
 from .montecarlo import (
@@ -98,6 +98,7 @@ def run_sweep(
     archs: Sequence[str] = (),
     workers: int | None = None,
     scheduler: str | None = None,
+    scheduler_timeout: float = CONNECT_TIMEOUT,
     exact_only: bool = False,
     force: bool = False,
     block: int | None = None,
@@ -122,7 +123,8 @@ def run_sweep(
     targets = [d / name for name in OUTPUTS]
     if warn_stale is not None:
         warn_stale(targets)
-    ex = executor(workers, scheduler, local_default=exact_only or small_work(points, point_archs))
+    small = exact_only or small_work(points, point_archs)
+    ex = executor(workers, scheduler, local_default=small, timeout=scheduler_timeout)
     t = [time.perf_counter()]
     busy = 0.0
     # The outputs are checked before the cluster starts: a sweep that cannot write its results
@@ -250,6 +252,14 @@ def _point_summary(
     return out
 
 
+def _bound(scenario: Any) -> dict[str, Any]:
+    """A nonlinear point's PCRB ({"pcrb": ...}, `nonlinear.scenario_bound`), else nothing."""
+    from .nonlinear import scenario_bound
+
+    bound = scenario_bound(scenario)
+    return {} if bound is None else {"pcrb": bound}
+
+
 def _lowest(points: list[dict[str, Any]]) -> dict[str, Any]:
     """Each architecture's grid point of lowest MSE: the exact value where every point has
     one, else the Monte Carlo one."""
@@ -298,6 +308,7 @@ def _summary(
             "steps": p.scenario.instants - 1,
             "architectures": _point_summary(job, e, s, exact_only),
         }
+        | _bound(p.scenario)
         for p, job, e, s in zip(points, jobs, expected, sums, strict=True)
     ]
     return {

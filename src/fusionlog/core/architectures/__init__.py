@@ -16,10 +16,19 @@ The internal state s is the mean of each filter, or, while a filter started with
 yet gathered enough information for a covariance to exist, its information vector y = P^-1 x.
 
 Modules: `plan` (the plan types), `registry` (names -> builders, `build_plan`), `executor`
-(`run_plan`), the builders by family: `filters` (the Kalman-filter machinery), `single` (CKF,
-SKF), `hkf`, `track_to_track` with `readouts` (MSC, MSC-GMF, CI, AVG), `fbs`.
+(`run_plan`), `block` (`estimate_block`: a block of runs with the plan cache, the one way every
+caller estimates), the builders by family: `filters` (the Kalman-filter machinery), `single`
+(CKF, SKF), `hkf`, `track_to_track` with `readouts` (MSC, MSC-GMF, CI, AVG), `fbs`.
 """
 
+from .block import (
+    Block,
+    PlanCache,
+    conditional_sums,
+    estimate,
+    estimate_block,
+    shared_pattern,
+)
 from .executor import DENSE_MAX_STEPS, STEADY_BLOCK, run_plan
 from .plan import (
     BlockDiagonal,
@@ -36,9 +45,7 @@ from .registry import (
     STATE_ARCHITECTURES,
     Architecture,
     build_plan,
-    estimate,
     parse_arch,
-    shared_pattern,
 )
 
 __all__ = [
@@ -47,6 +54,8 @@ __all__ = [
     "STATE_ARCHITECTURES",
     "STEADY_BLOCK",
     "Architecture",
+    "Block",
+    "PlanCache",
     "BlockDiagonal",
     "BuildRequest",
     "DenseMap",
@@ -56,7 +65,9 @@ __all__ = [
     "SmootherMaps",
     "StepMap",
     "build_plan",
+    "conditional_sums",
     "estimate",
+    "estimate_block",
     "parse_arch",
     "run_plan",
     "shared_pattern",

@@ -91,7 +91,7 @@ class Rows:
     ) -> Rows:
         """One filter on the components `rows` of z_k, believing noise covariance R (at every
         instant, or Rs[k] at instant k)."""
-        return cls(system.H[rows], R, rows, np.eye(system.m)[rows], Rs=Rs)
+        return cls(system.linear_measurement()[rows], R, rows, np.eye(system.m)[rows], Rs=Rs)
 
     @classmethod
     def all_of(cls, system: System) -> Rows:
@@ -108,9 +108,10 @@ class Rows:
         cols = np.zeros((S, r), dtype=int)
         E = np.zeros((S, r, m))
         Rs = None if system.Rs is None else np.tile(np.eye(r), (len(system.Rs), S, 1, 1))
+        H_all, R_all = system.linear_measurement(), system.R  # asked of the sensor models
         for j, (sen, sl) in enumerate(zip(system.sensors, system.sensor_slices, strict=True)):
             d = sen.dim
-            H[j, :d], R[j, :d, :d] = sen.H, sen.R
+            H[j, :d], R[j, :d, :d] = H_all[sl], R_all[sl, sl]
             if Rs is not None:
                 Rs[:, j, :d, :d] = system.Rs[:, sl, sl]
             cols[j, :d] = np.arange(m)[sl]

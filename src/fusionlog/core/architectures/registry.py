@@ -15,10 +15,9 @@ import numpy as np
 from ...errors import NumericalError
 from ..linalg import all_finite, numerical_errors
 from ..model import System
-from .executor import run_plan
 from .fbs import build_fbs
 from .hkf import build_hkf
-from .plan import BuildRequest, Estimate, HistoryNodes, Plan
+from .plan import BuildRequest, HistoryNodes, Plan
 from .single import build_ckf, build_skf
 from .track_to_track import build_avg, build_ci, build_msc, build_msc_gmf
 
@@ -175,34 +174,3 @@ def _where(request: BuildRequest) -> str:
     evaluated over all steps at once)."""
     step = "" if request.step is None else f", step {request.step}"
     return f"architecture {request.name}{step}"
-
-
-def shared_pattern(z: np.ndarray) -> np.ndarray | None:
-    """The (K+1, m) mask of present measurements when every run has the same one, else None.
-
-    A pattern shared by all runs (a sensor at half rate, a gap in every run) keeps the
-    shared-gain path: one plan built with that mask serves all runs. The usual case, nothing
-    missing, is answered by one pass over z (comparing every run's mask with the first costs
-    seven times that).
-    """
-    missing = np.isnan(z)
-    if not missing.any():
-        return np.ones(z.shape[1:], dtype=bool)
-    present = ~missing
-    return present[0] if (present == present[:1]).all() else None
-
-
-def estimate(system: System, z: np.ndarray, arch: str, criterion: str = "trace") -> Estimate:
-    """Run architecture `arch` on measurements z (M, K+1, m).
-
-    When every run has the same measurement pattern (usually: all present) the runs share gains
-    and covariances (one plan, applied to all runs at once); when runs differ in which
-    measurements are missing (NaN), the plan is built per run.
-    """
-    K = z.shape[1] - 1
-    pattern = shared_pattern(z)
-    if pattern is not None:
-        plan = build_plan(system, arch, K, None if pattern.all() else pattern, criterion)
-    else:
-        plan = build_plan(system, arch, K, ~np.isnan(z), criterion, history_nodes=True)
-    return run_plan(plan, z)

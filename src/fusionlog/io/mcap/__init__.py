@@ -25,6 +25,7 @@ from .schema import (
     file_descriptor_set,
     protobuf_classes,
 )
+from .topics import TRUTH, arch_of, estimates_topic, sensor_topic
 from .wire import (
     decode_message,
     encode_estimate_message,
@@ -34,6 +35,10 @@ from .wire import (
 from .writer import McapWriter
 
 __all__ = [
+    "TRUTH",
+    "arch_of",
+    "estimates_topic",
+    "sensor_topic",
     "ESTIMATE",
     "ESTIMATE_SCHEMA",
     "LAYOUT_META",

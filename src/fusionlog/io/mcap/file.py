@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from fusionlog.errors import FusionlogError
+from fusionlog.inputs import check_input
 
 from .blocks import Assembly, Cursor, Window
 from .chunks import Container, linear_batches, open_container, open_error, read_chunk
@@ -67,6 +68,7 @@ class McapFile:
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         self._structure: _Structure | None = None
+        check_input(self.path)  # a FIFO or a device would block or never end
         try:
             with open(self.path, "rb") as f:
                 c = open_container(f, self.path)

@@ -14,6 +14,8 @@ from typing import Any
 
 from mcap.records import Channel, Header, Message, Metadata, Schema
 
+from fusionlog.inputs import check_input
+
 from .chunks import one_line, open_error, records
 from .wire import MessageFormat, decode, format_of_schema_record
 
@@ -62,6 +64,7 @@ def recover(path: str | os.PathLike[str]) -> dict[str, Any]:
         if all(first_steps <= seen.get(t, {}).keys() for t in readable):
             out["complete_runs"] += block[1]
 
+    check_input(p)  # a FIFO or a device would block or never end
     try:
         with open(p, "rb") as f:
             for rec in records(f):

@@ -13,15 +13,15 @@ from __future__ import annotations
 
 import csv
 import difflib
+import io
 import math
 from collections.abc import Sequence
 from decimal import ROUND_HALF_EVEN, Context, Decimal, InvalidOperation
 from pathlib import Path
 
-from fusionlog.errors import FusionlogError
-
 from .fields import INT64_MAX, TIME_UNITS
 from .series import Collector, Series, fail
+from .source import MAX_TEXT_BYTES, bounded_lines, open_source
 
 __all__ = ["read_csv"]
 
@@ -55,7 +55,10 @@ def _time_ns(text: str, unit: str) -> int | None:
         raise ValueError("not a number") from None
     if not d.is_finite():
         return None
-    ns = int(_CTX.multiply(d, TIME_UNITS[unit]).to_integral_value(rounding=ROUND_HALF_EVEN))
+    try:
+        ns = int(_CTX.multiply(d, TIME_UNITS[unit]).to_integral_value(rounding=ROUND_HALF_EVEN))
+    except ArithmeticError:  # decimal.Overflow: beyond any clock
+        raise ValueError("outside the range of 64-bit nanoseconds") from None
     if not -INT64_MAX - 1 <= ns <= INT64_MAX:
         raise ValueError("outside the range of 64-bit nanoseconds")
     return ns
@@ -71,19 +74,14 @@ def _number(text: str) -> float:
 def read_csv(
     source: Path, *, values: Sequence[str], time: str | None, time_unit: str, what: str
 ) -> Series:
-    try:
-        f = open(source, newline="", encoding="utf-8-sig")  # closed by the with below
-    except FileNotFoundError:
-        raise FusionlogError(f"{source}: {what}: no such file") from None
-    except IsADirectoryError:
-        raise FusionlogError(f"{source}: {what}: is a directory") from None
-    except OSError as e:
-        raise FusionlogError(f"{source}: {what}: cannot read: {e.strerror or e}") from None
+    raw = open_source(source, what, MAX_TEXT_BYTES, "a text table")
+    f = io.TextIOWrapper(raw, encoding="utf-8-sig", newline="")  # closed by the with below
     col = Collector(
         source, what, len(values), False, "row", lambda k: f"line {k}", "empty, NaN or infinite"
     )
     with f:
-        reader = csv.reader(f, skipinitialspace=True, strict=True)
+        lines = bounded_lines(f, MAX_TEXT_BYTES, source, what)
+        reader = csv.reader(lines, skipinitialspace=True, strict=True)
         try:
             header = None
             for row in reader:

@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from fusionlog.core.timing import TIME_UNITS
+
 __all__ = [
     "FieldPath",
     "PathError",
@@ -31,7 +33,6 @@ __all__ = [
     "to_time_ns",
 ]
 
-TIME_UNITS = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
 INT64_MAX = 2**63 - 1
 
 # (sec, nanosec) of ROS 2, (sec, nsec) of Foxglove JSON, (secs, nsecs) of ROS 1 style JSON,

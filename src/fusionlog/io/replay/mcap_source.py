@@ -9,6 +9,8 @@ in log-time order; the measurement time is ``log_time`` or the ``time`` field.
 
 from __future__ import annotations
 
+import contextlib
+import io
 from collections.abc import Sequence
 from math import isqrt
 from pathlib import Path
@@ -54,7 +56,9 @@ def _check_decodable(source: Path, what: str, info: TopicInfo, factories: list) 
     for channel, schema in info.channels:
         for factory in factories:
             try:
-                decoder = factory.decoder_for(channel.message_encoding, schema)
+                # the ROS 2 schema parser prints its own message before raising: ours says it
+                with contextlib.redirect_stderr(io.StringIO()):
+                    decoder = factory.decoder_for(channel.message_encoding, schema)
             except Exception as e:  # a schema the decoder cannot parse, whatever it raises
                 raise fail(
                     source,

@@ -17,6 +17,8 @@ from fusionlog.errors import ValidationError
 
 __all__ = ["Collector", "Series", "fail"]
 
+INT64_MAX = 2**63 - 1
+
 
 @dataclass(frozen=True)
 class Series:
@@ -73,6 +75,15 @@ class Collector:
         if t_ns is None:
             self.bad_times += 1
             return
+        if not 0 <= t_ns <= INT64_MAX:
+            # an MCAP log_time is nanoseconds since 1970 in 63 bits (a signed int64 >= 0)
+            why = "negative (before 1970)" if t_ns < 0 else "past 2^63 - 1 ns (the year 2262)"
+            raise fail(
+                self.source,
+                self.what,
+                f"{self.label(origin)}: time {t_ns} ns is {why}: a log's 64-bit nanosecond "
+                "clock cannot hold it",
+            )
         if not all(np.isfinite(values)):
             self.bad_values += 1
             return

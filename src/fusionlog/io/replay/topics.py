@@ -20,9 +20,10 @@ from mcap.reader import McapReader, make_reader
 from mcap.records import Channel, MessageIndex, Schema
 from mcap.stream_reader import StreamReader
 
-from fusionlog.errors import DamagedFile, FusionlogError
+from fusionlog.errors import DamagedFile
 
 from .decoders import decoder_factories
+from .source import MAX_MCAP_BYTES, open_source
 
 __all__ = ["TopicInfo", "catalog", "damaged", "list_topics", "one_line", "open_mcap"]
 
@@ -54,16 +55,7 @@ def open_mcap(
 ) -> Iterator[tuple[McapReader, BinaryIO]]:
     """A seeking reader with ``factories`` (default: :func:`.decoders.decoder_factories`),
     chunk CRCs checked."""
-    try:
-        f = open(path, "rb")  # closed by the with below
-    except FileNotFoundError:
-        raise FusionlogError(f"{path}: {what + ': ' if what else ''}no such file") from None
-    except IsADirectoryError:
-        raise FusionlogError(f"{path}: {what + ': ' if what else ''}is a directory") from None
-    except OSError as e:
-        raise FusionlogError(
-            f"{path}: {what + ': ' if what else ''}cannot read: {e.strerror or e}"
-        ) from None
+    f = open_source(path, what, MAX_MCAP_BYTES, "an MCAP")  # closed by the with below
     with f:
         try:
             factories = decoder_factories() if factories is None else factories

@@ -21,7 +21,7 @@ Writers take a binary file object (a :class:`fusionlog.io.atomic.CheckedFile` fr
 
 from .identity import write_identity_recording
 from .read import read_recording
-from .state import write_recording
+from .state import write_evaluation, write_recording
 from .stream import APPLICATION_ID, entity_path, recording_id_for
 from .style import arch_color, class_color
 
@@ -32,6 +32,7 @@ __all__ = [
     "entity_path",
     "read_recording",
     "recording_id_for",
+    "write_evaluation",
     "write_identity_recording",
     "write_recording",
 ]

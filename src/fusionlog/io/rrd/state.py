@@ -16,6 +16,8 @@ entity-path parts, see :func:`~fusionlog.io.rrd.stream.entity_path`: ``SKF:s2`` 
 ``metrics/expected/mse/<state>/<ARCH>``         exact expected MSE (covariance analysis)
 ``metrics/expected/nees/<ARCH>``                exact expected NEES
 ``metrics/expected/dm/<ARCH>``                  exact expected Mahalanobis distance
+``metrics/pcrb/mse/<state>``                    the posterior Cramér-Rao bound on the MSE
+                                                (nonlinear models: no exact analysis)
 ``runs/<m>/<state>/truth``                      true state of sample run m
 ``runs/<m>/<state>/<ARCH>/mean``                estimate of sample run m
 ``runs/<m>/<state>/<ARCH>/upper``, ``/lower``   mean +- 2 sigma, sigma = sqrt(P_ii)
@@ -41,6 +43,9 @@ from typing import IO, Any
 import numpy as np
 import rerun.blueprint as rrb
 
+from fusionlog.core.evaluation import Evaluation
+from fusionlog.core.linalg import overflow_is_inf
+
 from .consistency import NisSeries, check_consistency, consistency_views, write_consistency
 from .legend import legend_box, place_legend
 from .plane import check_plane, write_plane
@@ -48,7 +53,7 @@ from .stream import SeriesWriter, check_axes, entity_path, recording_error, reco
 from .style import BOUND_COLOR, CKF, TRUTH_COLOR, arch_color, arch_width, class_color
 from .views import query, tabbed_blueprint, time_series_view
 
-__all__ = ["write_recording"]
+__all__ = ["write_evaluation", "write_recording"]
 
 #: Per-architecture series: name -> shape, with s steps and n states.
 _SHAPES = {
@@ -84,6 +89,7 @@ def write_recording(
     nis: NisSeries | None = None,
     traces: Mapping[str, np.ndarray] | None = None,
     measured: Mapping[int, Mapping[str, np.ndarray]] | None = None,
+    pcrb: np.ndarray | None = None,
 ) -> None:
     """Write the evaluation recording into the binary file object `file`.
 
@@ -104,15 +110,42 @@ def write_recording(
     Without truth (a replay of a recorded log), `series` may be empty and `traces` ({ARCH:
     (K+1,) trace of P}) gives Fig. 6's curves. measured: {state index: {sensor: (K+1,)}},
     the first sample run's readings of sensors that measure a state directly (dots
-    ``runs/0/<state>/measured/<sensor>`` under the estimates).
+    ``runs/0/<state>/measured/<sensor>`` under the estimates). pcrb: (K+1, n), the posterior
+    Cramér-Rao bound on each state's MSE, drawn as a line on the MSE views.
 
     Raises FusionlogError if the data are inconsistent (before anything is written) and
     OutputError if writing `file` fails.
     """
-    times = np.asarray(times, dtype=float)
-    state_names = [str(s) for s in state_names]
-    samples = sample_runs or {}
+    ev = Evaluation(
+        dict(summary), times, tuple(state_names), confidence, dict(series), nees_bounds,
+        dict(sample_runs or {}), plane, dict(availability or {}), dict(nis or {}),
+        None if traces is None else dict(traces), dict(measured or {}), dict(properties or {}),
+        pcrb,
+    )  # fmt: skip
+    write_evaluation(file, ev, scenario_name, seed, recording_id)
+
+
+def write_evaluation(
+    file: IO[bytes],
+    ev: Evaluation,
+    scenario_name: str | None = None,
+    seed: int | None = None,
+    recording_id: str | None = None,
+) -> None:
+    """Write the recording of an evaluation (`core.evaluation.Evaluation`) into `file`; the
+    recording is named by the summary's scenario and seed unless given (see
+    `write_recording` for what each part draws and the errors)."""
+    if scenario_name is None:
+        scenario_name, seed = ev.summary["scenario"], ev.summary["seed"]
+    times = np.asarray(ev.times, dtype=float)
+    state_names = [str(s) for s in ev.state_names]
+    series, nees_bounds, confidence, plane = ev.series, ev.nees_bounds, ev.confidence, ev.plane
+    samples, summary, properties = ev.samples, ev.summary, ev.properties
+    availability, nis, traces, measured = ev.availability, ev.nis, ev.traces, ev.measured
+    pcrb = ev.pcrb
     _check(file, times, state_names, series, nees_bounds, samples)
+    if pcrb is not None and np.shape(pcrb) != (times.shape[0], len(state_names)):
+        raise recording_error(file, f"PCRB has shape {np.shape(pcrb)}, want (K+1, n)")
     if plane is not None:
         check_plane(file, times.shape[0], plane)
     avail = {k: np.asarray(v, dtype=float) for k, v in (availability or {}).items()}
@@ -122,10 +155,15 @@ def write_recording(
     timeline = "step" if np.array_equal(times, np.arange(len(times))) else "time"
     traces = {a: np.asarray(t, dtype=float) for a, t in (traces or {}).items()}
     extra = consistency_views(nis, avail, bool(traces))
-    blueprint = _blueprint(state_names, series, samples, plane is not None, extra, timeline)
+    blueprint = _blueprint(
+        state_names, series, samples, plane is not None, extra, timeline, pcrb is not None
+    )
     args = (scenario_name, seed, times, summary, properties, recording_id)
     with recording_stream(file, blueprint, *args) as w:
         _write_metrics(w, state_names, series, nees_bounds, confidence)
+        for i, state in enumerate(state_names if pcrb is not None else []):
+            p = entity_path("metrics", "pcrb", "mse", state)
+            w.line(p, np.asarray(pcrb, dtype=float)[:, i], "PCRB", BOUND_COLOR, 2.5)
         _write_sample_runs(w, state_names, samples)
         for i, by_sensor in (measured or {}).items():
             for j, (sensor, v) in enumerate(by_sensor.items()):
@@ -174,6 +212,7 @@ def _check(
                 raise bad(f"sample run {m}, {arch}: mean/std must have shape {(s, n)}")
 
 
+@overflow_is_inf  # inf - inf: NaN, drawn as a gap
 def _write_metrics(
     w: SeriesWriter,
     state_names: list[str],
@@ -225,6 +264,7 @@ def _write_sample_runs(w: SeriesWriter, state_names: list[str], sample_runs: Sam
                 w.line(entity_path(*base, "lower"), mu - 2 * sd, arch, col, 0.75)
 
 
+@overflow_is_inf  # inf - inf: NaN, drawn as a gap
 def _blueprint(
     state_names: list[str],
     series: Mapping[str, Mapping[str, np.ndarray]],
@@ -232,6 +272,7 @@ def _blueprint(
     plane: bool = False,
     extra_tabs: list | None = None,
     timeline: str = "step",
+    pcrb: bool = False,
 ) -> rrb.Blueprint:
     """Tabs: [state plane], Overview (Figs. 4, 5, 6, NEES, DM), [sample runs].
 
@@ -256,10 +297,12 @@ def _blueprint(
         for i in range(n)
     ]
     at4 = legend(mse, archs, n, n_columns)
+    reference = "grey: PCRB" if pcrb else "dots: expected"
     fig4 = [
         time_series_view(
-            f"Fig. 4: MSE of {s} (lines: Monte Carlo, dots: expected)",
-            [query("metrics", "mse", s) + "/**", query("metrics", "expected", "mse", s) + "/**"],
+            f"Fig. 4: MSE of {s} (lines: Monte Carlo, {reference})",
+            [query("metrics", "mse", s) + "/**", query("metrics", "expected", "mse", s) + "/**"]
+            + ([query("metrics", "pcrb", "mse", s)] if pcrb else []),
             legend=i == at4[0],
             corner=at4[1],
         )

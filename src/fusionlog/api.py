@@ -1,0 +1,241 @@
+"""The Python API: the pipeline on numpy arrays, nothing written to disk unless asked.
+
+    import fusionlog as fl
+    sc = fl.load("pipeline/ajgl2009.toml")       # a validated scenario
+    sim = fl.simulate(sc, runs=1000, seed=3)      # .times (K+1,), .truth (M, K+1, n),
+                                                  # .measurements {sensor: (M, K+1, m)}, NaN = none
+    est = fl.estimate(sc, sim, ["CKF", "MSC"])    # {arch: .mean (M, K+1, n), .cov}
+    ev = fl.evaluate(sc, sim, est)                # .summary, .table(), .save("evaluation.rrd")
+
+The CLI is an adapter over the same functions: `simulate` is the simulate stage's hook (the
+random streams belong to chunks of runs, so the runs are those `fusionlog simulate` writes),
+`estimate` is `core.architectures.estimate_block` in the estimate stage's blocks of runs with
+one plan cache, and `evaluate` is the state evaluator fed the same blocks: the same scenario,
+runs and seed give the CLI's numbers.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .core import evaluation
+from .core.architectures import Estimate, PlanCache, estimate_block
+from .core.model import System
+from .core.names import check_architectures
+from .errors import FusionlogError
+from .io.mcap import estimates_topic, sensor_topic
+from .scenario import Scenario, load_scenario, scenario_with
+from .stages.common import block_runs
+from .stages.kinds import kind_of
+from .stages.noise import with_covariances
+from .stages.state_eval import SensorLog, StateEvaluator
+
+__all__ = ["Estimates", "Evaluation", "Simulation", "estimate", "evaluate", "load", "simulate"]
+
+
+@dataclass
+class Simulation:
+    """Runs of a scenario: simulated, or a replay's recorded readings (one run).
+
+    `times` (K+1,) seconds; `truth` (M, K+1, n), NaN where a replay's truth has no reading
+    (None: a replay without truth); `measurements[sensor]` (M, K+1, m) in the sensor's units,
+    NaN where it did not measure (its timing) or lost the reading (dropout); `scheduled
+    [sensor]` (K+1,) bool, the instants it measures at; `covariances[sensor]` (K+1, m, m) the
+    R a recorded sensor's messages carry (NaN at instants without one); `scenario` the
+    scenario with the runs, steps and seed used.
+    """
+
+    scenario: Scenario
+    times: np.ndarray
+    truth: np.ndarray | None
+    measurements: dict[str, np.ndarray]
+    scheduled: dict[str, np.ndarray] = field(default_factory=dict)
+    covariances: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def z(self, system: System) -> np.ndarray:
+        """The stacked measurements of eq. (30) of `system`'s sensors (taken by name, in its
+        order), (M, K+1, m)."""
+        missing = [s.name for s in system.sensors if s.name not in self.measurements]
+        if missing:
+            have = ", ".join(self.measurements)
+            raise FusionlogError(f"no measurements of sensor {missing[0]!r} (have: {have})")
+        return np.concatenate([self.measurements[s.name] for s in system.sensors], axis=-1)
+
+    @property
+    def runs(self) -> int:
+        """M."""
+        return next(iter(self.measurements.values())).shape[0]
+
+    def on_instants(self, system: System) -> System:
+        """`system` on these instants, with the per-instant R of the recorded covariances
+        (what filters run with on these data: `stages.noise.with_covariances`)."""
+        system = system.on_times(self.times)
+        return with_covariances(system, self.covariances, len(self.times), self.scenario.name)
+
+
+class Estimates(dict[str, Estimate]):
+    """{architecture: Estimate}: `.mean` (M, K+1, n), `.cov` (K+1, n, n) when every run shares
+    it, else (M, K+1, n, n). `provenance` is what the estimates file records of the
+    measurement pattern (which exact analysis applies)."""
+
+    provenance: dict[str, str]
+
+
+class Evaluation(evaluation.Evaluation):
+    """An evaluation (`core.evaluation.Evaluation`: `.summary` the summary.json dict, per-step
+    `.series` per architecture, `.samples`, ...) with the adapters a notebook wants."""
+
+    def table(self) -> str:
+        """The results table `fusionlog summary` prints (`report.format_table`)."""
+        from .report import format_table
+
+        return format_table(self.summary)
+
+    def save(self, path: str | os.PathLike[str], *, force: bool = False) -> Path:
+        """Write the Rerun recording to `path` (atomically, `io.atomic.Outputs`; an existing
+        file only with `force`): `io.rrd.write_evaluation`. Returns the path."""
+        from .io.atomic import Outputs
+        from .io.rrd import write_evaluation  # rerun: slow to import, needed only here
+
+        target = Path(path)
+        with Outputs([target], force=force) as outs:
+            write_evaluation(outs.open(target), self)
+            outs.commit()
+        return target
+
+
+def load(path: str | os.PathLike[str]) -> Scenario:
+    """The validated scenario of a TOML file (DESIGN.md "Scenario TOML"); FusionlogError with
+    the file, key and reason when it is not valid."""
+    return load_scenario(path)
+
+
+def simulate(
+    scenario: Scenario | str | os.PathLike[str],
+    runs: int | None = None,
+    seed: int | None = None,
+    steps: int | None = None,
+) -> Simulation:
+    """Simulate `runs` runs (default the scenario's) of K = `steps` steps with `seed`: the
+    runs `fusionlog simulate --runs --steps --seed` writes to its sensors file. `scenario` is
+    a loaded scenario or the path of its file (`load`)."""
+    if not isinstance(scenario, Scenario):
+        scenario = load(scenario)
+    if scenario.kind != "state":
+        raise FusionlogError(
+            f"{scenario.path or scenario.name}: the Python API runs state scenarios "
+            f"(not {scenario.kind})"
+        )
+    if scenario.replay is not None:
+        return _recorded(scenario)
+    sc = scenario_with(scenario, runs=runs, steps=steps, seed=seed)
+    x, zs = kind_of(sc.kind).simulate(sc, 0, sc.runs)
+    names = [s.name for s in sc.system.sensors]
+    measures = sc.schedule.measures  # (K+1, S)
+    scheduled = {name: measures[:, j] for j, name in enumerate(names)}
+    return Simulation(sc, sc.times, x, dict(zip(names, zs, strict=True)), scheduled)
+
+
+def _recorded(scenario: Scenario) -> Simulation:
+    """A replay's readings on their instants (what `fusionlog import` writes), as one run."""
+    from .stages.replay import read_replay  # the decoders: only replays need them
+
+    data = read_replay(scenario)
+    sc = data.scenario
+    K1, n = len(data.instants), sc.system.n
+    measurements, scheduled, covariances = {}, {}, {}
+    for sen, r in zip(sc.system.sensors, data.sensors, strict=True):
+        z = np.full((1, K1, sen.dim), np.nan)
+        z[0, r.at] = r.values
+        measurements[sen.name] = z
+        scheduled[sen.name] = np.zeros(K1, dtype=bool)
+        scheduled[sen.name][r.at] = True
+        if r.cov is not None:
+            covariances[sen.name] = np.full((K1, sen.dim, sen.dim), np.nan)
+            covariances[sen.name][r.at] = r.cov
+    truth = None
+    if data.truth:
+        truth = np.full((1, K1, n), np.nan)
+        truth[0, data.truth["at"]] = data.truth["values"]
+    times = (data.instants - data.instants[0]) / 1e9
+    return Simulation(sc, times, truth, measurements, scheduled, covariances)
+
+
+def _blocks(sim: Simulation) -> list[tuple[int, int]]:
+    """(offset, runs) of the stages' blocks of runs (`stages.common.block_runs`)."""
+    M, K = sim.runs, len(sim.times) - 1
+    B = block_runs(K, M, None)
+    return [(off, min(B, M - off)) for off in range(0, M, B)]
+
+
+def estimate(
+    scenario: Scenario, sim: Simulation, architectures: Sequence[str] | None = None
+) -> Estimates:
+    """Each architecture's estimates of the runs (default: the scenario's `[estimate]
+    architectures`), as `fusionlog estimate` computes them. `scenario` is the filters' model:
+    the one simulated, or another (`fusionlog estimate --model`), whose sensors are taken
+    from `sim` by name."""
+    system = scenario.system
+    archs = check_architectures(
+        list(architectures or scenario.architectures), system, "architectures"
+    )
+    z = sim.z(system)
+    cache = PlanCache(sim.on_instants(system), len(sim.times) - 1)
+    parts: dict[str, list[Estimate]] = {a: [] for a in archs}
+    for off, n in _blocks(sim):
+        block = estimate_block(cache.system, archs, z[off : off + n], cache=cache)
+        for a, e in block.estimates.items():
+            parts[a].append(e)
+    out = Estimates({a: _joined(es) for a, es in parts.items()})
+    out.provenance = cache.provenance()
+    return out
+
+
+def _joined(es: list[Estimate]) -> Estimate:
+    """One estimate of the blocks' runs (a covariance shared by every block stays shared)."""
+    if len(es) == 1:
+        return es[0]
+    mean = np.concatenate([e.mean for e in es])
+    if all(e.shared_cov and e.cov is es[0].cov for e in es):
+        return Estimate(mean, es[0].cov)
+    covs = [e.cov if not e.shared_cov else np.broadcast_to(e.cov, e.mean.shape[:1] + e.cov.shape)
+            for e in es]  # fmt: skip
+    return Estimate(mean, np.concatenate(covs))
+
+
+def evaluate(scenario: Scenario, sim: Simulation, estimates: Estimates) -> Evaluation:
+    """MSE (eq. 45), ANEES, DM (eq. 47) with their exact expected values, NIS where it says
+    something, and sample runs: what `fusionlog evaluate` puts in summary.json and the
+    recording (written only by `Evaluation.save`). `scenario` is the model the estimates
+    were made with (`estimate`); the truth is `sim`'s."""
+    sc = sim.scenario  # the truth's: the runs, steps and seed simulated
+    filter_sys, truth_sys = sim.on_instants(scenario.system), sim.on_instants(sc.system)
+    # the estimates' record of their measurement pattern (plain dicts: none known, per run)
+    prov = (
+        estimates.provenance
+        if isinstance(estimates, Estimates)
+        else {"measurement_pattern": "per-run"}
+    )
+    # the sensors' availability, where it says something (their own timing, a recording)
+    timed = sc.replay is not None or any(not s.timing.default for s in sc.system.sensors)
+    log = SensorLog(sim.truth is not None, sim.scheduled if timed else None)
+    ev = StateEvaluator(
+        sc, list(estimates), filter_sys, truth_sys, sim.runs, sim.times, prov, log, sc.name
+    )
+    topics = {sensor_topic(name): z for name, z in sim.measurements.items()}
+    for off, n in _blocks(sim):
+        ests = {estimates_topic(a): _runs(e, off, n) for a, e in estimates.items()}
+        readings = {t: z[off : off + n] for t, z in topics.items()}
+        truth = None if sim.truth is None else sim.truth[off : off + n]
+        ev.add(off, truth, ests, readings)
+    return Evaluation(**vars(ev.evaluation({"command": "fusionlog.evaluate"})))
+
+
+def _runs(e: Estimate, off: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, cov) of runs [off, off + n) of an estimate."""
+    return e.mean[off : off + n], e.cov if e.shared_cov else e.cov[off : off + n]

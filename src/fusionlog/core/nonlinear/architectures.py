@@ -1,0 +1,278 @@
+"""The fusion architectures (DESIGN.md, "Architectures") with EKF or UKF local filters, batched
+over runs: every run has its own linearisation, so each step is a handful of stacked operations
+on (M, n) means and (M, n, n) covariances, never a loop over runs.
+
+* CKF      one filter on all sensors, one stacked update per instant with every sensor that
+           measures then (eq. 30 with h stacked, one linearisation);
+* SKF      one filter on one sensor (`SKF:<sensor>`, the first by default);
+* HKF      eqs. (36)-(40): each local filter updates the fused prediction with its own sensor,
+           the centre adds their equivalent measurements Y_j x_j - Y_pred x_pred;
+* MSC      local filters, one per sensor, fused by Millman's formula assuming independence;
+* MSC-GMF  the same locals fused by the generalised Millman formula (`core.fusion`) with their
+           joint error covariance carried as in eq. (35) through the *linearised* gains:
+           J_ij <- F_i J_ij F_j^T + Q, J_ij <- (I - K_i H_i) J_ij (I - K_j H_j)^T (i != j; the
+           sensors' noises are independent), each diagonal block the local's own covariance;
+* CI       the locals fused by covariance intersection (`core.ci`);
+* AVG      the plain average of the locals' means, with the covariance eq. (4) gives it;
+* FBS      the extended / unscented Rauch-Tung-Striebel smoother on the CKF (for linear models
+           the forward-backward Millman fusion of eqs. 25-28 computes the same estimate):
+           G_k = C_{k+1} P-_{k+1}^-1, x_s = x_k + G (x_s' - x-_{k+1}),
+           P_s = P_k + G (P_s' - P-_{k+1}) G^T, C the cross-covariance of the prediction
+           (P F^T for the EKF; of the sigma points, Sarkka 2008, for the UKF).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...errors import FusionlogError, NumericalError
+from ..ci import ci_omegas
+from ..fusion import gmf_weight_matrix
+from ..kernels import lanes
+from ..linalg import mT, spd_inv, sym
+from ..model import System
+from ..models.polar import PolarSensor
+from ..names import parse_arch
+from .local import Stacked, predict, transition, ukf_params, update
+
+
+@dataclass
+class Track:
+    """Estimates of M runs: mean (M, K+1, n) and each run's covariance (M, K+1, n, n)."""
+
+    mean: np.ndarray
+    cov: np.ndarray
+
+
+#: An architecture's estimates, one instant at a time: (mean (M, n), covariances (M, n, n)).
+Steps = Iterator[tuple[np.ndarray, np.ndarray]]
+
+
+class _Out:
+    """The estimates as they are made: the means (M, K+1, n), and the covariances on lanes
+    (K+1, n, n, M), so that storing a step's (which the filters keep on lanes) is one copy;
+    the track sees them as (M, K+1, n, n)."""
+
+    def __init__(self, M: int, K1: int, n: int) -> None:
+        self.mean = np.empty((M, K1, n))
+        self._cov = np.empty((K1, n, n, M))
+
+    def put(self, k: int, x: np.ndarray, P: np.ndarray) -> None:
+        self.mean[:, k] = x
+        self._cov[k] = lanes(P)
+
+    def track(self) -> Track:
+        return Track(self.mean, np.moveaxis(self._cov, -1, 0))
+
+
+class _Steps:
+    """What every architecture needs of the instants: the intervals, the stacked measurement
+    columns of each sensor, and which sensors measure at an instant in some run."""
+
+    def __init__(self, system: System, z: np.ndarray, times: np.ndarray | None, off: int):
+        if times is not None:
+            system = system.on_times(np.asarray(times, dtype=float))
+        self.system, self.z, self.off = system, z, off
+        # the instants, for messages only: a system already on its instants knows its intervals
+        self.times = _instants(system, z.shape[1]) if times is None else np.asarray(times, float)
+        m = self.system.m
+        self.cols = [np.arange(m)[sl] for sl in self.system.sensor_slices]
+        self.measures = np.stack(
+            [(~np.isnan(z[..., c])).any(axis=(0, 2)) for c in self.cols], axis=1
+        )  # (K+1, S)
+        self.ukf = ukf_params(self.system)
+
+    def predict(self, k: int, x: np.ndarray, P: np.ndarray):
+        return predict(*transition(self.system, k), x, P, self.ukf)
+
+    def update(self, k: int, which: list[int], x: np.ndarray, P: np.ndarray):
+        """The update at instant k with the sensors `which` that measure then (None: none)."""
+        which = [j for j in which if self.measures[k, j]]
+        if not which:
+            return None
+        model = Stacked(tuple(self.system.sensors[j] for j in which))
+        zk = self.z[:, k, np.concatenate([self.cols[j] for j in which])]
+        self._check_ranges(k, which, x, zk)
+        return update(model, x, P, zk, self.ukf)
+
+    def _check_ranges(self, k: int, which: list[int], x: np.ndarray, zk: np.ndarray) -> None:
+        """A range or bearing has no derivative at the sensor's own position: refuse it."""
+        start = 0
+        for j in which:
+            s = self.system.sensors[j]
+            if isinstance(s, PolarSensor):
+                r = s.ranges(x)
+                present = ~np.isnan(zk[:, start : start + s.dim]).any(axis=-1)
+                bad = present & ~(r > 0)
+                if bad.any():
+                    run = self.off + int(np.argmax(bad))
+                    raise NumericalError(
+                        f"sensor {s.name!r}: the estimate is at the sensor's position (range 0) "
+                        f"in run {run}, instant {k} (t = {self.times[k]:g} s): its bearing and "
+                        "Jacobian are undefined there; move the sensor or the prior mean"
+                    )
+            start += s.dim
+
+    def start(self) -> tuple[np.ndarray, np.ndarray]:
+        M = self.z.shape[0]
+        pr = self.system.prior
+        return np.tile(pr.mean, (M, 1)), np.tile(pr.cov, (M, 1, 1))
+
+
+def _instants(system: System, K1: int) -> np.ndarray:
+    """The instants of a system on its instants: k dt, or the sums of its intervals."""
+    if system.intervals is not None:
+        return np.concatenate([[0.0], np.cumsum(system.intervals)])
+    return np.arange(K1) * system.dt
+
+
+def estimate(
+    system: System, arch: str, z: np.ndarray, times: np.ndarray | None, run_offset: int = 0
+) -> Track:
+    """Estimates of every run (z: (M, K+1, m), NaN = absent) with architecture `arch` on the
+    instants `times` (K+1,) s (None: `system` is already on its instants, `System.on_times`);
+    `run_offset` (the block's first run) only names runs in errors."""
+    M, K1 = z.shape[:2]
+    out = _Out(M, K1, system.n)
+    for k, (x, P) in enumerate(estimate_steps(system, arch, z, times, run_offset)):
+        out.put(k, x, P)
+    return out.track()
+
+
+def estimate_steps(
+    system: System, arch: str, z: np.ndarray, times: np.ndarray | None, run_offset: int = 0
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """`estimate` one instant at a time: (mean (M, n), covariances (M, n, n)) for k = 0..K,
+    each computed when asked for (the filters keep one instant in memory, not all; FBS, a
+    smoother, all of them)."""
+    names = [s.name for s in system.sensors]
+    base, sensor = parse_arch(arch, names)
+    if system.filter is None and not system.linear:
+        raise FusionlogError(
+            'the model is nonlinear and has no local filter: give [estimate] filter = "EKF" or '
+            '"UKF", or --filter'
+        )
+    st = _Steps(system, z, times, run_offset)
+    if base == "CKF":
+        return _filter(st, list(range(len(names))))
+    if base == "SKF":
+        return _filter(st, [names.index(sensor)])
+    if base == "FBS":
+        return _smoother(st)
+    if base == "HKF":
+        return _hkf(st)
+    return _track_to_track(st, base)
+
+
+def _filter(st: _Steps, which: list[int], keep: list | None = None) -> Steps:
+    """One filter on the sensors `which`; with `keep`, each step's (x-, P-, C) is appended."""
+    x, P = st.start()
+    for k in range(st.z.shape[1]):
+        if k:
+            x, P, _, C = st.predict(k, x, P)
+            if keep is not None:
+                keep.append((x, P, C))
+        u = st.update(k, which, x, P)
+        if u is not None:
+            x, P = u.x, u.P
+        yield x, P
+
+
+def _smoother(st: _Steps) -> Steps:
+    """The extended / unscented RTS smoother on the CKF (module docstring)."""
+    keep: list = []
+    M, K1 = st.z.shape[:2]
+    out = _Out(M, K1, st.system.n)
+    for k, (x, P) in enumerate(_filter(st, list(range(len(st.system.sensors))), keep)):
+        out.put(k, x, P)
+    tr = out.track()
+    mean, cov = tr.mean, tr.cov
+    for k in range(mean.shape[1] - 2, -1, -1):
+        xp, Pp, C = keep[k]  # the prediction from k to k + 1
+        G = mT(np.linalg.solve(Pp, mT(C)))
+        mean[:, k] += np.einsum("mij,mj->mi", G, mean[:, k + 1] - xp)
+        cov[:, k] = sym(cov[:, k] + G @ (cov[:, k + 1] - Pp) @ mT(G))
+    for k in range(K1):
+        yield mean[:, k], cov[:, k]
+
+
+def _hkf(st: _Steps) -> Steps:
+    """Eqs. (36)-(40) with EKF/UKF locals restarting from the fused prediction."""
+    x, P = st.start()
+    for k in range(st.z.shape[1]):
+        if k:
+            x, P, _, _ = st.predict(k, x, P)
+        Yp = spd_inv(P, "the predicted covariance")
+        Y, y = Yp.copy(), np.einsum("mij,mj->mi", Yp, x)
+        yp = y.copy()
+        for j in range(len(st.system.sensors)):
+            u = st.update(k, [j], x, P)
+            if u is None:
+                continue
+            Yj = spd_inv(u.P, "a local covariance")
+            Y += Yj - Yp
+            y += np.einsum("mij,mj->mi", Yj, u.x) - yp
+        P = spd_inv(Y, "the fused information")
+        x = np.einsum("mij,mj->mi", P, y)
+        yield x, P
+
+
+def _track_to_track(st: _Steps, base: str) -> Steps:
+    """MSC, MSC-GMF, CI, AVG: one local filter per sensor, fused at every instant."""
+    M, K1 = st.z.shape[:2]
+    n, S = st.system.n, len(st.system.sensors)
+    joint = base in ("MSC-GMF", "AVG")
+    x0, P0 = st.start()
+    xs, Ps = [x0] * S, [P0] * S
+    J = np.broadcast_to(P0[:, None, None], (M, S, S, n, n)).copy() if joint else None
+    eye = np.eye(n)
+    for k in range(K1):
+        if k:
+            pred = [st.predict(k, xs[i], Ps[i]) for i in range(S)]
+            xs, Ps = [p[0] for p in pred], [p[1] for p in pred]
+            if joint:
+                Fs = np.stack([np.broadcast_to(p[2], (M, n, n)) for p in pred], axis=1)
+                motion, dt = transition(st.system, k)
+                Q = motion.Q(dt)
+                J = _congruence(Fs, J) + Q
+        A = np.broadcast_to(eye, (M, S, n, n)).copy()
+        for i in range(S):
+            u = st.update(k, [i], xs[i], Ps[i])
+            if u is not None:
+                xs[i], Ps[i] = u.x, u.P
+                A[:, i] -= u.K @ u.H
+        if joint:
+            J = _congruence(A, J)
+            for i in range(S):
+                J[:, i, i] = Ps[i]  # the local's own covariance (equal for the EKF)
+        yield _fuse(base, np.stack(xs, 1), np.stack(Ps, 1), J)
+
+
+def _congruence(T: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """J_ij <- T_i J_ij T_j^T for every block of the joint covariance J (M, S, S, n, n), with
+    T (M, S, n, n): two stacked products (a three-operand einsum would loop in Python's
+    order over the small axes)."""
+    return (T[:, :, None] @ J) @ mT(T)[:, None]
+
+
+def _fuse(
+    base: str, xs: np.ndarray, Ps: np.ndarray, J: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The fusion rule of `base` on the locals' means xs (M, S, n), covariances Ps (M, S, n, n)
+    and joint error covariance J (M, S, S, n, n)."""
+    M, S, n = xs.shape
+    if base == "AVG":
+        return xs.mean(axis=1), sym(J.sum(axis=(1, 2)) / S**2)
+    if base == "MSC-GMF":
+        joint = J.transpose(0, 1, 3, 2, 4).reshape(M, S * n, S * n)
+        C, P = gmf_weight_matrix(sym(joint), n)
+        return np.einsum("mij,mj->mi", C, xs.reshape(M, S * n)), P
+    Ys = spd_inv(Ps, "a local covariance")
+    w = ci_omegas(Ys) if base == "CI" else np.ones((M, S))
+    Yw = Ys * w[..., None, None]
+    P = spd_inv(Yw.sum(axis=1), "the fused information")
+    x = np.einsum("mij,mj->mi", P, np.einsum("msij,msj->mi", Yw, xs))
+    return x, P

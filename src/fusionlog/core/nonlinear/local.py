@@ -1,0 +1,241 @@
+"""The local filters, EKF and UKF, batched over runs: means (M, n), covariances (M, n, n).
+
+EKF (DESIGN.md): the models linearised at the prediction (analytic Jacobians), the update in
+Joseph form  P+ = (I - K H) P (I - K H)^T + K R K^T.
+
+UKF: the scaled unscented transform (Julier 2002; Wan and van der Merwe 2000):
+lambda = alpha^2 (n + kappa) - n, sigma points x, x +- columns of the lower Cholesky factor of
+(n + lambda) P; weights W0m = lambda/(n+lambda), W0c = W0m + 1 - alpha^2 + beta,
+Wi = 1/(2(n+lambda)). The points are drawn afresh from the predicted mean and covariance for each
+update; the weighted mean of angle components is taken on residuals about the central point's
+image, wrapped; the update is x+ = x + K (z - z_hat), P+ = P - K S K^T with K = Pxz S^-1.
+
+Every difference of two measurements is the sensor model's `residual` (a bearing's wrapped to
+(-pi, pi]): the one place that knows which components are angles.
+
+Both report the *linearised gain* of an update: K and the effective H (the Jacobian for the EKF,
+the statistical linearisation Pxz^T P^-1 for the UKF) and of a prediction the effective F, which
+the architectures that carry cross-covariances (MSC-GMF, AVG) propagate errors through.
+
+A run without a measurement (NaN: not scheduled, or lost) has its rows' H and innovation zeroed:
+its K columns are then exactly zero (S is block-diagonal between present and absent rows), so one
+batched update serves runs with any pattern of missing data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...errors import NumericalError
+from ..kernels import cholesky, cholesky_solve, lanes, unlanes
+from ..linalg import mm, mT, solve, sym
+from ..model import System
+from ..models import LinearMotion, MotionModel, SensorModel
+
+
+@dataclass(frozen=True)
+class Stacked:
+    """Several sensors as one measurement z = [h_1(x); ...; h_S(x)] (eq. 30: the CKF's one
+    update per instant with every sensor that measures then); R block-diagonal."""
+
+    sensors: tuple[SensorModel, ...]
+
+    @property
+    def dim(self) -> int:
+        return sum(s.dim for s in self.sensors)
+
+    def residual(self, z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
+        """z - z_hat (..., m), each sensor's asked of its model (bearings wrapped)."""
+        out, start = [], 0
+        for s in self.sensors:
+            sl = slice(start, start + s.dim)
+            out.append(s.residual(z[..., sl], z_hat[..., sl]))
+            start += s.dim
+        return np.concatenate(out, axis=-1)
+
+    @property
+    def R(self) -> np.ndarray:
+        R, start = np.zeros((self.dim, self.dim)), 0
+        for s in self.sensors:
+            R[start : start + s.dim, start : start + s.dim] = s.R
+            start += s.dim
+        return R
+
+    def h(self, x: np.ndarray) -> np.ndarray:
+        return np.concatenate([s.h(x) for s in self.sensors], axis=-1)
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        return np.concatenate([s.jacobian(x) for s in self.sensors], axis=-2)
+
+
+def transition(system: System, k: int) -> tuple[MotionModel, float]:
+    """The motion model and interval from instant k-1 to k of a system on its instants
+    (`System.on_times`): a linear one with that interval's F and Q, or the nonlinear model."""
+    if system.motion_model is None:
+        return LinearMotion(system.F_at(k), system.GQG_at(k), 1.0), 1.0
+    return system.motion_model, system.dt_at(k)
+
+
+def ukf_params(system: System) -> UkfParams | None:
+    """The UKF's parameters of a system whose filter is the UKF, else None (the EKF)."""
+    return UkfParams(*system.ukf) if system.filter == "UKF" else None
+
+
+@dataclass(frozen=True)
+class UkfParams:
+    """[estimate.ukf]: alpha, beta, kappa (defaults 1, 2, 0)."""
+
+    alpha: float = 1.0
+    beta: float = 2.0
+    kappa: float = 0.0
+
+    def weights(self, n: int) -> tuple[float, np.ndarray, np.ndarray]:
+        """(n + lambda, Wm, Wc) for 2n + 1 sigma points; n + lambda > 0 is checked on load."""
+        lam = self.alpha**2 * (n + self.kappa) - n
+        c = n + lam
+        Wm = np.full(2 * n + 1, 0.5 / c)
+        Wc = Wm.copy()
+        Wm[0] = lam / c
+        Wc[0] = lam / c + 1.0 - self.alpha**2 + self.beta
+        return c, Wm, Wc
+
+
+@dataclass(frozen=True)
+class Update:
+    """The result of an update: x+, P+, and the linearised gain (K, effective H)."""
+
+    x: np.ndarray
+    P: np.ndarray
+    K: np.ndarray  # (M, n, m)
+    H: np.ndarray  # (M, m, n)
+
+
+def sigma_points(x: np.ndarray, P: np.ndarray, c: float, what: str) -> np.ndarray:
+    """(M, 2n+1, n): x, x + L_i, x - L_i with L L^T = c P (lower Cholesky)."""
+    try:
+        L = np.linalg.cholesky(c * sym(P))
+    except np.linalg.LinAlgError:
+        raise NumericalError(
+            f"UKF: {what} is not positive definite (no sigma points); try the EKF or a "
+            "larger process noise"
+        ) from None
+    cols = mT(L)  # (M, n, n): row i is column i of L
+    return np.concatenate([x[:, None], x[:, None] + cols, x[:, None] - cols], axis=1)
+
+
+def predict(
+    motion: MotionModel, dt: float, x: np.ndarray, P: np.ndarray, ukf: UkfParams | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """x-, P- and the effective F and the cross-covariance C = cov(x_{k-1}, x_k) (the RTS
+    smoother's) of one prediction over dt. Linear motion: F x, F P F^T + Q for both filters
+    (the unscented transform is exact there)."""
+    Q = motion.Q(dt)
+    if motion.linear:  # one F for every run: shared-factor products
+        F = motion.F(dt)
+        C = mm(P, F.T)
+        return x @ F.T, sym(mm(F, C) + Q), F, C
+    if ukf is None:
+        F = motion.jacobian(x, dt)
+        C = mm(P, mT(F))
+        return motion.f(x, dt), sym(mm(F, C) + Q), F, C
+    n = x.shape[-1]
+    c, Wm, Wc = ukf.weights(n)
+    X = sigma_points(x, P, c, "the covariance before a prediction")
+    Y = motion.f(X, dt)
+    xp = np.einsum("j,mjn->mn", Wm, Y)
+    dY = Y - xp[:, None]
+    dX = X - x[:, None]
+    Pp = sym(np.einsum("j,mja,mjb->mab", Wc, dY, dY) + Q)
+    C = np.einsum("j,mja,mjb->mab", Wc, dX, dY)
+    F = mT(solve(P, C, hermitian=True))  # statistical linearisation: C = P F^T
+    return xp, Pp, F, C
+
+
+def _masked(z: np.ndarray, model: Stacked) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(present (M, m), z with NaN as 0, R with no coupling between present and absent rows)."""
+    present = ~np.isnan(z)
+    R = model.R
+    if present.all():  # the usual case: R shared by the runs
+        return present, z, R
+    Rm = np.where(present[:, :, None] == present[:, None, :], R, 0.0)
+    return present, np.where(present, z, 0.0), Rm
+
+
+def _gain(P_xz: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """K = Pxz S^-1 as a solve with S (symmetric positive definite)."""
+    return mT(solve(S, mT(P_xz), hermitian=True, what="the innovation covariance"))
+
+
+def update_ekf(model: Stacked, x: np.ndarray, P: np.ndarray, z: np.ndarray) -> Update:
+    """EKF update at the prediction, Joseph form (module docstring).
+
+    Computed on lanes (`core.kernels`: every matrix entry one contiguous vector over the runs)
+    and only over the columns `q` of the state that some row of H touches (a radar sees x and
+    y, not the velocities): P H^T = P[:, q] H[:, q]^T, S = H[:, q] (P H^T)[q] + R, K from S's
+    Cholesky factor, and (I - K H) P (I - K H)^T = A P - (A P)[:, q] (K H[:, q])^T with
+    A P = P - (K H[:, q]) P[q] — the Joseph form's products, without those by zero columns.
+    """
+    present, z0, R = _masked(z, model)
+    n = x.shape[-1]
+    H = model.jacobian(x)
+    y = model.residual(z0, model.h(x))
+    if not present.all():
+        H, y = H * present[:, :, None], y * present
+    Hl, Pl = lanes(H), lanes(P)  # (m, n, M), (n, n, M)
+    q = [c for c in range(n) if Hl[:, c].any()]
+    Hq = np.ascontiguousarray(Hl[:, q])  # (m, |q|, M)
+    PHt = np.einsum("iqM,rqM->irM", Pl[:, q], Hq)  # (n, m, M)
+    S = np.einsum("rqM,qsM->rsM", Hq, PHt[q])
+    S += R[:, :, None] if R.ndim == 2 else lanes(R)
+    S = 0.5 * (S + S.swapaxes(0, 1))
+    with np.errstate(all="ignore"):
+        L, ok = cholesky(S)
+        Kt = cholesky_solve(L, PHt.swapaxes(0, 1))  # (m, n, M) = S^-1 H P
+    if not ok.all():  # a badly conditioned S: those runs by LAPACK's solve (or pinv)
+        bad = np.flatnonzero(~ok)
+        Sb, Bb = unlanes(S)[bad], unlanes(PHt.swapaxes(0, 1))[bad]
+        Kt[..., bad] = lanes(solve(Sb, Bb, hermitian=True, what="the innovation covariance"))
+    K = Kt.swapaxes(0, 1)  # (n, m, M)
+    KH = np.einsum("irM,rqM->iqM", K, Hq)  # (n, |q|, M)
+    AP = Pl - np.einsum("iqM,qjM->ijM", KH, Pl[q])
+    Pu = AP - np.einsum("iqM,jqM->ijM", AP[:, q], KH)
+    KR = np.einsum("irM,rs->isM", K, R) if R.ndim == 2 else np.einsum("irM,rsM->isM", K, lanes(R))
+    Pu += np.einsum("isM,jsM->ijM", KR, K)
+    Pu = 0.5 * (Pu + Pu.swapaxes(0, 1))
+    xu = x + np.einsum("irM,Mr->Mi", K, y)
+    return Update(xu, unlanes(Pu), unlanes(K), H)
+
+
+def update_ukf(
+    model: Stacked, x: np.ndarray, P: np.ndarray, z: np.ndarray, ukf: UkfParams
+) -> Update:
+    """UKF update with sigma points drawn from (x, P) (module docstring)."""
+    present, z0, R = _masked(z, model)
+    n = x.shape[-1]
+    c, Wm, Wc = ukf.weights(n)
+    X = sigma_points(x, P, c, "the predicted covariance")
+    Z = model.h(X)  # (M, 2n+1, m)
+    # the weighted mean about the central point's image: angles averaged as wrapped residuals
+    # (z_hat itself need not be wrapped: it enters only through residuals)
+    D = model.residual(Z, Z[:, :1])
+    zhat = Z[:, 0] + np.einsum("j,mjk->mk", Wm, D)
+    dZ = model.residual(Z, zhat[:, None]) * present[:, None]
+    dX = X - x[:, None]
+    S = sym(np.einsum("j,mja,mjb->mab", Wc, dZ, dZ) + R)
+    Pxz = np.einsum("j,mja,mjb->mab", Wc, dX, dZ)
+    K = _gain(Pxz, S)
+    y = model.residual(z0, zhat) * present
+    Pu = sym(P - mm(mm(K, S), mT(K)))
+    H = mT(solve(P, Pxz, hermitian=True))  # statistical linearisation: Pxz = P H^T
+    return Update(x + np.einsum("mij,mj->mi", K, y), Pu, K, H)
+
+
+def update(
+    model: Stacked, x: np.ndarray, P: np.ndarray, z: np.ndarray, ukf: UkfParams | None
+) -> Update:
+    """One update with the sensors of `model` (z (M, m), NaN = absent): EKF when `ukf` is None."""
+    if ukf is None:
+        return update_ekf(model, x, P, z)
+    return update_ukf(model, x, P, z, ukf)

@@ -1,0 +1,88 @@
+"""The posterior Cramér-Rao bound (Tichavský, Muravchik, Nehorai, "Posterior Cramér-Rao bounds for
+discrete-time nonlinear filtering", IEEE Trans. Signal Processing 46(5), 1998), per instant.
+
+For x_k = f(x_{k-1}) + w, w ~ N(0, Q), and z_k = h(x_k) + v, v ~ N(0, R), the information
+J_k (E[(x_hat - x)(x_hat - x)^T] >= J_k^-1 for any estimator) follows
+
+    J_0 = P_0^-1 + D_z(0),
+    J_k = D22 - D21 (J_{k-1} + D11)^-1 D12 + D_z(k),
+    D11 = E[F~^T Q^-1 F~],  D12 = D21^T = -E[F~^T] Q^-1,  D22 = Q^-1,   F~ = df/dx at x_{k-1},
+    D_z(k) = E[sum_j H~_j^T R_j^-1 H~_j]  over the sensors that measure at k, H~_j = dh_j/dx at x_k,
+
+which for linear motion (F~ = F) is J_k = (Q + F J_{k-1}^-1 F^T)^-1 + D_z(k), the form used then
+(it needs no Q^-1). The expectations are averages over the simulated runs: their true states, and
+which measurements each made (a lost or unscheduled one adds no information to that run). With
+linear sensors and a shared pattern, J_k^-1 is the CKF's covariance exactly.
+
+P_0 is the covariance the true x_0 is drawn from (the prior's unless [truth] says otherwise).
+The accumulator takes blocks of runs, so the bound of 10^6 runs needs no more memory than one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..linalg import mT, spd_inv, sym
+from ..model import System
+from .local import transition
+
+
+class PcrbAccumulator:
+    """Sums over runs of the expectations above, block by block; `bound()` runs the recursion."""
+
+    def __init__(self, system: System, times: np.ndarray) -> None:
+        self.system = system = system.on_times(times)
+        K1, n = len(times), system.n
+        self.runs = 0
+        self.info = np.zeros((K1, n, n))  # sum of D_z(k)
+        self.linear_motion = system.motion.linear
+        if not self.linear_motion:
+            self.FtQF = np.zeros((K1, n, n))  # at k: sum of F~^T Q^-1 F~ over x_{k-1}
+            self.F = np.zeros((K1, n, n))  # at k: sum of F~
+
+    def add(self, truth: np.ndarray, present: np.ndarray) -> None:
+        """A block: true states (M, K+1, n) and which sensor measured in which run at which
+        instant (M, K+1, S)."""
+        sys = self.system
+        self.runs += truth.shape[0]
+        for j, s in enumerate(sys.sensors):
+            H = s.jacobian(truth)  # (M, K+1, m, n)
+            RiH = np.linalg.solve(s.R, H)
+            self.info += np.einsum("mkai,mkaj,mk->kij", H, RiH, present[..., j].astype(float))
+        if not self.linear_motion:
+            for k in range(1, truth.shape[1]):
+                motion, dt = transition(sys, k)
+                F = motion.jacobian(truth[:, k - 1], dt)
+                QiF = np.linalg.solve(motion.Q(dt), F)
+                self.FtQF[k] += np.einsum("mai,maj->ij", F, QiF)
+                self.F[k] += F.sum(axis=0)
+
+    def bound(self) -> np.ndarray:
+        """J_k^-1 for every instant (K+1, n, n): the bound on each state's MSE is its diagonal."""
+        M = self.runs
+        Dz = self.info / M
+        out = np.empty_like(Dz)
+        J = spd_inv(self.system.truth_initial.cov, "the initial covariance") + Dz[0]
+        out[0] = spd_inv(J, "the Fisher information")
+        for k in range(1, len(Dz)):
+            motion, dt = transition(self.system, k)
+            Q = motion.Q(dt)
+            if self.linear_motion:
+                F = motion.F(dt)
+                J = spd_inv(sym(Q + F @ out[k - 1] @ F.T), "Q + F J^-1 F'") + Dz[k]
+            else:
+                Qi = spd_inv(Q, "the process noise covariance Q")
+                D12 = -mT(self.F[k] / M) @ Qi
+                D11 = self.FtQF[k] / M
+                J = sym(Qi - mT(D12) @ np.linalg.solve(J + D11, D12)) + Dz[k]
+            out[k] = spd_inv(J, "the Fisher information")
+        return out
+
+
+def pcrb_summary(bound: np.ndarray) -> dict[str, object]:
+    """summary.json's "pcrb": mse = mean over instants of tr(J^-1)/n, and per state."""
+    per_state = np.diagonal(bound, axis1=-2, axis2=-1)  # (K+1, n)
+    return {
+        "mse": float(per_state.sum(axis=1).mean() / bound.shape[-1]),
+        "mse_per_state": [float(v) for v in per_state.mean(axis=0)],
+    }
