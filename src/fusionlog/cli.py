@@ -161,19 +161,11 @@ _arch = click.option(
 )
 _filter = click.option("--filter", "filter_name", type=click.Choice(["EKF", "UKF"]),
                        help="Local filter of every architecture ([estimate] filter).")  # fmt: skip
-_workers = click.option(
-    "--workers",
-    type=click.IntRange(min=0),
-    help="Compute the runs, in blocks, on a Dask LocalCluster of N worker processes "
-    "(0: in this process, without Dask). Default: run, this process; sweep, one worker per "
-    "CPU when the work is estimated above 5 s in one process, else this process.",
-)
-_scheduler = click.option(
-    "--scheduler",
-    metavar="ADDRESS",
-    help="Compute the runs, in blocks, on the running Dask cluster at ADDRESS (tcp://host:port "
-    "or tls://host:port).",
-)
+_workers = click.option("--workers", type=click.IntRange(min=0), help="Compute the runs, in "
+    "blocks, on a Dask LocalCluster of N worker processes (0: in this process, without Dask). "
+    "Default: run, this process; sweep, from the size of the work (sweep --help).")  # fmt: skip
+_scheduler = click.option("--scheduler", metavar="ADDRESS", help="Compute the runs, in blocks, "
+    "on the running Dask cluster at ADDRESS (tcp://host:port or tls://host:port).")  # fmt: skip
 _scheduler_timeout = click.option(
     "--scheduler-timeout",
     type=float,
@@ -385,11 +377,9 @@ def sweep(
     """Evaluate SCENARIO.toml over a grid of parameter values, on Dask: writes sweep.parquet,
     sweep.rrd and summary.json (no MCAP logs: workers return metric sums).
 
-    Without --workers or --scheduler the runs go to a LocalCluster of one worker process per
-    CPU when their work is estimated above 5 s in one process (runs x instants x
-    architectures, dropout scenarios 40x dearer), else they run in this process, as do
-    --exact-only sweeps and any sweep on one CPU: starting a cluster costs more than it
-    gives back on work of a few seconds."""
+    Without --workers or --scheduler: a LocalCluster of one worker per CPU when the work is
+    estimated above 5 s in one process (runs x instants x architectures, dropouts 40x),
+    else this process (so too --exact-only, and one CPU): a cluster's start costs more."""
     from fusionlog.report import format_table
     from fusionlog.stages.sweep import run_sweep
 
