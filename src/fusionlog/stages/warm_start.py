@@ -4,9 +4,9 @@ Starting a LocalCluster takes a second or two (worker processes spawned, each im
 Dask and fusionlog), during which its workers compute nothing. `WarmStartExecutor` starts the
 cluster in a thread and meanwhile runs tasks from the front of the list in this process, one
 after the other; from the moment the cluster has a worker, the tasks not yet taken go to it.
-So a sweep on one worker costs about what it costs in this process (the start-up is hidden
-behind work), and on two workers the start-up is no longer time in which nothing is computed
-(benchmarks/README.md, "Sweeps on Dask").
+The start-up is then no longer time in which nothing is computed (with a core free, a sweep
+on one worker should cost about what it costs in this process; the busy machine of
+benchmarks/README.md could not confirm it).
 
 The results still come in task order and are the same numbers: a task is the same function
 of its arguments here and in a worker (BLAS on one thread in both, `stages.montecarlo`).
