@@ -183,8 +183,9 @@ def run_sweep(
 
 #: CPU seconds of the Monte Carlo per run, instant and architecture in one process, simulation
 #: and metric sums included: the paper's example (shared gains) ~5e-8 s; where the runs'
-#: measurement patterns differ (dropouts: per-run plans and each run's exact statistics)
-#: about 40 times that (measured with `benchmarks/bench_sweep.py` and in-process sweeps).
+#: measurement patterns differ (dropouts: per-run plans and each run's exact statistics) or
+#: a nonlinear model gives every run its own covariances, about 40 times that (measured
+#: with `benchmarks/bench_sweep.py` and in-process sweeps).
 SECONDS_PER_RUN_STEP = 5e-8
 PER_RUN_FACTOR = 40
 #: Without --workers, a sweep whose Monte Carlo is estimated below this many seconds in one
@@ -199,7 +200,8 @@ def estimated_seconds(points: Sequence[GridPoint], point_archs: Sequence[tuple[s
     total = 0.0
     for p, archs in zip(points, point_archs, strict=True):
         sc = p.scenario
-        per_run = any(s.timing.dropout > 0 for s in sc.system.sensors)
+        # each run with its own covariances: dropouts, or EKF/UKF local filters
+        per_run = not sc.system.linear or any(s.timing.dropout > 0 for s in sc.system.sensors)
         factor = PER_RUN_FACTOR if per_run else 1
         total += sc.runs * sc.instants * len(archs) * factor * SECONDS_PER_RUN_STEP
     return total
