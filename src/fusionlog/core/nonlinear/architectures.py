@@ -84,6 +84,7 @@ class _Steps:
             [(~np.isnan(z[..., c])).any(axis=(0, 2)) for c in self.cols], axis=1
         )  # (K+1, S)
         self.ukf = ukf_params(self.system)
+        self.work: dict = {}  # the EKF update's temporaries, reused from instant to instant
 
     def predict(self, k: int, x: np.ndarray, P: np.ndarray):
         return predict(*transition(self.system, k), x, P, self.ukf)
@@ -96,7 +97,7 @@ class _Steps:
         model = Stacked(tuple(self.system.sensors[j] for j in which))
         zk = self.z[:, k, np.concatenate([self.cols[j] for j in which])]
         self._check_ranges(k, which, x, zk)
-        return update(model, x, P, zk, self.ukf)
+        return update(model, x, P, zk, self.ukf, self.work)
 
     def _check_ranges(self, k: int, which: list[int], x: np.ndarray, zk: np.ndarray) -> None:
         """A range or bearing has no derivative at the sensor's own position: refuse it."""
