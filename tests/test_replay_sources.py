@@ -677,7 +677,7 @@ def test_csv_errors_name_lines_and_columns(tmp_path):
         p, "sensors[1]", "time (default): no column 'time'", "'#timestamp [ns]'", values=["p_x [m]"]
     )
     p.write_text("")
-    fails(p, "sensors[1]", "empty CSV file", values=["a"])
+    fails(p, "sensors[1]", "empty file (no header line)", values=["a"])
     p.write_text("time, a\n\n")
     fails(p, "sensors[1]", "no data rows", values=["a"])
     p.write_text('time, a\n1, "2\n')
@@ -689,10 +689,10 @@ def test_csv_errors_name_lines_and_columns(tmp_path):
 
 
 def test_source_kinds_and_arguments(tmp_path):
-    fails(tmp_path / "x.txt", "sensors[0]", "unsupported source type '.txt'", topic=None)
+    fails(tmp_path / "x.txt", "sensors[0]", "no such file", topic=None)
     fails(ROS2, "sensors[0]", "needs a topic", topic=None)
-    fails(MOCAP, "sensors[0]", "given for a CSV source", topic="/odom")
-    fails(MOCAP, "sensors[0]", "covariance fields are read from MCAP", covariance="c")
+    fails(MOCAP, "sensors[0]", "given for a text table", topic="/odom")
+    fails(MOCAP, "sensors[0]", "covariance fields are read from messages", covariance="c")
     fails(ROS2, "sensors[0]", "values must be a non-empty list", values=[])
     fails(tmp_path / "none.mcap", "sensors[0]", "no such file")
     fails(tmp_path / "none.csv", "sensors[0]", "no such file", values=["a"])

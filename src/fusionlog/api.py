@@ -56,6 +56,8 @@ class Simulation:
     measurements: dict[str, np.ndarray]
     scheduled: dict[str, np.ndarray] = field(default_factory=dict)
     covariances: dict[str, np.ndarray] = field(default_factory=dict)
+    #: a replay's truth: {"states", "matched", "unmatched"} (summary.json `truth`), else None
+    truth_info: dict | None = None
 
     def z(self, system: System) -> np.ndarray:
         """The stacked measurements of eq. (30) of `system`'s sensors (taken by name, in its
@@ -163,7 +165,8 @@ def _recorded(scenario: Scenario) -> Simulation:
         truth = np.full((1, K1, n), np.nan)
         truth[0, data.truth["at"]] = data.truth["values"]
     times = (data.instants - data.instants[0]) / 1e9
-    return Simulation(sc, times, truth, measurements, scheduled, covariances)
+    info = data.truth_info or None
+    return Simulation(sc, times, truth, measurements, scheduled, covariances, info)
 
 
 def _blocks(sim: Simulation) -> list[tuple[int, int]]:
@@ -223,7 +226,7 @@ def evaluate(scenario: Scenario, sim: Simulation, estimates: Estimates) -> Evalu
     )
     # the sensors' availability, where it says something (their own timing, a recording)
     timed = sc.replay is not None or any(not s.timing.default for s in sc.system.sensors)
-    log = SensorLog(sim.truth is not None, sim.scheduled if timed else None)
+    log = SensorLog(sim.truth is not None, sim.scheduled if timed else None, sim.truth_info)
     ev = StateEvaluator(
         sc, list(estimates), filter_sys, truth_sys, sim.runs, sim.times, prov, log, sc.name
     )

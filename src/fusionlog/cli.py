@@ -297,7 +297,7 @@ def run(scenario, out_dir, runs, steps, seed, archs, filter_name, force, block_r
         _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block_runs,
                          workers, scheduler, scheduler_timeout, filter_name)  # fmt: skip
         return
-    from fusionlog.report import format_table
+    from fusionlog.report import format_table, headline
     from fusionlog.stages.kinds import kind_of
     from fusionlog.stages.run import RUN_OUTPUTS, run_pipeline
 
@@ -318,7 +318,7 @@ def run(scenario, out_dir, runs, steps, seed, archs, filter_name, force, block_r
     sc = res.scenario
     for note in res.notes:
         click.echo(f"note: {note}")
-    click.echo(f"{sc.name}: M = {sc.runs} runs, K = {sc.instants - 1}, seed {sc.seed}")
+    click.echo(headline(sc))
     click.echo(format_table(res.summary))
     stages = ", ".join(f"{k} {v:.2f} s" for k, v in res.seconds.items())
     click.echo(f"{stages} -> {d}")
@@ -327,7 +327,7 @@ def run(scenario, out_dir, runs, steps, seed, archs, filter_name, force, block_r
 def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, workers,
                      scheduler, timeout, filter_name):  # fmt: skip
     """`run --workers/--scheduler`: evaluation.rrd and summary.json from metric sums."""
-    from fusionlog.report import format_table
+    from fusionlog.report import format_table, headline
     from fusionlog.stages.distributed_run import DISTRIBUTED_OUTPUTS, run_distributed
 
     sc = _scenario(scenario, runs, steps, seed)
@@ -345,7 +345,7 @@ def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, 
         command=_command_line(),
         filter_name=filter_name,
     )
-    click.echo(f"{sc.name}: M = {sc.runs} runs, K = {sc.instants - 1}, seed {sc.seed}")
+    click.echo(headline(sc))
     click.echo(format_table(res.summary))
     click.echo(f"{res.executor}: {res.seconds:.2f} s -> {d} (evaluation.rrd, summary.json)")
 
@@ -485,10 +485,10 @@ def compare(actual, golden, rtol, atol) -> None:
 
 
 @main.command()
-@click.argument("file", type=PATH)
+@click.argument("file", type=click.Path(path_type=Path))
 @click.option("--recover", is_flag=True, help="Read a damaged file as far as it goes.")
 def inspect(file, recover) -> None:
-    """Show what is in an MCAP file: scenario, topics, message counts, runs, steps, rates."""
+    """Show a log (MCAP, ROS 1 .bag, ROS 2 bag): topics, counts, rates, a foreign topic's fields."""
     from fusionlog.stages.inspect import describe, describe_damaged
 
     _warn_stale([file])

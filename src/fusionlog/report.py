@@ -17,7 +17,22 @@ from fusionlog.errors import FusionlogError
 from fusionlog.inputs import check_input
 from fusionlog.jsonout import NON_FINITE, join_path, resolve_non_finite, to_strict_json
 
-__all__ = ["check_summary", "check_tolerance", "compare_summaries", "format_table", "load_json"]
+__all__ = [
+    "check_summary",
+    "check_tolerance",
+    "compare_summaries",
+    "format_table",
+    "headline",
+    "load_json",
+]
+
+
+def headline(sc: Any) -> str:
+    """The line above a run's table: runs, instants and seed (a replay: one log, no seed)."""
+    if sc.replay is not None:
+        return f"{sc.name}: one recorded log, K = {sc.instants - 1} ({sc.instants} instants)"
+    return f"{sc.name}: M = {sc.runs} runs, K = {sc.instants - 1}, seed {sc.seed}"
+
 
 #: (header, getter) of the table columns, after the architecture name.
 _COLUMNS: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -81,6 +96,10 @@ def format_table(summary: Mapping[str, Any]) -> str:
         return _sweep_table(summary)
     if _is_identity(summary, archs):
         return _identity_table(summary, archs)
+    has_nis = any(isinstance(e, Mapping) and "nis" in e for e in archs.values())
+    truth_free = has_nis and not any(isinstance(e, Mapping) and "mse" in e for e in archs.values())
+    if truth_free:  # a recorded log without truth: what the innovations say
+        return _nis_table(archs)
     header = ["architecture"] + [h for h, _ in _COLUMNS]
     rows = [header]
     for arch, entry in archs.items():
@@ -89,6 +108,41 @@ def format_table(summary: Mapping[str, Any]) -> str:
         )
     if isinstance(summary.get("pcrb"), Mapping):  # nonlinear models: the bound on the MSE
         rows.append(["PCRB (bound)", _fmt(_get(summary, ("pcrb", "mse")))] + ["—"] * 6)
+    table = _layout(header, rows)
+    return table + "\n\n" + _nis_table(archs) if has_nis else table
+
+
+#: Columns of the innovation table: (header, key of a `nis` entry, percent).
+_NIS_COLUMNS: tuple[tuple[str, str, bool], ...] = (
+    ("NIS", "mean", False),
+    ("dof", "dof", False),
+    ("in band", "fraction_inside", True),
+    ("max |autocorr|", "whiteness_max_abs_autocorr", False),
+    ("bound", "whiteness_bound", False),
+    ("white lags", "whiteness_fraction_inside", True),
+)
+
+
+def _nis_table(archs: Mapping[str, Any]) -> str:
+    """One row per architecture and sensor: the mean NIS against its degrees of freedom, the
+    share of instants whose NIS is inside the chi-square band, and the whiteness of the
+    normalised innovations (largest autocorrelation over the lags, its bound, the share of lags
+    inside it); then the mean trace of the reported covariance."""
+    header = ["architecture", "sensor"] + [h for h, _, _ in _NIS_COLUMNS] + ["mean tr(P)"]
+    rows = [header]
+    for arch, entry in archs.items():
+        nis = entry.get("nis") if isinstance(entry, Mapping) else None
+        if not isinstance(nis, Mapping):
+            continue
+        # one innovation: its sensor's (SKF:<sensor>) or all sensors' stacked
+        one = str(arch).split(":", 1)[1] if ":" in str(arch) else "all"
+        parts = {one: nis} if "mean" in nis else nis
+        for j, (sensor, e) in enumerate(parts.items()):
+            rows.append(
+                [str(arch) if j == 0 else "", str(sensor)]
+                + [_fmt(_get(e, (k,)), percent=p) for _, k, p in _NIS_COLUMNS]
+                + [_fmt(entry.get("mean_trace")) if j == 0 else ""]
+            )
     return _layout(header, rows)
 
 

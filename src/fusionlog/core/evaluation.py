@@ -35,6 +35,8 @@ class Evaluation:
     NIS, band lower, band upper); `traces[arch]` (K+1,) tr P without truth; `measured[state]
     [sensor]` (K+1,) the first sample run's direct readings; `properties`: the recording's
     (scenario text, provenance); `pcrb` (K+1, n) the PCRB on each state's MSE.
+    `innovations[arch][sensor]` (K+1, r): a replayed log's normalised innovations, None for a
+    scenario; with them the recording takes the layout of one log (`io.rrd.replay`).
     """
 
     summary: dict[str, Any]
@@ -53,6 +55,7 @@ class Evaluation:
     #: (K+1, n): the posterior Cramér-Rao bound on each state's MSE, where there is no exact
     #: analysis (nonlinear models; summary.json's "pcrb")
     pcrb: np.ndarray | None = None
+    innovations: dict[str, dict[str, np.ndarray]] | None = None
 
     @property
     def architectures(self) -> list[str]:

@@ -38,6 +38,11 @@ class Innovations:
     normalised: np.ndarray
 
 
+#: Instants per block of `innovations`: its temporaries (predicted covariances, S, Cholesky
+#: factors) are a block's, so that a log of 10^6 instants needs no 10^6 x n x n arrays.
+BLOCK = 32_768
+
+
 @overflow_is_inf  # an outlier near 1e308: its NIS is inf, reported as non-finite
 def innovations(
     system: System,
@@ -50,33 +55,48 @@ def innovations(
     """The innovations of a filter whose filtered estimates are mean (M, K+1, n) and cov
     ((K+1, n, n) shared or (M, K+1, n, n)), on the components `rows` of the stacked
     measurements z (M, K+1, m), with noise covariance R (rows x rows; default the system's,
-    per instant where it varies: `System.R_at`)."""
+    per instant where it varies: `System.R_at`). Computed in blocks of `BLOCK` instants."""
     M, K1, _ = z.shape
-    n = system.n
+    r = len(rows)
+    nis, dof = np.full((M, K1), np.nan), np.zeros((M, K1), dtype=np.int64)
+    out = np.full((M, K1, r), np.nan)
+    for k0 in range(0, K1, BLOCK):
+        k1 = min(K1, k0 + BLOCK)
+        nis[:, k0:k1], dof[:, k0:k1], out[:, k0:k1] = _block(system, mean, cov, z, rows, R, k0, k1)
+    return Innovations(nis, dof, out)
+
+
+def _block(system, mean, cov, z, rows, R, k0: int, k1: int):
+    """NIS, degrees of freedom and normalised innovations of the instants k0..k1-1."""
+    M = z.shape[0]
+    n, w = system.n, k1 - k0
     H = system.linear_measurement()[rows]
     r = len(rows)
-    # The predictions of every instant at once: x_k^- = F_k x_{k-1}, P_k^- = F_k P F_k' + Q_k
-    # (k >= 1), the prior at k = 0 (none without a prior).
+    # The predictions x_k^- = F_k x_{k-1}, P_k^- = F_k P F_k' + Q_k (k >= 1), the prior at
+    # k = 0 (none without a prior).
+    a = max(k0, 1)  # the first instant with a predecessor
     if system.time_invariant:
-        F = np.broadcast_to(system.F, (K1 - 1, n, n))
-        Q = np.broadcast_to(system.GQG, (K1 - 1, n, n))
+        F = np.broadcast_to(system.F, (k1 - a, n, n))
+        Q = np.broadcast_to(system.GQG, (k1 - a, n, n))
     else:
-        F = np.array([system.F_at(k) for k in range(1, K1)]).reshape(K1 - 1, n, n)
-        Q = np.array([system.GQG_at(k) for k in range(1, K1)]).reshape(K1 - 1, n, n)
-    xp = np.full((M, K1, n), np.nan)
-    xp[:, 1:] = np.einsum("kij,mkj->mki", F, mean[:, :-1])
-    Pp = np.full(cov.shape, np.nan)
-    Pp[..., 1:, :, :] = sym(F @ cov[..., :-1, :, :] @ mT(F) + Q)
-    if system.prior is not None:
+        F = np.array([system.F_at(k) for k in range(a, k1)]).reshape(k1 - a, n, n)
+        Q = np.array([system.GQG_at(k) for k in range(a, k1)]).reshape(k1 - a, n, n)
+    xp = np.full((M, w, n), np.nan)
+    xp[:, a - k0 :] = np.einsum("kij,mkj->mki", F, mean[:, a - 1 : k1 - 1])
+    Pp = np.full(cov.shape[:-3] + (w, n, n), np.nan)
+    Pp[..., a - k0 :, :, :] = sym(F @ cov[..., a - 1 : k1 - 1, :, :] @ mT(F) + Q)
+    if k0 == 0 and system.prior is not None:
         xp[:, 0] = system.prior.mean
         Pp[..., 0, :, :] = system.prior.cov
-    if R is None:
-        Rk = system.R[np.ix_(rows, rows)] if system.Rs is None else system.Rs[:, rows][:, :, rows]
-    else:
+    if R is not None:
         Rk = R
-    S = sym(H @ Pp @ H.T + Rk)  # ([M,] K+1, r, r)
-    zr = z[:, :, rows]
-    present = ~np.isnan(zr)  # (M, K+1, r)
+    elif system.Rs is None:
+        Rk = system.R[np.ix_(rows, rows)]
+    else:
+        Rk = system.Rs[k0:k1][:, rows][:, :, rows]
+    S = sym(H @ Pp @ H.T + Rk)  # ([M,] w, r, r)
+    zr = z[:, k0:k1][:, :, rows]
+    present = ~np.isnan(zr)  # (M, w, r)
     usable = np.isfinite(xp).all(axis=-1) & np.isfinite(S).all(axis=(-2, -1))
     nu = np.where(present, np.nan_to_num(zr) - xp @ H.T, 0.0)
     pf = present.astype(float)
@@ -92,8 +112,7 @@ def innovations(
     use = usable & present.any(axis=-1)
     nis = np.where(use, (u**2).sum(axis=-1), np.nan)
     dof = np.where(use, present.sum(axis=-1), 0)
-    out = np.where(use[..., None] & present, u, np.nan)
-    return Innovations(nis, dof, out)
+    return nis, dof, np.where(use[..., None] & present, u, np.nan)
 
 
 @overflow_is_inf

@@ -6,14 +6,19 @@
     [model]      kind = "constant-velocity" (n0, axes) or "continuous" (A, Qc): a model that
                  can be discretised for any interval.
     [prior]      mean, cov (optional: without it the filters start with no information).
-    [[sensors]]  name, H, and where the readings are: source (an .mcap or .csv file, relative to
-                 the replay file), topic (MCAP only), values (field paths, or CSV column names),
-                 time (optional field or column; default the MCAP log_time or CSV column
-                 `time`), time_unit (s, ms, us, ns); R, or covariance (a field holding a flat
-                 square covariance) with covariance_index (its rows/columns of `values`), R
-                 then applying where a message's matrix is all zero or not positive definite.
-    [truth]      optional: source, topic, values, time, time_unit and states (the state names
-                 those values are): turns on the truth-based metrics.
+    [[sensors]]  name, H, and where the readings are: source (relative to the replay file: an
+                 MCAP, a ROS 1 .bag, a ROS 2 bag folder or its .db3, or a text table of any
+                 extension), topic (MCAP and bags), values (field paths, or column names),
+                 time (optional field or column; default the log/record time or the column
+                 `time`), time_unit (s, ms, us, ns); for tables delimiter, columns and
+                 format = "tum"; geodetic = true (values are latitude, longitude[, altitude]:
+                 converted to ENU metres) with origin = [lat, lon, alt] (default the first
+                 fix); R, or covariance (a field holding a flat square covariance) with
+                 covariance_index (its rows/columns of `values`), R then applying where a
+                 message's matrix is all zero or not positive definite.
+    [truth]      optional: the stream keys above, states (the state names those values are:
+                 some or all), match = "nearest" | "interpolate" | "exact" and max_diff (s,
+                 default 0.01): turns on the truth-based metrics, over the truthed states.
     [estimate], [evaluate] as in a scenario.
 
 A replay is a scenario of the state kind with one run (`Scenario.replay` says where its data
@@ -23,6 +28,7 @@ are); `fusionlog import` reads the data into an ordinary sensors file.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from decimal import Decimal
 from pathlib import Path
 from typing import Any
 
@@ -48,9 +54,12 @@ __all__ = ["Replay", "Stream", "is_replay_doc", "replay_from_doc"]
 _TOP_KEYS = ("scenario", "model", "prior", "truth", "sensors", "correlations", "estimate",
              "evaluate")  # fmt: skip
 _SCENARIO_KEYS = ("name", "description", "state_names", "dt")
-_STREAM_KEYS = ("source", "topic", "values", "time", "time_unit")
+_STREAM_KEYS = ("source", "topic", "values", "time", "time_unit", "delimiter", "columns", "format",
+                "geodetic", "origin")  # fmt: skip
 _SENSOR_REQUIRED = ("name", "H", "source", "values")
-_SENSOR_OPTIONAL = ("topic", "time", "time_unit", "R", "covariance", "covariance_index")
+_SENSOR_OPTIONAL = _STREAM_KEYS[2:] + ("topic", "R", "covariance", "covariance_index")
+MATCHES = ("nearest", "interpolate", "exact")
+FORMATS = ("tum",)
 
 
 @dataclass(frozen=True)
@@ -65,11 +74,17 @@ class Stream:
     time_unit: str = "s"
     covariance: str | None = None
     covariance_index: tuple[int, ...] | None = None
+    delimiter: str | None = None
+    columns: tuple[str, ...] | None = None
+    format: str | None = None
+    geodetic: bool = False
+    origin: tuple[float, float, float] | None = None
 
     def reader_args(self) -> dict[str, Any]:
         """The keyword arguments of `fusionlog.io.replay.read_series` besides the source."""
         return {k: getattr(self, k) for k in ("topic", "values", "time", "time_unit",
-                                              "covariance", "covariance_index")}  # fmt: skip
+                                              "covariance", "covariance_index", "delimiter",
+                                              "columns", "format")}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -80,6 +95,8 @@ class Replay:
     sensors: tuple[Stream, ...]
     truth: Stream | None = None
     truth_states: tuple[int, ...] = ()
+    match: str = "nearest"  # how truth samples are associated with the instants
+    max_diff_ns: int = 10_000_000  # the largest time difference of an associated sample
 
 
 def is_replay_doc(doc: dict[str, Any]) -> bool:
@@ -88,19 +105,106 @@ def is_replay_doc(doc: dict[str, Any]) -> bool:
     return isinstance(sensors, list) and any(isinstance(t, dict) and "source" in t for t in sensors)
 
 
+def _source_kind(path: Path) -> str:
+    from fusionlog.io.replay import source_kind  # the readers: only replay files need them
+
+    return source_kind(path)
+
+
+def _text_keys(ctx: Ctx, t: dict[str, Any], where: str, kind: str) -> dict[str, Any]:
+    """delimiter, columns and format of a text table (refused for other sources)."""
+    out: dict[str, Any] = {}
+    for key in ("delimiter", "columns", "format"):
+        if key in t and kind != "text":
+            raise ctx.err(f"{where}.{key}", f"only used with a text table, not with {kind} sources")
+    if "delimiter" in t:
+        d = t["delimiter"]
+        if not isinstance(d, str) or not (len(d) == 1 or d == "whitespace") or d in '\n\r"#':
+            raise ctx.err(
+                f"{where}.delimiter",
+                f"expected one character (',', '\\t', ';' ...) or 'whitespace', got {toml.show(d)}",
+            )
+        out["delimiter"] = "whitespace" if d == " " else d
+    if "columns" in t:
+        c = t["columns"]
+        if (
+            not isinstance(c, list)
+            or len(c) < 2
+            or not all(isinstance(x, str) and x.strip() for x in c)
+        ):
+            raise ctx.err(
+                f"{where}.columns",
+                f"expected a list of at least 2 column names, got {toml.show(c)}",
+            )
+        names = [x.strip() for x in c]
+        dup = sorted({x for x in names if names.count(x) > 1})
+        if dup:
+            raise ctx.err(f"{where}.columns", f"names a column twice: {dup[0]!r}")
+        out["columns"] = tuple(names)
+    if "format" in t:
+        f = toml.string(ctx, t["format"], f"{where}.format")
+        if f not in FORMATS:
+            raise ctx.err(f"{where}.format", f"unknown format {f!r} (known: {', '.join(FORMATS)})")
+        if "columns" in t:
+            raise ctx.err(
+                f"{where}.columns", "not used with format = 'tum' (its columns are fixed)"
+            )
+        out["format"] = f
+    return out
+
+
+def _geodetic(ctx: Ctx, t: dict[str, Any], where: str, d: int) -> dict[str, Any]:
+    if "geodetic" not in t:
+        if "origin" in t:
+            raise ctx.err(f"{where}.origin", "only used with geodetic = true")
+        return {}
+    g = t["geodetic"]
+    if not isinstance(g, bool):
+        raise ctx.err(f"{where}.geodetic", f"expected true or false, got {toml.show(g)}")
+    if not g:
+        if "origin" in t:
+            raise ctx.err(f"{where}.origin", "only used with geodetic = true")
+        return {}
+    if d not in (2, 3):
+        raise ctx.err(
+            f"{where}.values",
+            f"{d} values with geodetic = true: give [latitude, longitude] or "
+            "[latitude, longitude, altitude] (degrees, degrees, metres)",
+        )
+    out: dict[str, Any] = {"geodetic": True}
+    if "origin" in t:
+        o = t["origin"]
+        if not isinstance(o, list) or len(o) != 3 or not all(toml.is_number(x) for x in o):
+            raise ctx.err(
+                f"{where}.origin",
+                "expected [latitude, longitude, altitude] (degrees, degrees, metres), "
+                f"got {toml.show(o)}",
+            )
+        lat, lon, alt = (float(x) for x in o)
+        if not abs(lat) <= 90:
+            raise ctx.err(f"{where}.origin", f"latitude {toml.fmt(lat)} is outside ±90 degrees")
+        if not abs(lon) <= 180:
+            raise ctx.err(f"{where}.origin", f"longitude {toml.fmt(lon)} is outside ±180 degrees")
+        if not abs(alt) < 1e7:
+            raise ctx.err(f"{where}.origin", f"altitude {toml.fmt(alt)} m is not an altitude")
+        out["origin"] = (lat, lon, alt)
+    return out
+
+
 def _stream(ctx: Ctx, t: dict[str, Any], where: str, base: Path) -> Stream:
     source = toml.string(ctx, t["source"], f"{where}.source")
     path = base / source
-    suffix = path.suffix.lower()
-    if suffix not in (".mcap", ".csv"):
-        raise ctx.err(f"{where}.source", f"expected an .mcap or .csv file, got {source!r}")
+    kind = _source_kind(path)
     topic = None
-    if suffix == ".mcap":
+    if kind != "text":
         if "topic" not in t:
-            raise ctx.err(f"{where}.topic", "missing required key (an .mcap source needs it)")
+            raise ctx.err(f"{where}.topic", f"missing required key (an {kind} source needs it)")
         topic = toml.string(ctx, t["topic"], f"{where}.topic")
     elif "topic" in t:
-        raise ctx.err(f"{where}.topic", "only used with an .mcap source (a CSV has columns)")
+        raise ctx.err(
+            f"{where}.topic",
+            f"only used with an MCAP or bag source ({source!r} is read as a text table)",
+        )
     values = t["values"]
     if (
         not isinstance(values, list)
@@ -114,7 +218,22 @@ def _stream(ctx: Ctx, t: dict[str, Any], where: str, base: Path) -> Stream:
     unit = toml.string(ctx, t.get("time_unit", "s"), f"{where}.time_unit")
     if unit not in TIME_UNITS:
         raise ctx.err(f"{where}.time_unit", f"unknown unit {unit!r} (known: s, ms, us, ns)")
-    return Stream(path, topic, tuple(v.strip() for v in values), time, unit)
+    extra = _text_keys(ctx, t, where, kind) | _geodetic(ctx, t, where, len(values))
+    degrees = [v for v in values if v.strip().split(".")[-1].lower() in ("latitude", "longitude")]
+    if degrees and not extra.get("geodetic"):
+        # a GNSS fix in degrees read as metres makes every NIS ~1e-10: never silently
+        raise ctx.err(
+            f"{where}.values",
+            f"{degrees[0].strip()!r} is in degrees: give geodetic = true (with values "
+            "[latitude, longitude, altitude]) to use the fixes as local east-north-up metres",
+        )
+    if "columns" in extra:
+        for v in values + ([time] if time is not None else []):
+            if v.strip() not in extra["columns"]:
+                raise ctx.err(
+                    f"{where}.values", toml.unknown_msg("column", v.strip(), extra["columns"])
+                )
+    return Stream(path, topic, tuple(v.strip() for v in values), time, unit, **extra)
 
 
 def _covariance(ctx: Ctx, t: dict[str, Any], where: str, m: int) -> tuple[str | None, Any]:
@@ -200,7 +319,7 @@ def replay_from_doc(doc: dict[str, Any], file: str, source: str, path: str | Non
         # own covariances); NaN until then.
         m = H.shape[0]
         sensors.append(Sensor(sname, H, R if R is not None else np.full((m, m), np.nan)))
-    truth, truth_states = _truth(ctx, doc, base, state_names)
+    truth, truth_states, match, max_diff_ns = _truth(ctx, doc, base, state_names)
     cross_R = correlations_section(ctx, doc, tuple(sensors))
     system = System(F=F, Q=Q, G=G, sensors=tuple(sensors), prior=prior, cross_R=cross_R, dt=dt,
                     state_names=state_names, continuous=continuous)  # fmt: skip
@@ -221,25 +340,38 @@ def replay_from_doc(doc: dict[str, Any], file: str, source: str, path: str | Non
         plane_view=plane_view,
         source=source,
         path=path,
-        replay=Replay(tuple(streams), truth, truth_states),
+        replay=Replay(tuple(streams), truth, truth_states, match, max_diff_ns),
     )
 
 
 def _truth(
     ctx: Ctx, doc: dict[str, Any], base: Path, state_names: tuple[str, ...]
-) -> tuple[Stream | None, tuple[int, ...]]:
+) -> tuple[Stream | None, tuple[int, ...], str, int]:
     tr = toml.table(ctx, doc, "truth", required=False)
     if tr is None:
-        return None, ()
-    toml.check_keys(ctx, tr, "truth", _STREAM_KEYS + ("states",),
+        return None, (), "nearest", 0
+    toml.check_keys(ctx, tr, "truth", _STREAM_KEYS + ("states", "match", "max_diff"),
                     required=("source", "values", "states"))  # fmt: skip
     stream = _stream(ctx, tr, "truth", base)
     states = toml.names_list(ctx, tr["states"], "truth.states")
     for s in states:
         if s not in state_names:
             raise ctx.err("truth.states", toml.unknown_msg("state", s, state_names))
+    if len(set(states)) != len(states):
+        raise ctx.err("truth.states", "names a state twice")
     if len(states) != len(stream.values):
         raise ctx.err(
             "truth.states", f"{len(states)} states for {len(stream.values)} values (one each)"
         )
-    return stream, tuple(state_names.index(s) for s in states)
+    match = toml.string(ctx, tr.get("match", "nearest"), "truth.match")
+    if match not in MATCHES:
+        raise ctx.err("truth.match", f"unknown match {match!r} (known: {', '.join(MATCHES)})")
+    max_diff = 0.01
+    if "max_diff" in tr:
+        if match == "exact":
+            raise ctx.err("truth.max_diff", "not used with match = 'exact'")
+        max_diff = toml.number(ctx, tr["max_diff"], "truth.max_diff")
+        if not (max_diff > 0 and max_diff < 1e9):
+            raise ctx.err("truth.max_diff", f"must be > 0 seconds, got {toml.fmt(max_diff)}")
+    max_diff_ns = round(Decimal(repr(max_diff)) * 1_000_000_000)
+    return stream, tuple(state_names.index(s) for s in states), match, max_diff_ns

@@ -4,8 +4,10 @@ each sensor measured (the share of runs whose measurement arrived).
 
 Which innovations (DESIGN.md, summary.json `nis`):
 
-* CKF, HKF: the centralised innovation of all sensors against the architecture's prediction
-  (HKF with the block-diagonal R it believes); FBS: that of its forward filter, the CKF;
+* CKF, HKF: each sensor's part of the centralised innovation against the architecture's
+  prediction (z_s - H_s x^-, S_s = H_s P^- H_s' + R_s), so that a sensor whose R is wrong
+  shows by name; with a single sensor, the whole innovation (HKF with the block-diagonal R it
+  believes); FBS: that of its forward filter, the CKF;
 * SKF:<s>: its sensor's innovation;
 * MSC, MSC-GMF, CI, AVG: each sensor's innovation against the *fused* prediction. The local
   filters' own innovations are the same for all four (the same locals, no feedback), so they
@@ -38,7 +40,7 @@ def _parts(system: System, arch: str) -> list[tuple[str, np.ndarray]]:
     sl = system.sensor_slices
     if base == "SKF":
         return [(sensor, rows[sl[system.sensor_index(sensor)]])]
-    if base in TRACK_TO_TRACK:
+    if base in TRACK_TO_TRACK or len(system.sensors) > 1:
         return [(s.name, rows[sl[j]]) for j, s in enumerate(system.sensors)]
     return [("all", rows)]
 
@@ -69,7 +71,7 @@ class NisAccumulator:
                     forward = (fwd.mean, fwd.cov)
                 mean, cov = forward
             for part, rows in self.parts[a]:
-                if base == "HKF":
+                if base == "HKF" and part == "all":
                     R = self._blockdiag()
                 inn = innovations(system, mean, cov, z, rows, R)
                 key = (a, part)
@@ -80,6 +82,14 @@ class NisAccumulator:
                 if keep:
                     self.white[key].append(inn.normalised[:keep])
         self.kept += min(keep, z.shape[0])
+
+    def first_run(self) -> dict[str, dict[str, np.ndarray]]:
+        """{ARCH: {part: (K+1, r)}} the first run's normalised innovations (NaN where none)."""
+        return {
+            a: {part: self.white[(a, part)][0][0] for part, _ in self.parts[a]}
+            for a in self.archs
+            if all(self.white[(a, part)] for part, _ in self.parts[a])
+        }
 
     def _blockdiag(self) -> np.ndarray | None:
         if self.system.Rs is not None:

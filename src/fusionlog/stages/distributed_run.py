@@ -100,6 +100,11 @@ def run_distributed(
             f"{sc.path or sc.name}: --workers/--scheduler run state scenarios; "
             f"a {sc.kind} scenario runs in one process (without them)"
         )
+    if sc.replay is not None:  # the workers simulate runs: a recorded log has one, not theirs
+        raise FusionlogError(
+            f"{sc.path or sc.name}: a replay is one recorded run, there is nothing to spread "
+            "over workers: run it without --workers/--scheduler"
+        )
     kind = kind_of(sc.kind)
     archs = kind.check_architectures(list(archs) or list(sc.architectures), sc.system, "--arch")
     targets = [Path(out_dir) / name for name in DISTRIBUTED_OUTPUTS]

@@ -1,9 +1,11 @@
-"""`fusionlog inspect`: what an MCAP file holds, as lines of text.
+"""`fusionlog inspect`: what a log holds, as lines of text.
 
-For any MCAP: its topics, schemas and message counts (foreign topics with their encoding and
-rate); for fusionlog's files also the scenario, who wrote it, runs and instants, and for each
-sensor its instants, rate and the share of its readings lost. `describe_damaged` reads a
-damaged file as far as it goes.
+For any MCAP: its topics, schemas and message counts; foreign topics with their encoding, rate
+and the field paths of their first message with types and values (what a replay file's
+`values`, `time` and `covariance` name); for fusionlog's files also the scenario, who wrote it,
+runs and instants, and for each sensor its instants, rate and the share of its readings lost.
+ROS 1 `.bag` files and ROS 2 bag folders (or their `.db3`) are listed the same way as foreign
+MCAP topics. `describe_damaged` reads a damaged MCAP as far as it goes.
 """
 
 from __future__ import annotations
@@ -11,11 +13,40 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
+from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap import McapFile
 from fusionlog.io.mcap import recover as recover_file
 from fusionlog.io.mcap.topics import SENSORS_PREFIX
 
 __all__ = ["describe", "describe_damaged", "sensor_timing"]
+
+_MAX_FIELDS = 60  # per topic: an Imu or Odometry fits, a point cloud's arrays do not matter
+
+
+def _field_lines(fields: list[tuple[str, str, str]] | str | None) -> Iterator[str]:
+    """The field paths of a foreign topic's first message: path, type, first value."""
+    pad = " " * 6
+    if fields is None:
+        return
+    if isinstance(fields, str):
+        yield f"{pad}(first message not decoded: {fields})"
+        return
+    for path, kind, value in fields[:_MAX_FIELDS]:
+        yield f"{pad}{path:44s} {kind:10s} {value}"
+    if len(fields) > _MAX_FIELDS:
+        yield f"{pad}... {len(fields) - _MAX_FIELDS} more fields"
+
+
+def _describe_bag(file: Path) -> Iterator[str]:
+    from fusionlog.io.replay import bag_topics  # rosbags: only for bags
+
+    topics = bag_topics(file)
+    yield f"{file}"
+    yield f"  ROS bag: {len(topics)} topics (field paths of each topic's first message below)"
+    for info in topics:
+        hz = f", {info['rate']:.4g} Hz" if info["rate"] else ""
+        yield f"  {info['topic']:32s} {info['count']:8d} messages  {info['type']}{hz}"
+        yield from _field_lines(info.get("error") or info.get("fields"))
 
 
 def sensor_timing(mf: McapFile, topic: str) -> str:
@@ -31,6 +62,16 @@ def sensor_timing(mf: McapFile, topic: str) -> str:
 
 def describe(file: Path) -> Iterator[str]:
     """The lines `fusionlog inspect FILE` prints."""
+    from fusionlog.io.replay import source_kind
+
+    if source_kind(Path(file)) == "bag":
+        yield from _describe_bag(Path(file))
+        return
+    if Path(file).is_dir():
+        raise FusionlogError(
+            f"{file}: is a folder but not a ROS 2 bag (no metadata.yaml); inspect reads MCAP "
+            "files, ROS 1 .bag files and ROS 2 bag folders"
+        )
     mf = McapFile(file)
     sc = mf.metadata.get("fusionlog.scenario", {})
     prov = mf.metadata.get("fusionlog.provenance", {})
@@ -45,11 +86,12 @@ def describe(file: Path) -> Iterator[str]:
         yield f"  runs: {mf.runs()}, instants: {mf.steps()} (k = 0..{mf.steps() - 1})"
     else:
         yield "  no fusionlog topics (no fusionlog.Block or fusionlog.EstimateBlock streams)"
-    foreign = {}
+    foreign, fields = {}, {}
     if len(ours) < len(mf.topics):  # any MCAP's topics: encoding and rate from its indexes
-        from fusionlog.io.replay import list_topics
+        from fusionlog.io.replay import first_fields, list_topics
 
         foreign = {t: (enc, rate) for t, _, enc, _, rate in list_topics(file)}
+        fields = first_fields(file, [t for t in mf.topics if t not in ours])
     for t in sorted(mf.topics):
         if t in ours:
             kind = f"dim {mf.dim_of(t)}"
@@ -60,6 +102,8 @@ def describe(file: Path) -> Iterator[str]:
         yield f"  {t:32s} {mf.topics[t]:8d} messages  {mf.schema_of(t)}  {kind}"
         if t.startswith(SENSORS_PREFIX) and t in ours:
             yield f"  {'':32s} {sensor_timing(mf, t)}"
+        elif t not in ours:
+            yield from _field_lines(fields.get(t))
     yield f"  metadata: {', '.join(sorted(mf.metadata)) or 'none'}"
 
 

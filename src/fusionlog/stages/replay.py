@@ -52,6 +52,48 @@ def _read(stream: Stream, what: str):
     return read_series(stream.source, **stream.reader_args(), what=what)
 
 
+def _read_all(replay, names: list[str]) -> tuple[list, list[str]]:
+    """Every stream of the replay (sensors, then the truth) read, geodetic ones in ENU metres
+    about one origin: each stream's own, else the first fix in time order of all geodetic
+    streams without one (so that two receivers, or a receiver and an RTK truth, share a frame)."""
+    from fusionlog.io.replay import to_enu
+
+    streams = list(replay.sensors) + ([replay.truth] if replay.truth is not None else [])
+    whats = [f"sensors[{j}] ({n})" for j, n in enumerate(names)] + ["truth"]
+    series = [_read(st, what) for st, what in zip(streams, whats, strict=False)]
+    shared = [i for i, st in enumerate(streams) if st.geodetic and st.origin is None]
+    # the shared origin's stream first: its first fix is the origin of the others
+    order = sorted(shared, key=lambda i: int(series[i].times_ns[0]))
+    order += [i for i, st in enumerate(streams) if st.geodetic and st.origin is not None]
+    origin = None
+    notes = []
+    for i in order:
+        st = streams[i]
+        given = st.origin if st.origin is not None else origin
+        series[i], used = to_enu(st.source, whats[i], series[i], given)
+        if st.origin is None:
+            origin = used
+        notes.append(
+            f"{whats[i]}: geodetic fixes as ENU metres about latitude {used[0]:.9g}, "
+            f"longitude {used[1]:.9g}, altitude {used[2]:.6g} m"
+            + (" (the first fix)" if st.origin is None else "")
+        )
+    return series, notes
+
+
+def sha256_of_source(path: Path) -> str:
+    """A source's sha256: the file's, or for a ROS 2 bag folder the hash of its files' names
+    and hashes (sorted)."""
+    if not path.is_dir():
+        return sha256_of(path)
+    import hashlib
+
+    h = hashlib.sha256()
+    for f in sorted(p for p in path.iterdir() if p.is_file()):
+        h.update(f"{f.name}\0{sha256_of(f)}\n".encode())
+    return h.hexdigest()
+
+
 def _usable(cov: np.ndarray) -> np.ndarray:
     """(N,) whether each covariance is a usable R: not all zero, symmetric, positive definite."""
     ok = np.isfinite(cov).all(axis=(-2, -1)) & (np.abs(cov).max(axis=(-2, -1)) > 0)
@@ -76,22 +118,24 @@ class ReplayData:
     sensors: list[_Sensor]
     truth: dict
     notes: list[str]
+    truth_info: dict = field(default_factory=dict)  # {states, matched, unmatched}, with a truth
 
 
 def read_replay(scenario: Scenario) -> ReplayData:
     """Read every stream of the replay `scenario` and place the readings on the instants."""
+    from fusionlog.core.associate import associate
+
     replay = scenario.replay
     system = scenario.system
-    notes: list[str] = []
-    series = []
-    for j, (sen, stream) in enumerate(zip(system.sensors, replay.sensors, strict=True)):
-        s = _read(stream, f"sensors[{j}] ({sen.name})")
-        notes += [f"{sen.name}: {n}" for n in s.notes]
-        series.append(s)
-    instants = np.unique(np.concatenate([s.times_ns for s in series]))
+    names = [sen.name for sen in system.sensors]
+    series, notes = _read_all(replay, names)
+    for name, s in zip(names + ["truth"], series, strict=False):
+        notes += [f"{name}: {n}" for n in s.notes]
+    sensor_series = series[: len(names)]
+    instants = np.unique(np.concatenate([s.times_ns for s in sensor_series]))
     sensors: list[_Sensor] = []
     nominal = []
-    for j, (sen, s) in enumerate(zip(system.sensors, series, strict=True)):
+    for j, (sen, s) in enumerate(zip(system.sensors, sensor_series, strict=True)):
         at = np.searchsorted(instants, s.times_ns)
         cov = None
         R = sen.R
@@ -109,7 +153,9 @@ def read_replay(scenario: Scenario) -> ReplayData:
                     f"{sen.name}: {bad} of {len(good)} messages with an all-zero or not "
                     "positive definite covariance: R applied"
                 )
-            cov = np.where(good[:, None, None], s.cov, R if np.isfinite(R).all() else 0.0)
+            # symmetric to rounding (a driver's 1e-15 asymmetry): used as its symmetric part
+            sym = 0.5 * (s.cov + np.swapaxes(s.cov, -1, -2))
+            cov = np.where(good[:, None, None], sym, R if np.isfinite(R).all() else 0.0)
             if not np.isfinite(R).all():
                 R = nominal_R(cov)  # a sensor given by its messages alone
             if np.array_equal(cov, np.broadcast_to(R, cov.shape)):
@@ -117,29 +163,41 @@ def read_replay(scenario: Scenario) -> ReplayData:
         nominal.append(R)
         sensors.append(_Sensor(at, s.values, cov))
     truth: dict = {}
+    truth_info: dict = {}
     if replay.truth is not None:
-        t = _read(replay.truth, "truth")
-        notes += [f"truth: {n}" for n in t.notes]
-        pos = np.searchsorted(instants, t.times_ns)
-        match = (pos < len(instants)) & (instants[np.minimum(pos, len(instants) - 1)] == t.times_ns)
-        if not match.any():
-            raise FusionlogError(
-                f"{replay.truth.source}: truth: none of its {len(match)} times is an instant of "
-                "the sensors (the truth is used only where its time equals a measurement time)"
+        t = series[-1]
+        at_instants = associate(instants, t.times_ns, t.values, replay.match, replay.max_diff_ns)
+        matched = np.isfinite(at_instants).all(axis=1)
+        n_matched = int(matched.sum())
+        states = [system.state_names[i] for i in replay.truth_states]
+        truth_info = {"states": states, "matched": n_matched,
+                      "unmatched": int(len(instants) - n_matched)}  # fmt: skip
+        if not n_matched:
+            within = (
+                "at an instant"
+                if replay.match == "exact"
+                else f"within max_diff = {replay.max_diff_ns / 1e9:g} s of an instant"
             )
-        if not match.all():
-            notes.append(f"truth: {int((~match).sum())} of {len(match)} readings at no instant "
-                         "of the sensors (unmatched, not used)")  # fmt: skip
-        values = np.full((int(match.sum()), system.n), np.nan)
-        values[:, list(replay.truth_states)] = t.values[match]
-        truth = {"at": pos[match], "values": values}
+            raise FusionlogError(
+                f"{replay.truth.source}: truth: none of its {len(t.times_ns)} samples is {within} "
+                f"of the sensors (match = {replay.match!r}; the sensors' instants span "
+                f"{instants[0]}..{instants[-1]} ns, the truth {t.times_ns[0]}..{t.times_ns[-1]} ns)"
+            )
+        if n_matched < len(instants):
+            notes.append(
+                f"truth: {len(instants) - n_matched} of {len(instants)} instants without a truth "
+                f"sample (match = {replay.match!r}): not in the truth metrics"
+            )
+        values = np.full((n_matched, system.n), np.nan)
+        values[:, list(replay.truth_states)] = at_instants[matched]
+        truth = {"at": np.flatnonzero(matched), "values": values}
     new_sensors = tuple(
         dataclasses.replace(sen, R=np.asarray(R))
         for sen, R in zip(system.sensors, nominal, strict=True)
     )
     sc = dataclasses.replace(scenario, system=dataclasses.replace(system, sensors=new_sensors))
     sc = scenario_with(sc, steps=len(instants) - 1)
-    return ReplayData(sc, instants, sensors, truth, notes)
+    return ReplayData(sc, instants, sensors, truth, notes, truth_info)
 
 
 def import_to(data: ReplayData, w: McapWriter, *, command: str) -> int:
@@ -157,30 +215,36 @@ def import_to(data: ReplayData, w: McapWriter, *, command: str) -> int:
     times = (instants - instants[0]) / 1e9
     meta = scenario_metadata(sc, kind.system_fields(sc))
     meta["replay_notes"] = json.dumps(notes)
+    if data.truth_info:
+        meta["replay_truth"] = json.dumps(data.truth_info)
     w.add_metadata(SCENARIO_META, meta)
     sources = sorted({str(s.source) for s in sc.replay.sensors}
                      | ({str(sc.replay.truth.source)} if sc.replay.truth else set()))  # fmt: skip
-    extra = {f"source_sha256:{p}": sha256_of(Path(p)) for p in sources}
+    extra = {f"source_sha256:{p}": sha256_of_source(Path(p)) for p in sources}
     w.add_metadata(PROVENANCE_META, provenance(command, None, sources=json.dumps(sources), **extra))
     topics = [sensor_topic(s.name) for s in sc.system.sensors]
-    # readings per instant: (sensor, row) pairs, in instant order
-    rows: list[list[tuple[int, int]]] = [[] for _ in instants]
+    # every message in instant order, the truth first at an instant, then the sensors in
+    # their order: one sort of (instant, source) over flat arrays (no per-instant lists)
+    src = [np.full(len(truth["at"]), -1)] if truth else []
+    at = [truth["at"]] if truth else []
+    row = [np.arange(len(truth["at"]))] if truth else []
     for j, s in enumerate(sensors):
-        for r, k in enumerate(s.at.tolist()):
-            rows[k].append((j, r))
-    truth_row = np.full(len(instants), -1)
-    if truth:
-        truth_row[truth["at"]] = np.arange(len(truth["at"]))
+        src.append(np.full(len(s.at), j))
+        at.append(s.at)
+        row.append(np.arange(len(s.at)))
+    src_a, at_a, row_a = (np.concatenate(x) for x in (src, at, row))
+    order = np.lexsort((src_a, at_a))
     messages = 0
-    for k, t in enumerate(times.tolist()):
-        if truth_row[k] >= 0:
-            w.write_values(TRUTH, k, t, 0, truth["values"][truth_row[k]][None])
-            messages += 1
-        for j, r in rows[k]:
+    for j, k, r in zip(src_a[order].tolist(), at_a[order].tolist(), row_a[order].tolist(),
+                       strict=True):  # fmt: skip
+        t = float(times[k])
+        if j < 0:
+            w.write_values(TRUTH, k, t, 0, truth["values"][r][None])
+        else:
             s = sensors[j]
             cov = None if s.cov is None else s.cov[r][None]
             w.write_values(topics[j], k, t, 0, s.values[r][None], cov)
-            messages += 1
+        messages += 1
     return messages
 
 

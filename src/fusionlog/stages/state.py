@@ -124,7 +124,8 @@ def _sensor_log(sc: Scenario, filter_sys: System, sens: McapFile) -> SensorLog:
         scheduled = {
             s.name: sens.topic_steps(t) for s, t in zip(filter_sys.sensors, topics, strict=True)
         }
-    return SensorLog(TRUTH in sens.topics, scheduled)
+    truth = sens.metadata.get("fusionlog.scenario", {}).get("replay_truth")
+    return SensorLog(TRUTH in sens.topics, scheduled, json.loads(truth) if truth else None)
 
 
 class _StateEstimator(Estimator):

@@ -44,6 +44,9 @@ class SensorLog:
 
     has_truth: bool = True
     scheduled: dict[str, np.ndarray] | None = None
+    #: a replay's truth: {"states": [names], "matched": N, "unmatched": N} (instants with and
+    #: without a truth sample); its states may be some of the state's (partial truth)
+    truth: dict[str, Any] | None = None
 
 
 def exact_setup(prov: dict[str, str], filter_sys: System, truth_sys: System):
@@ -55,6 +58,8 @@ def exact_setup(prov: dict[str, str], filter_sys: System, truth_sys: System):
     does not have leave no exact analysis. `per run`: the runs' patterns differ (the mask is
     then None: each block's plans are built from its sensor readings).
     """
+    if truth_sys.initial is None and truth_sys.prior is None:
+        return None  # a replay without [prior]: no initial distribution to propagate
     pattern = prov.get("measurement_pattern", "complete")
     names = [s.name for s in truth_sys.sensors]
     if any(s.name not in names for s in filter_sys.sensors):
@@ -109,7 +114,20 @@ class StateEvaluator(Evaluator):
         self.known = [a for a in self.archs if known_arch(a, filter_sys)]
         self.analysable = exact_setup(prov, filter_sys, truth_sys)
         n = truth_sys.n
-        self.accs = {a: MetricsAccumulator(self.K + 1, n) for a in self.archs}
+        log = log or SensorLog()
+        self.truth_info = log.truth
+        # the truthed states: all, or those a replay's truth gives (metrics over them, NEES on
+        # their marginal with as many degrees of freedom)
+        names = list(sc.state_names)
+        self.truthed = (
+            [names.index(x) for x in log.truth["states"]] if log.truth else list(range(n))
+        )
+        # the truth metrics' sums (K+1 x n arrays each): none for a log without truth
+        self.accs = (
+            {a: MetricsAccumulator(self.K + 1, len(self.truthed)) for a in self.archs}
+            if log.has_truth
+            else {}
+        )
         sensor_topics = [sensor_topic(s.name) for s in filter_sys.sensors]
         self.sensor_topics: list[str] = []
         # Per-run patterns: each run's exact values, summed block by block from its plan (the
@@ -118,7 +136,6 @@ class StateEvaluator(Evaluator):
         if self.analysable is not None and self.analysable[2]:
             self.sensor_topics = sensor_topics
             self.conditional = {a: None for a in self.known}
-        log = log or SensorLog()
         self.has_truth = log.has_truth
         # Truth-free consistency (NIS) and each sensor's availability, from the readings: only
         # where they say something (a replayed recording: NIS; sensors with their own timing:
@@ -173,7 +190,7 @@ class StateEvaluator(Evaluator):
             tr = np.trace(cov, axis1=-2, axis2=-1)  # (K+1,) shared by all runs, or (runs, K+1)
             self.trace[a] += tr * x.shape[0] if cov.ndim == 3 else tr.sum(axis=0)
             if self.has_truth:
-                self.accs[a].add(x, mean, cov)
+                self.accs[a].add(*self._marginal(x, mean, cov))
             if self.sc.plane_view and off == 0:
                 self.plane_truth = x[0]
                 self.plane_pts[a] = np.moveaxis(mean[:PLANE_POINTS], 0, 1)  # (K+1, P, 2)
@@ -183,11 +200,47 @@ class StateEvaluator(Evaluator):
                 std = np.sqrt(np.clip(np.diagonal(c, axis1=-2, axis2=-1), 0, None))
                 self.samples.setdefault(r, (x[r - off], {}))[1][a] = (mean[r - off], std)
 
+    def _mean_trace(self, a: str) -> float:
+        """The mean over the instants of tr P (those with a covariance: a filter without a
+        prior has none until it has seen every state), as in estimates.mcap; NaN if none."""
+        tr = self.trace[a] / self.M
+        tr = tr[np.isfinite(tr)]
+        return float(tr.mean()) if tr.size else float("nan")
+
+    def _marginal(self, x: np.ndarray, mean: np.ndarray, cov: np.ndarray):
+        """Truth, mean and covariance of the truthed states (all of them: as given)."""
+        idx = self.truthed
+        if len(idx) == x.shape[-1]:
+            return x, mean, cov
+        return x[..., idx], mean[..., idx], cov[..., idx, :][..., :, idx]
+
+    def _partial(self, res: Any, kw: dict[str, Any]) -> tuple[dict, dict]:
+        """Series and summary of a partial truth on all n states: the untruthed states' MSE
+        undefined (NaN, null in JSON); the expected MSE of the truthed states only (the exact
+        NEES and DM are of the whole state, not of the marginal: left out)."""
+        idx, n = self.truthed, self.truth_sys.n
+        if len(idx) == n:
+            return res.series(**kw), res.summary(**kw)
+        kw = {"expected_mse": kw["expected_mse"][:, idx]} if kw else {}
+        series, summary = res.series(**kw), res.summary(**kw)
+        full = np.full((self.K + 1, n), np.nan)
+        full[:, idx] = series["mse"]
+        series["mse"] = full
+        if "expected_mse" in series:
+            e = np.full((self.K + 1, n), np.nan)
+            e[:, idx] = series["expected_mse"]
+            series["expected_mse"] = e
+        per_state = [float("nan")] * n
+        for j, i in enumerate(idx):
+            per_state[i] = summary["mse_per_state"][j]
+        summary["mse_per_state"] = per_state
+        return series, summary
+
     def merge(self, sums: dict[str, Any], expected: dict[str, Any] | None = None) -> None:
         """Add metric sums accumulated elsewhere (`estimate_block`'s, of runs not `add`ed
         here) and, for per-run patterns, those runs' conditional exact sums."""
         for a, acc in sums.items():
-            self.accs[a].merge(acc)
+            self.accs[a] = self.accs[a].merge(acc) if a in self.accs else acc
         if expected:
             self._merge_expected(expected)
 
@@ -234,7 +287,7 @@ class StateEvaluator(Evaluator):
         cond = self.conditional.get(a)
         # every run the Monte Carlo metrics saw must be in the average (a caller that merges
         # accumulators from elsewhere, without their readings, leaves none)
-        if cond is None or cond.runs != self.accs[a].runs:
+        if cond is None or a not in self.accs or cond.runs != self.accs[a].runs:
             return None, False
         return cond, True
 
@@ -247,7 +300,7 @@ class StateEvaluator(Evaluator):
         nis = self.nis.summary(self.sc.confidence) if self.nis is not None else {}
         for a in self.archs:
             if not self.has_truth:  # a recorded log without truth: what needs none
-                mean_trace = float(np.nanmean(self.trace[a] / self.M))
+                mean_trace = self._mean_trace(a)
                 arch_summary[a] = {"mean_trace": mean_trace} | ({"nis": nis[a]} if a in nis else {})
                 continue
             res = self.accs[a].finalize(self.sc.confidence)
@@ -257,8 +310,11 @@ class StateEvaluator(Evaluator):
                 if ex is not None
                 else {}
             )
-            series[a] = res.series(**kw)
-            arch_summary[a] = res.summary(**kw)
+            series[a], arch_summary[a] = self._partial(res, kw)
+            if self.sc.replay is not None:
+                # a replay's truth may cover only some instants: the mean trace is of every
+                # instant's reported covariance, as in estimates.mcap
+                arch_summary[a]["mean_trace"] = self._mean_trace(a)
             if self.pcrb is not None:  # no exact analysis: `expected` is null, the PCRB stands
                 arch_summary[a]["expected"] = None
             if conditional:  # DESIGN.md "summary.json": conditional on the drawn patterns
@@ -276,6 +332,8 @@ class StateEvaluator(Evaluator):
             "confidence": self.sc.confidence,
             "architectures": arch_summary,
         }
+        if self.truth_info is not None and self.has_truth:
+            summary["truth"] = dict(self.truth_info)
         if self.pcrb is not None:  # DESIGN.md: no exact analysis, the PCRB beside the values
             summary["pcrb"] = self.pcrb.summary()
         return summary, series, bounds
@@ -319,6 +377,11 @@ class StateEvaluator(Evaluator):
             nis=self.nis.series(self.sc.confidence) if self.nis is not None else None,
             traces=None if self.has_truth else {a: t / self.M for a, t in self.trace.items()},
             measured=self.measured_points,
+            innovations=(
+                self.nis.first_run()
+                if self.nis is not None and self.sc.replay is not None
+                else None
+            ),
             properties={"scenario": self.sc.source, "provenance": provenance or self.prov},
             pcrb=None if self.pcrb is None else self.pcrb.per_state(),
         )

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from fusionlog import __version__
+from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
 from fusionlog.jsonout import dumps
 
@@ -116,8 +117,13 @@ def run_sweep(
     killed run left beside them)."""
     varies = [parse_vary(s) for s in vary]
     points = grid_points(scenario_path, varies, runs=runs)
-    point_archs = _archs(points, archs)
     first = points[0].scenario
+    if first.replay is not None:  # a sweep simulates runs at each point: a log has one
+        raise FusionlogError(
+            f"{scenario_path}: a replay is one recorded run, not a scenario to simulate at "
+            "grid points: sweep a scenario file, or run the replay once per model"
+        )
+    point_archs = _archs(points, archs)
     d = Path(out_dir) if out_dir is not None else Path("recordings") / f"{first.name}_sweep"
     targets = [d / name for name in OUTPUTS]
     if warn_stale is not None:

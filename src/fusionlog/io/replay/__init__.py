@@ -1,12 +1,17 @@
 """Reading measurements out of recorded files for replay (DESIGN.md, "Replay files").
 
-``read_series`` reads one stream - an MCAP topic of any encoding (ROS 2 CDR, protobuf, JSON) or a
-CSV file - into a :class:`Series`: measurement times (ns, sorted), values, and optionally the
-per-message covariance blocks. ``list_topics`` describes any MCAP's topics for ``inspect``.
+``read_series`` reads one stream - an MCAP topic of any encoding (ROS 2 CDR, protobuf, JSON), a
+topic of a ROS 1 ``.bag`` or a ROS 2 bag folder, or a text table of any extension - into a
+:class:`Series`: measurement times (ns, sorted), values, and optionally the per-message
+covariance blocks. One reader per format behind this one function (``source_kind`` decides
+which). ``list_topics`` and ``bag_topics`` describe a log's topics for ``inspect``;
+``to_enu`` turns geodetic fixes into local metres.
 
-Modules: :mod:`.fields` (field paths into decoded messages, times), :mod:`.decoders` (the
-decoder factories), :mod:`.topics` (opening an MCAP, its topics and rates), :mod:`.mcap_source`,
-:mod:`.csv_source`, :mod:`.series` (the Series and the checks every source shares).
+Modules: :mod:`.fields` (field paths into decoded messages, times), :mod:`.extract` (values,
+time, covariance of one message), :mod:`.decoders` (the MCAP decoder factories), :mod:`.topics`
+(opening an MCAP, its topics and rates), :mod:`.mcap_source`, :mod:`.bag_source`,
+:mod:`.text_source`, :mod:`.geodetic`, :mod:`.series` (the Series and the checks every source
+shares).
 
 Every problem is a one-line :class:`fusionlog.errors.FusionlogError` (``ValidationError`` for
 the content, ``DamagedFile`` for a damaged MCAP) starting ``<source>: <what>: ``, or a counted
@@ -20,13 +25,35 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from .csv_source import read_csv
-from .fields import TIME_UNITS
-from .mcap_source import read_mcap
+from .bag_source import bag_topics, is_bag, read_bag
+from .fields import TIME_UNITS, leaf_fields
+from .geodetic import to_enu
+from .mcap_source import first_fields, read_mcap
 from .series import Series, fail
+from .text_source import TUM_COLUMNS, read_text
 from .topics import list_topics
 
-__all__ = ["Series", "list_topics", "read_series"]
+__all__ = [
+    "Series",
+    "TUM_COLUMNS",
+    "bag_topics",
+    "first_fields",
+    "leaf_fields",
+    "list_topics",
+    "read_series",
+    "source_kind",
+    "to_enu",
+]
+
+
+def source_kind(source: Path) -> str:
+    """ "mcap", "bag" (ROS 1 ``.bag``, ROS 2 bag folder or its ``.db3``) or "text" (any other
+    file: a table)."""
+    if source.suffix.lower() == ".mcap" and not source.is_dir():
+        return "mcap"
+    if is_bag(source):
+        return "bag"
+    return "text"
 
 
 def _check_args(
@@ -76,40 +103,50 @@ def read_series(
     time_unit: str = "s",
     covariance: str | None = None,
     covariance_index: Sequence[int] | None = None,
+    delimiter: str | None = None,
+    columns: Sequence[str] | None = None,
+    format: str | None = None,  # noqa: A002 (the replay file's key)
     what: str = "sensors[0]",
 ) -> Series:
-    """One recorded stream of ``source`` (``.mcap`` with ``topic``, or ``.csv`` without).
+    """One recorded stream of ``source``: an MCAP or bag ``topic``, or a text table.
 
     ``values``: field paths into the decoded message (``pose.pose.position.x``, ``[i]`` for
-    array elements) or CSV column names as written in the header (surrounding spaces ignored).
-    ``time``: a field holding a ROS time (``sec``/``nanosec``) or a number in ``time_unit``
-    (s|ms|us|ns), or a CSV column; default the MCAP ``log_time``, or the CSV column ``time`` in
-    ``time_unit``. ``covariance``: a field holding a flat row-major square matrix;
-    ``covariance_index``: its rows/columns that belong to ``values`` (all of it when omitted
-    and its size is ``len(values)``); ``cov[n] = M[np.ix_(idx, idx)]``. ``what`` names the
-    stream in messages (``sensors[0]``, ``truth``).
+    array elements) or column names (as written in the header, surrounding spaces ignored, or
+    as named by ``columns``). ``time``: a field holding a ROS time (``sec``/``nanosec``) or a
+    number in ``time_unit`` (s|ms|us|ns), or a column; default the MCAP ``log_time`` or bag
+    record time, or the column ``time`` (``timestamp`` in the TUM format). ``covariance``: a
+    field holding a flat row-major square matrix; ``covariance_index``: its rows/columns that
+    belong to ``values`` (all of it when omitted and its size is ``len(values)``);
+    ``cov[n] = M[np.ix_(idx, idx)]``. ``delimiter``, ``columns``, ``format`` ("tum"): text
+    tables only (:mod:`.text_source`). ``what`` names the stream in messages (``sensors[0]``,
+    ``truth``).
     """
     source = Path(source)
     _check_args(source, what, values, time, time_unit, covariance, covariance_index)
-    kind = source.suffix.lower()
-    if kind == ".mcap":
+    kind = source_kind(source)
+    if kind in ("mcap", "bag"):
         if not isinstance(topic, str) or not topic:
-            raise fail(source, what, "an MCAP source needs a topic")
-        kw = {"time_unit": time_unit, "covariance": covariance, "what": what}
-        return read_mcap(source, topic=topic, values=list(values), time=time,
-                         covariance_index=covariance_index, **kw)  # fmt: skip
-    if kind == ".csv":
-        if topic is not None:
-            raise fail(source, what, f"topic {topic!r} given for a CSV source (topics are MCAP's)")
-        if covariance is not None:
             raise fail(
-                source,
-                what,
-                "covariance fields are read from MCAP messages only; for a CSV source give R",
+                source, what, f"an {'MCAP' if kind == 'mcap' else 'ROS bag'} source needs a topic"
             )
-        return read_csv(source, values=list(values), time=time, time_unit=time_unit, what=what)
-    raise fail(
-        source,
-        what,
-        f"unsupported source type {source.suffix or '(no extension)'!r}: expected .mcap or .csv",
-    )
+        for key, v in (("delimiter", delimiter), ("columns", columns), ("format", format)):
+            if v is not None:
+                raise fail(source, what, f"{key} is for text tables, not for {source.name}")
+        kw = {"time_unit": time_unit, "covariance": covariance, "what": what}
+        reader = read_mcap if kind == "mcap" else read_bag
+        return reader(source, topic=topic, values=list(values), time=time,
+                      covariance_index=covariance_index, **kw)  # fmt: skip
+    if topic is not None:
+        raise fail(
+            source, what, f"topic {topic!r} given for a text table (topics are MCAP's and bags')"
+        )
+    if covariance is not None:
+        raise fail(
+            source,
+            what,
+            "covariance fields are read from messages (MCAP, bags) only; for a table give R",
+        )
+    if format not in (None, "tum"):
+        raise fail(source, what, f"format {format!r} is not known (known: tum)")
+    return read_text(source, values=list(values), time=time, time_unit=time_unit, what=what,
+                     delimiter=delimiter, columns=columns, fmt=format)  # fmt: skip

@@ -2,13 +2,16 @@
 
 A decoded message is whatever the ecosystem's decoder returns: a ROS 2 message from
 mcap-ros2-support (an object whose ``__slots__`` are its fields), a protobuf message (fields in
-its ``DESCRIPTOR``), or JSON (dicts and lists). Only declared fields are followed, never other
+its ``DESCRIPTOR``), a ``rosbags`` message of a ROS 1 or ROS 2 bag (a dataclass whose
+constants are ``ClassVar`` fields, not data; numeric arrays as numpy arrays), or JSON (dicts and
+lists). Only declared fields are followed, never other
 attributes or methods. Failures raise :class:`PathError` with a message that does not name the
 file; the caller prefixes it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import math
 import re
@@ -28,6 +31,7 @@ __all__ = [
     "closest_paths",
     "describe",
     "is_array",
+    "leaf_fields",
     "parse_path",
     "to_number",
     "to_time_ns",
@@ -104,9 +108,21 @@ def _is_ros(t: type) -> bool:
     return "_full_text" in t.__dict__ and "__slots__" in t.__dict__
 
 
+def _dataclass_fields(t: type) -> list[str] | None:
+    """The data fields of a rosbags message class (its constants are ClassVar: not data)."""
+    fields = t.__dict__.get("__dataclass_fields__")
+    if fields is None:
+        return None
+    return [
+        name
+        for name, f in fields.items()
+        if not str(f.type).startswith("ClassVar") and not name.startswith("__")
+    ]
+
+
 def is_array(obj: Any) -> bool:
     t = type(obj)
-    if t in _ARRAYS:
+    if t in _ARRAYS or t is np.ndarray:
         return True
     if t in _SCALARS or t is dict or _is_ros(t):
         return False
@@ -122,6 +138,10 @@ def _fields(obj: Any) -> list[str] | None:
         return None
     if _is_ros(t):
         return list(t.__dict__["__slots__"])
+    if t is np.ndarray:
+        return None
+    if dataclasses.is_dataclass(t):
+        return _dataclass_fields(t)
     desc = getattr(t, "DESCRIPTOR", None)
     if desc is not None and hasattr(desc, "fields"):
         return [f.name for f in desc.fields]
@@ -140,7 +160,7 @@ def _child(obj: Any, step: str | int) -> Any:
     names = _fields(obj)
     if names is None or step not in names:
         return _MISSING
-    if _is_ros(type(obj)) or hasattr(type(obj), "DESCRIPTOR"):
+    if _is_ros(type(obj)) or dataclasses.is_dataclass(obj) or hasattr(type(obj), "DESCRIPTOR"):
         return getattr(obj, step, _MISSING)
     return obj[step]  # a Mapping other than dict
 
@@ -237,3 +257,57 @@ def _check_range(ns: int, path: str) -> int:
     if not -INT64_MAX - 1 <= ns <= INT64_MAX:
         raise PathError(f"{path} = {ns} ns does not fit 64-bit nanoseconds")
     return ns
+
+
+def _type_name(value: Any) -> str:
+    if isinstance(value, bool):
+        return "bool"
+    if isinstance(value, int | np.integer):
+        return "int"
+    if isinstance(value, float | np.floating):
+        return "float"
+    if isinstance(value, str):
+        return "string"
+    return type(value).__name__
+
+
+def _preview(value: Any) -> str:
+    text = repr(value) if isinstance(value, str) else str(value)
+    if isinstance(value, float | np.floating):
+        text = f"{float(value):.10g}"
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def leaf_fields(msg: Any, limit: int = 200) -> list[tuple[str, str, str]]:
+    """(field path, type, first value) of every number, string or array of numbers in ``msg``,
+    for ``inspect``: what a replay file's ``values``/``time``/``covariance`` can name. An array
+    of messages is shown through its first element (``[0]``); an array of numbers as one entry
+    (``float[9]``, its first values), since ``[i]`` picks an element."""
+    out: list[tuple[str, str, str]] = []
+
+    def walk(obj: Any, prefix: str, depth: int) -> None:
+        if len(out) >= limit or depth > 12:
+            return
+        names = _fields(obj)
+        if names is not None:
+            for name in names:
+                walk(_child(obj, name), f"{prefix}.{name}" if prefix else name, depth + 1)
+            return
+        if is_array(obj):
+            if isinstance(obj, bytes | bytearray | memoryview):
+                out.append((prefix, f"bytes[{len(obj)}]", _preview(bytes(obj[:8]))))
+            elif len(obj) and _fields(obj[0]) is not None:
+                walk(obj[0], f"{prefix}[0]", depth + 1)
+            elif not len(obj):
+                out.append((prefix, "array[0]", "[]"))
+            else:
+                kind = _type_name(obj[0])
+                head = ", ".join(_preview(x) for x in list(obj[:4]))
+                out.append(
+                    (prefix, f"{kind}[{len(obj)}]", f"[{head}{', ...' if len(obj) > 4 else ''}]")
+                )
+            return
+        out.append((prefix, _type_name(obj), _preview(obj)))
+
+    walk(msg, "", 0)
+    return out

@@ -12,34 +12,17 @@ from __future__ import annotations
 import contextlib
 import io
 from collections.abc import Sequence
-from math import isqrt
 from pathlib import Path
-from typing import Any
 
-import numpy as np
 from mcap.records import Channel, Schema
 
 from .decoders import SUPPORTED, decoder_factories
-from .fields import (
-    FieldPath,
-    PathError,
-    describe,
-    is_array,
-    parse_path,
-    to_number,
-    to_time_ns,
-)
+from .extract import Extractor
+from .fields import PathError, leaf_fields
 from .series import Collector, Series, fail
 from .topics import TopicInfo, catalog, damaged, one_line, open_mcap
 
-__all__ = ["read_mcap"]
-
-
-def _path(source: Path, what: str, text: str, key: str) -> FieldPath:
-    try:
-        return parse_path(text)
-    except PathError as e:
-        raise fail(source, what, f"{key}: {e}") from None
+__all__ = ["first_fields", "read_mcap"]
 
 
 def _schema_text(channel: Channel, schema: Schema | None) -> str:
@@ -77,45 +60,6 @@ def _check_decodable(source: Path, what: str, info: TopicInfo, factories: list) 
             )
 
 
-class _Covariance:
-    """Extracts ``M[np.ix_(idx, idx)]`` from a flat row-major square matrix field."""
-
-    def __init__(self, path: FieldPath, index: Sequence[int] | None, d: int) -> None:
-        self.path, self.index, self.d = path, index, d
-        self.n: int | None = None
-        self.ix: Any = None
-
-    def block(self, value: Any) -> np.ndarray:
-        p = self.path.text
-        if not is_array(value) or isinstance(value, bytes | bytearray | memoryview):
-            raise PathError(f"covariance {p} is {describe(value)}, not an array of numbers")
-        n = len(value)
-        if self.n is None:
-            k = isqrt(n)
-            if n == 0 or k * k != n:
-                raise PathError(f"covariance {p} has {n} numbers, not a square matrix")
-            idx = list(range(k)) if self.index is None else list(self.index)
-            if self.index is None and k != self.d:
-                raise PathError(
-                    f"covariance {p} is {k}x{k} but values has {self.d} components: give "
-                    "covariance_index (its rows/columns that belong to values)"
-                )
-            bad = [i for i in idx if i >= k]
-            if bad:
-                raise PathError(
-                    f"covariance_index {bad[0]} is out of range for the {k}x{k} matrix {p}"
-                )
-            self.n, self.ix = n, np.ix_(idx, idx)
-        elif n != self.n:
-            raise PathError(f"covariance {p} has {n} numbers where the first message had {self.n}")
-        if all(type(x) is float for x in value):
-            flat = np.array(value, dtype=np.float64)
-        else:
-            flat = np.array([to_number(x, f"{p}[{j}]") for j, x in enumerate(value)])
-        k = isqrt(n)
-        return flat.reshape(k, k)[self.ix]
-
-
 def read_mcap(
     source: Path,
     *,
@@ -127,13 +71,7 @@ def read_mcap(
     covariance_index: Sequence[int] | None,
     what: str,
 ) -> Series:
-    vpaths = [_path(source, what, v, "values") for v in values]
-    tpath = _path(source, what, time, "time") if time is not None else None
-    cov = (
-        _Covariance(_path(source, what, covariance, "covariance"), covariance_index, len(values))
-        if covariance is not None
-        else None
-    )
+    ex = Extractor(source, what, values, time, time_unit, covariance, covariance_index)
     factories = decoder_factories()
     with open_mcap(source, what, factories) as (reader, f):
         try:
@@ -149,7 +87,7 @@ def read_mcap(
         _check_decodable(source, what, info, factories)
 
         col = Collector(
-            source, what, len(vpaths), cov is not None, "message", lambda k: f"message {k}"
+            source, what, len(values), ex.cov is not None, "message", lambda k: f"message {k}"
         )
         messages = reader.iter_decoded_messages(topics=[topic])
         k = 0
@@ -168,12 +106,7 @@ def read_mcap(
                 ) from None
             k += 1
             try:
-                vals = [to_number(p.resolve(decoded), p.text) for p in vpaths]
-                if tpath is None:
-                    t = message.log_time
-                else:
-                    t = to_time_ns(tpath.resolve(decoded), tpath.text, time_unit)
-                block = cov.block(cov.path.resolve(decoded)) if cov is not None else None
+                t, vals, block = ex.read(decoded, message.log_time)
             except PathError as e:
                 name = schema.name if schema is not None else "schemaless"
                 where = f"topic {topic} ({name})" + (f", message {k}" if k > 1 else "")
@@ -182,3 +115,28 @@ def read_mcap(
     if k == 0:
         raise fail(source, what, f"topic {topic} has no messages")
     return col.finish()
+
+
+def first_fields(
+    source: Path, topics: Sequence[str]
+) -> dict[str, list[tuple[str, str, str]] | str]:
+    """For ``inspect``: per topic the field paths of its first decoded message with their types
+    and values (:func:`.fields.leaf_fields`), or why it does not decode (a string)."""
+    out: dict[str, list[tuple[str, str, str]] | str] = {}
+    factories = decoder_factories()
+    with open_mcap(source, None, factories) as (reader, f):
+        try:
+            info = catalog(reader, f)
+        except Exception as e:  # a damaged file, whatever the library raises
+            raise damaged(source, e) from None
+        for topic in topics:
+            if topic not in info or not info[topic].count:
+                continue
+            try:
+                _check_decodable(source, "inspect", info[topic], factories)
+                for _, _, _, decoded in reader.iter_decoded_messages(topics=[topic]):
+                    out[topic] = leaf_fields(decoded)
+                    break
+            except Exception as e:  # no decoder, or the first message does not decode
+                out[topic] = one_line(e).split("inspect: ", 1)[-1]
+    return out

@@ -7,6 +7,8 @@ A source (MCAP topic or CSV file) adds its messages in file order to a :class:`C
 
 from __future__ import annotations
 
+import math
+from array import array
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,10 +63,11 @@ class Collector:
         self.missing = missing
         self.label = label
         self.with_cov = with_cov
-        self._times: list[int] = []
-        self._values: list[list[float]] = []
+        # typed arrays, not lists of Python numbers: a 10^6-row log in 24 MB, not ~200 MB
+        self._times = array("q")
+        self._values = array("d")
         self._covs: list[np.ndarray] = []
-        self._origin: list[int] = []
+        self._origin = array("q")
         self.bad_values = 0
         self.bad_times = 0
         self.bad_covs = 0
@@ -84,7 +87,7 @@ class Collector:
                 f"{self.label(origin)}: time {t_ns} ns is {why}: a log's 64-bit nanosecond "
                 "clock cannot hold it",
             )
-        if not all(np.isfinite(values)):
+        if not all(map(math.isfinite, values)):
             self.bad_values += 1
             return
         if self.with_cov:
@@ -92,7 +95,7 @@ class Collector:
                 self.bad_covs += 1
             self._covs.append(cov)
         self._times.append(t_ns)
-        self._values.append(values)
+        self._values.extend(values)
         self._origin.append(origin)
 
     def finish(self) -> Series:
@@ -110,8 +113,8 @@ class Collector:
                 if self.seen
                 else f"no {u}s",
             )
-        t = np.array(self._times, dtype=np.int64)
-        values = np.array(self._values, dtype=np.float64).reshape(len(t), self.d)
+        t = np.frombuffer(self._times, dtype=np.int64).copy()
+        values = np.frombuffer(self._values, dtype=np.float64).reshape(len(t), self.d).copy()
         cov = (
             np.array(self._covs, dtype=np.float64).reshape(len(t), self.d, self.d)
             if (self.with_cov)

@@ -47,8 +47,10 @@ from fusionlog.core.evaluation import Evaluation
 from fusionlog.core.linalg import overflow_is_inf
 
 from .consistency import NisSeries, check_consistency, consistency_views, write_consistency
+from .decimation import decimation
 from .legend import legend_box, place_legend
 from .plane import check_plane, write_plane
+from .replay import plane_states, replay_blueprint, write_replay
 from .stream import SeriesWriter, check_axes, entity_path, recording_error, recording_stream
 from .style import BOUND_COLOR, CKF, TRUTH_COLOR, arch_color, arch_width, class_color
 from .views import query, tabbed_blueprint, time_series_view
@@ -154,12 +156,27 @@ def write_evaluation(
     # Instants k dt with dt = 1 read the same on both timelines; otherwise time is the axis.
     timeline = "step" if np.array_equal(times, np.arange(len(times))) else "time"
     traces = {a: np.asarray(t, dtype=float) for a, t in (traces or {}).items()}
-    extra = consistency_views(nis, avail, bool(traces))
-    blueprint = _blueprint(
-        state_names, series, samples, plane is not None, extra, timeline, pcrb is not None
-    )
+    replay = ev.innovations is not None
+    if replay:  # one recorded log: its own layout (io/rrd/replay.py)
+        ij = plane_states(state_names, measured or {})
+        all_traces = traces or {a: np.asarray(d["trace"], dtype=float) for a, d in series.items()}
+        nees = {a: np.asarray(d["nees"], dtype=float) for a, d in series.items()}
+        blueprint = replay_blueprint(state_names, ij, samples, nis, ev.innovations, nees,
+                                     nees_bounds, all_traces, timeline)  # fmt: skip
+    else:
+        extra = consistency_views(nis, avail, bool(traces))
+        blueprint = _blueprint(
+            state_names, series, samples, plane is not None, extra, timeline, pcrb is not None
+        )
+    # a long log: overview series decimated, the first run's states kept (io/rrd/decimation.py)
+    n_full = sum(len(state_names) * (1 + len(est)) for _, est in samples.values())
+    n_full += sum(len(by) for by in (measured or {}).values())
+    stride, decimated = decimation(len(times), n_full)
+    if decimated:
+        properties = {**(properties or {}), "decimation": decimated}
     args = (scenario_name, seed, times, summary, properties, recording_id)
     with recording_stream(file, blueprint, *args) as w:
+        w.stride = stride
         _write_metrics(w, state_names, series, nees_bounds, confidence)
         for i, state in enumerate(state_names if pcrb is not None else []):
             p = entity_path("metrics", "pcrb", "mse", state)
@@ -176,6 +193,8 @@ def write_evaluation(
             )
         if plane is not None:
             write_plane(w, plane)
+        if replay:
+            write_replay(w, ij, samples, measured or {}, ev.innovations)
 
 
 def _check(
