@@ -247,7 +247,7 @@ def apply_shared(A: np.ndarray, X: np.ndarray, axis: int, out: np.ndarray) -> np
     additions and copies only)."""
     Xm, om = np.moveaxis(X, axis, 0), np.moveaxis(out, axis, 0)
     for a, row in enumerate(A.tolist()):
-        _lincomb(om[a], row, Xm)
+        lincomb(om[a], row, Xm)
     return out
 
 
