@@ -26,11 +26,11 @@ Per-run path (dropouts): the same z with every measurement dropped (NaN) with pr
 `--dropout` (default 0.1), so every run has its own pattern and `estimate` builds per-run plans.
 All eight architectures are timed there next to simdkalman's CKF and RTS smoother on the same
 NaN data, and their ratios checked against the targets: per-run CKF >= 5x simdkalman's CKF, every
-architecture >= 1x, FBS >= 2x simdkalman's RTS. simdkalman leaves out a step's whole measurement
-vector when any component is NaN (ours only the missing components), so the agreement check runs
-both on the data with every step that lost a component made wholly NaN, where the two mean the
-same; it also checks that a pattern shared by all runs, passed per run, gives the shared plan's
-numbers (to 1e-12).
+architecture >= 3x (issue 23), FBS >= 2x simdkalman's RTS. simdkalman leaves out a step's whole
+measurement vector when any component is NaN (ours only the missing components), so the
+agreement check runs both on the data with every step that lost a component made wholly NaN,
+where the two mean the same; it also checks that a pattern shared by all runs, passed per run,
+gives the shared plan's numbers (to 1e-12).
 """
 
 from __future__ import annotations
@@ -72,7 +72,8 @@ DROPOUT_TOL = 1e-9
 PER_RUN_TOL = 1e-12
 #: Targets of the per-run path: minimum throughput ratios, and what they are relative to.
 TARGETS = {"CKF": (5.0, "simdkalman CKF"), "FBS": (2.0, "simdkalman RTS")}
-DEFAULT_TARGET = (1.0, "simdkalman CKF")
+#: (Issue 23 raised every other architecture's from 1x to 3x simdkalman's CKF.)
+DEFAULT_TARGET = (3.0, "simdkalman CKF")
 
 
 def median_time(fn: Callable[[], object], repeats: int) -> tuple[float, list[float]]:
@@ -235,10 +236,15 @@ def per_run_dropout(
 
     add("simdkalman CKF", lambda: simdkalman_ckf(skf, system, zd), "filtered, NaN = missing step")
     add("simdkalman RTS", lambda: simdkalman_ckf(skf, system, zd, smoothed=True), "smoothed")
+
+    def alone(arch: str):
+        """One architecture as if it were the only one: the runs grouped by history anew (an
+        estimate of several architectures groups them once, see registry.group_by_history)."""
+        getattr(registry, "forget_grouping", lambda: None)()  # (a tree without the cache)
+        return estimate(system, zd, arch)
+
     for arch in STATE_ARCHITECTURES:
-        add(
-            f"fusionlog {arch}", lambda a=arch: estimate(system, zd, a), "estimate(), per-run plans"
-        )
+        add(f"fusionlog {arch}", lambda a=arch: alone(a), "estimate(), per-run plans")
     sk, sks = rows["simdkalman CKF"]["median_s"], rows["simdkalman RTS"]["median_s"]
     for arch in STATE_ARCHITECTURES:
         r = rows[f"fusionlog {arch}"]
@@ -296,6 +302,17 @@ def peak_rss_mib() -> float:
     return rss / (1024.0**2 if sys.platform == "darwin" else 1024.0)
 
 
+def keep_freed_memory() -> str:
+    """This process's allocator set as the `fusionlog` command sets its own
+    (`fusionlog.memory`: freed memory kept for reuse, no page fault per fresh array); the
+    competitors run in the same process with the same setting. A tree without it: as it is."""
+    try:
+        from fusionlog.memory import keep_freed_memory as keep
+    except ImportError:
+        return "the allocator's defaults (this fusionlog does not set them)"
+    return "freed memory kept for reuse, as the CLI sets it" if keep() else "allocator defaults"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="small smoke run (M=500, 3 repeats)")
@@ -323,6 +340,7 @@ def main(argv: list[str] | None = None) -> int:
     K1 = K + 1
     run_steps = M * K1
 
+    allocator = keep_freed_memory()
     sys_ = ajgl2009()
     t0 = time.perf_counter()
     _, z = simulate(sys_, K, args.seed, 0, M)
@@ -338,7 +356,8 @@ def main(argv: list[str] | None = None) -> int:
         f"{filterpy.__version__}, simdkalman {importlib.metadata.version('simdkalman')}, "
         f"{os.cpu_count()} CPUs, {platform.machine()}"
     )
-    print(f"simulate(): {t_sim:.3f} s (not part of any timing below)")
+    print(f"simulate(): {t_sim:.3f} s (not part of any timing below); allocator: {allocator}; "
+          f"load average {os.getloadavg()[0]:.1f}")  # fmt: skip
     print()
 
     # ---- correctness checks before timing --------------------------------------------------

@@ -1,12 +1,16 @@
 """Benchmark of `fusionlog sweep` on Dask (issue 15): 1 worker against 2, the overhead of a
 task, and what a 100-node cluster would do with a 10^8-run study.
 
-1. **Sweep, 1 vs 2 workers.** `fusionlog sweep pipeline/ajgl2009.toml --vary
-   scenario.dt=0.125:16:8:log --runs 100000` (8 grid points, the scenario's seven
-   architectures, 10^5 runs each) as child processes with `--workers 1` and `--workers 2`,
-   alternately, several times; medians of the whole command (spawn to exit) and of the phases
-   the command prints (cluster start, tasks, outputs, stop). The two tables must be identical.
-   Target: 2 workers >= 1.6x faster than 1.
+1. **Sweep: this process, 1 and 2 workers** (issue 23). `fusionlog sweep
+   pipeline/ajgl2009.toml --vary scenario.dt=0.5,1,2,4 --runs 200000` (4 grid points, the
+   scenario's seven architectures) as child processes with `--workers 0`, `1` and `2`, in
+   turn, several times; medians of the whole command (spawn to exit), of its CPU seconds
+   (user + system of it and every process it reaped: the workers too) and of the phases the
+   command prints (cluster start, tasks, outputs, stop). The tables must be identical.
+   Targets: 1 worker no slower than 1.1x this process, 2 workers >= 1.5x faster than this
+   process. The CPU seconds a worker adds (1 worker minus this process, 2 minus 1) are the
+   per-worker overhead; and the same sweep at 20 000 runs without --workers (the default
+   chosen from the size of the work) against --workers 0 and 2.
 2. **Per-task overhead** (scheduling + transfer of the arguments and the result), on a
    LocalCluster of one worker started here: tasks that run `block_sums` on 8 runs (a real
    result, the size of any block's: the sums do not grow with the runs) one at a time (the
@@ -32,6 +36,7 @@ import os
 import pickle
 import platform
 import re
+import resource
 import statistics
 import subprocess
 import sys
@@ -47,55 +52,70 @@ TIMING = re.compile(
     r": ([\d.]+) s \(start ([\d.]+) s, (\d+) tasks ([\d.]+) s, "
     r"outputs ([\d.]+) s, stop ([\d.]+) s\)"
 )
-T_SPEEDUP = 1.6
+#: The sweep of issue 23 and its targets: 1 worker at most 1.1x this process's wall time,
+#: 2 workers at least 1.5x faster than this process.
+VARY = "scenario.dt=0.5,1,2,4"
+T_ONE_WORKER = 1.1
+T_TWO_WORKERS = 1.5
 STUDY_RUNS, STUDY_POINTS, STUDY_ARCHS, NODES = 10**6, 100, 8, 100
 
 
-def sweep_once(workers: int, runs: int, out: Path) -> dict[str, float]:
-    """One `fusionlog sweep` child process: its wall time and the phases it prints."""
-    cmd = [str(FUSIONLOG), "sweep", str(SCENARIO), "--vary", "scenario.dt=0.125:16:8:log",
-           "--runs", str(runs), "--workers", str(workers),
+def sweep_once(workers: int | None, runs: int, out: Path) -> dict[str, float]:
+    """One `fusionlog sweep` child process: its wall time, its CPU seconds (with every process
+    it reaped: a LocalCluster's workers) and the phases it prints; `workers` None: the
+    default."""
+    cmd = [str(FUSIONLOG), "sweep", str(SCENARIO), "--vary", VARY, "--runs", str(runs),
            "--out-dir", str(out), "--force"]  # fmt: skip
+    if workers is not None:
+        cmd += ["--workers", str(workers)]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     res = subprocess.run(
         cmd, capture_output=True, text=True, env={**os.environ, "RERUN_ANALYTICS": "0"}
     )
     wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     if res.returncode != 0:
         raise SystemExit(f"sweep failed ({res.returncode}): {res.stderr}")
     m = TIMING.search(res.stdout)
     if m is None:
         raise SystemExit(f"no timing line in: {res.stdout[-300:]}")
     total, start, n, tasks, outputs, stop = (float(g) for g in m.groups())
-    return {"wall": wall, "command": total, "start": start, "tasks_n": n, "tasks": tasks,
-            "outputs": outputs, "stop": stop}  # fmt: skip
+    return {"wall": wall, "cpu": cpu, "command": total, "start": start, "tasks_n": n,
+            "tasks": tasks, "outputs": outputs, "stop": stop}  # fmt: skip
 
 
-def bench_workers(runs: int, repeats: int, tmp: Path) -> dict:
+def bench_workers(
+    runs: int, repeats: int, tmp: Path, counts: tuple[int | None, ...] = (0, 1, 2)
+) -> dict:
+    """The sweep with each worker count of `counts` (None: the default) in turn, `repeats`
+    times; medians per count, and ratios to this process (--workers 0)."""
     import pyarrow.parquet as pq
 
-    times: dict[int, list[dict[str, float]]] = {1: [], 2: []}
+    def name(w: int | None) -> str:
+        return "default" if w is None else str(w)
+
+    times: dict[str, list[dict[str, float]]] = {name(w): [] for w in counts}
     for r in range(repeats):
-        for w in (1, 2):
-            times[w].append(sweep_once(w, runs, tmp / f"w{w}"))
-            print(f"  repeat {r + 1}: {w} worker(s) {times[w][-1]['wall']:.2f} s "
-                  f"(tasks {times[w][-1]['tasks']:.2f} s)", flush=True)  # fmt: skip
-    same = pq.read_table(tmp / "w1" / "sweep.parquet").equals(
-        pq.read_table(tmp / "w2" / "sweep.parquet")
-    )
+        for w in counts:
+            t = sweep_once(w, runs, tmp / f"w{name(w)}")
+            times[name(w)].append(t)
+            print(f"  repeat {r + 1}: --workers {name(w)}: {t['wall']:.2f} s, CPU {t['cpu']:.2f} s "
+                  f"(start {t['start']:.2f} s, tasks {t['tasks']:.2f} s), "
+                  f"load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
+    tables = [pq.read_table(tmp / f"w{name(w)}" / "sweep.parquet") for w in counts]
+    same = all(t.equals(tables[0]) for t in tables[1:])
     med = {w: {k: statistics.median(t[k] for t in ts) for k in ts[0]} for w, ts in times.items()}
-    # On a shared machine every disturbance only adds time: the fastest repeat is the one
-    # closest to the machine's own speed (timeit's reasoning); the medians are kept too.
-    best = {w: min(ts, key=lambda t: t["wall"]) for w, ts in times.items()}
+    # every ratio is of medians of repeats taken in turn: a disturbance of the shared machine
+    # hits all counts alike
+    ratios = {w: med["0"]["wall"] / med[w]["wall"] for w in med if w != "0"}
     return {
+        "vary": VARY,
         "runs_per_point": runs,
-        "points": 8,
         "median": med,
-        "best": best,
         "all": times,
-        "speedup_wall": best[1]["wall"] / best[2]["wall"],
-        "speedup_tasks": best[1]["tasks"] / best[2]["tasks"],
-        "speedup_wall_median": med[1]["wall"] / med[2]["wall"],
+        "speedup_vs_in_process": ratios,  # > 1: faster than --workers 0
         "identical_tables": same,
     }
 
@@ -188,30 +208,50 @@ def study(block: dict, over: dict, cores_per_node: int) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="2 x 10^4 runs per point, one repeat")
-    ap.add_argument("--runs", type=int, default=None, help="runs per grid point (10^5)")
+    ap.add_argument("--runs", type=int, default=None, help="runs per grid point (2 x 10^5)")
     ap.add_argument("--repeats", type=int, default=None, help="alternating repeats (3)")
     ap.add_argument("--overhead-tasks", type=int, default=200)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--sweep-only", action="store_true", help="only 1. (the executors)")
     args = ap.parse_args(argv)
-    runs = args.runs or (20_000 if args.quick else 100_000)
+    runs = args.runs or (20_000 if args.quick else 200_000)
     repeats = args.repeats or (1 if args.quick else 3)
     out: dict = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                              "load_before": os.getloadavg()}}  # fmt: skip
 
-    print(f"1. sweep of 8 dt values x {runs} runs, --workers 1 vs 2 ({repeats} repeats)")
+    print(f"1. sweep --vary {VARY} --runs {runs}: --workers 0 (this process), 1, 2 "
+          f"({repeats} repeats in turn; load average {os.getloadavg()[0]:.1f})")  # fmt: skip
     with tempfile.TemporaryDirectory(prefix="fusionlog-bench-sweep-") as tmp:
         w = out["workers"] = bench_workers(runs, repeats, Path(tmp))
-    for k in (1, 2):
-        m = w["best"][k]
-        print(f"  {k} worker(s), fastest repeat: wall {m['wall']:.2f} s = start {m['start']:.2f} + "
-              f"{int(m['tasks_n'])} tasks {m['tasks']:.2f} + outputs {m['outputs']:.2f} + "
-              f"stop {m['stop']:.2f} + interpreter/imports")  # fmt: skip
-    ok = w["speedup_wall"] >= T_SPEEDUP
-    print(f"  speed-up (fastest repeats): whole command {w['speedup_wall']:.2f}x, task phase "
-          f"{w['speedup_tasks']:.2f}x (target >= {T_SPEEDUP}x: {'met' if ok else 'MISSED'}); "
-          f"medians: {w['speedup_wall_median']:.2f}x; tables identical: {w['identical_tables']}; "
-          f"load average {os.getloadavg()[0]:.2f}")  # fmt: skip
+        small = runs // 10
+        print(f"   the same at {small} runs per point: the default (no --workers) vs 0 and 2")
+        out["default"] = bench_workers(small, repeats, Path(tmp), (None, 0, 2))
+    med = w["median"]
+    for k in ("0", "1", "2"):
+        m = med[k]
+        print(f"  --workers {k}, medians: wall {m['wall']:.2f} s, CPU {m['cpu']:.2f} s = start "
+              f"{m['start']:.2f} + {int(m['tasks_n'])} tasks {m['tasks']:.2f} + outputs "
+              f"{m['outputs']:.2f} + stop {m['stop']:.2f} + interpreter/imports")  # fmt: skip
+    one = med["1"]["wall"] / med["0"]["wall"]
+    two = w["speedup_vs_in_process"]["2"]
+    ok = one <= T_ONE_WORKER and two >= T_TWO_WORKERS
+    print(f"  1 worker / this process: {one:.2f}x wall (target <= {T_ONE_WORKER}x: "
+          f"{'met' if one <= T_ONE_WORKER else 'MISSED'}); this process / 2 workers: {two:.2f}x "
+          f"(target >= {T_TWO_WORKERS}x: {'met' if two >= T_TWO_WORKERS else 'MISSED'}); "
+          f"tables identical: {w['identical_tables']}")  # fmt: skip
+    print(
+        f"  CPU a worker adds: the first {med['1']['cpu'] - med['0']['cpu']:.2f} s (its start, "
+        f"Dask in this process), the second {med['2']['cpu'] - med['1']['cpu']:.2f} s"
+    )
+    d = out["default"]["median"]
+    print(f"  {small} runs per point: default {d['default']['wall']:.2f} s, --workers 0 "
+          f"{d['0']['wall']:.2f} s, --workers 2 {d['2']['wall']:.2f} s; load average "
+          f"{os.getloadavg()[0]:.1f}")  # fmt: skip
 
+    if args.sweep_only:
+        if args.json is not None:
+            args.json.write_text(json.dumps(out, indent=2, default=str))
+        return 0 if ok else 1
     print(f"2. per-task overhead, LocalCluster of 1 worker, {args.overhead_tasks} tasks")
     o = out["overhead"] = bench_overhead(args.overhead_tasks)
     print(f"  round trip {1e3 * o['roundtrip_s']:.2f} ms, of which the task itself "

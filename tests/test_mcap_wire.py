@@ -381,3 +381,24 @@ def test_table_decoding_matches_the_message_decoder(specs, seed):
         )
         assert tab.raw[tab.p1[i] : tab.p1[i] + tab.n1[i]] == bytes(p1)
         assert tab.raw[tab.p2[i] : tab.p2[i] + tab.n2[i]] == bytes(p2)
+
+
+def test_schema_bytes_are_protobufs_own_serialisation() -> None:
+    """The FileDescriptorSet encoded by hand (no google.protobuf at start-up) is byte for byte
+    what descriptor_pb2 serialises for the same two messages."""
+    from google.protobuf import descriptor_pb2
+
+    from fusionlog.io.mcap.schema import PROTO_FILE, file_descriptor_set, message_fields
+
+    fdp = descriptor_pb2.FileDescriptorProto(name=PROTO_FILE, package="fusionlog", syntax="proto3")
+    for name, kind in (("Block", "values"), ("EstimateBlock", "estimate")):
+        m = fdp.message_type.add(name=name)
+        for fname, number, ftype, label in message_fields(kind):
+            m.field.add(name=fname, number=number, type=ftype, label=label)
+    assert file_descriptor_set() == descriptor_pb2.FileDescriptorSet(file=[fdp]).SerializeToString()
+    F = descriptor_pb2.FieldDescriptorProto
+    assert [f[1:] for f in message_fields("values")][:2] == [
+        (1, F.TYPE_UINT32, F.LABEL_OPTIONAL),
+        (2, F.TYPE_DOUBLE, F.LABEL_OPTIONAL),
+    ]
+    assert message_fields("values")[-1][1:] == (7, F.TYPE_DOUBLE, F.LABEL_REPEATED)

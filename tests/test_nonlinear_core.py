@@ -87,6 +87,32 @@ def test_wrap_maps_every_angle_into_the_half_open_interval() -> None:
     np.testing.assert_allclose(np.sin(w), np.sin(a), atol=1e-14)
 
 
+def test_wrap_is_the_mod_formula_to_the_last_bit() -> None:
+    """`wrap` skips np.mod where pi - a is already in [0, 2 pi): the same numbers as
+    pi - ((pi - a) mod 2 pi) everywhere, the sign of zero included."""
+    rng = np.random.default_rng(5)
+    edges = [math.pi, -math.pi, 0.0, -0.0, 2 * math.pi, -2 * math.pi, 3 * math.pi, 1e-300]
+    edges += [np.nextafter(math.pi, 4), np.nextafter(-math.pi, -4), 1e300, -1e300]
+    a = np.concatenate([rng.uniform(-50, 50, 10**5), rng.uniform(-4, 4, 10**5), edges])
+    expected = math.pi - np.mod(math.pi - a, 2.0 * math.pi)
+    got = wrap(a)
+    assert np.array_equal(got, expected) and np.array_equal(np.signbit(got), np.signbit(expected))
+    assert wrap(-math.pi) == math.pi
+    assert wrap(np.array(7.0)) == math.pi - np.mod(math.pi - 7.0, 2.0 * math.pi)
+
+
+@pytest.mark.parametrize("cls", [RangeBearingSensor, RangeSensor, BearingSensor])
+def test_polar_linearised_is_h_and_the_jacobian(cls) -> None:
+    """The EKF's `linearised` (lanes, x and y columns only) against `h` and `jacobian`."""
+    rng = np.random.default_rng(4)
+    s = cls("s", np.array([3.0, -2.0]), (0, 2), 4, np.eye(len(cls.components)))
+    x = rng.normal(0.0, 50.0, (7, 4))
+    h, J, cols = s.linearised(x)
+    assert cols == (0, 2)
+    np.testing.assert_array_equal(h.T, s.h(x))
+    np.testing.assert_array_equal(J.transpose(2, 0, 1), s.jacobian(x)[:, :, [0, 2]])
+
+
 @pytest.mark.parametrize("cls", [RangeBearingSensor, RangeSensor, BearingSensor])
 def test_polar_jacobians_match_finite_differences(cls) -> None:
     rng = np.random.default_rng(3)

@@ -16,6 +16,7 @@ import click
 
 from fusionlog import __version__
 from fusionlog.errors import DamagedFile, FusionlogError, OutputExists
+from fusionlog.memory import keep_freed_memory
 
 PATH = click.Path(path_type=Path, dir_okay=False)
 #: An output file: whatever is at the path (a directory, a device) is refused by io/atomic.py
@@ -56,6 +57,7 @@ class _Group(click.Group):
 
     def invoke(self, ctx: click.Context) -> Any:
         debug = bool(ctx.params.get("debug"))
+        keep_freed_memory()  # this process is fusionlog's: see fusionlog.memory
         for sig in (signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, _on_signal)
         try:
@@ -159,18 +161,11 @@ _arch = click.option(
 )
 _filter = click.option("--filter", "filter_name", type=click.Choice(["EKF", "UKF"]),
                        help="Local filter of every architecture ([estimate] filter).")  # fmt: skip
-_workers = click.option(
-    "--workers",
-    type=click.IntRange(min=0),
-    help="Compute the runs, in blocks, on a Dask LocalCluster of N worker processes "
-    "(0: in this process, without Dask).",
-)
-_scheduler = click.option(
-    "--scheduler",
-    metavar="ADDRESS",
-    help="Compute the runs, in blocks, on the running Dask cluster at ADDRESS (tcp://host:port "
-    "or tls://host:port).",
-)
+_workers = click.option("--workers", type=click.IntRange(min=0), help="Compute the runs, in "
+    "blocks, on a Dask LocalCluster of N worker processes (0: in this process, without Dask). "
+    "Default: run, this process; sweep, from the size of the work (sweep --help).")  # fmt: skip
+_scheduler = click.option("--scheduler", metavar="ADDRESS", help="Compute the runs, in blocks, "
+    "on the running Dask cluster at ADDRESS (tcp://host:port or tls://host:port).")  # fmt: skip
 _scheduler_timeout = click.option(
     "--scheduler-timeout",
     type=float,
@@ -382,8 +377,9 @@ def sweep(
     """Evaluate SCENARIO.toml over a grid of parameter values, on Dask: writes sweep.parquet,
     sweep.rrd and summary.json (no MCAP logs: workers return metric sums).
 
-    Without --workers or --scheduler the runs go to a LocalCluster of one worker process per
-    CPU (--exact-only: this process)."""
+    Without --workers or --scheduler: a LocalCluster of one worker per CPU when the work is
+    estimated above 5 s in one process (runs x instants x architectures, dropouts 40x),
+    else this process (so too --exact-only, and one CPU): a cluster's start costs more."""
     from fusionlog.report import format_table
     from fusionlog.stages.sweep import run_sweep
 

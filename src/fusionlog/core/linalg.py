@@ -31,6 +31,7 @@ from .kernels import (  # noqa: F401 - the batch kernels, used here and re-expor
     KERNEL_MIN_BATCH,
     PIVOT_RTOL,
     all_finite,
+    apply_shared,
     buffer,
     cholesky,
     cholesky_inverse,

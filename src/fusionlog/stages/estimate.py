@@ -14,10 +14,10 @@ from fusionlog.scenario import Scenario, kind_of_text, toml
 from .common import (
     PROVENANCE_META,
     SCENARIO_META,
+    Digest,
     progress,
     provenance,
     scenario_from_file,
-    sha256_of,
 )
 from .kinds import kind_of
 
@@ -57,6 +57,7 @@ def estimate_to(
     recorded in the sensors file and `sensors_sha256` its digest, when the caller (`run`, which
     wrote it) has them: each is then not read again. `filter_name` (--filter) sets the local
     filter of a state model."""
+    digest = None if sensors_sha256 else Digest(Path(sensors_path))
     mf = McapFile(sensors_path)
     if recorded is None:
         recorded = scenario_from_file(mf)
@@ -92,7 +93,7 @@ def estimate_to(
         provenance(
             command,
             recorded.seed if recorded is not None else None,
-            sensors_sha256=sensors_sha256 or sha256_of(Path(sensors_path)),
+            sensors_sha256=sensors_sha256 or digest.value(),  # type: ignore[union-attr]
             sensors_file=sensors_name or Path(sensors_path).name,
             model_source=model.source,
             model=model.json,

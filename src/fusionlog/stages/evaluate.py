@@ -9,9 +9,10 @@ from typing import Any
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import TRUTH
 from fusionlog.jsonout import dumps
+from fusionlog.memory import release_freed_memory
 from fusionlog.scenario import Scenario
 
-from .common import open_evaluation_inputs, progress, release_freed_memory
+from .common import open_evaluation_inputs, progress
 from .kinds import kind_of
 
 

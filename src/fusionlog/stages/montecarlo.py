@@ -28,6 +28,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from fusionlog.core.architectures import Estimate, PlanCache, estimate_block
+from fusionlog.memory import keep_freed_memory
 from fusionlog.scenario import Scenario
 
 from .common import block_runs
@@ -92,10 +93,12 @@ def _one_blas_thread(fn: Callable[..., T]) -> Callable[..., T]:
     metric sums (matrix-vector products over runs) by its thread count, which changes their
     last bits: with one thread a block's sums are the same in this process (--workers 0), in
     a Dask worker (whose nanny sets one thread) and in a `dask worker` started by hand. The
-    parallelism is across the workers instead."""
+    parallelism is across the workers instead. A task also sets its process's allocator to
+    keep freed memory (`fusionlog.memory`: a worker process is fusionlog's own)."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> T:
+        keep_freed_memory()
         with _blas_controller().limit(limits=1, user_api="blas"):
             return fn(*args, **kwargs)
 

@@ -23,12 +23,9 @@ __all__ = ["with_covariances", "with_message_covariances"]
 
 def with_message_covariances(system: System, log: McapFile) -> System:
     """`system` with the per-instant R of the log's sensor messages (itself when none has)."""
-    covs = {}
-    for sen in system.sensors:
-        topic = sensor_topic(sen.name)
-        c = log.message_covariances(topic) if topic in log.topics else None
-        if c is not None:
-            covs[sen.name] = c
+    topics = {sen.name: sensor_topic(sen.name) for sen in system.sensors}
+    found = log.message_covariances_of([t for t in topics.values() if t in log.topics])
+    covs = {name: c for name, t in topics.items() if (c := found.get(t)) is not None}
     return with_covariances(system, covs, log.steps(), str(log.path))
 
 

@@ -10,9 +10,10 @@ from typing import Any
 
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapWriter
+from fusionlog.memory import release_freed_memory
 from fusionlog.scenario import Scenario, check_budget
 
-from .common import release_freed_memory, sha256_of
+from .common import sha256_of
 from .estimate import estimate_to
 from .evaluate import evaluate_into
 from .kinds import kind_of

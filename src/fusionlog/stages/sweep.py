@@ -36,7 +36,7 @@ from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
 from fusionlog.jsonout import dumps
 
-from .distributed import CONNECT_TIMEOUT, executor
+from .distributed import CONNECT_TIMEOUT, default_workers, executor
 from .grid import GridPoint, Vary, grid_points, parse_vary
 from .kinds import kind_of
 from .montecarlo import (
@@ -111,10 +111,11 @@ def run_sweep(
 
     `workers` N starts a LocalCluster of N processes (0: everything in this process), a
     `scheduler` address uses a running cluster; neither: one process per CPU, except with
-    `exact_only`, which runs here (milliseconds per point and architecture: not worth a
-    cluster). `block` sets the runs per task (the default keeps a task near a million
-    run-steps). `warn_stale` is shown the outputs first (the CLI reports temporary files a
-    killed run left beside them)."""
+    `exact_only` (milliseconds per point and architecture) and for work estimated at a few
+    seconds in one process (`small_work`), which run here: not worth a cluster. `block` sets
+    the runs per task (the default keeps a task near a million run-steps). `warn_stale` is
+    shown the outputs first (the CLI reports temporary files a killed run left beside
+    them)."""
     varies = [parse_vary(s) for s in vary]
     points = grid_points(scenario_path, varies, runs=runs)
     first = points[0].scenario
@@ -128,7 +129,8 @@ def run_sweep(
     targets = [d / name for name in OUTPUTS]
     if warn_stale is not None:
         warn_stale(targets)
-    ex = executor(workers, scheduler, local_default=exact_only, timeout=scheduler_timeout)
+    small = exact_only or small_work(points, point_archs)
+    ex = executor(workers, scheduler, local_default=small, timeout=scheduler_timeout)
     t = [time.perf_counter()]
     busy = 0.0
     # The outputs are checked before the cluster starts: a sweep that cannot write its results
@@ -183,6 +185,39 @@ def run_sweep(
     return SweepResult(
         d, summary, rows, ex.description, t[-1] - t[0], phases | {"busy": busy}, len(tasks)
     )
+
+
+#: CPU seconds of the Monte Carlo per run, instant and architecture in one process, simulation
+#: and metric sums included: the paper's example (shared gains) ~5e-8 s; where the runs'
+#: measurement patterns differ (dropouts: per-run plans and each run's exact statistics) or
+#: a nonlinear model gives every run its own covariances, about 40 times that (measured
+#: with `benchmarks/bench_sweep.py` and in-process sweeps).
+SECONDS_PER_RUN_STEP = 5e-8
+PER_RUN_FACTOR = 40
+#: Without --workers, a sweep whose Monte Carlo is estimated below this many seconds in one
+#: process runs in this process: a LocalCluster's start (worker processes importing numpy,
+#: Dask and fusionlog, ~1-2 s of CPU each on two cores) costs about what a second core
+#: would give back on work of a few seconds (benchmarks/README.md, "Sweeps on Dask").
+LOCAL_BELOW_SECONDS = 5.0
+
+
+def estimated_seconds(points: Sequence[GridPoint], point_archs: Sequence[tuple[str, ...]]) -> float:
+    """The Monte Carlo's CPU seconds in one process, from the size of the work alone."""
+    total = 0.0
+    for p, archs in zip(points, point_archs, strict=True):
+        sc = p.scenario
+        # each run with its own covariances: dropouts, or EKF/UKF local filters
+        per_run = not sc.system.linear or any(s.timing.dropout > 0 for s in sc.system.sensors)
+        factor = PER_RUN_FACTOR if per_run else 1
+        total += sc.runs * sc.instants * len(archs) * factor * SECONDS_PER_RUN_STEP
+    return total
+
+
+def small_work(points: Sequence[GridPoint], point_archs: Sequence[tuple[str, ...]]) -> bool:
+    """Whether the default (no --workers, no --scheduler) is this process: estimated work of a
+    few seconds (`LOCAL_BELOW_SECONDS`), or one CPU (a one-worker cluster only adds its
+    start to the same work)."""
+    return default_workers() < 2 or estimated_seconds(points, point_archs) < LOCAL_BELOW_SECONDS
 
 
 def _conditional_expected(

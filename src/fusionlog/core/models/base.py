@@ -76,6 +76,15 @@ class SensorModel(ABC):
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         """dh/dx at states x (..., n): (..., m, n)."""
 
+    def linearised(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
+        """h(x) and the Jacobian at states x (M, n) on lanes (`core.kernels`), as the EKF's
+        update computes with them: (m, M), its columns `cols` (m, len(cols), M), and `cols`,
+        the state columns where the Jacobian may be nonzero (all of them unless a kind knows
+        better)."""
+        J = self.jacobian(x)
+        h = np.ascontiguousarray(self.h(x).T)
+        return h, np.ascontiguousarray(J.transpose(1, 2, 0)), tuple(range(J.shape[-1]))
+
     def residual(self, z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
         """z - z_hat (..., m): the innovation a filter forms. A kind whose components are
         angles overrides it to wrap them to (-pi, pi] (a bearing's residual)."""

@@ -32,8 +32,19 @@ __all__ = [
 
 
 def wrap(a: np.ndarray) -> np.ndarray:
-    """Angles wrapped to (-pi, pi]: pi - ((pi - a) mod 2 pi), so -pi itself maps to pi."""
-    return math.pi - np.mod(math.pi - a, 2.0 * math.pi)
+    """Angles wrapped to (-pi, pi]: pi - ((pi - a) mod 2 pi), so -pi itself maps to pi.
+
+    t mod 2 pi is t itself (exactly: fmod is exact) for t in [0, 2 pi), which is where an
+    angle already in (-pi, pi] puts t = pi - a: np.mod, ~7x slower than a subtraction, runs
+    only on the other entries; the numbers are np.mod's to the last bit either way."""
+    t = np.subtract(math.pi, a)
+    if np.ndim(t) == 0:
+        return math.pi - np.mod(t, 2.0 * math.pi)
+    out = (t < 0.0) | (t >= 2.0 * math.pi)
+    if out.any():
+        t[out] = np.mod(t[out], 2.0 * math.pi)
+    np.subtract(math.pi, t, out=t)
+    return t
 
 
 def wrap_angles(d: np.ndarray, angles: np.ndarray) -> np.ndarray:
@@ -83,6 +94,26 @@ class PolarSensor(SensorModel):
         dx, dy = self._delta(x)
         parts = {"range": lambda: np.hypot(dx, dy), "bearing": lambda: wrap(np.arctan2(dy, dx))}
         return np.stack([parts[c]() for c in self.components], axis=-1)
+
+    def linearised(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
+        """`h` and `jacobian` on lanes (`SensorModel.linearised`) from one (dx, dy): only the
+        columns of x and y, the others are zero."""
+        dx, dy = self._delta(x)
+        r2 = dx * dx + dy * dy
+        r = np.sqrt(r2)
+        M = dx.shape[0]
+        h, J = np.empty((self.dim, M)), np.empty((self.dim, 2, M))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for row, c in enumerate(self.components):
+                if c == "range":
+                    np.hypot(dx, dy, out=h[row])
+                    np.divide(dx, r, out=J[row, 0])
+                    np.divide(dy, r, out=J[row, 1])
+                else:
+                    h[row] = wrap(np.arctan2(dy, dx))
+                    np.divide(-dy, r2, out=J[row, 0])
+                    np.divide(dx, r2, out=J[row, 1])
+        return h, J, self.idx
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         """The module docstring's derivatives; undefined at r = 0 (the filters refuse a state

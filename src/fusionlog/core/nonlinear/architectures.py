@@ -80,10 +80,10 @@ class _Steps:
         self.times = _instants(system, z.shape[1]) if times is None else np.asarray(times, float)
         m = self.system.m
         self.cols = [np.arange(m)[sl] for sl in self.system.sensor_slices]
-        self.measures = np.stack(
-            [(~np.isnan(z[..., c])).any(axis=(0, 2)) for c in self.cols], axis=1
-        )  # (K+1, S)
+        some = (~np.isnan(z)).any(axis=0)  # (K+1, m): the column has a reading in some run
+        self.measures = np.stack([some[:, c].any(axis=1) for c in self.cols], axis=1)  # (K+1, S)
         self.ukf = ukf_params(self.system)
+        self.work: dict = {}  # the EKF update's temporaries, reused from instant to instant
 
     def predict(self, k: int, x: np.ndarray, P: np.ndarray):
         return predict(*transition(self.system, k), x, P, self.ukf)
@@ -96,17 +96,16 @@ class _Steps:
         model = Stacked(tuple(self.system.sensors[j] for j in which))
         zk = self.z[:, k, np.concatenate([self.cols[j] for j in which])]
         self._check_ranges(k, which, x, zk)
-        return update(model, x, P, zk, self.ukf)
+        return update(model, x, P, zk, self.ukf, self.work)
 
     def _check_ranges(self, k: int, which: list[int], x: np.ndarray, zk: np.ndarray) -> None:
         """A range or bearing has no derivative at the sensor's own position: refuse it."""
         start = 0
         for j in which:
             s = self.system.sensors[j]
-            if isinstance(s, PolarSensor):
-                r = s.ranges(x)
+            if isinstance(s, PolarSensor) and not (away := s.ranges(x) > 0).all():
                 present = ~np.isnan(zk[:, start : start + s.dim]).any(axis=-1)
-                bad = present & ~(r > 0)
+                bad = present & ~away  # NaN ranges too
                 if bad.any():
                     run = self.off + int(np.argmax(bad))
                     raise NumericalError(

@@ -25,14 +25,16 @@ batched update serves runs with any pattern of missing data.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from ...errors import NumericalError
-from ..kernels import cholesky, cholesky_solve, lanes, unlanes
+from ..kernels import lanes, unlanes
 from ..linalg import mm, mT, solve, sym
 from ..model import System
 from ..models import LinearMotion, MotionModel, SensorModel
+from .lanes import joseph_update, linear_prediction
 
 
 @dataclass(frozen=True)
@@ -69,6 +71,24 @@ class Stacked:
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         return np.concatenate([s.jacobian(x) for s in self.sensors], axis=-2)
 
+    def linearised(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[int]]:
+        """`SensorModel.linearised` of the stack: h (m, M), the Jacobian's columns q
+        (m, |q|, M) and q, the state columns some sensor's Jacobian is nonzero on."""
+        parts = [s.linearised(x) for s in self.sensors]
+        h = np.concatenate([p[0] for p in parts]) if len(parts) > 1 else parts[0][0]
+        cols = sorted({c for p in parts for c in p[2]})
+        if all(list(p[2]) == cols for p in parts):
+            Hq = np.concatenate([p[1] for p in parts]) if len(parts) > 1 else parts[0][1]
+        else:
+            Hq, start = np.zeros((self.dim, len(cols), x.shape[0])), 0
+            for _, J, c in parts:
+                Hq[start : start + len(J), [cols.index(i) for i in c]] = J
+                start += len(J)
+        nonzero = [a for a in range(len(cols)) if Hq[:, a].any()]
+        if len(nonzero) < len(cols):
+            Hq, cols = np.ascontiguousarray(Hq[:, nonzero]), [cols[a] for a in nonzero]
+        return h, Hq, cols
+
 
 def transition(system: System, k: int) -> tuple[MotionModel, float]:
     """The motion model and interval from instant k-1 to k of a system on its instants
@@ -102,14 +122,22 @@ class UkfParams:
         return c, Wm, Wc
 
 
-@dataclass(frozen=True)
 class Update:
-    """The result of an update: x+, P+, and the linearised gain (K, effective H)."""
+    """The result of an update: x+, P+, and the linearised gain (K, effective H). H may be
+    given as a function that makes it: the CKF never asks for it."""
 
-    x: np.ndarray
-    P: np.ndarray
-    K: np.ndarray  # (M, n, m)
-    H: np.ndarray  # (M, m, n)
+    __slots__ = ("x", "P", "K", "_H")
+
+    def __init__(self, x: np.ndarray, P: np.ndarray, K: np.ndarray, H: Any) -> None:
+        self.x, self.P = x, P
+        self.K = K  # (M, n, m)
+        self._H = H  # (M, m, n)
+
+    @property
+    def H(self) -> np.ndarray:
+        if callable(self._H):
+            self._H = self._H()
+        return self._H
 
 
 def sigma_points(x: np.ndarray, P: np.ndarray, c: float, what: str) -> np.ndarray:
@@ -134,8 +162,8 @@ def predict(
     Q = motion.Q(dt)
     if motion.linear:  # one F for every run: shared-factor products
         F = motion.F(dt)
-        C = mm(P, F.T)
-        return x @ F.T, sym(mm(F, C) + Q), F, C
+        Pp, C = linear_prediction(P, F, Q)
+        return x @ F.T, Pp, F, C
     if ukf is None:
         F = motion.jacobian(x, dt)
         C = mm(P, mT(F))
@@ -168,44 +196,26 @@ def _gain(P_xz: np.ndarray, S: np.ndarray) -> np.ndarray:
     return mT(solve(S, mT(P_xz), hermitian=True, what="the innovation covariance"))
 
 
-def update_ekf(model: Stacked, x: np.ndarray, P: np.ndarray, z: np.ndarray) -> Update:
-    """EKF update at the prediction, Joseph form (module docstring).
-
-    Computed on lanes (`core.kernels`: every matrix entry one contiguous vector over the runs)
-    and only over the columns `q` of the state that some row of H touches (a radar sees x and
-    y, not the velocities): P H^T = P[:, q] H[:, q]^T, S = H[:, q] (P H^T)[q] + R, K from S's
-    Cholesky factor, and (I - K H) P (I - K H)^T = A P - (A P)[:, q] (K H[:, q])^T with
-    A P = P - (K H[:, q]) P[q] — the Joseph form's products, without those by zero columns.
-    """
+def update_ekf(
+    model: Stacked, x: np.ndarray, P: np.ndarray, z: np.ndarray, work: dict | None = None
+) -> Update:
+    """EKF update at the prediction, Joseph form (module docstring), on lanes and over the
+    state columns the Jacobian touches (`lanes.joseph_update`, its workspace `work`)."""
     present, z0, R = _masked(z, model)
-    n = x.shape[-1]
-    H = model.jacobian(x)
-    y = model.residual(z0, model.h(x))
+    h, Hq, q = model.linearised(x)
+    y = model.residual(z0, h.T)
     if not present.all():
-        H, y = H * present[:, :, None], y * present
-    Hl, Pl = lanes(H), lanes(P)  # (m, n, M), (n, n, M)
-    q = [c for c in range(n) if Hl[:, c].any()]
-    Hq = np.ascontiguousarray(Hl[:, q])  # (m, |q|, M)
-    PHt = np.einsum("iqM,rqM->irM", Pl[:, q], Hq)  # (n, m, M)
-    S = np.einsum("rqM,qsM->rsM", Hq, PHt[q])
-    S += R[:, :, None] if R.ndim == 2 else lanes(R)
-    S = 0.5 * (S + S.swapaxes(0, 1))
-    with np.errstate(all="ignore"):
-        L, ok = cholesky(S)
-        Kt = cholesky_solve(L, PHt.swapaxes(0, 1))  # (m, n, M) = S^-1 H P
-    if not ok.all():  # a badly conditioned S: those runs by LAPACK's solve (or pinv)
-        bad = np.flatnonzero(~ok)
-        Sb, Bb = unlanes(S)[bad], unlanes(PHt.swapaxes(0, 1))[bad]
-        Kt[..., bad] = lanes(solve(Sb, Bb, hermitian=True, what="the innovation covariance"))
-    K = Kt.swapaxes(0, 1)  # (n, m, M)
-    KH = np.einsum("irM,rqM->iqM", K, Hq)  # (n, |q|, M)
-    AP = Pl - np.einsum("iqM,qjM->ijM", KH, Pl[q])
-    Pu = AP - np.einsum("iqM,jqM->ijM", AP[:, q], KH)
-    KR = np.einsum("irM,rs->isM", K, R) if R.ndim == 2 else np.einsum("irM,rsM->isM", K, lanes(R))
-    Pu += np.einsum("isM,jsM->ijM", KR, K)
-    Pu = 0.5 * (Pu + Pu.swapaxes(0, 1))
-    xu = x + np.einsum("irM,Mr->Mi", K, y)
-    return Update(xu, unlanes(Pu), unlanes(K), H)
+        Hq, y = Hq * present.T[:, None], y * present
+    if R.ndim == 3:
+        R = lanes(R)
+    xu, Pu, Kt = joseph_update(x, lanes(P), Hq, q, R, np.ascontiguousarray(y.T), work)
+
+    def full_H() -> np.ndarray:
+        H = np.zeros((x.shape[0], Hq.shape[0], x.shape[1]))
+        H[:, :, q] = unlanes(Hq)
+        return H
+
+    return Update(xu, unlanes(Pu), unlanes(Kt).swapaxes(1, 2), full_H)
 
 
 def update_ukf(
@@ -233,9 +243,15 @@ def update_ukf(
 
 
 def update(
-    model: Stacked, x: np.ndarray, P: np.ndarray, z: np.ndarray, ukf: UkfParams | None
+    model: Stacked,
+    x: np.ndarray,
+    P: np.ndarray,
+    z: np.ndarray,
+    ukf: UkfParams | None,
+    work: dict | None = None,
 ) -> Update:
-    """One update with the sensors of `model` (z (M, m), NaN = absent): EKF when `ukf` is None."""
+    """One update with the sensors of `model` (z (M, m), NaN = absent): EKF when `ukf` is None
+    (`work`: its workspace, kept by the caller from one instant to the next)."""
     if ukf is None:
-        return update_ekf(model, x, P, z)
+        return update_ekf(model, x, P, z, work)
     return update_ukf(model, x, P, z, ukf)

@@ -287,25 +287,35 @@ class McapFile:
         """(K+1, dim, dim): the per-message measurement covariance of a values topic of a
         one-run log (the Block's optional ``covariance``), NaN at instants without one; None
         when no message of the topic carries one."""
-        info = self._readable(topic)
-        if info.format.kind != VALUES:  # type: ignore[union-attr]
-            raise ValueError(f"{topic} is not a values topic")
+        return self.message_covariances_of([topic])[topic]
+
+    def message_covariances_of(self, topics: Sequence[str]) -> dict[str, np.ndarray | None]:
+        """`message_covariances` of several topics from one pass over the file."""
+        infos = {t: self._readable(t) for t in topics}
+        for t, info in infos.items():
+            if info.format.kind != VALUES:  # type: ignore[union-attr]
+                raise ValueError(f"{t} is not a values topic")
         st = self._get_structure()
-        d = self.dim_of(topic)
-        out: np.ndarray | None = None
-        for _, tab in self._tables(set(info.channel_ids)):
-            rows = np.flatnonzero(np.isin(tab.cid, info.channel_ids) & (tab.n2 > 0))
-            if not len(rows):
-                continue
-            if (tab.runs[rows] != 1).any() or (tab.n2[rows] != d * d * 8).any():
-                raise FusionlogError(
-                    f"{self.path}: {topic}: a message covariance of {tab.n2[rows[0]] // 8} "
-                    f"doubles, not {d}x{d} of one run (per-message covariances are for "
-                    "one-run logs)"
-                )
-            if out is None:
-                out = np.full((len(st.times), d, d), np.nan)
-            out[tab.step[rows]] = gather(tab.raw, tab.p2[rows], d * d).reshape(-1, d, d)
+        out: dict[str, np.ndarray | None] = dict.fromkeys(topics)
+        if not topics:
+            return out
+        dims = {t: self.dim_of(t) for t in topics}
+        for _, tab in self._tables({c for i in infos.values() for c in i.channel_ids}):
+            for t, info in infos.items():
+                d = dims[t]
+                rows = np.flatnonzero(np.isin(tab.cid, info.channel_ids) & (tab.n2 > 0))
+                if not len(rows):
+                    continue
+                if (tab.runs[rows] != 1).any() or (tab.n2[rows] != d * d * 8).any():
+                    raise FusionlogError(
+                        f"{self.path}: {t}: a message covariance of {tab.n2[rows[0]] // 8} "
+                        f"doubles, not {d}x{d} of one run (per-message covariances are for "
+                        "one-run logs)"
+                    )
+                c = out[t]
+                if c is None:
+                    c = out[t] = np.full((len(st.times), d, d), np.nan)
+                c[tab.step[rows]] = gather(tab.raw, tab.p2[rows], d * d).reshape(-1, d, d)
         return out
 
     def lost_share(self, topic: str, block_runs: int = 1 << 14) -> float:

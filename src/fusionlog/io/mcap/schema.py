@@ -16,14 +16,15 @@ message to message (a recorded log that carries its own covariances); absent, th
 applies. Files written before the field existed decode the same. The field numbers are
 defined here once; the wire codec (:mod:`.wire`) derives its tags from them. The schema is
 embedded in every file as a FileDescriptorSet built at run time (no protoc), so any MCAP +
-protobuf reader decodes the files without fusionlog.
+protobuf reader decodes the files without fusionlog. Its bytes are encoded here directly (a
+few nested length-delimited fields), as ``descriptor_pb2`` serialises them: importing
+``google.protobuf`` costs ~20 ms of every command's start, and only `protobuf_classes` (tests,
+third-party checks) and foreign schemas (`wire.format_of_schema_record`) need it.
 """
 
 from __future__ import annotations
 
 from functools import lru_cache
-
-from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 __all__ = [
     "ESTIMATE",
@@ -35,6 +36,7 @@ __all__ = [
     "SENSOR_SCHEMA",
     "VALUES",
     "file_descriptor_set",
+    "message_fields",
     "protobuf_classes",
 ]
 
@@ -46,15 +48,17 @@ PROTO_FILE = "fusionlog/blocks.proto"
 VALUES = "values"
 ESTIMATE = "estimate"
 
-_F = descriptor_pb2.FieldDescriptorProto
+#: FieldDescriptorProto's Type and Label values (descriptor.proto) of the fields used here.
+TYPE_DOUBLE, TYPE_UINT32 = 1, 13
+LABEL_OPTIONAL, LABEL_REPEATED = 1, 3
 
 #: (name, field number, protobuf type) of the scalar fields every message starts with.
 HEADER_FIELDS: tuple[tuple[str, int, int], ...] = (
-    ("step", 1, _F.TYPE_UINT32),
-    ("time", 2, _F.TYPE_DOUBLE),
-    ("run_offset", 3, _F.TYPE_UINT32),
-    ("runs", 4, _F.TYPE_UINT32),
-    ("dim", 5, _F.TYPE_UINT32),
+    ("step", 1, TYPE_UINT32),
+    ("time", 2, TYPE_DOUBLE),
+    ("run_offset", 3, TYPE_UINT32),
+    ("runs", 4, TYPE_UINT32),
+    ("dim", 5, TYPE_UINT32),
 )
 
 #: Per kind: (name, field number) of its packed ``repeated double`` payloads, in order.
@@ -68,29 +72,61 @@ OPTIONAL_PAYLOADS: dict[str, tuple[str, ...]] = {VALUES: ("covariance",), ESTIMA
 _MESSAGES = ((SENSOR_SCHEMA, VALUES), (ESTIMATE_SCHEMA, ESTIMATE))
 
 
+def message_fields(kind: str) -> list[tuple[str, int, int, int]]:
+    """(name, number, type, label) of the fields of the message of a kind, in number order."""
+    return [(n, num, t, LABEL_OPTIONAL) for n, num, t in HEADER_FIELDS] + [
+        (n, num, TYPE_DOUBLE, LABEL_REPEATED) for n, num in PAYLOAD_FIELDS[kind]
+    ]
+
+
+def _varint(v: int) -> bytes:
+    out = bytearray()
+    while v >= 0x80:
+        out.append(v & 0x7F | 0x80)
+        v >>= 7
+    out.append(v)
+    return bytes(out)
+
+
+def _len_field(number: int, data: bytes) -> bytes:
+    """A length-delimited field (a string or an embedded message)."""
+    return _varint(number << 3 | 2) + _varint(len(data)) + data
+
+
+def _int_field(number: int, v: int) -> bytes:
+    return _varint(number << 3) + _varint(v)
+
+
 @lru_cache(maxsize=1)
-def _file_descriptor() -> descriptor_pb2.FileDescriptorProto:
-    """The proto3 file holding both message types."""
-    fdp = descriptor_pb2.FileDescriptorProto(name=PROTO_FILE, package="fusionlog", syntax="proto3")
-    for full_name, kind in _MESSAGES:
-        m = fdp.message_type.add(name=full_name.rsplit(".", 1)[1])
-        for name, number, ftype in HEADER_FIELDS:
-            m.field.add(name=name, number=number, type=ftype, label=_F.LABEL_OPTIONAL)
-        for name, number in PAYLOAD_FIELDS[kind]:
-            m.field.add(name=name, number=number, type=_F.TYPE_DOUBLE, label=_F.LABEL_REPEATED)
-    return fdp
-
-
 def file_descriptor_set() -> bytes:
-    """Serialized FileDescriptorSet embedded as the schema data of both schemas."""
-    return descriptor_pb2.FileDescriptorSet(file=[_file_descriptor()]).SerializeToString()
+    """Serialized FileDescriptorSet embedded as the schema data of both schemas: the proto3
+    file holding both message types (FileDescriptorProto: name 1, package 2, message_type 4,
+    syntax 12; DescriptorProto: name 1, field 2; FieldDescriptorProto: name 1, number 3,
+    label 4, type 5), fields in number order as protobuf serialises them."""
+    messages = b""
+    for full_name, kind in _MESSAGES:
+        fields = b"".join(
+            _len_field(2, _len_field(1, n.encode()) + _int_field(3, num) + _int_field(4, lab)
+                       + _int_field(5, typ))
+            for n, num, typ, lab in message_fields(kind)
+        )  # fmt: skip
+        messages += _len_field(4, _len_field(1, full_name.rsplit(".", 1)[1].encode()) + fields)
+    fdp = (
+        _len_field(1, PROTO_FILE.encode())
+        + _len_field(2, b"fusionlog")
+        + messages
+        + _len_field(12, b"proto3")
+    )
+    return _len_field(1, fdp)  # FileDescriptorSet.file
 
 
 @lru_cache(maxsize=1)
 def protobuf_classes() -> tuple[type, type]:
     """Official protobuf classes (Block, EstimateBlock) for tests and third-party style checks."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
     pool = descriptor_pool.DescriptorPool()
-    pool.Add(_file_descriptor())
+    pool.Add(descriptor_pb2.FileDescriptorSet.FromString(file_descriptor_set()).file[0])
     return (
         message_factory.GetMessageClass(pool.FindMessageTypeByName(SENSOR_SCHEMA)),
         message_factory.GetMessageClass(pool.FindMessageTypeByName(ESTIMATE_SCHEMA)),

@@ -28,17 +28,19 @@ from functools import lru_cache
 from typing import Any
 
 import numpy as np
-from google.protobuf import descriptor_pb2
 
 from .schema import (
     ESTIMATE,
     ESTIMATE_SCHEMA,
     HEADER_FIELDS,
+    LABEL_REPEATED,
     OPTIONAL_PAYLOADS,
     PAYLOAD_FIELDS,
     SENSOR_SCHEMA,
+    TYPE_DOUBLE,
     VALUES,
     file_descriptor_set,
+    message_fields,
 )
 
 __all__ = [
@@ -386,6 +388,12 @@ def decode(buf: Any, fmt: MessageFormat) -> Decoded:
     return step, t, off, runs, dim, _join(buf, q1), _join(buf, q2)
 
 
+#: fusionlog's own schemas' kinds: a schema record byte for byte the one fusionlog writes is
+#: read from `schema.message_fields`, without parsing it (nor importing google.protobuf).
+_OWN = {SENSOR_SCHEMA: VALUES, ESTIMATE_SCHEMA: ESTIMATE}
+_INT_TYPES = {13, 4, 5, 3}  # TYPE_UINT32, TYPE_UINT64, TYPE_INT32, TYPE_INT64
+
+
 def format_of_schema_record(encoding: str, name: str, data: bytes) -> MessageFormat | None:
     """The format of a protobuf schema whose message ``name`` has the fusionlog fields, else None.
 
@@ -394,6 +402,16 @@ def format_of_schema_record(encoding: str, name: str, data: bytes) -> MessageFor
     """
     if encoding != "protobuf":
         return None
+    if name in _OWN and data == file_descriptor_set():
+        return _format_of_fields({f[0]: f[1:] for f in message_fields(_OWN[name])})
+    fields = _parse_fields(name, data)
+    return None if fields is None else _format_of_fields(fields)
+
+
+def _parse_fields(name: str, data: bytes) -> dict[str, tuple[int, int, int]] | None:
+    """{field name: (number, type, label)} of message ``name`` of a FileDescriptorSet, or None."""
+    from google.protobuf import descriptor_pb2  # a foreign schema only: ~20 ms to import
+
     try:
         fds = descriptor_pb2.FileDescriptorSet.FromString(data)
     except Exception:
@@ -412,37 +430,37 @@ def format_of_schema_record(encoding: str, name: str, data: bytes) -> MessageFor
             break
     if msg is None:
         return None
-    F = descriptor_pb2.FieldDescriptorProto
-    fields = {f.name: f for f in msg.field}
+    return {f.name: (f.number, f.type, f.label) for f in msg.field}
+
+
+def _format_of_fields(fields: dict[str, tuple[int, int, int]]) -> MessageFormat | None:
+    """The format of a message with these fields (`_parse_fields`), else None."""
     keys: dict[int, int] = {}
-    int_types = {F.TYPE_UINT32, F.TYPE_UINT64, F.TYPE_INT32, F.TYPE_INT64}
     for action, fname in enumerate(_INT_FIELDS):
         f = fields.get(fname)
-        if f is None or f.type not in int_types or f.label == F.LABEL_REPEATED:
+        if f is None or f[1] not in _INT_TYPES or f[2] == LABEL_REPEATED:
             return None
-        keys[_key(f.number, _VARINT)] = action
+        keys[_key(f[0], _VARINT)] = action
     f = fields.get("time")
-    if f is None or f.type != F.TYPE_DOUBLE or f.label == F.LABEL_REPEATED:
+    if f is None or f[1] != TYPE_DOUBLE or f[2] == LABEL_REPEATED:
         return None
-    keys[_key(f.number, _FIXED64)] = _A_TIME
-    kind = next(
-        (
-            k
-            for k in (VALUES, ESTIMATE)
-            if all(p in fields or p in OPTIONAL_PAYLOADS[k] for p, _ in PAYLOAD_FIELDS[k])
-        ),
-        None,
-    )
-    if kind is None:
+    keys[_key(f[0], _FIXED64)] = _A_TIME
+    kinds = [
+        k
+        for k in (VALUES, ESTIMATE)
+        if all(p in fields or p in OPTIONAL_PAYLOADS[k] for p, _ in PAYLOAD_FIELDS[k])
+    ]
+    if not kinds:
         return None
+    kind = kinds[0]
     payload = [p for p, _ in PAYLOAD_FIELDS[kind] if p in fields]
     for action, pname in zip((_A_P1, _A_P2), payload, strict=False):
         f = fields[pname]
-        if f.type != F.TYPE_DOUBLE or f.label != F.LABEL_REPEATED:
+        if f[1] != TYPE_DOUBLE or f[2] != LABEL_REPEATED:
             return None
-        keys[_key(f.number, _LEN)] = action  # packed
-        keys[_key(f.number, _FIXED64)] = action  # unpacked, one double per key
-    numbers = {n: fields[n].number for n in ("step", "time", *_INT_FIELDS[1:], *payload)}
+        keys[_key(f[0], _LEN)] = action  # packed
+        keys[_key(f[0], _FIXED64)] = action  # unpacked, one double per key
+    numbers = {n: fields[n][0] for n in ("step", "time", *_INT_FIELDS[1:], *payload)}
     fast = _fast_pattern(numbers, payload)
     payload_keys = [_key(numbers[p], _LEN) for p in payload] + [-1]
     return MessageFormat(kind, keys, fast, payload_keys[0], payload_keys[1])

@@ -26,7 +26,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from .bag_source import bag_topics, is_bag, read_bag
-from .fields import TIME_UNITS, leaf_fields
+from .extract import StreamFields
+from .fields import leaf_fields
 from .geodetic import to_enu
 from .mcap_source import first_fields, read_mcap
 from .series import Series, fail
@@ -54,44 +55,6 @@ def source_kind(source: Path) -> str:
     if is_bag(source):
         return "bag"
     return "text"
-
-
-def _check_args(
-    source: Path,
-    what: str,
-    values: Sequence[str],
-    time: str | None,
-    time_unit: str,
-    covariance: str | None,
-    covariance_index: Sequence[int] | None,
-) -> None:
-    if isinstance(values, str) or not values:
-        raise fail(source, what, "values must be a non-empty list of field paths or columns")
-    for v in values:
-        if not isinstance(v, str) or not v.strip():
-            raise fail(source, what, f"values: {v!r} is not a field path or column name")
-    if time is not None and (not isinstance(time, str) or not time.strip()):
-        raise fail(source, what, f"time: {time!r} is not a field path or column name")
-    if time_unit not in TIME_UNITS:
-        raise fail(source, what, f"time_unit {time_unit!r} is not one of {', '.join(TIME_UNITS)}")
-    if covariance is not None and (not isinstance(covariance, str) or not covariance.strip()):
-        raise fail(source, what, f"covariance: {covariance!r} is not a field path")
-    if covariance_index is None:
-        return
-    if covariance is None:
-        raise fail(source, what, "covariance_index is given without covariance")
-    idx = list(covariance_index)
-    if not all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in idx):
-        raise fail(source, what, f"covariance_index {idx} must be non-negative integers")
-    if len(idx) != len(values):
-        raise fail(
-            source,
-            what,
-            f"covariance_index has {len(idx)} entries but values has {len(values)}: one row/column "
-            "of the covariance per value",
-        )
-    if len(set(idx)) != len(idx):
-        raise fail(source, what, f"covariance_index {idx} repeats a row/column")
 
 
 def read_series(
@@ -122,7 +85,8 @@ def read_series(
     ``truth``).
     """
     source = Path(source)
-    _check_args(source, what, values, time, time_unit, covariance, covariance_index)
+    fields = StreamFields(values, time, time_unit, covariance, covariance_index)
+    fields.check(source, what)
     kind = source_kind(source)
     if kind in ("mcap", "bag"):
         if not isinstance(topic, str) or not topic:
@@ -132,10 +96,8 @@ def read_series(
         for key, v in (("delimiter", delimiter), ("columns", columns), ("format", format)):
             if v is not None:
                 raise fail(source, what, f"{key} is for text tables, not for {source.name}")
-        kw = {"time_unit": time_unit, "covariance": covariance, "what": what}
         reader = read_mcap if kind == "mcap" else read_bag
-        return reader(source, topic=topic, values=list(values), time=time,
-                      covariance_index=covariance_index, **kw)  # fmt: skip
+        return reader(source, topic=topic, fields=fields, what=what)
     if topic is not None:
         raise fail(
             source, what, f"topic {topic!r} given for a text table (topics are MCAP's and bags')"

@@ -11,16 +11,16 @@ file of it (its folder is opened). The default time is the bag's record time (li
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 from fusionlog.errors import DamagedFile, FusionlogError
 
-from .extract import Extractor
-from .fields import PathError, leaf_fields
-from .series import Collector, Series, fail
+from .extract import Extractor, StreamFields
+from .fields import leaf_fields
+from .series import Series, fail
 from .source import MAX_MCAP_BYTES, open_source
 from .topics import one_line
 
@@ -85,36 +85,19 @@ def _deserialize(reader: Any, source: Path, what: str | None, conn: Any, raw: by
         ) from None
 
 
-def read_bag(
-    source: Path,
-    *,
-    topic: str,
-    values: Sequence[str],
-    time: str | None,
-    time_unit: str,
-    covariance: str | None,
-    covariance_index: Sequence[int] | None,
-    what: str,
-) -> Series:
-    ex = Extractor(source, what, values, time, time_unit, covariance, covariance_index)
+def read_bag(source: Path, *, topic: str, fields: StreamFields, what: str) -> Series:
+    ex = Extractor(source, what, fields)
     with _open(source, what) as reader:
         conns = [c for c in reader.connections if c.topic == topic]
         if not conns:
             have = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
             raise fail(source, what, f"no topic {topic} in the bag (topics: {have})")
-        col = Collector(
-            source, what, len(values), ex.cov is not None, "message", lambda k: f"message {k}"
-        )
+        col = ex.collector()
         k = 0
         for conn, stamp, raw in reader.messages(connections=conns):
             k += 1
             decoded = _deserialize(reader, source, what, conn, raw, k)
-            try:
-                t, vals, block = ex.read(decoded, int(stamp))
-            except PathError as e:
-                where = f"topic {topic} ({conn.msgtype})" + (f", message {k}" if k > 1 else "")
-                raise fail(source, what, f"{where}: {e}") from None
-            col.add(k, t, vals, block)
+            ex.add(col, k, decoded, int(stamp), topic, conn.msgtype)
     if k == 0:
         raise fail(source, what, f"topic {topic} has no messages")
     return col.finish()

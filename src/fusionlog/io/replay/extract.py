@@ -7,16 +7,72 @@ messages with the ecosystem's libraries and read them with the same field paths.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from math import isqrt
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .fields import FieldPath, PathError, describe, is_array, parse_path, to_number, to_time_ns
-from .series import fail
+from .fields import (
+    TIME_UNITS,
+    FieldPath,
+    PathError,
+    describe,
+    is_array,
+    parse_path,
+    to_number,
+    to_time_ns,
+)
+from .series import Collector, fail
 
-__all__ = ["Extractor"]
+__all__ = ["Extractor", "StreamFields"]
+
+
+@dataclass(frozen=True)
+class StreamFields:
+    """Where a stream's readings are in each message or row: ``values`` (field paths or
+    columns), ``time`` (a field or column; None: the record's own time) in ``time_unit``, and
+    the ``covariance`` field with its rows/columns ``covariance_index`` that belong to
+    ``values``. The same for every source format (:func:`fusionlog.io.replay.read_series`)."""
+
+    values: Sequence[str]
+    time: str | None = None
+    time_unit: str = "s"
+    covariance: str | None = None
+    covariance_index: Sequence[int] | None = None
+
+    def check(self, source: Path, what: str) -> None:
+        """One-line errors for keys of the wrong type or shape, before any file is read."""
+        values, time, covariance = self.values, self.time, self.covariance
+        if isinstance(values, str) or not values:
+            raise fail(source, what, "values must be a non-empty list of field paths or columns")
+        for v in values:
+            if not isinstance(v, str) or not v.strip():
+                raise fail(source, what, f"values: {v!r} is not a field path or column name")
+        if time is not None and (not isinstance(time, str) or not time.strip()):
+            raise fail(source, what, f"time: {time!r} is not a field path or column name")
+        if self.time_unit not in TIME_UNITS:
+            units = ", ".join(TIME_UNITS)
+            raise fail(source, what, f"time_unit {self.time_unit!r} is not one of {units}")
+        if covariance is not None and (not isinstance(covariance, str) or not covariance.strip()):
+            raise fail(source, what, f"covariance: {covariance!r} is not a field path")
+        if self.covariance_index is None:
+            return
+        if covariance is None:
+            raise fail(source, what, "covariance_index is given without covariance")
+        idx = list(self.covariance_index)
+        if not all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in idx):
+            raise fail(source, what, f"covariance_index {idx} must be non-negative integers")
+        if len(idx) != len(values):
+            raise fail(
+                source,
+                what,
+                f"covariance_index has {len(idx)} entries but values has {len(values)}: one "
+                "row/column of the covariance per value",
+            )
+        if len(set(idx)) != len(idx):
+            raise fail(source, what, f"covariance_index {idx} repeats a row/column")
 
 
 def _path(source: Path, what: str, text: str, key: str) -> FieldPath:
@@ -70,26 +126,38 @@ class _Covariance:
 class Extractor:
     """The parsed field paths of a stream; ``read`` applies them to one decoded message."""
 
-    def __init__(
-        self,
-        source: Path,
-        what: str,
-        values: Sequence[str],
-        time: str | None,
-        time_unit: str,
-        covariance: str | None,
-        covariance_index: Sequence[int] | None,
-    ) -> None:
-        self.values = [_path(source, what, v, "values") for v in values]
-        self.time = _path(source, what, time, "time") if time is not None else None
-        self.time_unit = time_unit
+    def __init__(self, source: Path, what: str, fields: StreamFields) -> None:
+        f = fields
+        self.source, self.what = source, what
+        self.values = [_path(source, what, v, "values") for v in f.values]
+        self.time = _path(source, what, f.time, "time") if f.time is not None else None
+        self.time_unit = f.time_unit
         self.cov = (
             _Covariance(
-                _path(source, what, covariance, "covariance"), covariance_index, len(values)
+                _path(source, what, f.covariance, "covariance"), f.covariance_index, len(f.values)
             )
-            if covariance is not None
+            if f.covariance is not None
             else None
         )
+
+    def collector(self) -> Collector:
+        """A :class:`Collector` for this stream's messages, in file order."""
+        d = len(self.values)
+        return Collector(
+            self.source, self.what, d, self.cov is not None, "message", lambda k: f"message {k}"
+        )
+
+    def add(
+        self, col: Collector, k: int, decoded: Any, default_time: int, topic: str, kind: str
+    ) -> None:
+        """Message k (1-based) of `topic` (of type `kind`) into `col`; a path that does not fit
+        the message is a one-line error naming the topic, its type and the message."""
+        try:
+            t, vals, block = self.read(decoded, default_time)
+        except PathError as e:
+            where = f"topic {topic} ({kind})" + (f", message {k}" if k > 1 else "")
+            raise fail(self.source, self.what, f"{where}: {e}") from None
+        col.add(k, t, vals, block)
 
     def read(self, decoded: Any, default_time: int) -> tuple[int | None, list[float], Any]:
         """(time ns or None for NaN, values, covariance block or None); PathError when a path

@@ -17,9 +17,9 @@ from pathlib import Path
 from mcap.records import Channel, Schema
 
 from .decoders import SUPPORTED, decoder_factories
-from .extract import Extractor
-from .fields import PathError, leaf_fields
-from .series import Collector, Series, fail
+from .extract import Extractor, StreamFields
+from .fields import leaf_fields
+from .series import Series, fail
 from .topics import TopicInfo, catalog, damaged, one_line, open_mcap
 
 __all__ = ["first_fields", "read_mcap"]
@@ -60,18 +60,8 @@ def _check_decodable(source: Path, what: str, info: TopicInfo, factories: list) 
             )
 
 
-def read_mcap(
-    source: Path,
-    *,
-    topic: str,
-    values: Sequence[str],
-    time: str | None,
-    time_unit: str,
-    covariance: str | None,
-    covariance_index: Sequence[int] | None,
-    what: str,
-) -> Series:
-    ex = Extractor(source, what, values, time, time_unit, covariance, covariance_index)
+def read_mcap(source: Path, *, topic: str, fields: StreamFields, what: str) -> Series:
+    ex = Extractor(source, what, fields)
     factories = decoder_factories()
     with open_mcap(source, what, factories) as (reader, f):
         try:
@@ -86,9 +76,7 @@ def read_mcap(
             raise fail(source, what, f"topic {topic} has no messages")
         _check_decodable(source, what, info, factories)
 
-        col = Collector(
-            source, what, len(values), ex.cov is not None, "message", lambda k: f"message {k}"
-        )
+        col = ex.collector()
         messages = reader.iter_decoded_messages(topics=[topic])
         k = 0
         while True:
@@ -105,13 +93,8 @@ def read_mcap(
                     f"message {k + 1} of topic {topic} ({_schema_text(*ch)})",
                 ) from None
             k += 1
-            try:
-                t, vals, block = ex.read(decoded, message.log_time)
-            except PathError as e:
-                name = schema.name if schema is not None else "schemaless"
-                where = f"topic {topic} ({name})" + (f", message {k}" if k > 1 else "")
-                raise fail(source, what, f"{where}: {e}") from None
-            col.add(k, t, vals, block)
+            name = schema.name if schema is not None else "schemaless"
+            ex.add(col, k, decoded, message.log_time, topic, name)
     if k == 0:
         raise fail(source, what, f"topic {topic} has no messages")
     return col.finish()
