@@ -65,6 +65,10 @@ def masked(H: np.ndarray, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.
     return Hm, Rm
 
 
+#: (pattern, R) pairs whose masked H and R a `Rows` keeps at most.
+_MASKS_KEPT = 4096
+
+
 @dataclass
 class Rows:
     """The measurement components a filter uses: its H and R, and where they sit in the stacked
@@ -125,12 +129,15 @@ class Rows:
         R = self.R if self.Rs is None else self.Rs[k]
         if present.ndim > 1:
             return masked(self.H, R, present[..., self.cols])
-        if self.Rs is not None:
-            return masked(self.H, R, present[self.cols])
-        key = present.tobytes()
-        if key not in self.masks:
-            self.masks[key] = masked(self.H, self.R, present[self.cols])
-        return self.masks[key]
+        # A recorded log's R varies per message, but its instants repeat few (pattern, R)
+        # pairs (a sensor's constant R, a localiser's R between its messages): kept by both.
+        key = present.tobytes() if self.Rs is None else present.tobytes() + R.tobytes()
+        got = self.masks.get(key)
+        if got is None:
+            if len(self.masks) >= _MASKS_KEPT:
+                self.masks.clear()  # a log whose every R differs: bounded, not a leak
+            got = self.masks[key] = masked(self.H, R, present[self.cols])
+        return got
 
 
 @dataclass
