@@ -45,9 +45,14 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
+
+# The same BLAS-free 2x2 arithmetic as the first example's data (same bytes on every CPU).
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from make_replay_data import chol2, mul2  # noqa: E402
 
 Q_C = 0.05  # m^2 s^-3, white-acceleration intensity per axis
 LAT0, LON0, ALT0 = 46.5197, 6.5657, 372.0  # degrees, degrees, metres (WGS 84)
@@ -65,20 +70,6 @@ def _cv(dt: float, q: float) -> tuple[np.ndarray, np.ndarray]:
     return F, Q
 
 
-def _chol2(C: np.ndarray) -> np.ndarray:
-    """Lower Cholesky factor of a 2x2 covariance, written out: the files must be the same bytes
-    on every machine, and LAPACK/BLAS kernels (chosen by CPU) round differently."""
-    l11 = math.sqrt(C[0, 0])
-    l21 = C[1, 0] / l11
-    return np.array([[l11, 0.0], [l21, math.sqrt(C[1, 1] - l21 * l21)]])
-
-
-def _mul2(A: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """A @ v for a 2x2 A, one IEEE operation at a time (see `_chol2`)."""
-    a, b = float(v[0]), float(v[1])
-    return np.array([A[0, 0] * a + A[0, 1] * b, A[1, 0] * a + A[1, 1] * b])
-
-
 def _simulate(rng: np.random.Generator, t_ns: np.ndarray, x0: np.ndarray) -> np.ndarray:
     """States (len(t_ns), axes, 2) at the sorted distinct times t_ns; x0 (axes, 2)."""
     out = np.empty((len(t_ns), *x0.shape))
@@ -86,9 +77,9 @@ def _simulate(rng: np.random.Generator, t_ns: np.ndarray, x0: np.ndarray) -> np.
     out[0] = x
     for k in range(1, len(t_ns)):
         F, Q = _cv((int(t_ns[k]) - int(t_ns[k - 1])) * 1e-9, Q_C)
-        L = _chol2(Q)
+        L = chol2(Q)
         for a in range(x.shape[0]):
-            x[a] = _mul2(F, x[a]) + _mul2(L, rng.standard_normal(2))
+            x[a] = mul2(F, x[a]) + mul2(L, rng.standard_normal(2))
         out[k] = x
     return out
 

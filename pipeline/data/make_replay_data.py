@@ -302,7 +302,7 @@ def _instants(rng: np.random.Generator) -> dict[str, np.ndarray]:
     return out
 
 
-def _chol2(C: np.ndarray) -> np.ndarray:
+def chol2(C: np.ndarray) -> np.ndarray:
     """Lower Cholesky factor of a 2x2 covariance, written out: the data must be the same bytes
     on every machine, and LAPACK/BLAS kernels (chosen by CPU) round differently."""
     l11 = math.sqrt(C[0, 0])
@@ -310,8 +310,8 @@ def _chol2(C: np.ndarray) -> np.ndarray:
     return np.array([[l11, 0.0], [l21, math.sqrt(C[1, 1] - l21 * l21)]])
 
 
-def _mul2(A: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """A @ v for a 2x2 A, one IEEE operation at a time (see `_chol2`)."""
+def mul2(A: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """A @ v for a 2x2 A, one IEEE operation at a time (see `chol2`)."""
     a, b = float(v[0]), float(v[1])
     return np.array([A[0, 0] * a + A[0, 1] * b, A[1, 0] * a + A[1, 1] * b])
 
@@ -325,10 +325,10 @@ def _trajectory(rng: np.random.Generator, t_ns: np.ndarray) -> np.ndarray:
         dt = (t_ns[k] - t_ns[k - 1]) * 1e-9
         F = np.array([[1.0, dt], [0.0, 1.0]])
         Q = Q_C * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
-        L = _chol2(Q)
+        L = chol2(Q)
         for axis in (0, 1):  # state [x, y, vx, vy]: axis a is (a, a + 2)
             i = [axis, axis + 2]
-            x[k, i] = _mul2(F, x[k - 1, i]) + _mul2(L, rng.standard_normal(2))
+            x[k, i] = mul2(F, x[k - 1, i]) + mul2(L, rng.standard_normal(2))
     return x
 
 
@@ -385,7 +385,7 @@ def write_ros2(path: Path, sim: dict) -> None:
     for k, (t, s) in enumerate(zip(inst["pose"], at["pose"], strict=True)):
         stamp = BASE_NS + int(t)
         C = _pose_cov(rng)
-        p = s[:2] + _mul2(_chol2(C[:2, :2]), rng.standard_normal(2))
+        p = s[:2] + mul2(chol2(C[:2, :2]), rng.standard_normal(2))
         latency = 1_700_000_000 if k in POSE_LATE else int(rng.integers(100_000_000, 400_000_001))
         msg = {
             "header": _header(stamp, "map"),
