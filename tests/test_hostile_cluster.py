@@ -20,11 +20,10 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 from cli_helpers import cli, ok, one_line_error
+from dask_cluster import ENV, free_port, loopback_cluster
 
 ROOT = Path(__file__).resolve().parents[1]
 AJGL = ROOT / "pipeline" / "ajgl2009.toml"
-DASK = Path(sys.executable).parent / "dask"
-ENV = {**os.environ, "RERUN_ANALYTICS": "0"}
 SWEEP = ["sweep", str(AJGL), "--vary", "scenario.dt=0.5,1", "--arch", "CKF", "--arch", "MSC"]
 
 
@@ -51,12 +50,6 @@ def assert_one_line(rc: int, err: str, *fragments: str) -> None:
     assert len(lines) == 1 and lines[0].startswith("fusionlog: error: "), err
     for f in fragments:
         assert f in lines[0], (f, lines[0])
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 # ------------------------------------------------------------------- addresses and services
@@ -149,55 +142,10 @@ def test_scheduler_address_where_no_scheduler_answers(
 
 @pytest.fixture
 def cluster(tmp_path: Path) -> Iterator[tuple[str, subprocess.Popen, list[subprocess.Popen]]]:
-    """`dask scheduler` and two `dask worker` processes (no nanny: a killed worker stays
-    dead) on 127.0.0.1; every process stopped by its pid at the end."""
-    if not DASK.exists():
-        pytest.skip("the dask console script is missing")
-    port = free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    log = open(tmp_path / "dask.log", "wb")  # noqa: SIM115 - closed below
-    procs: list[subprocess.Popen] = []
-
-    def start(*args: str) -> subprocess.Popen:
-        procs.append(subprocess.Popen([str(DASK), *args], stdout=log, stderr=log, env=ENV))
-        return procs[-1]
-
-    try:
-        sched = start("scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard")
-        workers = [
-            start(
-                "worker",
-                address,
-                "--nthreads",
-                "1",
-                "--no-nanny",
-                "--host",
-                "127.0.0.1",
-                "--no-dashboard",
-                "--death-timeout",
-                "60",
-            )  # fmt: skip
-            for _ in range(2)
-        ]
-        from distributed import Client
-
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                with Client(address, timeout=2, set_as_default=False) as c:
-                    c.wait_for_workers(2, timeout=max(1, deadline - time.monotonic()))
-                break
-            except (OSError, TimeoutError):
-                if time.monotonic() > deadline or any(p.poll() is not None for p in procs):
-                    pytest.fail(f"the Dask cluster did not start: {log.name}")
-                time.sleep(0.5)
-        yield address, sched, workers
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGKILL)
-            p.wait(10)
-        log.close()
+    """A real scheduler and two workers on 127.0.0.1 (`dask_cluster.loopback_cluster`), every
+    process stopped by its pid (SIGKILL) at the end."""
+    with loopback_cluster(tmp_path, sig_kill=True) as c:
+        yield c
 
 
 def wait_until_processing(address: str, proc: subprocess.Popen) -> None:

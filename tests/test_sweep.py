@@ -12,12 +12,11 @@ starting the three clusters.
 from __future__ import annotations
 
 import json
-import os
 import signal
-import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +24,7 @@ import psutil
 import pyarrow.parquet as pq
 import pytest
 from cli_helpers import cli, ok, one_line_error
+from dask_cluster import ENV, free_port, loopback_cluster
 
 from fusionlog.core.architectures import build_plan
 from fusionlog.core.exact import analyse
@@ -38,8 +38,6 @@ from fusionlog.stages.montecarlo import Job, block_estimates, block_sums, blocks
 ROOT = Path(__file__).resolve().parents[1]
 AJGL = ROOT / "pipeline" / "ajgl2009.toml"
 BIN = Path(sys.executable).parent
-DASK = BIN / "dask"
-ENV = {**os.environ, "RERUN_ANALYTICS": "0"}
 ARCHS = ["--arch", "CKF", "--arch", "MSC", "--arch", "SKF"]
 # two grid points, three blocks of runs each (834, 834 and 832 runs)
 SMALL = ["--vary", "scenario.dt=0.5,2", "--runs", "2500", "--block-runs", "1000", *ARCHS]
@@ -334,69 +332,11 @@ def test_a_point_is_fusionlog_run_with_the_point_seed(in_process: Path, tmp_path
 # ------------------------------------------------------- Dask: a real scheduler and workers
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _stop(procs: list[subprocess.Popen]) -> None:
-    for p in procs:
-        if p.poll() is None:
-            p.send_signal(signal.SIGTERM)
-    deadline = time.monotonic() + 10
-    for p in procs:
-        try:
-            p.wait(timeout=max(0.1, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait(timeout=5)
-
-
 @pytest.fixture(scope="module")
-def scheduler(tmp_path_factory: pytest.TempPathFactory):
-    """`dask scheduler` and two `dask worker` processes (one thread, no nanny) on 127.0.0.1
-    at free ports; stopped by their process ids, within bounded time."""
-    if not DASK.exists():
-        pytest.skip("the dask console script is missing")
-    log = tmp_path_factory.mktemp("dask")
-    port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    procs: list[subprocess.Popen] = []
-    logs: list = []
-
-    def start(name: str, *args: str) -> None:
-        out = open(log / f"{name}.log", "wb")  # noqa: SIM115 - closed after the processes
-        logs.append(out)
-        procs.append(subprocess.Popen([str(DASK), *args], stdout=out, stderr=out, env=ENV))
-
-    try:
-        start(
-            "scheduler", "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"
-        )
-        for i in range(2):
-            start(f"worker{i}", "worker", address, "--nthreads", "1", "--no-nanny",
-                  "--host", "127.0.0.1", "--no-dashboard", "--name", f"w{i}",
-                  "--death-timeout", "60")  # fmt: skip
-        from distributed import Client
-
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                with Client(address, timeout=2, set_as_default=False) as c:
-                    c.wait_for_workers(2, timeout=max(1, deadline - time.monotonic()))
-                break
-            except (OSError, TimeoutError):
-                if time.monotonic() > deadline or any(p.poll() is not None for p in procs):
-                    logs = {f.name: f.read_text()[-400:] for f in log.iterdir()}
-                    pytest.fail(f"the Dask cluster did not start: {logs}")
-                time.sleep(0.5)
+def scheduler(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """A real scheduler and two workers on 127.0.0.1 (`dask_cluster.loopback_cluster`)."""
+    with loopback_cluster(tmp_path_factory.mktemp("dask")) as (address, _, _):
         yield address
-    finally:
-        _stop(procs)
-        for f in logs:  # an unclosed file is a ResourceWarning, an error in this suite
-            f.close()
-        assert all(p.poll() is not None for p in procs)
 
 
 def test_sweep_on_a_running_scheduler_gives_the_identical_table(
@@ -432,7 +372,7 @@ def test_run_on_a_running_scheduler_writes_the_evaluation_only(
 
 def test_unreachable_scheduler_is_one_line(tmp_path: Path) -> None:
     res = cli("sweep", AJGL, "--vary", "scenario.dt=1", "--runs", "10", "--arch", "CKF",
-              "--scheduler", f"tcp://127.0.0.1:{_free_port()}", "--scheduler-timeout", "2",
+              "--scheduler", f"tcp://127.0.0.1:{free_port()}", "--scheduler-timeout", "2",
               "--out-dir", tmp_path)  # fmt: skip
     one_line_error(res, "--scheduler tcp://127.0.0.1:", "cannot connect")
 
