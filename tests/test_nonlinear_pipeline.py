@@ -159,6 +159,8 @@ def test_the_system_round_trips_through_its_record() -> None:
             {'position = [0.0, 0.0]': 'position = [0.0, 0.0]\nposition_states = ["x", "z"]'},
             ["sensors[0].position_states", "no state 'z'"],
         ),
+        ({"position = [0.0, 0.0]": "position = [0.0]"},
+         ["sensors[0].position", "expected 2 (the sensor's x and y)"]),
         ({"R = [[100.0, 0.0], [0.0, 3.0e-4]]": "R = [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1]]\n#"},
          ["sensors[0].R", "expected 2x2"]),
         ({'filter = "EKF"': 'filter = "UKF"\nukf = {alpha = 0.5, kappa = -4.0}'},

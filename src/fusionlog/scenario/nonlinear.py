@@ -49,7 +49,7 @@ def polar_sensor(
 ) -> SensorModel:
     """A range-bearing, range or bearing sensor's table."""
     cls = POLAR_KINDS[t["kind"]]
-    position = toml.vector(ctx, t["position"], f"{where}.position", 2)
+    position = toml.vector(ctx, t["position"], f"{where}.position", 2, "the sensor's x and y")
     pos_states = t.get("position_states", ["x", "y"])
     key = f"{where}.position_states"
     if (

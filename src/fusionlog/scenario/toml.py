@@ -216,14 +216,14 @@ def matrix(ctx: Ctx, v: Any, where: str, *, scalar: bool = False, row: bool = Fa
     return np.array(rows, dtype=float)
 
 
-def vector(ctx: Ctx, v: Any, where: str, n: int) -> np.ndarray:
+def vector(ctx: Ctx, v: Any, where: str, n: int, why: str = "the number of states") -> np.ndarray:
     if is_number(v) and n == 1:
         return readonly(np.array([number(ctx, v, where)]))
     if not isinstance(v, list):
         raise ctx.err(where, f"expected a list of {n} numbers, got {tname(v)}")
     x = np.array([number(ctx, e, f"{where}[{i}]") for i, e in enumerate(v)])
     if x.shape != (n,):
-        raise ctx.err(where, f"length {x.size}, expected {n} (the number of states)")
+        raise ctx.err(where, f"length {x.size}, expected {n} ({why})")
     return readonly(x)
 
 
