@@ -131,7 +131,7 @@ class _Replay:
             use.extend([np.zeros(m, dtype=bool), *rows])  # the fused prediction, then locals
             src.extend([carried] * (S + 1))
             carried += 1
-        slots = Slots(np.array(use), np.array(src), carried, self.hkf)
+        slots = self._slots = Slots(np.array(use), np.array(src), carried, self.hkf)
         Hm, Rm = masked_rows(self.H, self.R, present[:, None, :] & slots.use[None])
         self.Hm, self.Rm = Hm, Rm
         self.bank = run_bank(slots, system.prior.cov, self.Fs, self.Qs, Hm, Rm)

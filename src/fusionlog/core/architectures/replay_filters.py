@@ -50,7 +50,8 @@ class Slots:
 class Bank:
     """What the slots' recursion gives at every instant: each slot's updated covariance, gain
     (columns in z_k's order, zero for unused components) and I - K H; HKF's fused covariance
-    and the informations [P_pred^-1, P_1^-1, ..., P_S^-1] of eqs. (36)-(38)."""
+    (in its first slot's place) and the informations [P_pred^-1, P_1^-1, ..., P_S^-1] of
+    eqs. (36)-(38)."""
 
     P: np.ndarray  # (K+1, B, n, n)
     K: np.ndarray  # (K+1, B, n, m)
@@ -88,15 +89,13 @@ def run_bank(
     mm, add = np.matmul, np.add
     eye = np.eye(n)
     P_out = np.empty((K1, B, n, n))
-    K_out = np.empty((K1, B, n, m))
+    KT_out = np.empty((K1, B, m, n))
     IKH_out = np.empty((K1, B, n, n))
-    Ph_out = np.empty((K1, n, n)) if h is not None else None
     Yh_out = np.empty((K1, S + 1, n, n)) if h is not None else None
     # per-instant views made once: indexing a list costs less than indexing an array
     Hs, HTs, Rs = list(Hm), list(Hm.swapaxes(-1, -2)), list(Rm)
     Fl, FTl, Ql = [None, *Fs], [None, *Fs.swapaxes(-1, -2)], [None, *Qs]
-    Pl, Kl, IKHl = list(P_out), list(K_out), list(IKH_out)
-    Phl = list(Ph_out) if h is not None else None
+    Pl, KTl, IKHl = list(P_out), list(KT_out), list(IKH_out)
     Yhl = list(Yh_out) if h is not None else None
     identity = bool((src == np.arange(B)).all())
     KH = np.empty((B, n, n))
@@ -117,9 +116,8 @@ def run_bank(
         Sk += R
         Ss = Sk + Sk.swapaxes(-1, -2)
         Ss *= 0.5
-        X = _solve(Ss, HP)  # K'
-        K, IKH, P = Kl[k], IKHl[k], Pl[k]
-        np.copyto(K, X.swapaxes(-1, -2))
+        X = _solve(Ss, HP, out=KTl[k])  # K', kept
+        K, IKH, P = X.swapaxes(-1, -2), IKHl[k], Pl[k]
         mm(K, H, out=KH)
         np.subtract(eye, KH, out=IKH)
         # Joseph form, eq. (18) as `kalman.joseph`
@@ -130,23 +128,22 @@ def run_bank(
         if h is None:
             Pc = P
             continue
-        # HKF, eqs. (36)-(38): Y_pred and Y_j (the slot h keeps the prediction, exactly)
+        # HKF, eqs. (36)-(38): Y_pred and Y_j (the slot h keeps the prediction, exactly),
+        # Y = (1 - S) Y_pred + Y_1 + ... + Y_S, and the fused P = Y^-1 in slot h's place
         Yi = _inv(P[h:])
         Y = Yhl[k]
         add(Yi, Yi.swapaxes(-1, -2), out=Y)
         Y *= 0.5
-        Yf = Y[0] * (1.0 - S)  # (1 - S) Y_pred + Y_1 + ... + Y_S, in that order
+        Yf = Y[0] * (1.0 - S)
         for j in range(1, S + 1):
             Yf += Y[j]
         Pi = _inv(Yf)
-        Ph = Phl[k]
+        Ph = P[h]
         add(Pi, Pi.T, out=Ph)
         Ph *= 0.5
-        if k == 0:
-            Pc = np.empty((C, n, n))
-        Pc[:h] = P[:h]
-        Pc[h] = Ph
-    return Bank(P_out, K_out, IKH_out, Ph_out, Yh_out)
+        Pc = P[: h + 1]
+    Ph_out = P_out[:, h] if h is not None else None
+    return Bank(P_out, KT_out.swapaxes(-1, -2), IKH_out, Ph_out, Yh_out)
 
 
 def affine_recursion(A: np.ndarray, b: np.ndarray, x0: np.ndarray) -> np.ndarray:
