@@ -180,3 +180,18 @@ def test_numbers_beyond_the_float_range_go_to_the_plans(robot) -> None:
     z = z.copy()
     z[0, 30, 0] = np.inf
     assert replay_estimates(system, ["CKF", "MSC"], z) is None
+
+
+def test_an_architecture_alone_gets_the_numbers_it_gets_among_all(robot) -> None:
+    """The filters are stepped as one batch of whichever the architectures need: each slot's
+    numbers do not depend on the others (the same operations on its own matrices; bit for bit
+    here, to rounding wherever BLAS picked another kernel for another batch)."""
+    _, system, z = robot
+    system, z = _head(system, z, 120)
+    archs = _archs(system)
+    together = replay_estimates(system, archs, z)
+    for a in archs:
+        alone = replay_estimates(system, [a], z)[a]
+        for got, want in ((alone.mean, together[a].mean), (alone.cov, together[a].cov)):
+            scale = np.abs(want).max()
+            np.testing.assert_allclose(got, want, rtol=RTOL, atol=RTOL * scale, err_msg=a)
