@@ -42,7 +42,7 @@ from ..model import System
 from .filters import wide_range
 from .plan import Estimate
 from .readouts import ci_fusion, msc_fusion
-from .registry import REGISTRY, parse_arch
+from .registry import parse_arch
 from .replay_filters import (
     Slots,
     affine_recursion,
@@ -54,6 +54,8 @@ from .replay_filters import (
 )
 from .track_to_track import GMF_MAX_GROWTH, GMF_ONE_BY_ONE, GMF_PIVOT_RTOL
 
+#: The architectures done here (every registered one) and those that read the local filters.
+_RULES = {"CKF", "SKF", "HKF", "MSC", "MSC-GMF", "CI", "AVG", "FBS"}
 _LOCALS = {"MSC", "MSC-GMF", "CI", "AVG", "SKF"}
 
 
@@ -79,7 +81,7 @@ def replay_estimates(
         bases = [parse_arch(a, names) for a in archs]
     except ValueError:
         return None
-    if any(b not in REGISTRY for b, _ in bases) or (
+    if any(b not in _RULES for b, _ in bases) or (
         any(b == "HKF" for b, _ in bases) and wide_range(system)
     ):
         return None
@@ -129,11 +131,12 @@ class _Replay:
             use.extend([np.zeros(m, dtype=bool), *rows])  # the fused prediction, then locals
             src.extend([carried] * (S + 1))
             carried += 1
-        slots = self._slots = Slots(np.array(use), np.array(src), carried, self.hkf)
+        slots = Slots(np.array(use), np.array(src), carried, self.hkf)
         Hm, Rm = masked_rows(self.H, self.R, present[:, None, :] & slots.use[None])
         self.Hm, self.Rm = Hm, Rm
         self.bank = run_bank(slots, system.prior.cov, self.Fs, self.Qs, Hm, Rm)
         self.means = self._means()
+        self._J: np.ndarray | None = None  # eq. (35), when an architecture needs it
 
     # -- the mean recursions ------------------------------------------------------------------
 
@@ -142,41 +145,49 @@ class _Replay:
         (eq. 14), x_k = P (Tacc F x_{k-1} + U z_k) for HKF (eqs. 38-40), all as one stack."""
         b, n, S = self.bank, self.n, self.S
         F = np.concatenate([np.eye(self.n)[None], self.Fs])  # F of instant 0: none
-        kf = [i for i in (self.ckf,) if i is not None]
-        if self.loc is not None:
-            kf += list(range(self.loc, self.loc + S))
-        A_parts, b_parts = [], []
-        if kf:
-            A_parts.append(b.IKH[:, kf] @ F[:, None])
-            b_parts.append(np.einsum("kfij,kj->kfi", b.K[:, kf], self.z))
+        parts: list[tuple[str, int, np.ndarray, np.ndarray]] = []  # name, filters, A, b
+        for name, first, count in (("ckf", self.ckf, 1), ("loc", self.loc, S)):
+            if first is not None:
+                kf = slice(first, first + count)
+                Ab = np.einsum("kfij,kj->kfi", b.K[:, kf], self.z)
+                parts.append((name, count, b.IKH[:, kf] @ F[:, None], Ab))
         if self.hkf is not None:
             h = self.hkf + 1
             Y = b.Y_hkf  # (K+1, S+1, n, n): Y_pred, Y_1..Y_S
+            # (1 - S) Y_pred + sum_j Y_j (I - K_j H_j), summed in that order as the plans do
             Tacc = np.concatenate([(1.0 - S) * Y[:, :1], Y[:, 1:] @ b.IKH[:, h:]], axis=1)
             U = (Y[:, 1:] @ b.K[:, h:]).sum(axis=1)
             Ph = b.P_hkf
-            A_parts.append((Ph @ Tacc.sum(axis=1) @ F)[:, None])
-            b_parts.append(np.einsum("kij,kj->ki", Ph @ U, self.z)[:, None])
-        if not A_parts:
+            Ab = np.einsum("kij,kj->ki", Ph @ U, self.z)[:, None]
+            parts.append(("hkf", 1, (Ph @ Tacc.sum(axis=1) @ F)[:, None], Ab))
+        if not parts:
             return {}
-        x0 = np.broadcast_to(self.system.prior.mean, (sum(len(a[0]) for a in A_parts), n))
-        X = affine_recursion(np.concatenate(A_parts, axis=1), np.concatenate(b_parts, 1), x0)
+        x0 = np.broadcast_to(self.system.prior.mean, (sum(p[1] for p in parts), n))
+        A = np.concatenate([p[2] for p in parts], axis=1)
+        X = affine_recursion(A, np.concatenate([p[3] for p in parts], axis=1), x0)
         out, at = {}, 0
-        for name in ("ckf", "loc"):
-            if name == "ckf" and self.ckf is not None:
-                out["ckf"], at = X[:, at], at + 1
-            if name == "loc" and self.loc is not None:
-                out["loc"], at = X[:, at : at + S], at + S
-        if self.hkf is not None:
-            out["hkf"] = X[:, at]
+        for name, count, _, _ in parts:
+            out[name] = X[:, at] if name != "loc" else X[:, at : at + count]
+            at += count
         return out
 
     # -- the architectures --------------------------------------------------------------------
 
     def estimates(self, archs: Sequence[str], bases) -> dict[str, Estimate]:
+        """Each architecture's estimate (`bases`: its (base name, sensor) from `parse_arch`)."""
+        rules = {
+            "CKF": self._ckf,
+            "SKF": self._skf,
+            "HKF": self._hkf,
+            "MSC": self._msc,
+            "MSC-GMF": self._msc_gmf,
+            "CI": self._ci,
+            "AVG": self._avg,
+            "FBS": self._fbs,
+        }
         out = {}
         for a, (base, sensor) in zip(archs, bases, strict=True):
-            mean, cov = getattr(self, "_" + base.replace("-", "_").lower())(sensor)
+            mean, cov = rules[base](sensor)
             out[a] = Estimate(mean[None], cov)
         return out
 
@@ -222,7 +233,7 @@ class _Replay:
         """J of eq. (35) at every instant (computed once): J_k = Psi_k (Phi_k J_{k-1} Phi_k' +
         Gam Q_k Gam') Psi_k' + Lam_k R_k Lam_k', Psi = blockdiag(I - K_j H_j), Lam the stacked
         K_j, Phi = blockdiag(F), Gam = [I; ...; I]."""
-        if getattr(self, "_J", None) is not None:
+        if self._J is not None:
             return self._J
         n, S, K1 = self.n, self.S, self.K1
         b, lo = self.bank, self.loc
