@@ -23,6 +23,7 @@ from fusionlog.core.architectures import (
     block,
     build_plan,
     estimate,
+    replay,
     run_plan,
 )
 from fusionlog.core.architectures.replay import applies, replay_estimates
@@ -195,3 +196,14 @@ def test_an_architecture_alone_gets_the_numbers_it_gets_among_all(robot) -> None
         for got, want in ((alone.mean, together[a].mean), (alone.cov, together[a].cov)):
             scale = np.abs(want).max()
             np.testing.assert_allclose(got, want, rtol=RTOL, atol=RTOL * scale, err_msg=a)
+
+
+def test_many_sensors_on_a_long_log_go_to_the_plans(robot, monkeypatch) -> None:
+    """Every slot's masked H and R for every instant are kept: beyond a bound, the plans."""
+    _, system, z = robot
+    system, z = _head(system, z, 60)
+    assert replay_estimates(system, ["CKF"], z) is not None
+    one_slot = 60 * system.m * (system.m + system.n) * 8  # H and R of 60 instants, 8 bytes each
+    monkeypatch.setattr(replay, "MASKED_BYTES_AT_MOST", one_slot)
+    assert replay_estimates(system, ["CKF"], z) is not None
+    assert replay_estimates(system, ["CKF", "MSC"], z) is None

@@ -54,6 +54,11 @@ from .replay_filters import (
 )
 from .track_to_track import GMF_MAX_GROWTH, GMF_ONE_BY_ONE, GMF_PIVOT_RTOL
 
+#: Each slot's masked H and R at every instant are kept at most this large (bytes): many
+#: sensors (their slots and rows both grow) on a long log go to the plans, which mask one
+#: instant at a time.
+MASKED_BYTES_AT_MOST = 1 << 28
+
 #: The architectures done here (every registered one) and those that read the local filters.
 _RULES = {"CKF", "SKF", "HKF", "MSC", "MSC-GMF", "CI", "AVG", "FBS"}
 _LOCALS = {"MSC", "MSC-GMF", "CI", "AVG", "SKF"}
@@ -85,9 +90,14 @@ def replay_estimates(
         any(b == "HKF" for b, _ in bases) and wide_range(system)
     ):
         return None
+    need = {b for b, _ in bases}
+    S, m, n = len(system.sensors), system.m, system.n
+    slots = bool(need & {"CKF", "FBS"}) + S * bool(need & _LOCALS) + (S + 1) * ("HKF" in need)
+    if z.shape[1] * slots * m * (m + n) * 8 > MASKED_BYTES_AT_MOST:
+        return None
     try:
         with np.errstate(all="ignore"):
-            out = _Replay(system, z[0], {b for b, _ in bases}, criterion).estimates(archs, bases)
+            out = _Replay(system, z[0], need, criterion).estimates(archs, bases)
     except (NumericalError, *NUMERICAL_FAILURES):
         return None
     for e in out.values():
