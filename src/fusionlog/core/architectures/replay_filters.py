@@ -27,10 +27,17 @@ try:  # numpy's LAPACK gufuncs without the Python wrapper (~3 us less per call)
 
     _solve, _inv = _umath_linalg.solve, _umath_linalg.inv
 except (ImportError, AttributeError):  # pragma: no cover - another numpy layout
-    _solve, _inv = np.linalg.solve, np.linalg.inv
 
-# Both return NaN for a singular matrix inside np.errstate(all="ignore"), where `replay` calls
-# them (numpy's wrappers would raise): the caller checks the results and hands a log whose
+    def _solve(A: np.ndarray, B: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        X = np.linalg.solve(A, B)  # raises LinAlgError where singular: `replay` then gives up
+        if out is not None:
+            out[...] = X
+        return X
+
+    _inv = np.linalg.inv
+
+# The gufuncs return NaN for a singular matrix inside np.errstate(all="ignore"), where `replay`
+# calls them (numpy's wrappers raise LinAlgError instead): either way `replay` hands a log whose
 # numbers it cannot compute to the plans.
 
 
