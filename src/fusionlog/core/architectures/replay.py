@@ -78,7 +78,9 @@ def replay_estimates(
     system: System, archs: Sequence[str], z: np.ndarray, criterion: str = "trace"
 ) -> dict[str, Estimate] | None:
     """Each architecture's estimate of the one run z (1, K+1, m) (NaN: missing), as the plans
-    give it; None where the plans must do it (`applies`, or numbers beyond the float range)."""
+    give it; None where the plans must do it: what `applies` refuses, HKF on noise levels
+    spanning more than 1e8 (the plans' scaled inverses, `filters.wide_range`), many sensors
+    on a long log (`MASKED_BYTES_AT_MOST`), numbers beyond the float range."""
     if not applies(system, z):
         return None
     names = [s.name for s in system.sensors]
