@@ -188,7 +188,7 @@ def estimate(
         list(architectures or scenario.architectures), system, "architectures"
     )
     z = sim.z(system)
-    cache = PlanCache(sim.on_instants(system), len(sim.times) - 1)
+    cache = PlanCache(sim.on_instants(system), len(sim.times) - 1, one_run=z.shape[0] == 1)
     parts: dict[str, list[Estimate]] = {a: [] for a in archs}
     for off, n in _blocks(sim):
         block = estimate_block(cache.system, archs, z[off : off + n], cache=cache)

@@ -81,12 +81,13 @@ def estimate_to(
         w.add_metadata(SCENARIO_META, mf.metadata[SCENARIO_META])
     for off, _runs, data in progress(mf.iter_run_blocks(topics, B), -(-M // B), "estimate"):
         writers = est.estimate(off, data)
+        named = [(estimates_topic(a), write) for a, write in writers.items()]
         # The documented order (for each step, for each topic) lets a reader learn every
         # topic from the first messages of the file.
         for k in range(K + 1):
             t = float(times[k])
-            for a, write in writers.items():
-                write(w, estimates_topic(a), k, t, off)
+            for topic, write in named:
+                write(w, topic, k, t, off)
     # Written last, when what the whole file holds is known (e.g. the measurement pattern).
     w.add_metadata(
         PROVENANCE_META,

@@ -79,7 +79,7 @@ class StateKind(Kind):
     ) -> Estimator:
         topics = [sensor_topic(s.name) for s in system.sensors]
         system = with_message_covariances(system.on_times(sensors.times()), sensors)
-        plans = PlanCache(system, steps, times=sensors.times())
+        plans = PlanCache(system, steps, times=sensors.times(), one_run=runs == 1)
         return _StateEstimator(plans, runs, archs, topics)
 
     def evaluator(

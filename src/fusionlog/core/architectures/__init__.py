@@ -18,7 +18,10 @@ yet gathered enough information for a covariance to exist, its information vecto
 Modules: `plan` (the plan types), `registry` (names -> builders, `build_plan`), `executor`
 (`run_plan`), `block` (`estimate_block`: a block of runs with the plan cache, the one way every
 caller estimates), the builders by family: `filters` (the Kalman-filter machinery), `single`
-(CKF, SKF), `hkf`, `track_to_track` with `readouts` (MSC, MSC-GMF, CI, AVG), `fbs`.
+(CKF, SKF), `hkf`, `track_to_track` with `readouts` (MSC, MSC-GMF, CI, AVG), `fbs`; and
+`replay` with `replay_filters`: one run of a recorded log estimated without plans (the same
+numbers to rounding, no maps for the exact analysis), which `estimate_block` takes for a
+cache of one run (`PlanCache.one_run`).
 """
 
 from .block import (

@@ -73,6 +73,9 @@ class PlanCache:
     times: np.ndarray | None = field(default=None, repr=False)
     #: each block's shared pattern (`np.packbits` of the mask; None: the block's runs differed)
     patterns: list[bytes | None] = field(default_factory=list, repr=False)
+    #: the cache serves a log of one run (a replay): its block is estimated without plans
+    #: where that applies (`replay.replay_estimates`), the same estimates to rounding
+    one_run: bool = False
 
     @classmethod
     def of(
@@ -202,7 +205,18 @@ def estimate_block(
 
         cache.patterns.append(None)  # the estimates' provenance: per run
         return nonlinear_block(cache, archs, z, truth, workspace, keep, run_offset)
-    plans, pattern = cache.block_plans(archs, z, per_run_maps=expected_of is not None)
+    fast = None
+    if cache.one_run and expected_of is None:
+        from .replay import replay_estimates
+
+        fast = replay_estimates(cache.system, archs, z, cache.criterion)
+    if fast is not None:  # one run, no exact analysis: no plans
+        pattern = shared_pattern(z)
+        cache.patterns.append(np.packbits(pattern).tobytes())
+        results = fast
+    else:
+        plans, pattern = cache.block_plans(archs, z, per_run_maps=expected_of is not None)
+        results = {a: run_plan(plan, z) for a, plan in plans.items()}
     runs = z.shape[0]
     estimates: dict[str, Estimate] = {}
     sums: dict[str, Any] | None = None
@@ -211,8 +225,7 @@ def estimate_block(
 
         sums = {}
         detached = MetricsWorkspace()
-    for a, plan in plans.items():
-        e = run_plan(plan, z)
+    for a, e in results.items():
         if keep:
             estimates[a] = e
         if sums is not None:
@@ -244,5 +257,5 @@ def conditional_sums(plans: dict[str, Plan], truth: System, runs: int) -> dict[s
 def estimate(system: System, z: np.ndarray, arch: str, criterion: str = "trace") -> Estimate:
     """Run architecture `arch` on measurements z (M, K+1, m) (NaN: missing): `estimate_block`
     of one architecture without a cache."""
-    cache = PlanCache(system, z.shape[1] - 1, criterion)
+    cache = PlanCache(system, z.shape[1] - 1, criterion, one_run=z.shape[0] == 1)
     return estimate_block(system, [arch], z, cache=cache).estimates[arch]

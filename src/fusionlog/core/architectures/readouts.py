@@ -71,12 +71,18 @@ def msc_readouts(steps: list[StepMap], forms: np.ndarray, mats: np.ndarray) -> N
     """Millman fusion (33)-(34) in information form: P^-1 = sum Y_j, x = P sum Y_j x_j, where
     Y_j x_j is the information vector itself for a local still in information form. O is
     (L,) + batch + (n, S n), P (L,) + batch + (n, n)."""
+    set_readouts(steps, *msc_fusion(forms, mats))
+
+
+def msc_fusion(forms: np.ndarray, mats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`msc_readouts` as arrays over the steps: O (L,) + batch + (n, S n), P (L,) + batch +
+    (n, n)."""
     Ys, Ws = local_infos(forms, mats)
     Y = Ys.sum(axis=-3)
     require_finite(Y, "the fused information sum_j P_j^-1", per_step=True)
     P = inv_or_nan(Y)  # each step on its own
     require_fused(forms, P, "Millman's formula")
-    set_readouts(steps, stack_cols(P[..., None, :, :] @ Ws), P)
+    return stack_cols(P[..., None, :, :] @ Ws), P
 
 
 def gmf_readouts(steps: list[StepMap], forms: np.ndarray, joints: list[np.ndarray], n: int) -> None:
@@ -130,9 +136,27 @@ def ci_readouts(
     w_j P W_j written into those steps' maps. In information form a local with too little
     information to have a mean of its own still contributes. `steps` is the whole plan (the
     steps after the L-th repeat one of them). Returns the omegas, batch + (K+1, S)."""
-    Ys, Ws = local_infos(forms, mats)
     K1 = len(steps)
-    L, S, n = Ys.shape[0], Ys.shape[-3], Ys.shape[-1]
+    O, P, om = ci_fusion(forms, mats, criterion)
+    S = om.shape[-1]
+    by_id = {}
+    for i in range(len(O)):
+        steps[i].O, steps[i].P = O[i], P[i]
+        by_id[id(steps[i])] = om[i]
+    omega = np.full((K1,) + batch + (S,), np.nan)
+    for k, st in enumerate(steps):
+        if id(st) in by_id:
+            omega[k] = by_id[id(st)]
+    return np.moveaxis(omega, 0, -2)
+
+
+def ci_fusion(
+    forms: np.ndarray, mats: np.ndarray, criterion: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`ci_readouts` as arrays over the L steps of `mats`: O (L,) + batch + (n, S n), P (L,) +
+    batch + (n, n) and the weights (L,) + batch + (S,)."""
+    Ys, Ws = local_infos(forms, mats)
+    S, n = Ys.shape[-3], Ys.shape[-1]
     om = ci_omegas(Ys, criterion)  # (L,) + batch + (S,), read in place whatever Ys's layout
     # sum_j w_j Y_j and the weights w_j P W_j written out over j, elementwise over all steps
     # and runs: einsum took ten times longer on the local filters' layout, and matmul calls
@@ -147,12 +171,4 @@ def ci_readouts(
         np.multiply(
             om[..., j, None, None], _small_mm(P, Ws[..., j, :, :]), out=O[..., j * n : (j + 1) * n]
         )
-    by_id = {}
-    for i in range(L):
-        steps[i].O, steps[i].P = O[i], P[i]
-        by_id[id(steps[i])] = om[i]
-    omega = np.full((K1,) + batch + (S,), np.nan)
-    for k, st in enumerate(steps):
-        if id(st) in by_id:
-            omega[k] = by_id[id(st)]
-    return np.moveaxis(omega, 0, -2)
+    return O, P, om

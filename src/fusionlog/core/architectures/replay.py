@@ -1,0 +1,321 @@
+"""A single replayed log through the architectures without plans: the same estimates as
+`build_plan` + `run_plan`, computed for one run (issue 22, "a single replayed log at least as
+fast as FilterPy's KF loop").
+
+A plan is what many runs and the exact analysis need: per step the affine maps T, U, O of
+every architecture on its own. One run of a recorded log (every interval distinct, a
+covariance per message: no steady state to repeat) needs none of it, and building the maps
+step by step costs ~30 numpy calls per filter and step. Here:
+
+1. the sequential recursions run once for all architectures, with a fixed number of numpy
+   calls per instant (`replay_filters.run_bank`): the centralised KF (CKF, and FBS's forward
+   filter), one local KF per sensor (shared by MSC, MSC-GMF, CI, AVG and SKF, which run the
+   same filters), HKF's fused filter with its local updates; then the joint error covariance
+   of eq. (35) (MSC-GMF, AVG) and FBS's backward information filter;
+2. everything that does not feed back into a recursion is computed for all instants at once,
+   with the instants as the batch of the batched kernels: the mean recursions' maps, the
+   fusion rules (`readouts.msc_fusion`, `readouts.ci_fusion`, the generalised Millman formula
+   of eqs. (5)-(7) in closed form where J is positive definite, else `gmf_weight_matrix` as
+   the shared plans solve it), the smoother's fusion, eqs. (26)-(28);
+3. the means follow x_k = A_k x_{k-1} + b_k, all filters as one stack (two numpy calls per
+   instant).
+
+Same formulas as the plans (Joseph form, eqs. 14-18; HKF eqs. 36-40; FBS eqs. 25-28), so the
+estimates agree with the plan path to rounding (tests/test_replay_fast.py). It applies to one
+run of a linear model with a prior whose plans would not reach a steady state (a log with
+irregular instants, per-message R or missing components); anything else, or a number that
+leaves the float range, goes to the plans, which also name the step of a numerical failure.
+Memory: what is kept per instant (~13 kB with every architecture on replay_robot's 4 states
+and 3 sensors) peaks below the plans' (~16 kB), and none of it stays after the estimates.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from ...errors import NumericalError
+from ..fusion import gmf_weight_matrix
+from ..linalg import NUMERICAL_FAILURES, all_finite, solve, solve_spd_or_flag, spd_inv
+from ..model import System
+from .filters import wide_range
+from .plan import Estimate
+from .readouts import ci_fusion, msc_fusion
+from .registry import parse_arch
+from .replay_filters import (
+    Slots,
+    affine_recursion,
+    backward_information,
+    backward_means,
+    joint_recursion,
+    masked_rows,
+    run_bank,
+)
+from .track_to_track import GMF_MAX_GROWTH, GMF_ONE_BY_ONE, GMF_PIVOT_RTOL
+
+#: Each slot's masked H and R at every instant are kept at most this large (bytes): many
+#: sensors (their slots and rows both grow) on a long log go to the plans, which mask one
+#: instant at a time.
+MASKED_BYTES_AT_MOST = 1 << 28
+
+#: The architectures done here (every registered one) and those that read the local filters.
+_RULES = {"CKF", "SKF", "HKF", "MSC", "MSC-GMF", "CI", "AVG", "FBS"}
+_LOCALS = {"MSC", "MSC-GMF", "CI", "AVG", "SKF"}
+
+
+def applies(system: System, z: np.ndarray) -> bool:
+    """Whether `replay_estimates` takes the block z (runs, K+1, m): one run of a linear model
+    with a prior, not a steady Riccati recursion (which the plans repeat in one map)."""
+    if z.shape[0] != 1 or z.shape[1] < 2:
+        return False
+    if system.prior is None or system.motion_model is not None or not system.linear:
+        return False
+    return not (system.time_invariant and not np.isnan(z).any())
+
+
+def replay_estimates(
+    system: System, archs: Sequence[str], z: np.ndarray, criterion: str = "trace"
+) -> dict[str, Estimate] | None:
+    """Each architecture's estimate of the one run z (1, K+1, m) (NaN: missing), as the plans
+    give it; None where the plans must do it: what `applies` refuses, HKF on noise levels
+    spanning more than 1e8 (the plans' scaled inverses, `filters.wide_range`), many sensors
+    on a long log (`MASKED_BYTES_AT_MOST`), numbers beyond the float range."""
+    if not applies(system, z):
+        return None
+    names = [s.name for s in system.sensors]
+    try:
+        bases = [parse_arch(a, names) for a in archs]
+    except ValueError:
+        return None
+    if any(b not in _RULES for b, _ in bases) or (
+        any(b == "HKF" for b, _ in bases) and wide_range(system)
+    ):
+        return None
+    need = {b for b, _ in bases}
+    S, m, n = len(system.sensors), system.m, system.n
+    slots = bool(need & {"CKF", "FBS"}) + S * bool(need & _LOCALS) + (S + 1) * ("HKF" in need)
+    if z.shape[1] * slots * m * (m + n) * 8 > MASKED_BYTES_AT_MOST:
+        return None
+    try:
+        with np.errstate(all="ignore"):
+            out = _Replay(system, z[0], need, criterion).estimates(archs, bases)
+    except (NumericalError, *NUMERICAL_FAILURES):
+        return None
+    for e in out.values():
+        if not (all_finite(e.mean) and all_finite(e.cov)):
+            return None
+    return out
+
+
+class _Replay:
+    """The recursions of the architectures `need` on one run's measurements z (K+1, m)."""
+
+    def __init__(self, system: System, z: np.ndarray, need: set[str], criterion: str) -> None:
+        n, m = system.n, system.m
+        K1 = len(z)
+        S = len(system.sensors)
+        self.system, self.criterion, self.n, self.S, self.K1 = system, criterion, n, S, K1
+        self.present = present = ~np.isnan(z)
+        self.z = np.where(present, z, 0.0)
+        self.H = system.linear_measurement()
+        self.R = system.Rs if system.Rs is not None else np.broadcast_to(system.R, (K1, m, m))
+        K = K1 - 1
+        self.Fs = system.Fs if system.Fs is not None else np.broadcast_to(system.F, (K, n, n))
+        self.Qs = system.Qs if system.Qs is not None else np.broadcast_to(system.GQG, (K, n, n))
+        rows = np.zeros((S, m), dtype=bool)
+        for j, sl in enumerate(system.sensor_slices):
+            rows[j, sl] = True
+        use, src, carried = [], [], 0
+        self.ckf = self.loc = self.hkf = None
+        if need & {"CKF", "FBS"}:
+            self.ckf = len(use)
+            use.append(np.ones(m, dtype=bool))
+            src.append(carried)
+            carried += 1
+        if need & _LOCALS:
+            self.loc = len(use)
+            use.extend(rows)
+            src.extend(range(carried, carried + S))
+            carried += S
+        if "HKF" in need:
+            self.hkf = len(use)
+            use.extend([np.zeros(m, dtype=bool), *rows])  # the fused prediction, then locals
+            src.extend([carried] * (S + 1))
+            carried += 1
+        slots = Slots(np.array(use), np.array(src), carried, self.hkf)
+        Hm, Rm = masked_rows(self.H, self.R, present[:, None, :] & slots.use[None])
+        self.Hm, self.Rm = Hm, Rm
+        self.bank = run_bank(slots, system.prior.cov, self.Fs, self.Qs, Hm, Rm)
+        self.means = self._means()
+        self._J: np.ndarray | None = None  # eq. (35), when an architecture needs it
+
+    # -- the mean recursions ------------------------------------------------------------------
+
+    def _means(self) -> dict[str, np.ndarray]:
+        """Every filter's means (K+1, n): x_k = (I - K H) F x_{k-1} + K z_k for the KFs
+        (eq. 14), x_k = P (Tacc F x_{k-1} + U z_k) for HKF (eqs. 38-40), all as one stack."""
+        b, n, S = self.bank, self.n, self.S
+        F = np.concatenate([np.eye(self.n)[None], self.Fs])  # F of instant 0: none
+        parts: list[tuple[str, int, np.ndarray, np.ndarray]] = []  # name, filters, A, b
+        for name, first, count in (("ckf", self.ckf, 1), ("loc", self.loc, S)):
+            if first is not None:
+                kf = slice(first, first + count)
+                Ab = np.einsum("kfij,kj->kfi", b.K[:, kf], self.z)
+                parts.append((name, count, b.IKH[:, kf] @ F[:, None], Ab))
+        if self.hkf is not None:
+            h = self.hkf + 1
+            Y = b.Y_hkf  # (K+1, S+1, n, n): Y_pred, Y_1..Y_S
+            # (1 - S) Y_pred + sum_j Y_j (I - K_j H_j), summed in that order as the plans do
+            Tacc = np.concatenate([(1.0 - S) * Y[:, :1], Y[:, 1:] @ b.IKH[:, h:]], axis=1)
+            U = (Y[:, 1:] @ b.K[:, h:]).sum(axis=1)
+            Ph = b.P_hkf
+            Ab = np.einsum("kij,kj->ki", Ph @ U, self.z)[:, None]
+            parts.append(("hkf", 1, (Ph @ Tacc.sum(axis=1) @ F)[:, None], Ab))
+        if not parts:
+            return {}
+        x0 = np.broadcast_to(self.system.prior.mean, (sum(p[1] for p in parts), n))
+        A = np.concatenate([p[2] for p in parts], axis=1)
+        X = affine_recursion(A, np.concatenate([p[3] for p in parts], axis=1), x0)
+        out, at = {}, 0
+        for name, count, _, _ in parts:
+            out[name] = X[:, at] if name != "loc" else X[:, at : at + count]
+            at += count
+        return out
+
+    # -- the architectures --------------------------------------------------------------------
+
+    def estimates(self, archs: Sequence[str], bases) -> dict[str, Estimate]:
+        """Each architecture's estimate (`bases`: its (base name, sensor) from `parse_arch`)."""
+        rules = {
+            "CKF": self._ckf,
+            "SKF": self._skf,
+            "HKF": self._hkf,
+            "MSC": self._msc,
+            "MSC-GMF": self._msc_gmf,
+            "CI": self._ci,
+            "AVG": self._avg,
+            "FBS": self._fbs,
+        }
+        out = {}
+        for a, (base, sensor) in zip(archs, bases, strict=True):
+            mean, cov = rules[base](sensor)
+            out[a] = Estimate(mean[None], cov)
+        return out
+
+    def _ckf(self, sensor):
+        return self.means["ckf"], self.bank.P[:, self.ckf]
+
+    def _skf(self, sensor):
+        j = self.system.sensor_index(sensor)
+        return self.means["loc"][:, j], self.bank.P[:, self.loc + j]
+
+    def _hkf(self, sensor):
+        return self.means["hkf"], self.bank.P_hkf
+
+    @property
+    def _local_P(self) -> np.ndarray:
+        return self.bank.P[:, self.loc : self.loc + self.S]
+
+    def _fused(self, O: np.ndarray, P: np.ndarray):
+        """x = O [x_1; ...; x_S] at every instant."""
+        X = self.means["loc"].reshape(self.K1, -1)
+        return np.einsum("kij,kj->ki", O, X), P
+
+    def _msc(self, sensor):
+        forms = np.zeros((self.K1, self.S), dtype=bool)
+        return self._fused(*msc_fusion(forms, self._local_P))
+
+    def _ci(self, sensor):
+        forms = np.zeros((self.K1, self.S), dtype=bool)
+        O, P, _ = ci_fusion(forms, self._local_P, self.criterion)
+        return self._fused(O, P)
+
+    def _avg(self, sensor):
+        J = self._joint()
+        n, S = self.n, self.S
+        O = np.tile(np.eye(n), (1, S)) / S
+        P = O @ J @ O.T
+        return self.means["loc"].sum(axis=1) / S if S > 1 else self.means["loc"][:, 0], _sym(P)
+
+    def _msc_gmf(self, sensor):
+        return self._fused(*self._gmf(self._joint()))
+
+    def _joint(self) -> np.ndarray:
+        """J of eq. (35) at every instant (computed once): J_k = Psi_k (Phi_k J_{k-1} Phi_k' +
+        Gam Q_k Gam') Psi_k' + Lam_k R_k Lam_k', Psi = blockdiag(I - K_j H_j), Lam the stacked
+        K_j, Phi = blockdiag(F), Gam = [I; ...; I]."""
+        if self._J is not None:
+            return self._J
+        n, S, K1 = self.n, self.S, self.K1
+        b, lo = self.bank, self.loc
+        IKH = b.IKH[:, lo : lo + S]  # (K+1, S, n, n)
+        Lam = b.K[:, lo : lo + S].reshape(K1, S * n, -1)
+        # the R the plans' J uses: every component's, cross-covariances included, masked
+        pf = self.present.astype(float)
+        Rk = self.R * (pf[:, :, None] * pf[:, None, :]) + np.eye(pf.shape[1]) * (1 - pf)[:, None]
+        C = Lam @ Rk @ Lam.swapaxes(-1, -2)
+        # Psi Gam Q Gam' Psi' = [Psi_i Q Psi_j'] and Psi Phi = blockdiag(Psi_j F), block by block
+        C[1:] += (IKH[1:] @ self.Qs[:, None]).reshape(K1 - 1, S * n, n) @ _rows(IKH[1:]).swapaxes(
+            -1, -2
+        )
+        A = np.zeros((K1, S * n, S * n))
+        PsiF = IKH.copy()
+        PsiF[1:] = IKH[1:] @ self.Fs[:, None]
+        for j in range(S):
+            A[:, j * n : (j + 1) * n, j * n : (j + 1) * n] = PsiF[:, j]
+        J0 = np.tile(self.system.prior.cov, (S, S))
+        self._J = joint_recursion(A, C, J0)
+        return self._J
+
+    def _gmf(self, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Eqs. (5)-(7) at every instant: where J is safely positive definite the closed form
+        C = (E' J^-1 E)^-1 E' J^-1 (E = [I; ...; I]), one batched Cholesky over the instants;
+        elsewhere (J singular or nearly: locals that share an error, e.g. the prior's before
+        their first measurements) `gmf_weight_matrix` on each J alone, as the plans do."""
+        n, S = self.n, self.S
+        E = np.tile(np.eye(n), (S, 1))
+        X, ok = solve_spd_or_flag(J, np.broadcast_to(E, J.shape[:1] + E.shape), GMF_PIVOT_RTOL)
+        ok &= np.abs(X).max(axis=(-2, -1)) * np.abs(J).max(axis=(-2, -1)) < GMF_MAX_GROWTH
+        X = np.where(ok[:, None, None], X, E)  # placeholders where not ok, replaced below
+        W = X[:, :n]
+        for i in range(1, S):
+            W = W + X[:, i * n : (i + 1) * n]
+        C = spd_inv(W) @ X.swapaxes(-1, -2)
+        P = _sym(C @ J @ C.swapaxes(-1, -2))
+        ok &= np.isfinite(P).all(axis=(-2, -1))
+        bad = np.flatnonzero(~ok)
+        if len(bad) > GMF_ONE_BY_ONE:
+            C[bad], P[bad] = gmf_weight_matrix(J[bad], n)
+        else:
+            for k in bad:
+                C[k], P[k] = gmf_weight_matrix(J[k], n)
+        return C, P
+
+    def _fbs(self, sensor):
+        """FBS, eqs. (25)-(28): the CKF forward, the backward information filter, and their
+        fusion K_s = P S (I + P S)^-1, P_s = (I - K_s) P, x_s = (I - K_s) x + P_s y_b."""
+        c = self.ckf
+        Hm, Rm = self.Hm[:, c], self.Rm[:, c]
+        RiH = solve(Rm, Hm, hermitian=True)  # (K+1, m, n): R^-1 H
+        W = Hm.swapaxes(-1, -2) @ RiH
+        L, Smat = backward_information(W, self.Fs, self.Qs)
+        yb = backward_means(L, np.einsum("kmi,km->ki", RiH, self.z))
+        Pf = self.bank.P[:, c]
+        eye = np.eye(self.n)
+        PS = Pf @ Smat
+        Ks = solve((eye + PS).swapaxes(-1, -2), PS.swapaxes(-1, -2)).swapaxes(-1, -2)
+        Ps = _sym((eye - Ks) @ Pf)
+        x = self.means["ckf"]
+        mean = np.einsum("kij,kj->ki", eye - Ks, x) + np.einsum("kij,kj->ki", Ps, yb)
+        return mean, Ps
+
+
+def _sym(A: np.ndarray) -> np.ndarray:
+    return 0.5 * (A + A.swapaxes(-1, -2))
+
+
+def _rows(X: np.ndarray) -> np.ndarray:
+    """A stack's matrices one above the other, (K, S, a, b) -> (K, S a, b)."""
+    K, S, a, b = X.shape
+    return X.reshape(K, S * a, b)
