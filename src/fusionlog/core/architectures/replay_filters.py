@@ -22,23 +22,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-try:  # numpy's LAPACK gufuncs without the Python wrapper (~3 us less per call)
-    from numpy.linalg import _umath_linalg
 
-    _solve, _inv = _umath_linalg.solve, _umath_linalg.inv
-except (ImportError, AttributeError):  # pragma: no cover - another numpy layout
-
-    def _solve(A: np.ndarray, B: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        X = np.linalg.solve(A, B)  # raises LinAlgError where singular: `replay` then gives up
-        if out is not None:
-            out[...] = X
+def _solve(A: np.ndarray, B: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """np.linalg.solve, into `out` if given (raises LinAlgError where A is singular: `replay`
+    then hands the log to the plans, which name the failing step)."""
+    X = np.linalg.solve(A, B)
+    if out is None:
         return X
+    out[...] = X
+    return out
 
-    _inv = np.linalg.inv
 
-# The gufuncs return NaN for a singular matrix inside np.errstate(all="ignore"), where `replay`
-# calls them (numpy's wrappers raise LinAlgError instead): either way `replay` hands a log whose
-# numbers it cannot compute to the plans.
+_inv = np.linalg.inv
 
 
 @dataclass
