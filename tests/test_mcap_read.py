@@ -500,3 +500,23 @@ def test_per_message_covariance_round_trip(tmp_path: Path) -> None:
             ).iter_decoded_messages(topics=["/sensors/a"])
         }
     assert seen[100_000_000] == [2.0, 0.1, 0.1, 3.0] and seen[0] == []
+
+
+@pytest.mark.parametrize("runs_per_block", [1, 2])
+def test_message_covariance_in_a_file_of_several_runs_is_refused(
+    tmp_path: Path, runs_per_block: int
+) -> None:
+    """Per-message covariances are for one-run logs: a file of two runs (in one block or in
+    two) with one is refused, in one line naming the topic, when its blocks are read."""
+    path = tmp_path / "c.mcap"
+    cov = np.array([[[2.0, 0.1], [0.1, 3.0]]] * runs_per_block)
+    with mcap_writer(path) as w:
+        for off in range(0, 2, runs_per_block):
+            for k in range(2):
+                v = np.full((runs_per_block, 2), float(k))
+                w.write_values("/sensors/a", k, 0.1 * k, off, v, cov if k == 1 else None)
+    f = McapFile(path)
+    assert f.runs() == 2
+    msg = r"/sensors/a: step 1 .*a message covariance in a file of 2 runs \(per-message"
+    with pytest.raises(FusionlogError, match=msg + r" covariances are for one-run logs\)"):
+        f.read_all(["/sensors/a"])

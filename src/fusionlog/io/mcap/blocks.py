@@ -197,6 +197,16 @@ class Assembly:
                     f"{self.path}: {name}: step {tab.step[i]} runs from {o}: covariance of "
                     f"{tab.n2[i] // 8} doubles is not runs*dim*dim"
                 )
+            # Refused here, not by `McapFile.message_covariances_of`, which reads only one-run
+            # files: a file of more runs is read block by block anyway.
+            carry = tab.n2[sel] != 0
+            if self.total != 1 and carry.any():
+                i = sel[int(np.argmax(carry))]
+                raise FusionlogError(
+                    f"{self.path}: {name}: step {tab.step[i]} runs from {o}: a message "
+                    f"covariance in a file of {self.total} runs (per-message covariances are "
+                    "for one-run logs)"
+                )
         if self.kinds[ti] == ESTIMATE:
             n2 = tab.n2[sel]
             wrong = np.flatnonzero((n2 != d * d * 8) & (n2 != r * d * d * 8))
