@@ -90,7 +90,8 @@ def joseph_update(
             S[s:, s] += R[s:, s]
         else:
             for r in range(s, m):
-                S[r, s] += R[r, s]
+                if R[r, s] != 0.0:  # adding a zero changes nothing
+                    S[r, s] += R[r, s]
     with np.errstate(all="ignore"):
         L, ok = cholesky(S)
         V = cholesky_solve(L, Hq)  # (m, |q|, M) = S^-1 H[:, q]
