@@ -138,10 +138,9 @@ def joseph_update(
     Pu = np.empty((n, n, M))  # returned: its own memory
     for i in range(n):
         out, tmp = Pu[i, i:], row[: n - i]
-        np.copyto(out, Pl[i, i:])
         for b in range(nq):
             np.multiply(Z[b, i], Pq[b][i:], out=tmp)
-            out -= tmp
+            np.subtract(Pl[i, i:] if b == 0 else out, tmp, out=out)
         Pu[i + 1 :, i] = Pu[i, i + 1 :]
     g = _scratch(work, "g", (nq, M))  # V^T y
     for a in range(nq):
