@@ -94,11 +94,7 @@ class _Steps:
         if not which:
             return None
         model = Stacked(tuple(self.system.sensors[j] for j in which))
-        cols = np.concatenate([self.cols[j] for j in which])
-        if (np.diff(cols) == 1).all():  # adjacent sensors: a view, not a gathered copy
-            zk = self.z[:, k, cols[0] : cols[-1] + 1]
-        else:
-            zk = self.z[:, k, cols]
+        zk = self.z[:, k, np.concatenate([self.cols[j] for j in which])]
         self._check_ranges(k, which, x, zk)
         return update(model, x, P, zk, self.ukf, self.work)
 
