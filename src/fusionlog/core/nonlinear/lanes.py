@@ -1,7 +1,7 @@
 """The EKF's prediction (linear motion) and measurement update of many runs at once, on lanes
 (`core.kernels`: every matrix entry one contiguous vector over the runs).
 
-Prediction with one F for every run:  C = P F^T,  P- = sym(F C + Q), each entry a sum over the
+Prediction with one F for every run:  C = P F^T,  P- = F C + Q, each entry a sum over the
 nonzero entries of F only (`kernels.lincomb`; constant velocity's F is half zeros).
 
 Update with H nonzero only on the state columns q (a radar sees x and y, not the velocities),
@@ -34,7 +34,8 @@ from ..linalg import solve, sym
 
 def linear_prediction(P: np.ndarray, F: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(P-, C) of the module docstring for P (M, n, n) and shared F, Q (n, n); both returned
-    in the lanes layout. P- is `linalg.sym` of F C + Q, entry by entry: the same numbers."""
+    in the lanes layout. P- = F C + Q is computed on and above the diagonal and mirrored, so
+    it is exactly symmetric (as P+ is)."""
     n, M = F.shape[0], P.shape[0]
     Pt = lanes(P).swapaxes(0, 1)  # Pt[l] = column l of P, (n, M)
     C = np.empty((n, n, M))
@@ -42,16 +43,11 @@ def linear_prediction(P: np.ndarray, F: np.ndarray, Q: np.ndarray) -> tuple[np.n
         lincomb(C[:, j], F[j].tolist(), Pt)
     Pp = np.empty((n, n, M))
     for i in range(n):
-        lincomb(Pp[i], F[i].tolist(), C)
-        for j, v in enumerate(Q[i].tolist()):
+        lincomb(Pp[i, i:], F[i].tolist(), C[:, i:])
+        for j, v in enumerate(Q[i, i:].tolist(), i):
             if v != 0.0:  # adding a zero changes nothing
                 Pp[i, j] += v
-    for i in range(n):
-        for j in range(i + 1, n):
-            s = Pp[i, j]
-            s += Pp[j, i]
-            s *= 0.5
-            Pp[j, i] = s
+        Pp[i + 1 :, i] = Pp[i, i + 1 :]
     return unlanes(Pp), unlanes(C)
 
 
