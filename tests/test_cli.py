@@ -1149,3 +1149,24 @@ def test_commands_start_no_blas_threads() -> None:
         assert setting == want, out.stderr
         if given is None:
             assert threads == "1"
+
+
+def test_commands_leave_their_objects_to_the_exit() -> None:
+    """`fusionlog.memory.leave_objects_at_exit`: nothing is frozen while the process runs (an
+    in-process caller keeps its collector), everything is when it exits (the interpreter's
+    last collections skip them)."""
+    code = textwrap.dedent(
+        """
+        import atexit, gc
+        atexit.register(lambda: print("at exit", gc.get_freeze_count() > 0))  # runs last
+        from fusionlog.cli import main
+        for _ in range(2):
+            try:
+                main(["inspect", "/nonexistent/sensors.mcap"], standalone_mode=False)
+            except BaseException:
+                pass
+        print("running", gc.get_freeze_count())
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV)
+    assert out.stdout.splitlines() == ["running 0", "at exit True"], out.stderr
