@@ -74,8 +74,8 @@ def joseph_update(
     tm = _scratch(work, "tm", (m, M))
     tv = _scratch(work, "tv", (M,))
     # B = H[:, q] P[q, q]; S = B H[:, q]^T + R on and below the diagonal (what the Cholesky
-    # kernel reads), column by column: the sums of products of H P H^T in the same order as
-    # an entry-by-entry H (P H^T)
+    # kernel reads), a column at a time: the same products summed in the same order as
+    # H (P H^T) entry by entry, so S is bit for bit what it was
     B = _scratch(work, "B", (m, nq, M))
     for b in range(nq):
         _combine(B[:, b], [P[q[b]] for P in Pq], Hcols, tm)
