@@ -1121,3 +1121,52 @@ def test_summary_json_has_the_usual_permissions(ajgl_run: Path) -> None:
     umask = os.umask(0)
     os.umask(umask)
     assert mode == 0o666 & ~umask
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="threads listed in /proc only")
+def test_commands_start_no_blas_threads() -> None:
+    """Every command asks OpenBLAS for no threads of its own before numpy is imported
+    (`fusionlog.memory.one_blas_thread`): the process then runs on its one thread; a number
+    the user chose stays."""
+    code = textwrap.dedent(
+        """
+        import os
+        from fusionlog.cli import main
+        try:
+            main(["inspect", "/nonexistent/sensors.mcap"], standalone_mode=False)
+        except BaseException:
+            pass
+        import numpy
+        print(os.environ.get("OPENBLAS_NUM_THREADS"), len(os.listdir("/proc/self/task")))
+        """
+    )
+    env = {k: v for k, v in ENV.items() if k != "OPENBLAS_NUM_THREADS"}
+    for given, want in ((None, "1"), ("2", "2")):
+        run_env = env if given is None else {**env, "OPENBLAS_NUM_THREADS": given}
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             env=run_env)  # fmt: skip
+        setting, threads = out.stdout.split()
+        assert setting == want, out.stderr
+        if given is None:
+            assert threads == "1"
+
+
+def test_commands_leave_their_objects_to_the_exit() -> None:
+    """`fusionlog.memory.leave_objects_at_exit`: nothing is frozen while the process runs (an
+    in-process caller keeps its collector), everything is when it exits (the interpreter's
+    last collections skip them)."""
+    code = textwrap.dedent(
+        """
+        import atexit, gc
+        atexit.register(lambda: print("at exit", gc.get_freeze_count() > 0))  # runs last
+        from fusionlog.cli import main
+        for _ in range(2):
+            try:
+                main(["inspect", "/nonexistent/sensors.mcap"], standalone_mode=False)
+            except BaseException:
+                pass
+        print("running", gc.get_freeze_count())
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV)
+    assert out.stdout.splitlines() == ["running 0", "at exit True"], out.stderr

@@ -104,6 +104,26 @@ def test_round_trip_any_block_sizes(lay):
                 assert np.array_equal(cov, full[lo : lo + r])
 
 
+@pytest.mark.parametrize("write_block", [700, 260])
+def test_round_trip_blocks_of_many_runs(tmp_path, write_block):
+    """Messages of many runs (a simulation's 10^3-10^4 runs per message, copied into their
+    step one at a time; some of 260 runs below that size) read back in output blocks that
+    start inside them, as whole files and in windows read again."""
+    runs, steps = 900, 5
+    truth, sens, mean = make_data(7, runs, steps, d=2, n=2)
+    covs = [np.eye(2)[None].repeat(steps, 0)] * (-(-runs // write_block))
+    path = tmp_path / "big.mcap"
+    write_file(path, truth, sens, mean, covs, write_block, chunk_size=1 << 14)
+    f = McapFile(path)
+    topics = ["/truth", "/sensors/a", "/estimates/CKF"]
+    for rb in (runs, 512, 333, 1):
+        offsets, got = concat_blocks(f, topics, rb)
+        assert offsets == [(o, min(rb, runs - o)) for o in range(0, runs, rb)]
+        assert np.array_equal(np.concatenate(got["/truth"]), truth)
+        assert np.array_equal(np.concatenate(got["/sensors/a"]), sens, equal_nan=True)
+        assert np.array_equal(np.concatenate([m for m, _ in got["/estimates/CKF"]]), mean)
+
+
 def test_read_all_metadata_topics_and_schemas(tmp_path):
     truth, sens, mean = make_data(0, 5, 3)
     path = tmp_path / "a.mcap"
@@ -500,3 +520,23 @@ def test_per_message_covariance_round_trip(tmp_path: Path) -> None:
             ).iter_decoded_messages(topics=["/sensors/a"])
         }
     assert seen[100_000_000] == [2.0, 0.1, 0.1, 3.0] and seen[0] == []
+
+
+@pytest.mark.parametrize("runs_per_block", [1, 2])
+def test_message_covariance_in_a_file_of_several_runs_is_refused(
+    tmp_path: Path, runs_per_block: int
+) -> None:
+    """Per-message covariances are for one-run logs: a file of two runs (in one block or in
+    two) with one is refused, in one line naming the topic, when its blocks are read."""
+    path = tmp_path / "c.mcap"
+    cov = np.array([[[2.0, 0.1], [0.1, 3.0]]] * runs_per_block)
+    with mcap_writer(path) as w:
+        for off in range(0, 2, runs_per_block):
+            for k in range(2):
+                v = np.full((runs_per_block, 2), float(k))
+                w.write_values("/sensors/a", k, 0.1 * k, off, v, cov if k == 1 else None)
+    f = McapFile(path)
+    assert f.runs() == 2
+    msg = r"/sensors/a: step 1 .*a message covariance in a file of 2 runs \(per-message"
+    with pytest.raises(FusionlogError, match=msg + r" covariances are for one-run logs\)"):
+        f.read_all(["/sensors/a"])

@@ -33,6 +33,7 @@ import shutil
 import signal
 import stat
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -514,6 +515,39 @@ def test_stale_temporaries_are_reported_and_never_deleted(base: Path, tmp_path: 
     assert not stale[0].exists()
     assert snapshot(stale[1:] + others) == {k: v for k, v in planted.items() if k != str(stale[0])}
     assert snapshot(targets)  # the outputs are still there
+
+
+@pytest.mark.skipif(not hasattr(os, "POSIX_FADV_DONTNEED"), reason="no writeback advice")
+def test_outputs_are_handed_to_the_disk_as_they_are_written(tmp_path: Path, monkeypatch) -> None:
+    """Every WRITEBACK_STEP bytes, an output's new range is handed to the disk (Linux:
+    POSIX_FADV_DONTNEED starts its writeback), each byte once and in order, so the commit's
+    fsync has little left; the file is what was written, a range rewritten in place included,
+    and stays in memory for a reader that follows."""
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the advice starts the writeback on Linux only")
+    calls: list[tuple[int, int]] = []
+    real = os.posix_fadvise
+
+    def spy(fd: int, offset: int, length: int, advice: int) -> None:
+        assert advice == os.POSIX_FADV_DONTNEED
+        calls.append((offset, length))
+        real(fd, offset, length, advice)
+
+    monkeypatch.setattr(atomic.os, "posix_fadvise", spy)
+    target = tmp_path / "out.bin"
+    data = os.urandom(3 * atomic.WRITEBACK_STEP + 1_000_000)
+    with atomic.Outputs([target]) as outs:
+        f = outs.open(target)
+        for i in range(0, len(data), 300_000):
+            f.write(data[i : i + 300_000])
+        f.seek(10)  # a header patched in place, as the MCAP writer does with its chunks
+        f.write(b"patched!")
+        f.seek(0, os.SEEK_END)
+        outs.commit()
+    assert target.read_bytes() == data[:10] + b"patched!" + data[18:]
+    assert len(calls) == 3
+    assert [c[0] for c in calls] == [0, sum(calls[0]), sum(calls[1])]  # contiguous, once each
+    assert sum(calls[-1]) <= len(data)
 
 
 # ------------------------------------------------------------------------------------------

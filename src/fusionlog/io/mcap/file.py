@@ -290,14 +290,16 @@ class McapFile:
         return self.message_covariances_of([topic])[topic]
 
     def message_covariances_of(self, topics: Sequence[str]) -> dict[str, np.ndarray | None]:
-        """`message_covariances` of several topics from one pass over the file."""
+        """`message_covariances` of several topics from one pass over the file. A file of
+        several runs has none and is not read here: per-message covariances are for one-run
+        logs, and the block reader refuses a message that carries one in such a file."""
         infos = {t: self._readable(t) for t in topics}
         for t, info in infos.items():
             if info.format.kind != VALUES:  # type: ignore[union-attr]
                 raise ValueError(f"{t} is not a values topic")
         st = self._get_structure()
         out: dict[str, np.ndarray | None] = dict.fromkeys(topics)
-        if not topics:
+        if not topics or st.runs != 1:
             return out
         dims = {t: self.dim_of(t) for t in topics}
         for _, tab in self._tables({c for i in infos.values() for c in i.channel_ids}):
