@@ -390,8 +390,11 @@ def test_sigterm_cancels_the_cluster_and_leaves_nothing(tmp_path: Path) -> None:
         deadline = time.monotonic() + 60
         workers: list[psutil.Process] = []
         while time.monotonic() < deadline and not workers:  # wait for the worker process
+            # forked (Linux: the command's own command line) or spawned (spawn_main)
             workers = [
-                c for c in me.children(recursive=True) if "spawn_main" in " ".join(c.cmdline())
+                c
+                for c in me.children(recursive=True)
+                if c.cmdline() == me.cmdline() or "spawn_main" in " ".join(c.cmdline())
             ]
             time.sleep(0.2)
         assert workers, "no worker process started"

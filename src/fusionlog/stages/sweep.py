@@ -153,10 +153,14 @@ def run_sweep(
         expected: list[dict[str, Any]] = [{} for _ in points]
         sums: list[dict[str, Any]] = [{} for _ in points]
         conditional: list[dict[str, Any]] = [{} for _ in points]
-        # the writers' imports (rerun, pyarrow: a second or more) while the workers compute
-        threading.Thread(target=_import_writers, daemon=True).start()
+        importing = False
         with contextlib.closing(ex.map(tasks, "sweep")) as results:
             for i, result in zip(owner, results, strict=True):
+                if not importing and not ex.may_fork:
+                    # the writers' imports (rerun, pyarrow, scipy.special: a second or more)
+                    # while the workers compute, once none is to be forked from here
+                    threading.Thread(target=_import_writers, daemon=True).start()
+                    importing = True
                 if isinstance(result, BlockSums):
                     fold(sums[i], result, conditional[i])
                     busy += result.seconds
@@ -230,6 +234,7 @@ def _import_writers() -> None:
     """Import what writing the outputs needs (Python's import lock makes the writer wait for
     an import under way here rather than repeat it)."""
     import pyarrow.parquet  # noqa: F401
+    import scipy.special  # noqa: F401  (the NEES bounds of the summary: core.metrics)
 
     import fusionlog.io.rrd.sweep  # noqa: F401
 
