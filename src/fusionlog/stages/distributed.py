@@ -149,7 +149,9 @@ class DaskExecutor(Executor):
                 n = self._processes = min(self._n or cpus, cpus)
                 # One thread per process: the blocks are numpy work that holds the GIL often,
                 # and Dask's nanny already limits each worker's BLAS to one thread.
-                with _sigint_ignored(), dask.config.set(_LOCAL_CONFIG), _forking():
+                # (deferred: no worker, no fork; `start_workers` forks them)
+                forking = contextlib.nullcontext() if self._deferred else _forking()
+                with _sigint_ignored(), dask.config.set(_LOCAL_CONFIG), forking:
                     self._cluster = LocalCluster(
                         n_workers=0 if self._deferred else n,
                         threads_per_worker=1,
