@@ -151,7 +151,7 @@ class DaskExecutor(Executor):
                 # and Dask's nanny already limits each worker's BLAS to one thread.
                 # (deferred: no worker, no fork; `start_workers` forks them)
                 forking = contextlib.nullcontext() if self._deferred else _forking()
-                with _sigint_ignored(), dask.config.set(_LOCAL_CONFIG), forking:
+                with dask.config.set(_LOCAL_CONFIG), forking:
                     self._cluster = LocalCluster(
                         n_workers=0 if self._deferred else n,
                         threads_per_worker=1,
@@ -202,7 +202,7 @@ class DaskExecutor(Executor):
         try:
             import dask
 
-            with _sigint_ignored(), dask.config.set(_LOCAL_CONFIG), _forking():
+            with dask.config.set(_LOCAL_CONFIG), _forking():
                 self._cluster.scale(self._processes)
                 self.workers = self._wait_for_workers(self._processes)
         except BaseException:
@@ -361,18 +361,30 @@ def _sigint_ignored() -> Iterator[None]:
 
 @contextlib.contextmanager
 def _forking() -> Iterator[None]:
-    """While Dask forks our worker processes: each child starts with the signal dispositions
-    a fresh interpreter would have (the CLI's SIGTERM/SIGHUP handlers unwind this process's
-    outputs, not a worker's), except SIGINT, ignored (`_sigint_ignored`); and Python 3.12's
-    warning about forking a process with threads is not shown (Dask's event loop is one; the
-    fork is made while the threads of ours wait, `DaskExecutor.start_workers`)."""
+    """While Dask forks our worker processes, and this thread waits for them.
+
+    A signal for this process (Ctrl-C, SIGTERM, SIGHUP) is held until the workers are up and
+    then delivered: closing a cluster whose nannies are half-way through starting makes Dask
+    fail with errors of its own, where the user should see our one line. Each child starts
+    with SIGINT ignored (a Ctrl-C at a terminal goes to the whole process group: the worker
+    leaves it to this process, which closes the cluster) and SIGTERM/SIGHUP as a fresh
+    interpreter has them (the CLI's handlers unwind this process's outputs, not a worker's).
+    Python 3.12's warning about forking a process with threads is not shown: Dask's event loop
+    is one, and the fork is made while the threads of ours wait
+    (`DaskExecutor.start_workers`)."""
     if not FORK:
-        yield
+        with _sigint_ignored():
+            yield
         return
-    global _IN_CHILD_HOOK
-    if not _IN_CHILD_HOOK:
+    global _HOOKED
+    if not _HOOKED:
         os.register_at_fork(after_in_child=_child_signals)
-        _IN_CHILD_HOOK = True
+        _HOOKED = True
+    held: list[int] = []
+    old: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in _HELD:
+            old[sig] = signal.signal(sig, lambda signum, _frame: held.append(signum))
     _FORKING.set()
     try:
         with warnings.catch_warnings():
@@ -380,14 +392,23 @@ def _forking() -> Iterator[None]:
             yield
     finally:
         _FORKING.clear()
+        for sig, handler in old.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+    if held:
+        signal.raise_signal(held[0])
 
 
+#: The signals held while workers are forked (`_forking`).
+_HELD = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP) if FORK else ()
 _FORKING = threading.Event()
-_IN_CHILD_HOOK = False
+_HOOKED = False
 
 
 def _child_signals() -> None:
-    if _FORKING.is_set():  # a worker of ours; any other fork of this process is left alone
+    """After a fork, in the child: a worker of ours gets its dispositions (`_forking`); any
+    other fork of this process is left alone."""
+    if _FORKING.is_set():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         for sig in (signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, signal.SIG_DFL)
 
