@@ -64,6 +64,7 @@ _LOCAL_CONFIG = {
     "distributed.worker.memory.monitor-interval": "1s",
     "distributed.admin.system-monitor.interval": "2s",
     "distributed.worker.multiprocessing-method": "fork" if FORK else "spawn",
+    "distributed.worker.profile.enabled": False,
 }
 #: Seconds to wait for a scheduler to answer, and for a cluster to have a worker.
 CONNECT_TIMEOUT = 10
