@@ -191,9 +191,11 @@ def run_sweep(
 SECONDS_PER_RUN_STEP = 5e-8
 PER_RUN_FACTOR = 40
 #: Without --workers, a sweep whose Monte Carlo is estimated below this many seconds in one
-#: process runs in this process: a LocalCluster's start (worker processes importing numpy,
-#: Dask and fusionlog, ~1-2 s of CPU each on two cores) costs about what a second core
-#: would give back on work of a few seconds (benchmarks/README.md, "Sweeps on Dask").
+#: process runs in this process: a LocalCluster (Dask imported here, its scheduler, workers
+#: forked or spawned: 0.9-1.4 s of CPU in all on two cores) costs about what a second core
+#: would give back on work of a few seconds (benchmarks/README.md, "Sweeps on Dask" and
+#: issue 23: 2e4 runs per point of the paper's sweep, ~1 s of work, take 1.4-1.5 s in this
+#: process and 1.6-1.7 s on two forked workers).
 LOCAL_BELOW_SECONDS = 5.0
 
 
