@@ -46,7 +46,9 @@ WINDOW_PER_WORKER = 3
 #: has already imported numpy, Dask and fusionlog and often compiled the first plans: a worker
 #: is up in ~0.05 s and ~0.03 s of CPU, against ~1 s and 0.4-0.6 s of CPU for a fresh
 #: interpreter importing all of it (spawn, Dask's default, and elsewhere than Linux, where
-#: fork is unsafe). The fork is made while no thread of ours works (`start_workers`).
+#: fork is unsafe). The fork is made while no thread of ours works (`start_workers`); the
+#: commands (`sweep`, `run --workers`) are the callers, in a process of fusionlog's own: a
+#: program calling the stages from threads of its own would have them copied mid-work too.
 FORK = sys.platform.startswith("linux")
 #: Dask settings of the LocalCluster we start (its scheduler and nannies live in this
 #: process): health checks of the event loops every second instead of every 20 ms, the
