@@ -45,21 +45,11 @@ class _SlowCluster:
     in this process (no timing in the test: the events order it)."""
 
     workers, description = 2, "on a LocalCluster of 2 worker processes"
-    defers_workers = True  # its workers are started by the computing thread, as forked ones
 
     def __init__(self) -> None:
         self.first_done, self.started = threading.Event(), threading.Event()
         self.got: list[int] = []
         self.closed = False
-        self.workers_started_by: threading.Thread | None = None
-
-    @property
-    def may_fork(self) -> bool:
-        return self.workers_started_by is None
-
-    def start_workers(self) -> None:
-        assert self.workers_started_by is None and not self.got
-        self.workers_started_by = threading.current_thread()
 
     def __enter__(self):
         assert self.first_done.wait(30)
@@ -92,15 +82,8 @@ def test_warm_start_computes_here_until_the_cluster_is_up() -> None:
 
     tasks = [(task, (i,)) for i in range(40)]
     with WarmStartExecutor(cluster) as ex:  # type: ignore[arg-type]
-        results = []
-        for r in ex.map(tasks, "test"):
-            # no fork may come once a result of the cluster's is here
-            assert ex.may_fork == (len(results) < 40 - len(cluster.got))
-            results.append(r)
+        results = list(ex.map(tasks, "test"))
     assert results == [i * i for i in range(40)]
     here = 40 - len(cluster.got)
     assert 1 <= here < 40 and cluster.got == list(range(here, 40))
     assert f"the first {here} of 40 tasks here" in ex.description and cluster.closed
-    # the workers were started by the thread that computed, after its tasks, not by the
-    # cluster's thread (a fork there would copy a task half done)
-    assert cluster.workers_started_by is threading.current_thread()

@@ -46,9 +46,10 @@ WINDOW_PER_WORKER = 3
 #: has already imported numpy, Dask and fusionlog and often compiled the first plans: a worker
 #: is up in ~0.05 s and ~0.03 s of CPU, against ~1 s and 0.4-0.6 s of CPU for a fresh
 #: interpreter importing all of it (spawn, Dask's default, and elsewhere than Linux, where
-#: fork is unsafe). The fork is made while no thread of ours works (`start_workers`); the
-#: commands (`sweep`, `run --workers`) are the callers, in a process of fusionlog's own: a
-#: program calling the stages from threads of its own would have them copied mid-work too.
+#: fork is unsafe). The fork is made while the thread that starts the cluster waits in
+#: Dask's LocalCluster and no other thread of ours works (`_forking`); the commands (`sweep`,
+#: `run --workers`) are the callers, in a process of fusionlog's own: a program calling the
+#: stages from threads of its own would have them copied mid-work too.
 FORK = sys.platform.startswith("linux")
 #: Dask settings of the LocalCluster we start (its scheduler and nannies live in this
 #: process): health checks of the event loops every second instead of every 20 ms, the
@@ -88,12 +89,6 @@ class Executor:
     workers: int = 1
     description: str = "in this process"
 
-    @property
-    def may_fork(self) -> bool:
-        """Whether worker processes may still be forked from this process: until then the
-        caller starts no thread of its own (a fork copies a thread's work half done)."""
-        return False
-
     def __enter__(self) -> Executor:
         return self
 
@@ -125,8 +120,6 @@ class DaskExecutor(Executor):
         workers: int | None = None,
         scheduler: str | None = None,
         timeout: float = CONNECT_TIMEOUT,
-        *,
-        defer_workers: bool = False,
     ) -> None:
         self._n = workers
         self._address = scheduler
@@ -134,9 +127,6 @@ class DaskExecutor(Executor):
         self._cluster: Any = None
         self._client: Any = None
         self._closing: threading.Thread | None = None
-        # a LocalCluster whose workers are forked later, by `start_workers`
-        self._deferred = defer_workers and FORK and scheduler is None
-        self._processes = 0
 
     def __enter__(self) -> DaskExecutor:
         try:
@@ -149,14 +139,14 @@ class DaskExecutor(Executor):
         try:
             if self._address is None:
                 cpus = default_workers()
-                n = self._processes = min(self._n or cpus, cpus)
+                n = min(self._n or cpus, cpus)
                 # One thread per process: the blocks are numpy work that holds the GIL often,
-                # and Dask's nanny already limits each worker's BLAS to one thread.
-                # (deferred: no worker, no fork; `start_workers` forks them)
-                forking = contextlib.nullcontext() if self._deferred else _forking()
-                with dask.config.set(_LOCAL_CONFIG), forking:
+                # and Dask's nanny already limits each worker's BLAS to one thread. The
+                # constructor returns once the workers are up: forked ones, while this thread
+                # waits in it (`_forking`).
+                with dask.config.set(_LOCAL_CONFIG), _forking():
                     self._cluster = LocalCluster(
-                        n_workers=0 if self._deferred else n,
+                        n_workers=n,
                         threads_per_worker=1,
                         processes=True,
                         host="127.0.0.1",
@@ -174,43 +164,11 @@ class DaskExecutor(Executor):
                     self.description += f" (--workers {self._n} capped at the {n} CPUs)"
             else:
                 self._client = self._connect(Client, self._address, self._timeout)
-            if not self._deferred:
-                self.workers = self._wait_for_workers()
+            self.workers = self._wait_for_workers()
         except BaseException:
             self.__exit__(None, None, None)
             raise
         return self
-
-    @property
-    def may_fork(self) -> bool:
-        return self._deferred
-
-    @property
-    def defers_workers(self) -> bool:
-        """Whether entering starts only the scheduler, the workers waiting for
-        `start_workers` (a LocalCluster forking its workers)."""
-        return self._deferred
-
-    def start_workers(self) -> None:
-        """Start the deferred worker processes of the LocalCluster (entered) and wait for all
-        of them; nothing to do otherwise.
-
-        They are forked from this process, so this is called from the thread that computes,
-        between two tasks, and waits while Dask forks: no thread of ours is in the middle of
-        something then (holding a lock, importing a module) that a child would inherit
-        half-done. The `_LOCAL_CONFIG` is in force while Dask starts the nannies."""
-        if not self._deferred:
-            return
-        self._deferred = False
-        try:
-            import dask
-
-            with dask.config.set(_LOCAL_CONFIG), _forking():
-                self._cluster.scale(self._processes)
-                self.workers = self._wait_for_workers(self._processes)
-        except BaseException:
-            self.__exit__(None, None, None)
-            raise
 
     @staticmethod
     def _connect(client_cls: Any, address: str, timeout: float) -> Any:
@@ -227,17 +185,15 @@ class DaskExecutor(Executor):
                 f"--scheduler {address}: cannot connect to a Dask scheduler ({_reason(e)})"
             ) from None
 
-    def _wait_for_workers(self, n: int = 1) -> int:
-        """Wait for `n` workers (at least one within the timeout); their threads."""
+    def _wait_for_workers(self) -> int:
         wait = WORKER_TIMEOUT if self._address is None else self._timeout
         try:
-            self._client.wait_for_workers(n, timeout=wait)
+            self._client.wait_for_workers(1, timeout=wait)
         except (TimeoutError, OSError) as e:
-            if not self._client.scheduler_info(n_workers=-1)["workers"]:
-                raise FusionlogError(
-                    f"{self._address or 'LocalCluster'}: no Dask worker joined within "
-                    f"{wait:g} s ({_reason(e)})"
-                ) from None
+            raise FusionlogError(
+                f"{self._address or 'LocalCluster'}: no Dask worker joined within "
+                f"{wait:g} s ({_reason(e)})"
+            ) from None
         info = self._client.scheduler_info(n_workers=-1)["workers"]
         threads = sum(int(w.get("nthreads", 1)) for w in info.values()) or 1
         if self._address is not None:
@@ -373,8 +329,7 @@ def _forking() -> Iterator[None]:
     leaves it to this process, which closes the cluster) and SIGTERM/SIGHUP as a fresh
     interpreter has them (the CLI's handlers unwind this process's outputs, not a worker's).
     Python 3.12's warning about forking a process with threads is not shown: Dask's event loop
-    is one, and the fork is made while the threads of ours wait
-    (`DaskExecutor.start_workers`)."""
+    is one, and the fork is made while the threads of ours wait (`DaskExecutor.__enter__`)."""
     if not FORK:
         with _sigint_ignored():
             yield
@@ -467,7 +422,9 @@ def executor(
     """The executor the options ask for: ``scheduler`` a running cluster; ``workers`` 0 this
     process, N a LocalCluster of N processes; neither: a LocalCluster of one process per CPU,
     or this process when `local_default` (work too small to be worth starting a cluster). A
-    LocalCluster starts in the background while this process works (`warm_start`)."""
+    LocalCluster of forked workers starts at once (in a few tenths of a second: Dask's
+    import, its scheduler); one of spawned workers starts in the background while this
+    process works (`warm_start`)."""
     if workers is not None and scheduler is not None:
         raise FusionlogError("--workers and --scheduler: give one of them, not both")
     if workers is not None and workers < 0:
@@ -478,6 +435,11 @@ def executor(
         return DaskExecutor(scheduler=check_address(scheduler), timeout=timeout)
     if workers == 0 or (workers is None and local_default):
         return LocalExecutor()
+    if FORK:
+        # Computing here while Dask is imported in a thread would not shorten that: both hold
+        # the GIL. Measured on the paper's sweep with 2 workers: 4.67-4.88 s started at once,
+        # 4.98-5.10 s with the warm start; with 1 worker the same (benchmarks/README.md).
+        return DaskExecutor(workers=workers)
     from .warm_start import WarmStartExecutor  # (it builds on this module)
 
-    return WarmStartExecutor(DaskExecutor(workers=workers, defer_workers=True))
+    return WarmStartExecutor(DaskExecutor(workers=workers))

@@ -153,14 +153,11 @@ def run_sweep(
         expected: list[dict[str, Any]] = [{} for _ in points]
         sums: list[dict[str, Any]] = [{} for _ in points]
         conditional: list[dict[str, Any]] = [{} for _ in points]
-        importing = False
+        # the writers' imports (rerun, pyarrow, scipy.special: a second or more) while the
+        # workers compute (forked ones are up by now: `distributed.FORK`)
+        threading.Thread(target=_import_writers, daemon=True).start()
         with contextlib.closing(ex.map(tasks, "sweep")) as results:
             for i, result in zip(owner, results, strict=True):
-                if not importing and not ex.may_fork:
-                    # the writers' imports (rerun, pyarrow, scipy.special: a second or more)
-                    # while the workers compute, once none is to be forked from here
-                    threading.Thread(target=_import_writers, daemon=True).start()
-                    importing = True
                 if isinstance(result, BlockSums):
                     fold(sums[i], result, conditional[i])
                     busy += result.seconds

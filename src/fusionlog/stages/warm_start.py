@@ -1,15 +1,15 @@
-"""A LocalCluster started in the background while this process works on the first tasks.
+"""A LocalCluster started in the background while this process works on the first tasks
+(where its workers are spawned: elsewhere than Linux, `distributed.FORK`; forked workers are
+up a few tenths of a second after Dask's import, which would not overlap with work here, both
+holding the GIL).
 
-Starting a LocalCluster takes half a second to two (importing Dask, ~0.45 s of CPU; its
-scheduler; worker processes, each importing numpy, Dask and fusionlog where they are spawned),
-during which its workers compute nothing. `WarmStartExecutor` starts the cluster in a thread
-and meanwhile runs tasks from the front of the list in this process, one after the other;
-from the moment the cluster is ready, the tasks not yet taken go to it.
-
-Where the workers are forked (Linux, `distributed.FORK`), the thread starts only Dask's
-scheduler; the worker processes are forked afterwards by this thread, between two tasks, while
-it waits (`DaskExecutor.start_workers`): a fork copies the process as it is, and a task half
-done (a lock held, a module half imported) must not be part of the copy.
+Starting a LocalCluster takes a second or two (worker processes spawned, each importing numpy,
+Dask and fusionlog), during which its workers compute nothing. `WarmStartExecutor` starts the
+cluster in a thread and meanwhile runs tasks from the front of the list in this process, one
+after the other; from the moment the cluster has a worker, the tasks not yet taken go to it.
+The start-up is then no longer time in which nothing is computed (with a core free, a sweep
+on one worker should cost about what it costs in this process; the busy machine of
+benchmarks/README.md could not confirm it).
 
 The results still come in task order and are the same numbers: a task is the same function
 of its arguments here and in a worker (BLAS on one thread in both, `stages.montecarlo`).
@@ -38,15 +38,13 @@ class WarmStartExecutor(Executor):
         self._entered = False
         self._thread: threading.Thread | None = None
         self._old_sigint: Any = None
-        self._done_here = False
         self.description = "in this process while a LocalCluster starts"
 
     def __enter__(self) -> WarmStartExecutor:
-        # Spawned worker processes must not see Ctrl-C (`distributed._sigint_ignored`, which
-        # only the main thread can arrange): SIGINT is ignored until the cluster is up, as
-        # when the cluster is started in the foreground. (Forked ones are started from here.)
-        main = threading.current_thread() is threading.main_thread()
-        if main and not self._cluster.defers_workers:
+        # The worker processes must not see Ctrl-C (`distributed._sigint_ignored`, which only
+        # the main thread can arrange): SIGINT is ignored until the cluster is up, as when
+        # the cluster is started in the foreground.
+        if threading.current_thread() is threading.main_thread():
             self._old_sigint = signal.signal(signal.SIGINT, signal.SIG_IGN)
         self._thread = threading.Thread(target=self._start, name="fusionlog: LocalCluster")
         self._thread.start()
@@ -74,10 +72,6 @@ class WarmStartExecutor(Executor):
         self.workers = self._cluster.workers
         self.description = self._cluster.description
 
-    @property
-    def may_fork(self) -> bool:
-        return self._cluster.may_fork and not self._done_here
-
     def map(self, tasks: Sequence[Task], desc: str) -> Iterator[Any]:
         i = 0
         while i < len(tasks):
@@ -90,10 +84,7 @@ class WarmStartExecutor(Executor):
         self._wait()
         if i:
             self.description += f" (the first {i} of {len(tasks)} tasks here while it started)"
-        self._done_here = i == len(tasks)  # no worker needed: none will be forked
         if i < len(tasks):
-            self._cluster.start_workers()  # between two tasks, here (see the module's note)
-            self.workers = self._cluster.workers
             yield from self._cluster.map(tasks[i:], desc)
 
     def release(self) -> None:
