@@ -188,12 +188,13 @@ def run_sweep(
 SECONDS_PER_RUN_STEP = 5e-8
 PER_RUN_FACTOR = 40
 #: Without --workers, a sweep whose Monte Carlo is estimated below this many seconds in one
-#: process runs in this process: a LocalCluster (Dask imported here, its scheduler, workers
-#: forked or spawned: 0.9-1.4 s of CPU in all on two cores) costs about what a second core
-#: would give back on work of a few seconds (benchmarks/README.md, "Sweeps on Dask" and
-#: issue 23: 2e4 runs per point of the paper's sweep, ~1 s of work, take 1.4-1.5 s in this
-#: process and 1.6-1.7 s on two forked workers).
-LOCAL_BELOW_SECONDS = 5.0
+#: process runs in this process: a LocalCluster (Dask imported here and its scheduler,
+#: ~0.3 s before the first task; workers forked in hundredths of a second) costs about what
+#: a second core gives back on a second of work. Measured on the paper's sweep (4 points,
+#: 7 architectures; benchmarks/README.md, issue 23): 2e4 runs per point, estimated 0.6 s
+#: (about 1 s of tasks), take 1.36-1.45 s here and 1.46-1.53 s on two workers; 2e5 runs,
+#: estimated 5.9 s, 6.3-6.9 s here and 4.2-4.4 s on two workers. Break-even near 1.3 s.
+LOCAL_BELOW_SECONDS = 2.0
 
 
 def estimated_seconds(points: Sequence[GridPoint], point_archs: Sequence[tuple[str, ...]]) -> float:
@@ -210,7 +211,7 @@ def estimated_seconds(points: Sequence[GridPoint], point_archs: Sequence[tuple[s
 
 def small_work(points: Sequence[GridPoint], point_archs: Sequence[tuple[str, ...]]) -> bool:
     """Whether the default (no --workers, no --scheduler) is this process: estimated work of a
-    few seconds (`LOCAL_BELOW_SECONDS`), or one CPU (a one-worker cluster only adds its
+    couple of seconds (`LOCAL_BELOW_SECONDS`), or one CPU (a one-worker cluster only adds its
     start to the same work)."""
     return default_workers() < 2 or estimated_seconds(points, point_archs) < LOCAL_BELOW_SECONDS
 
