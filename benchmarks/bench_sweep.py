@@ -10,7 +10,8 @@ task, and what a 100-node cluster would do with a 10^8-run study.
    Targets: 1 worker no slower than 1.1x this process, 2 workers >= 1.5x faster than this
    process. The CPU seconds a worker adds (1 worker minus this process, 2 minus 1) are the
    per-worker overhead; and the same sweep at 20 000 runs without --workers (the default
-   chosen from the size of the work) against --workers 0 and 2.
+   chosen from the size of the work) against --workers 0 and 2. `--base TREE` runs the
+   sweeps of TREE/src too, in the same rounds (before and after under the same load).
 2. **Per-task overhead** (scheduling + transfer of the arguments and the result), on a
    LocalCluster of one worker started here: tasks that run `block_sums` on 8 runs (a real
    result, the size of any block's: the sums do not grow with the runs) one at a time (the
@@ -24,6 +25,7 @@ task, and what a 100-node cluster would do with a 10^8-run study.
     .venv/bin/python benchmarks/bench_sweep.py                 # about 3 minutes here
     .venv/bin/python benchmarks/bench_sweep.py --quick         # 2 x 10^4 runs, one repeat
     .venv/bin/python benchmarks/bench_sweep.py --json out.json
+    .venv/bin/python benchmarks/bench_sweep.py --sweep-only --base /tmp/base  # before/after, 1.
 """
 
 from __future__ import annotations
@@ -60,19 +62,23 @@ T_TWO_WORKERS = 1.5
 STUDY_RUNS, STUDY_POINTS, STUDY_ARCHS, NODES = 10**6, 100, 8, 100
 
 
-def sweep_once(workers: int | None, runs: int, out: Path) -> dict[str, float]:
+def sweep_once(
+    workers: int | None, runs: int, out: Path, src: Path | None = None
+) -> dict[str, float]:
     """One `fusionlog sweep` child process: its wall time, its CPU seconds (with every process
     it reaped: a LocalCluster's workers) and the phases it prints; `workers` None: the
-    default."""
+    default; `src` a tree's src/ first on the path (bytecode caching on, as installed)."""
     cmd = [str(FUSIONLOG), "sweep", str(SCENARIO), "--vary", VARY, "--runs", str(runs),
            "--out-dir", str(out), "--force"]  # fmt: skip
     if workers is not None:
         cmd += ["--workers", str(workers)]
+    env = {**os.environ, "RERUN_ANALYTICS": "0"}
+    if src is not None:
+        env["PYTHONPATH"] = str(src)
+        env.pop("PYTHONDONTWRITEBYTECODE", None)
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    res = subprocess.run(
-        cmd, capture_output=True, text=True, env={**os.environ, "RERUN_ANALYTICS": "0"}
-    )
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
@@ -87,35 +93,53 @@ def sweep_once(workers: int | None, runs: int, out: Path) -> dict[str, float]:
 
 
 def bench_workers(
-    runs: int, repeats: int, tmp: Path, counts: tuple[int | None, ...] = (0, 1, 2)
+    runs: int,
+    repeats: int,
+    tmp: Path,
+    counts: tuple[int | None, ...] = (0, 1, 2),
+    trees: dict[str, Path | None] | None = None,
 ) -> dict:
     """The sweep with each worker count of `counts` (None: the default) in turn, `repeats`
-    times; medians per count, and ratios to this process (--workers 0)."""
+    times; medians per count, and ratios to this process (--workers 0). With `trees` (name ->
+    src/), every tree's command runs in the same rounds (the trees' order alternating from
+    round to round); the first tree's figures are the main ones, the others' under "trees"."""
     import pyarrow.parquet as pq
 
     def name(w: int | None) -> str:
         return "default" if w is None else str(w)
 
-    times: dict[str, list[dict[str, float]]] = {name(w): [] for w in counts}
+    trees = trees or {"HEAD": None}
+    times = {t: {name(w): [] for w in counts} for t in trees}
     for r in range(repeats):
         for w in counts:
-            t = sweep_once(w, runs, tmp / f"w{name(w)}")
-            times[name(w)].append(t)
-            print(f"  repeat {r + 1}: --workers {name(w)}: {t['wall']:.2f} s, CPU {t['cpu']:.2f} s "
-                  f"(start {t['start']:.2f} s, tasks {t['tasks']:.2f} s), "
-                  f"load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
-    tables = [pq.read_table(tmp / f"w{name(w)}" / "sweep.parquet") for w in counts]
+            order = list(trees) if r % 2 == 0 else list(trees)[::-1]
+            for tree in order:
+                t = sweep_once(w, runs, tmp / f"{tree}-w{name(w)}", trees[tree])
+                times[tree][name(w)].append(t)
+                print(f"  repeat {r + 1}: {tree} --workers {name(w)}: {t['wall']:.2f} s, CPU "
+                      f"{t['cpu']:.2f} s (start {t['start']:.2f} s, tasks {t['tasks']:.2f} s), "
+                      f"load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
+    tables = [
+        pq.read_table(tmp / f"{t}-w{name(w)}" / "sweep.parquet") for t in trees for w in counts
+    ]
     same = all(t.equals(tables[0]) for t in tables[1:])
-    med = {w: {k: statistics.median(t[k] for t in ts) for k in ts[0]} for w, ts in times.items()}
-    # every ratio is of medians of repeats taken in turn: a disturbance of the shared machine
-    # hits all counts alike
-    ratios = {w: med["0"]["wall"] / med[w]["wall"] for w in med if w != "0"}
+    per_tree = {}
+    for tree, ts_of in times.items():
+        med = {
+            w: {k: statistics.median(t[k] for t in ts) for k in ts[0]} for w, ts in ts_of.items()
+        }
+        # every ratio is of medians of repeats taken in turn: a disturbance of the shared
+        # machine hits all counts alike
+        ratios = (
+            {w: med["0"]["wall"] / med[w]["wall"] for w in med if w != "0"} if "0" in med else {}
+        )
+        per_tree[tree] = {"median": med, "all": ts_of, "speedup_vs_in_process": ratios}
+    first = per_tree[next(iter(trees))]
     return {
         "vary": VARY,
         "runs_per_point": runs,
-        "median": med,
-        "all": times,
-        "speedup_vs_in_process": ratios,  # > 1: faster than --workers 0
+        **first,  # > 1 in speedup_vs_in_process: faster than --workers 0
+        "trees": per_tree,
         "identical_tables": same,
     }
 
@@ -213,7 +237,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--overhead-tasks", type=int, default=200)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--sweep-only", action="store_true", help="only 1. (the executors)")
+    ap.add_argument("--base", type=Path, default=None, help="also a baseline tree (its src/), "
+                    "in the same rounds (1. only)")  # fmt: skip
     args = ap.parse_args(argv)
+    trees = {"HEAD": ROOT / "src"} | ({"base": args.base / "src"} if args.base else {})
     runs = args.runs or (20_000 if args.quick else 200_000)
     repeats = args.repeats or (1 if args.quick else 3)
     out: dict = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
@@ -222,27 +249,34 @@ def main(argv: list[str] | None = None) -> int:
     print(f"1. sweep --vary {VARY} --runs {runs}: --workers 0 (this process), 1, 2 "
           f"({repeats} repeats in turn; load average {os.getloadavg()[0]:.1f})")  # fmt: skip
     with tempfile.TemporaryDirectory(prefix="fusionlog-bench-sweep-") as tmp:
-        w = out["workers"] = bench_workers(runs, repeats, Path(tmp))
+        w = out["workers"] = bench_workers(runs, repeats, Path(tmp), trees=trees)
         small = runs // 10
         print(f"   the same at {small} runs per point: the default (no --workers) vs 0 and 2")
-        out["default"] = bench_workers(small, repeats, Path(tmp), (None, 0, 2))
-    med = w["median"]
-    for k in ("0", "1", "2"):
-        m = med[k]
-        print(f"  --workers {k}, medians: wall {m['wall']:.2f} s, CPU {m['cpu']:.2f} s = start "
-              f"{m['start']:.2f} + {int(m['tasks_n'])} tasks {m['tasks']:.2f} + outputs "
-              f"{m['outputs']:.2f} + stop {m['stop']:.2f} + interpreter/imports")  # fmt: skip
-    one = med["1"]["wall"] / med["0"]["wall"]
-    two = w["speedup_vs_in_process"]["2"]
-    ok = one <= T_ONE_WORKER and two >= T_TWO_WORKERS
-    print(f"  1 worker / this process: {one:.2f}x wall (target <= {T_ONE_WORKER}x: "
-          f"{'met' if one <= T_ONE_WORKER else 'MISSED'}); this process / 2 workers: {two:.2f}x "
-          f"(target >= {T_TWO_WORKERS}x: {'met' if two >= T_TWO_WORKERS else 'MISSED'}); "
-          f"tables identical: {w['identical_tables']}")  # fmt: skip
-    print(
-        f"  CPU a worker adds: the first {med['1']['cpu'] - med['0']['cpu']:.2f} s (its start, "
-        f"Dask in this process), the second {med['2']['cpu'] - med['1']['cpu']:.2f} s"
-    )
+        head = {"HEAD": trees["HEAD"]}
+        out["default"] = bench_workers(small, repeats, Path(tmp), (None, 0, 2), head)
+    ok = True
+    for tree, tw in w["trees"].items():
+        med = tw["median"]
+        for k in ("0", "1", "2"):
+            m = med[k]
+            print(f"  {tree} --workers {k}, medians: wall {m['wall']:.2f} s, CPU "
+                  f"{m['cpu']:.2f} s = start {m['start']:.2f} + {int(m['tasks_n'])} tasks "
+                  f"{m['tasks']:.2f} + outputs {m['outputs']:.2f} + stop {m['stop']:.2f} + "
+                  "interpreter/imports")  # fmt: skip
+        one = med["1"]["wall"] / med["0"]["wall"]
+        two = tw["speedup_vs_in_process"]["2"]
+        if tree == "HEAD":  # the exit status: this tree's targets
+            ok = one <= T_ONE_WORKER and two >= T_TWO_WORKERS
+        print(f"  {tree}: 1 worker / this process: {one:.2f}x wall (target <= {T_ONE_WORKER}x: "
+              f"{'met' if one <= T_ONE_WORKER else 'MISSED'}); this process / 2 workers: "
+              f"{two:.2f}x (target >= {T_TWO_WORKERS}x: "
+              f"{'met' if two >= T_TWO_WORKERS else 'MISSED'})")  # fmt: skip
+        print(
+            f"  {tree}: CPU a worker adds: the first {med['1']['cpu'] - med['0']['cpu']:.2f} s "
+            f"(its start, Dask in this process), the second "
+            f"{med['2']['cpu'] - med['1']['cpu']:.2f} s"
+        )
+    print(f"  tables identical: {w['identical_tables']}")
     d = out["default"]["median"]
     print(f"  {small} runs per point: default {d['default']['wall']:.2f} s, --workers 0 "
           f"{d['0']['wall']:.2f} s, --workers 2 {d['2']['wall']:.2f} s; load average "

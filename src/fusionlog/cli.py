@@ -380,7 +380,7 @@ def sweep(
     sweep.rrd and summary.json (no MCAP logs: workers return metric sums).
 
     Without --workers or --scheduler: a LocalCluster of one worker per CPU when the work is
-    estimated above 5 s in one process (runs x instants x architectures, dropouts 40x),
+    estimated above 2 s in one process (runs x instants x architectures, dropouts 40x),
     else this process (so too --exact-only, and one CPU): a cluster's start costs more."""
     from fusionlog.report import format_table
     from fusionlog.stages.sweep import run_sweep

@@ -153,7 +153,8 @@ def run_sweep(
         expected: list[dict[str, Any]] = [{} for _ in points]
         sums: list[dict[str, Any]] = [{} for _ in points]
         conditional: list[dict[str, Any]] = [{} for _ in points]
-        # the writers' imports (rerun, pyarrow: a second or more) while the workers compute
+        # the writers' imports (rerun, pyarrow, scipy.special: a second or more) while the
+        # workers compute (forked ones are up by now: `distributed.FORK`)
         threading.Thread(target=_import_writers, daemon=True).start()
         with contextlib.closing(ex.map(tasks, "sweep")) as results:
             for i, result in zip(owner, results, strict=True):
@@ -187,10 +188,13 @@ def run_sweep(
 SECONDS_PER_RUN_STEP = 5e-8
 PER_RUN_FACTOR = 40
 #: Without --workers, a sweep whose Monte Carlo is estimated below this many seconds in one
-#: process runs in this process: a LocalCluster's start (worker processes importing numpy,
-#: Dask and fusionlog, ~1-2 s of CPU each on two cores) costs about what a second core
-#: would give back on work of a few seconds (benchmarks/README.md, "Sweeps on Dask").
-LOCAL_BELOW_SECONDS = 5.0
+#: process runs in this process: a LocalCluster (Dask imported here and its scheduler,
+#: ~0.3 s before the first task; workers forked in hundredths of a second) costs about what
+#: a second core gives back on a second of work. Measured on the paper's sweep (4 points,
+#: 7 architectures; benchmarks/README.md, issue 23): 2e4 runs per point, estimated 0.6 s
+#: (about 1 s of tasks), take 1.36-1.45 s here and 1.46-1.53 s on two workers; 2e5 runs,
+#: estimated 5.9 s, 6.3-6.9 s here and 4.2-4.4 s on two workers. Break-even near 1.3 s.
+LOCAL_BELOW_SECONDS = 2.0
 
 
 def estimated_seconds(points: Sequence[GridPoint], point_archs: Sequence[tuple[str, ...]]) -> float:
@@ -207,7 +211,7 @@ def estimated_seconds(points: Sequence[GridPoint], point_archs: Sequence[tuple[s
 
 def small_work(points: Sequence[GridPoint], point_archs: Sequence[tuple[str, ...]]) -> bool:
     """Whether the default (no --workers, no --scheduler) is this process: estimated work of a
-    few seconds (`LOCAL_BELOW_SECONDS`), or one CPU (a one-worker cluster only adds its
+    couple of seconds (`LOCAL_BELOW_SECONDS`), or one CPU (a one-worker cluster only adds its
     start to the same work)."""
     return default_workers() < 2 or estimated_seconds(points, point_archs) < LOCAL_BELOW_SECONDS
 
@@ -230,6 +234,7 @@ def _import_writers() -> None:
     """Import what writing the outputs needs (Python's import lock makes the writer wait for
     an import under way here rather than repeat it)."""
     import pyarrow.parquet  # noqa: F401
+    import scipy.special  # noqa: F401  (the NEES bounds of the summary: core.metrics)
 
     import fusionlog.io.rrd.sweep  # noqa: F401
 

@@ -1,4 +1,7 @@
-"""A LocalCluster started in the background while this process works on the first tasks.
+"""A LocalCluster started in the background while this process works on the first tasks
+(where its workers are spawned: elsewhere than Linux, `distributed.FORK`; forked workers are
+up a few tenths of a second after Dask's import, which would not overlap with work here, both
+holding the GIL).
 
 Starting a LocalCluster takes a second or two (worker processes spawned, each importing numpy,
 Dask and fusionlog), during which its workers compute nothing. `WarmStartExecutor` starts the
