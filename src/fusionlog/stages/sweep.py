@@ -154,7 +154,7 @@ def run_sweep(
         sums: list[dict[str, Any]] = [{} for _ in points]
         conditional: list[dict[str, Any]] = [{} for _ in points]
         # the writers' imports (rerun, pyarrow, scipy.special: a second or more) while the
-        # workers compute (forked ones are up by now: `distributed.FORK`)
+        # workers compute (forked ones are up by now: `worker_signals.FORK`)
         threading.Thread(target=_import_writers, daemon=True).start()
         with contextlib.closing(ex.map(tasks, "sweep")) as results:
             for i, result in zip(owner, results, strict=True):

@@ -1,5 +1,5 @@
 """A LocalCluster started in the background while this process works on the first tasks
-(where its workers are spawned: elsewhere than Linux, `distributed.FORK`; forked workers are
+(where its workers are spawned: elsewhere than Linux, `worker_signals.FORK`; forked workers are
 up a few tenths of a second after Dask's import, which would not overlap with work here, both
 holding the GIL).
 
@@ -41,7 +41,7 @@ class WarmStartExecutor(Executor):
         self.description = "in this process while a LocalCluster starts"
 
     def __enter__(self) -> WarmStartExecutor:
-        # The worker processes must not see Ctrl-C (`distributed._sigint_ignored`, which only
+        # The worker processes must not see Ctrl-C (`worker_signals.sigint_ignored`, which only
         # the main thread can arrange): SIGINT is ignored until the cluster is up, as when
         # the cluster is started in the foreground.
         if threading.current_thread() is threading.main_thread():
