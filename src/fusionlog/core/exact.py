@@ -284,6 +284,21 @@ def plan_of_runs(plan: Plan, runs: slice | int) -> Plan:
     )
 
 
+#: Distinct statistics of a shared plan above which DM takes the fitted grid: a simulated
+#: scenario's filters settle to a few (the fixed 1601-node grid, the reference, costs nothing
+#: there), a recorded log's instants are all distinct (2,292 of them for seven architectures:
+#: 1.8 s on the fixed grid, ~0.1 s fitted; the two agree to 1e-12, `quadratic_form`'s tests).
+FIXED_GRID_ITEMS = 256
+
+
+def _distinct_dm(P: np.ndarray, mean: np.ndarray, cov: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """E[sqrt(e^T P^-1 e)] (eq. 46) of each distinct statistic of a shared plan (`W`: the
+    whitening of P): the fixed grid for a few, the fitted grid beyond `FIXED_GRID_ITEMS`."""
+    if len(P) <= FIXED_GRID_ITEMS:
+        return expected_sqrt_quadratic(P, mean, cov)
+    return expected_sqrt_quadratic_many(P, mean, cov, W)
+
+
 def _analyse(plan: Plan, truth: System, where) -> Expected:
     n = truth.n
     mus, Cs, nx, settled = _forward_moments(plan, truth)
@@ -390,7 +405,7 @@ def _analyse(plan: Plan, truth: System, where) -> Expected:
             # Steady-state steps repeat the same statistics: integrate each distinct one once.
             key = np.concatenate([Pk.reshape(len(Pk), -1), bk, cov.reshape(len(cov), -1)], 1)
             _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-            dm_k = expected_sqrt_quadratic(Pk[first], bk[first], cov[first])[inverse.ravel()]
+            dm_k = _distinct_dm(Pk[first], bk[first], cov[first], W[first])[inverse.ravel()]
         nees[..., :m][ok] = nees_k
         dm[..., :m][ok] = dm_k
     nees[..., m:] = nees[..., m - 1, None]
