@@ -108,6 +108,51 @@ def replay_estimates(
     return out
 
 
+#: The architectures whose true error covariance under the model `replay_error_covariances`
+#: gives: the filters' own P (CKF, SKF, FBS) and the fusion rules of the local filters.
+_ANALYSED = {"CKF", "SKF", "FBS", "MSC", "MSC-GMF", "CI", "AVG"}
+
+
+def replay_error_covariances(
+    system: System, archs: Sequence[str], present: np.ndarray, criterion: str = "trace"
+) -> dict[str, tuple[np.ndarray, np.ndarray]] | None:
+    """Each architecture's true error covariance E[e_k e_k^T] and reported covariance P_k
+    (K+1, n, n) on one run with the measurement mask `present` (K+1, m), when the truth is
+    `system` itself (the caller checks it; the error means are then zero); None where the
+    plans must do it (as `replay_estimates`). HKF is left out (its fused P is not its error
+    covariance: the plans' analysis).
+
+    Under the model the Joseph form's P of eq. (18) is the error covariance of any gain, so
+    a Kalman filter's (CKF, SKF) is its P. The smoother's, eqs. (25)-(28): e_s = (I - K_s)
+    e_f - P_s eta with eta = y_b - S x independent of e_f, cov S, so E = P_s Pf^-1 P_s +
+    P_s S P_s = P_s. A fusion x = sum_j O_j x_j with sum_j O_j = I has the error O e_loc, so
+    E = O J O^T with J the local filters' joint error covariance, eq. (35).
+    """
+    z = np.where(present, 0.0, np.nan)[None]  # the covariances need only the pattern
+    if not applies(system, z):
+        return None
+    names = [s.name for s in system.sensors]
+    try:
+        bases = [parse_arch(a, names) for a in archs]
+    except ValueError:
+        return None
+    archs, bases = (
+        [a for a, b in zip(archs, bases, strict=True) if b[0] in _ANALYSED],
+        [b for b in bases if b[0] in _ANALYSED],
+    )
+    need = {b for b, _ in bases}
+    S, m, n = len(system.sensors), system.m, system.n
+    slots = bool(need & {"CKF", "FBS"}) + S * bool(need & _LOCALS)
+    if z.shape[1] * slots * m * (m + n) * 8 > MASKED_BYTES_AT_MOST:
+        return None
+    try:
+        with np.errstate(all="ignore"):
+            out = _Replay(system, z[0], need, criterion).error_covariances(archs, bases)
+    except (NumericalError, *NUMERICAL_FAILURES):
+        return None
+    return out if all(all_finite(E) and all_finite(P) for E, P in out.values()) else None
+
+
 class _Replay:
     """The recursions of the architectures `need` on one run's measurements z (K+1, m)."""
 
@@ -201,6 +246,29 @@ class _Replay:
         for a, (base, sensor) in zip(archs, bases, strict=True):
             mean, cov = rules[base](sensor)
             out[a] = Estimate(mean[None], cov)
+        return out
+
+    def error_covariances(self, archs: Sequence[str], bases) -> dict[str, tuple]:
+        """Each architecture's (E[e e^T], P) under the model (`replay_error_covariances`)."""
+        out = {}
+        for a, (base, sensor) in zip(archs, bases, strict=True):
+            if base in ("CKF", "SKF", "FBS"):  # a filter's or the smoother's own P
+                P = {"CKF": self._ckf, "SKF": self._skf, "FBS": self._fbs}[base](sensor)[1]
+                out[a] = (P, P)
+                continue
+            if base == "AVG":  # its P is O J O^T already
+                P = self._avg(sensor)[1]
+                out[a] = (P, P)
+                continue
+            J = self._joint()
+            if base == "MSC":
+                O, P = msc_fusion(np.zeros((self.K1, self.S), dtype=bool), self._local_P)
+            elif base == "CI":
+                forms = np.zeros((self.K1, self.S), dtype=bool)
+                O, P, _ = ci_fusion(forms, self._local_P, self.criterion)
+            else:  # MSC-GMF
+                O, P = self._gmf(J)
+            out[a] = (_sym(O @ J @ O.swapaxes(-1, -2)), P)
         return out
 
     def _ckf(self, sensor):
