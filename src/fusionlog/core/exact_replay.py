@@ -6,9 +6,9 @@ is the filters' model itself (the same F, G Q G^T, H, R at every instant and the
 initial distribution: a replay's usual case), the true error statistics are what the filters
 already compute: zero means, and the error covariances of `replay.replay_error_covariances`
 (a Kalman filter's or the smoother's own P, O J O^T for a fusion O of the local filters, J of
-eq. 35). The NEES and DM follow from them as in the plans' analysis (`shared_nees_and_dm`).
-Anything else (HKF, a mismatched truth, what the replay path refuses, a reported covariance
-not positive definite) is left to the plans, which also name a failing step.
+eq. 35, HKF's own recursion). The NEES and DM follow from them as in the plans' analysis
+(`shared_nees_and_dm`). Anything else (a mismatched truth, what the replay path refuses, a
+reported covariance not positive definite) is left to the plans, which name a failing step.
 """
 
 from __future__ import annotations
