@@ -1,8 +1,12 @@
-"""The exact analysis of a recorded log (issue 22d): every instant of a replay is a distinct
-statistic, which the analysis integrates for DM (eq. 46) on the fitted grid of the per-run
-analysis rather than the shared plans' fixed 1601-node grid. Both against the fixed grid
-(within its truncation, `test_exact_per_run.test_many_agrees_with_the_fixed_grid`) and, for a
-filter consistent under the model, against the chi mean.
+"""The exact analysis of a recorded log (issue 22d).
+
+`core.exact_replay` (one run, the truth the filters' model): every architecture's MSE matrix,
+NEES, DM and reported P equal to `exact.analyse` of its plan to what rounding-level changes of
+the model move the plans' numbers by (`conditioning.sensitivity`), on replay_robot's first
+instants (per-message R, irregular instants) and on correlated sensors with gaps; a truth other
+than the model goes to the plans; `fusionlog run` takes it. And DM of a shared plan's many
+distinct statistics (a replay's instants), integrated on the per-run analysis' fitted grid:
+against the fixed 1601-node grid within its truncation and, for the CKF, the chi mean.
 """
 
 from __future__ import annotations
