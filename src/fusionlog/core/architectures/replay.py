@@ -108,6 +108,51 @@ def replay_estimates(
     return out
 
 
+#: The architectures whose true error covariance under the model `replay_error_covariances`
+#: gives: the filters' own P (CKF, SKF, FBS), HKF's recursion, the local filters' fusions.
+_ANALYSED = {"CKF", "SKF", "HKF", "FBS", "MSC", "MSC-GMF", "CI", "AVG"}
+
+
+def replay_error_covariances(
+    system: System, archs: Sequence[str], present: np.ndarray, criterion: str = "trace"
+) -> dict[str, tuple[np.ndarray, np.ndarray]] | None:
+    """Each architecture's true error covariance E[e_k e_k^T] and reported covariance P_k
+    (K+1, n, n) on one run with the measurement mask `present` (K+1, m), when the truth is
+    `system` itself (the caller checks it; the error means are then zero); None where the
+    plans must do it (as `replay_estimates`; HKF on noise levels spanning more than 1e8 is
+    left out).
+
+    Under the model the Joseph form's P of eq. (18) is the error covariance of any gain, so
+    a Kalman filter's (CKF, SKF) is its P. The smoother's, eqs. (25)-(28): e_s = (I - K_s)
+    e_f - P_s eta with eta = y_b - S x independent of e_f, cov S, so E = P_s Pf^-1 P_s +
+    P_s S P_s = P_s. A fusion x = sum_j O_j x_j with sum_j O_j = I has the error O e_loc, so
+    E = O J O^T with J the local filters' joint error covariance, eq. (35). HKF's fused P is
+    not its error covariance: it has its own recursion (`_hkf_error`).
+    """
+    z = np.where(present, 0.0, np.nan)[None]  # the covariances need only the pattern
+    if not applies(system, z):
+        return None
+    names = [s.name for s in system.sensors]
+    try:
+        bases = [parse_arch(a, names) for a in archs]
+    except ValueError:
+        return None
+    keep = [b[0] in _ANALYSED and not (b[0] == "HKF" and wide_range(system)) for b in bases]
+    archs = [a for a, k in zip(archs, keep, strict=True) if k]
+    bases = [b for b, k in zip(bases, keep, strict=True) if k]
+    need = {b for b, _ in bases}
+    S, m, n = len(system.sensors), system.m, system.n
+    slots = bool(need & {"CKF", "FBS"}) + S * bool(need & _LOCALS) + (S + 1) * ("HKF" in need)
+    if z.shape[1] * slots * m * (m + n) * 8 > MASKED_BYTES_AT_MOST:
+        return None
+    try:
+        with np.errstate(all="ignore"):
+            out = _Replay(system, z[0], need, criterion).error_covariances(archs, bases)
+    except (NumericalError, *NUMERICAL_FAILURES):
+        return None
+    return out if all(all_finite(E) and all_finite(P) for E, P in out.values()) else None
+
+
 class _Replay:
     """The recursions of the architectures `need` on one run's measurements z (K+1, m)."""
 
@@ -164,14 +209,8 @@ class _Replay:
                 Ab = np.einsum("kfij,kj->kfi", b.K[:, kf], self.z)
                 parts.append((name, count, b.IKH[:, kf] @ F[:, None], Ab))
         if self.hkf is not None:
-            h = self.hkf + 1
-            Y = b.Y_hkf  # (K+1, S+1, n, n): Y_pred, Y_1..Y_S
-            # (1 - S) Y_pred + sum_j Y_j (I - K_j H_j), summed in that order as the plans do
-            Tacc = np.concatenate([(1.0 - S) * Y[:, :1], Y[:, 1:] @ b.IKH[:, h:]], axis=1)
-            U = (Y[:, 1:] @ b.K[:, h:]).sum(axis=1)
-            Ph = b.P_hkf
-            Ab = np.einsum("kij,kj->ki", Ph @ U, self.z)[:, None]
-            parts.append(("hkf", 1, (Ph @ Tacc.sum(axis=1) @ F)[:, None], Ab))
+            M, B = self._hkf_maps()
+            parts.append(("hkf", 1, (M @ F)[:, None], np.einsum("kij,kj->ki", B, self.z)[:, None]))
         if not parts:
             return {}
         x0 = np.broadcast_to(self.system.prior.mean, (sum(p[1] for p in parts), n))
@@ -182,6 +221,27 @@ class _Replay:
             out[name] = X[:, at] if name != "loc" else X[:, at : at + count]
             at += count
         return out
+
+    def _hkf_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """HKF's x_k = M_k F x_{k-1} + B_k z_k (eqs. 38-40): M = P Tacc, B = P U (K+1, ...)."""
+        b, S, h = self.bank, self.S, self.hkf + 1
+        Y = b.Y_hkf  # (K+1, S+1, n, n): Y_pred, Y_1..Y_S
+        # (1 - S) Y_pred + sum_j Y_j (I - K_j H_j), summed in that order as the plans do
+        Tacc = np.concatenate([(1.0 - S) * Y[:, :1], Y[:, 1:] @ b.IKH[:, h:]], axis=1)
+        U = (Y[:, 1:] @ b.K[:, h:]).sum(axis=1)
+        return b.P_hkf @ Tacc.sum(axis=1), b.P_hkf @ U
+
+    def _hkf_error(self) -> np.ndarray:
+        """HKF's error covariance under the model: M + B H = I (K_j H = K_j H_j, so Tacc + U H
+        is the fused information P^-1), so e_k = M_k (F_k e_{k-1} + w_k) - B_k v_k and E_k =
+        sym(M F E_{k-1} F' M' + M Q M' + B R B') from the prior's covariance (no F, no w at
+        k = 0), as `joint_recursion` takes it."""
+        M, B = self._hkf_maps()
+        A = M.copy()
+        A[1:] = M[1:] @ self.Fs
+        C = B @ self._masked_R() @ B.swapaxes(-1, -2)
+        C[1:] += M[1:] @ self.Qs @ M[1:].swapaxes(-1, -2)
+        return joint_recursion(A, C, self.system.prior.cov)
 
     # -- the architectures --------------------------------------------------------------------
 
@@ -201,6 +261,32 @@ class _Replay:
         for a, (base, sensor) in zip(archs, bases, strict=True):
             mean, cov = rules[base](sensor)
             out[a] = Estimate(mean[None], cov)
+        return out
+
+    def error_covariances(self, archs: Sequence[str], bases) -> dict[str, tuple]:
+        """Each architecture's (E[e e^T], P) under the model (`replay_error_covariances`)."""
+        out = {}
+        for a, (base, sensor) in zip(archs, bases, strict=True):
+            if base == "HKF":
+                out[a] = (self._hkf_error(), self.bank.P_hkf)
+                continue
+            if base in ("CKF", "SKF", "FBS"):  # a filter's or the smoother's own P
+                P = {"CKF": self._ckf, "SKF": self._skf, "FBS": self._fbs}[base](sensor)[1]
+                out[a] = (P, P)
+                continue
+            if base == "AVG":  # its P is O J O^T already
+                P = self._avg(sensor)[1]
+                out[a] = (P, P)
+                continue
+            J = self._joint()
+            if base == "MSC":
+                O, P = msc_fusion(np.zeros((self.K1, self.S), dtype=bool), self._local_P)
+            elif base == "CI":
+                forms = np.zeros((self.K1, self.S), dtype=bool)
+                O, P, _ = ci_fusion(forms, self._local_P, self.criterion)
+            else:  # MSC-GMF
+                O, P = self._gmf(J)
+            out[a] = (_sym(O @ J @ O.swapaxes(-1, -2)), P)
         return out
 
     def _ckf(self, sensor):
@@ -251,10 +337,7 @@ class _Replay:
         b, lo = self.bank, self.loc
         IKH = b.IKH[:, lo : lo + S]  # (K+1, S, n, n)
         Lam = b.K[:, lo : lo + S].reshape(K1, S * n, -1)
-        # the R the plans' J uses: every component's, cross-covariances included, masked
-        pf = self.present.astype(float)
-        Rk = self.R * (pf[:, :, None] * pf[:, None, :]) + np.eye(pf.shape[1]) * (1 - pf)[:, None]
-        C = Lam @ Rk @ Lam.swapaxes(-1, -2)
+        C = Lam @ self._masked_R() @ Lam.swapaxes(-1, -2)
         # Psi Gam Q Gam' Psi' = [Psi_i Q Psi_j'] and Psi Phi = blockdiag(Psi_j F), block by block
         C[1:] += (IKH[1:] @ self.Qs[:, None]).reshape(K1 - 1, S * n, n) @ _rows(IKH[1:]).swapaxes(
             -1, -2
@@ -267,6 +350,12 @@ class _Replay:
         J0 = np.tile(self.system.prior.cov, (S, S))
         self._J = joint_recursion(A, C, J0)
         return self._J
+
+    def _masked_R(self) -> np.ndarray:
+        """The R the plans' error covariances use: every component's, cross-covariances
+        included, an absent one's decoupled with unit variance (its gain column is zero)."""
+        pf = self.present.astype(float)
+        return self.R * (pf[:, :, None] * pf[:, None, :]) + np.eye(pf.shape[1]) * (1 - pf)[:, None]
 
     def _gmf(self, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Eqs. (5)-(7) at every instant: where J is safely positive definite the closed form

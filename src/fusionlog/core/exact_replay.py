@@ -1,0 +1,72 @@
+"""The exact analysis of one recorded log without plans (issue 22d).
+
+The plans' analysis (`exact.analyse`) propagates the joint moments of the truth and every
+estimator state through each step's maps T, U, O: what a model mismatch needs. When the truth
+is the filters' model itself (the same F, G Q G^T, H, R at every instant and the prior as the
+initial distribution: a replay's usual case), the true error statistics are what the filters
+already compute: zero means, and the error covariances of `replay.replay_error_covariances`
+(a Kalman filter's or the smoother's own P, O J O^T for a fusion O of the local filters, J of
+eq. 35, HKF's own recursion). The NEES and DM follow from them as in the plans' analysis
+(`shared_nees_and_dm`). Anything else (a mismatched truth, what the replay path refuses, a
+reported covariance not positive definite) is left to the plans, which name a failing step.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from .architectures.replay import replay_error_covariances
+from .exact import Expected, shared_nees_and_dm
+from .model import System
+
+
+def _per_step(a: np.ndarray | None, default: np.ndarray, count: int) -> np.ndarray:
+    return np.broadcast_to(default if a is None else a, (count,) + default.shape)
+
+
+def truth_is_model(model: System, truth: System, steps: int) -> bool:
+    """Whether `truth` (as the filters see it) is `model` on the instants k = 0..steps: the
+    same matrices bit for bit and the prior as its initial distribution."""
+    if model.prior is None or model.n != truth.n or model.m != truth.m:
+        return False
+    if not (model.linear and truth.linear):
+        return False
+    init = truth.truth_initial
+    same = [
+        (model.linear_measurement(), truth.linear_measurement()),
+        (model.prior.mean, init.mean),
+        (model.prior.cov, init.cov),
+        (_per_step(model.Fs, model.F, steps), _per_step(truth.Fs, truth.F, steps)),
+        (_per_step(model.Qs, model.GQG, steps), _per_step(truth.Qs, truth.GQG, steps)),
+        (_per_step(model.Rs, model.R, steps + 1), _per_step(truth.Rs, truth.R, steps + 1)),
+    ]
+    return all(a.shape == b.shape and np.array_equal(a, b) for a, b in same)
+
+
+def replay_expected(
+    model: System,
+    truth: System,
+    archs: Sequence[str],
+    present: np.ndarray | None,
+    steps: int,
+    criterion: str = "trace",
+) -> dict[str, Expected]:
+    """The exact expected statistics (`exact.Expected`, (K+1, ...)) of the architectures of
+    one run with the measurement mask `present` (K+1, m) (None: all present) that this path
+    covers, equal to `exact.analyse` of their plans to rounding; the others are not in it."""
+    if not truth_is_model(model, truth, steps):
+        return {}
+    if present is None:
+        present = np.ones((steps + 1, model.m), dtype=bool)
+    covs = replay_error_covariances(model, list(archs), present, criterion)
+    if covs is None:
+        return {}
+    out = {}
+    for a, (mse, P) in covs.items():
+        bias = np.zeros(P.shape[:-1])
+        nees, dm, definite = shared_nees_and_dm(P, bias, mse)
+        if definite.all() and np.isfinite(nees).all() and np.isfinite(dm).all():
+            out[a] = Expected(mse, bias, P, nees, dm)
+    return out

@@ -1,0 +1,178 @@
+"""The exact analysis of a recorded log (issue 22d).
+
+`core.exact_replay` (one run, the truth the filters' model): every architecture's MSE matrix,
+NEES, DM and reported P equal to `exact.analyse` of its plan to what rounding-level changes of
+the model move the plans' numbers by (`conditioning.sensitivity`), on replay_robot's first
+instants (per-message R, irregular instants) and on correlated sensors with gaps; a truth other
+than the model goes to the plans; `fusionlog run` takes it. And DM of a shared plan's many
+distinct statistics (a replay's instants), integrated on the per-run analysis' fitted grid:
+against the fixed 1601-node grid within its truncation and, for the CKF, the chi mean.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from cli_helpers import ok
+from conditioning import assert_agree, sensitivity
+from conftest import random_system
+from scipy import special
+
+from fusionlog.core.architectures import STATE_ARCHITECTURES, build_plan
+from fusionlog.core.exact import FIXED_GRID_ITEMS, analyse, expected_sqrt_quadratic
+from fusionlog.core.exact_replay import replay_expected
+from fusionlog.core.model import Prior
+from fusionlog.core.simulate import simulate
+from fusionlog.io.mcap import McapFile
+from fusionlog.stages.common import scenario_from_file
+from fusionlog.stages.noise import with_message_covariances
+
+ROOT = Path(__file__).resolve().parents[1]
+REPLAY = ROOT / "pipeline" / "replay_robot.toml"
+#: Enough instants for the fitted grid (more distinct statistics than FIXED_GRID_ITEMS).
+INSTANTS = 400
+RTOL = 1e-12
+
+
+@pytest.fixture(scope="module")
+def robot(tmp_path_factory):
+    """replay_robot's filter model on its first instants with its messages' R, and the mask
+    of its readings."""
+    path = tmp_path_factory.mktemp("exact") / "s.mcap"
+    ok("import", REPLAY, "-o", path)
+    mf = McapFile(path)
+    system = with_message_covariances(scenario_from_file(mf).system.on_times(mf.times()), mf)
+    topics = [f"/sensors/{s.name}" for s in system.sensors]
+    z = np.concatenate([mf.read_all([t])[t] for t in topics], axis=-1)[0, :INSTANTS]
+    system = _head(system, INSTANTS)
+    return system, ~np.isnan(z)
+
+
+def _head(system, K1: int):
+    """The model cut to its first K1 instants."""
+    cut = dataclasses.replace(system, Fs=system.Fs[: K1 - 1], Qs=system.Qs[: K1 - 1])
+    return dataclasses.replace(cut, Rs=system.Rs[:K1])
+
+
+def _archs(system) -> list[str]:
+    return [a for a in STATE_ARCHITECTURES if a != "SKF"] + [
+        f"SKF:{s.name}" for s in system.sensors
+    ]
+
+
+def test_every_architecture_s_dm_on_a_recorded_log_is_the_fixed_grid_s(robot) -> None:
+    """DM of each instant against the fixed grid on the same statistics: they agree within
+    the fixed grid's truncation at t = e^-60, 2 E[q] e^-30 / (2 sqrt(pi)) (1e-12 relative and
+    6e-14 of the expected NEES, as for the per-run routines)."""
+    system, present = robot
+    for a in _archs(system):
+        ex = analyse(build_plan(system, a, INSTANTS - 1, present), system)
+        ok_ = ex.defined
+        assert ok_.sum() > FIXED_GRID_ITEMS, a
+        cov = ex.mse - ex.bias[..., :, None] * ex.bias[..., None, :]
+        want = expected_sqrt_quadratic(ex.P[ok_], ex.bias[ok_], cov[ok_])
+        tol = 1e-12 * want + 6e-14 * (ex.nees[ok_] + 1.0)
+        assert (np.abs(ex.dm[ok_] - want) <= tol).all(), a
+
+
+def test_a_consistent_filter_s_dm_is_the_chi_mean(robot) -> None:
+    """The CKF is the model's optimal filter: its error covariance is its P, so its DM is the
+    chi mean sqrt(2) G((n+1)/2) / G(n/2) at every instant, to the rounding of E[e e^T] = P
+    (the NEES, n, tells it) and the fitted grid's 1e-15 (ten times over). The fixed grid is
+    1.4e-13 below it here (its truncation at t = e^-60)."""
+    system, present = robot
+    ex = analyse(build_plan(system, "CKF", INSTANTS - 1, present), system)
+    n = system.n
+    chi_mean = np.sqrt(2) * special.gamma((n + 1) / 2) / special.gamma(n / 2)
+    off = np.abs(ex.nees - n).max() / n  # how far rounding moved E[e e^T] from P
+    np.testing.assert_allclose(ex.dm, chi_mean, rtol=off + 1e-14)
+
+
+def _gappy():
+    """A random model: three sensors of sizes 1, 2, 1, the first two with correlated noise,
+    a quarter of the components missing (some instants none, some all)."""
+    system = random_system(np.random.default_rng(3), 3, [1, 2, 1], correlated=True)
+    _, z = simulate(system, 150, 4, 0, 1)
+    present = np.random.default_rng(8).random(z.shape[1:]) >= 0.25
+    return system, present
+
+
+def _check_against_plans(system, present) -> None:
+    """Every architecture (`replay_expected` covers them all here) against `analyse` of its
+    plan, to what rounding-level changes of the model move the plans' numbers by."""
+    K = len(present) - 1
+    archs = _archs(system)
+    fast = replay_expected(system, system, archs, present, K)
+    assert sorted(fast) == sorted(archs)
+    for a, ex in fast.items():
+
+        def plans(s, a=a):
+            e = analyse(build_plan(s, a, K, present), s)
+            return SimpleNamespace(mse=e.mse, bias=e.bias, nees=e.nees, dm=e.dm, P=e.P)
+
+        sens = sensitivity(plans, system, ("mse", "nees", "dm", "P"))
+        base = plans(system)
+        for f in ("mse", "nees", "dm", "P"):
+            tol = sens.tolerance(f, RTOL)
+            assert_agree(getattr(ex, f), getattr(base, f), tol, sens.unsettled, f"{a} {f}")
+        # the plans' error means are zero to rounding of the prior's mean (the truth's)
+        scale = np.abs(system.prior.mean).max() + np.sqrt(np.abs(base.mse).max())
+        assert np.abs(base.bias).max() <= 1e-12 * scale
+        np.testing.assert_array_equal(ex.bias, 0.0)
+
+
+def test_every_architecture_equals_the_plans_analysis_on_a_recorded_log(robot) -> None:
+    system, present = robot
+    _check_against_plans(system, present)
+
+
+def test_every_architecture_equals_the_plans_analysis_with_gaps() -> None:
+    system, present = _gappy()
+    _check_against_plans(system, present)
+
+
+def test_a_truth_other_than_the_model_goes_to_the_plans(robot) -> None:
+    """A mismatched truth (another R, or another initial distribution) needs the plans'
+    joint moments: nothing here."""
+    system, present = robot
+    K = len(present) - 1
+    louder = dataclasses.replace(system, Rs=system.Rs * 2.0)
+    assert replay_expected(system, louder, ["CKF"], present, K) == {}
+    init = Prior(system.prior.mean + 1.0, system.prior.cov)
+    assert (
+        replay_expected(system, dataclasses.replace(system, initial=init), ["CKF"], present, K)
+        == {}
+    )
+    assert "CKF" in replay_expected(system, system, ["CKF"], present, K)
+
+
+def test_the_evaluate_stage_takes_it_for_one_run(tmp_path, monkeypatch) -> None:
+    """`fusionlog run` of a recorded log: the same summary with the plans' analysis alone
+    (within rounding: the goldens' relative 1e-9 is far above it), and none of the covered
+    architectures' plans built."""
+    import json
+
+    from fusionlog.core import exact_replay
+
+    def run(out):
+        ok("run", REPLAY, "--out-dir", out, "--arch", "CKF", "--arch", "MSC", "--arch", "HKF")
+        return json.loads((out / "summary.json").read_text())
+
+    seen = []
+
+    def recorded(*args, replay_expected=exact_replay.replay_expected):
+        seen.append(replay_expected(*args))
+        return seen[-1]
+
+    monkeypatch.setattr(exact_replay, "replay_expected", recorded)
+    fast = run(tmp_path / "fast")
+    assert len(seen) == 1 and sorted(seen[0]) == ["CKF", "HKF", "MSC"]
+    monkeypatch.setattr(exact_replay, "truth_is_model", lambda *a: False)
+    slow = run(tmp_path / "slow")
+    for a in ("CKF", "MSC", "HKF"):
+        for f, v in slow["architectures"][a]["expected"].items():
+            assert fast["architectures"][a]["expected"][f] == pytest.approx(v, rel=1e-9), (a, f)
