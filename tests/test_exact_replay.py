@@ -12,27 +12,20 @@ against the fixed 1601-node grid within its truncation and, for the CKF, the chi
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from cli_helpers import ok
 from conditioning import assert_agree, sensitivity
-from conftest import random_system
+from replay_helpers import REPLAY, gappy, head, robot_log, state_archs
 from scipy import special
 
-from fusionlog.core.architectures import STATE_ARCHITECTURES, build_plan
+from fusionlog.core.architectures import build_plan
 from fusionlog.core.exact import FIXED_GRID_ITEMS, analyse, expected_sqrt_quadratic
 from fusionlog.core.exact_replay import replay_expected
 from fusionlog.core.model import Prior
-from fusionlog.core.simulate import simulate
-from fusionlog.io.mcap import McapFile
-from fusionlog.stages.common import scenario_from_file
-from fusionlog.stages.noise import with_message_covariances
 
-ROOT = Path(__file__).resolve().parents[1]
-REPLAY = ROOT / "pipeline" / "replay_robot.toml"
 #: Enough instants for the fitted grid (more distinct statistics than FIXED_GRID_ITEMS).
 INSTANTS = 400
 RTOL = 1e-12
@@ -42,26 +35,9 @@ RTOL = 1e-12
 def robot(tmp_path_factory):
     """replay_robot's filter model on its first instants with its messages' R, and the mask
     of its readings."""
-    path = tmp_path_factory.mktemp("exact") / "s.mcap"
-    ok("import", REPLAY, "-o", path)
-    mf = McapFile(path)
-    system = with_message_covariances(scenario_from_file(mf).system.on_times(mf.times()), mf)
-    topics = [f"/sensors/{s.name}" for s in system.sensors]
-    z = np.concatenate([mf.read_all([t])[t] for t in topics], axis=-1)[0, :INSTANTS]
-    system = _head(system, INSTANTS)
-    return system, ~np.isnan(z)
-
-
-def _head(system, K1: int):
-    """The model cut to its first K1 instants."""
-    cut = dataclasses.replace(system, Fs=system.Fs[: K1 - 1], Qs=system.Qs[: K1 - 1])
-    return dataclasses.replace(cut, Rs=system.Rs[:K1])
-
-
-def _archs(system) -> list[str]:
-    return [a for a in STATE_ARCHITECTURES if a != "SKF"] + [
-        f"SKF:{s.name}" for s in system.sensors
-    ]
+    _, system, z = robot_log(tmp_path_factory.mktemp("exact"))
+    system, z = head(system, z, INSTANTS)
+    return system, ~np.isnan(z[0])
 
 
 def test_every_architecture_s_dm_on_a_recorded_log_is_the_fixed_grid_s(robot) -> None:
@@ -69,7 +45,7 @@ def test_every_architecture_s_dm_on_a_recorded_log_is_the_fixed_grid_s(robot) ->
     the fixed grid's truncation at t = e^-60, 2 E[q] e^-30 / (2 sqrt(pi)) (1e-12 relative and
     6e-14 of the expected NEES, as for the per-run routines)."""
     system, present = robot
-    for a in _archs(system):
+    for a in state_archs(system):
         ex = analyse(build_plan(system, a, INSTANTS - 1, present), system)
         ok_ = ex.defined
         assert ok_.sum() > FIXED_GRID_ITEMS, a
@@ -93,19 +69,16 @@ def test_a_consistent_filter_s_dm_is_the_chi_mean(robot) -> None:
 
 
 def _gappy():
-    """A random model: three sensors of sizes 1, 2, 1, the first two with correlated noise,
-    a quarter of the components missing (some instants none, some all)."""
-    system = random_system(np.random.default_rng(3), 3, [1, 2, 1], correlated=True)
-    _, z = simulate(system, 150, 4, 0, 1)
-    present = np.random.default_rng(8).random(z.shape[1:]) >= 0.25
-    return system, present
+    """`replay_helpers.gappy` as the mask of its readings."""
+    system, z = gappy()
+    return system, ~np.isnan(z[0])
 
 
 def _check_against_plans(system, present) -> None:
     """Every architecture (`replay_expected` covers them all here) against `analyse` of its
     plan, to what rounding-level changes of the model move the plans' numbers by."""
     K = len(present) - 1
-    archs = _archs(system)
+    archs = state_archs(system)
     fast = replay_expected(system, system, archs, present, K)
     assert sorted(fast) == sorted(archs)
     for a, ex in fast.items():

@@ -9,17 +9,15 @@ missing components; the CKF equals a Kalman filter written here (1e-9); the esti
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from cli_helpers import ok
 from conditioning import assert_agree, sensitivity
-from conftest import random_system
+from replay_helpers import gappy, head, robot_log, state_archs
 
 from fusionlog.core.architectures import (
-    STATE_ARCHITECTURES,
     block,
     build_plan,
     estimate,
@@ -27,13 +25,8 @@ from fusionlog.core.architectures import (
     run_plan,
 )
 from fusionlog.core.architectures.replay import applies, replay_estimates
-from fusionlog.core.simulate import simulate
 from fusionlog.io.mcap import McapFile
-from fusionlog.stages.common import scenario_from_file
-from fusionlog.stages.noise import with_message_covariances
 
-ROOT = Path(__file__).resolve().parents[1]
-REPLAY = ROOT / "pipeline" / "replay_robot.toml"
 #: The first instants of the log (every sensor measures in them, the localiser a few times):
 #: the plans of the whole log, five times over for the sensitivity, would take a minute.
 INSTANTS = 400
@@ -42,39 +35,13 @@ RTOL = 1e-12
 
 @pytest.fixture(scope="module")
 def robot(tmp_path_factory):
-    """replay_robot's filter model on its instants with its messages' R, and its one run."""
-    path = tmp_path_factory.mktemp("fast") / "s.mcap"
-    ok("import", REPLAY, "-o", path)
-    mf = McapFile(path)
-    system = with_message_covariances(scenario_from_file(mf).system.on_times(mf.times()), mf)
-    topics = [f"/sensors/{s.name}" for s in system.sensors]
-    z = np.concatenate([mf.read_all([t])[t] for t in topics], axis=-1)
-    return path, system, z
-
-
-def _head(system, z, K1: int):
-    """The log cut to its first K1 instants."""
-    cut = dataclasses.replace(system, Fs=system.Fs[: K1 - 1], Qs=system.Qs[: K1 - 1])
-    return dataclasses.replace(cut, Rs=system.Rs[:K1]), z[:, :K1]
-
-
-def _gappy():
-    """A random model: three sensors of sizes 1, 2, 1, the first two with correlated noise,
-    a quarter of the components missing (some instants none, some all)."""
-    system = random_system(np.random.default_rng(3), 3, [1, 2, 1], correlated=True)
-    _, z = simulate(system, 150, 4, 0, 1)
-    z[np.random.default_rng(8).random(z.shape) < 0.25] = np.nan
-    return system, z
-
-
-def _archs(system) -> list[str]:
-    return [a for a in STATE_ARCHITECTURES if a != "SKF"] + [
-        f"SKF:{s.name}" for s in system.sensors
-    ]
+    """replay_robot's sensors file, filter model on its instants with its messages' R, and its
+    one run."""
+    return robot_log(tmp_path_factory.mktemp("fast"))
 
 
 def _check_against_plans(system, z) -> None:
-    archs = _archs(system)
+    archs = state_archs(system)
     fast = replay_estimates(system, archs, z)
     assert fast is not None and list(fast) == archs
     K = z.shape[1] - 1
@@ -96,13 +63,13 @@ def _check_against_plans(system, z) -> None:
 
 def test_every_architecture_equals_its_plan_on_a_recorded_log(robot) -> None:
     _, system, z = robot
-    system, z = _head(system, z, INSTANTS)
+    system, z = head(system, z, INSTANTS)
     assert applies(system, z)
     _check_against_plans(system, z)
 
 
 def test_every_architecture_equals_its_plan_with_gaps_and_correlated_sensors() -> None:
-    system, z = _gappy()
+    system, z = gappy()
     assert applies(system, z)
     _check_against_plans(system, z)
 
@@ -161,11 +128,11 @@ def test_the_estimate_command_takes_it_for_one_run(robot, tmp_path, monkeypatch)
 
 def test_what_it_does_not_cover_goes_to_the_plans(robot) -> None:
     _, system, z = robot
-    system, z = _head(system, z, 60)
+    system, z = head(system, z, 60)
     # two runs, no prior, a steady recursion (time-invariant, nothing missing): the plans
     assert not applies(system, np.concatenate([z, z]))
     assert replay_estimates(dataclasses.replace(system, prior=None), ["CKF"], z) is None
-    steady, zs = _gappy()
+    steady, zs = gappy()
     zs = np.nan_to_num(zs)
     assert not applies(steady, zs) and replay_estimates(steady, ["CKF"], zs) is None
     # `estimate` of one run takes it, of two runs the plans: the same numbers either way
@@ -177,7 +144,7 @@ def test_what_it_does_not_cover_goes_to_the_plans(robot) -> None:
 def test_numbers_beyond_the_float_range_go_to_the_plans(robot) -> None:
     """An infinite measurement: no estimate here, the plans name the step."""
     _, system, z = robot
-    system, z = _head(system, z, 60)
+    system, z = head(system, z, 60)
     z = z.copy()
     z[0, 30, 0] = np.inf
     assert replay_estimates(system, ["CKF", "MSC"], z) is None
@@ -188,8 +155,8 @@ def test_an_architecture_alone_gets_the_numbers_it_gets_among_all(robot) -> None
     numbers do not depend on the others (the same operations on its own matrices; bit for bit
     here, to rounding wherever BLAS picked another kernel for another batch)."""
     _, system, z = robot
-    system, z = _head(system, z, 120)
-    archs = _archs(system)
+    system, z = head(system, z, 120)
+    archs = state_archs(system)
     together = replay_estimates(system, archs, z)
     for a in archs:
         alone = replay_estimates(system, [a], z)[a]
@@ -201,7 +168,7 @@ def test_an_architecture_alone_gets_the_numbers_it_gets_among_all(robot) -> None
 def test_many_sensors_on_a_long_log_go_to_the_plans(robot, monkeypatch) -> None:
     """Every slot's masked H and R for every instant are kept: beyond a bound, the plans."""
     _, system, z = robot
-    system, z = _head(system, z, 60)
+    system, z = head(system, z, 60)
     assert replay_estimates(system, ["CKF"], z) is not None
     one_slot = 60 * system.m * (system.m + system.n) * 8  # H and R of 60 instants, 8 bytes each
     monkeypatch.setattr(replay, "MASKED_BYTES_AT_MOST", one_slot)

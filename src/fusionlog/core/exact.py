@@ -291,14 +291,6 @@ def plan_of_runs(plan: Plan, runs: slice | int) -> Plan:
 FIXED_GRID_ITEMS = 256
 
 
-def _distinct_dm(P: np.ndarray, mean: np.ndarray, cov: np.ndarray, W: np.ndarray) -> np.ndarray:
-    """E[sqrt(e^T P^-1 e)] (eq. 46) of each distinct statistic of a shared plan (`W`: the
-    whitening of P): the fixed grid for a few, the fitted grid beyond `FIXED_GRID_ITEMS`."""
-    if len(P) <= FIXED_GRID_ITEMS:
-        return expected_sqrt_quadratic(P, mean, cov)
-    return expected_sqrt_quadratic_many(P, mean, cov, W)
-
-
 def shared_nees_and_dm(
     P: np.ndarray, bias: np.ndarray, mse: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -316,7 +308,12 @@ def shared_nees_and_dm(
     # Steady-state steps repeat the same statistics: integrate each distinct one once.
     key = np.concatenate([P.reshape(len(P), -1), bias, cov.reshape(len(cov), -1)], 1)
     _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    dm = _distinct_dm(P[first], bias[first], cov[first], W[first])[inverse.ravel()]
+    # DM, eq. (46), of each: the fixed grid for a few, the fitted one beyond FIXED_GRID_ITEMS.
+    Pd, bd, cd = P[first], bias[first], cov[first]
+    if len(first) <= FIXED_GRID_ITEMS:
+        dm = expected_sqrt_quadratic(Pd, bd, cd)[inverse.ravel()]
+    else:
+        dm = expected_sqrt_quadratic_many(Pd, bd, cd, W[first])[inverse.ravel()]
     return nees, dm, definite
 
 

@@ -83,34 +83,37 @@ def replay_estimates(
     on a long log (`MASKED_BYTES_AT_MOST`), numbers beyond the float range."""
     if not applies(system, z):
         return None
-    names = [s.name for s in system.sensors]
-    try:
-        bases = [parse_arch(a, names) for a in archs]
-    except ValueError:
+    bases = _bases(system, archs)
+    if bases is None or any(b not in _RULES or b == "HKF" and wide_range(system) for b, _ in bases):
         return None
-    if any(b not in _RULES for b, _ in bases) or (
-        any(b == "HKF" for b, _ in bases) and wide_range(system)
-    ):
+    out = _computed(system, z[0], bases, criterion, lambda r: r.estimates(archs, bases))
+    if out is None or not all(all_finite(e.mean) and all_finite(e.cov) for e in out.values()):
         return None
-    need = {b for b, _ in bases}
-    S, m, n = len(system.sensors), system.m, system.n
-    slots = bool(need & {"CKF", "FBS"}) + S * bool(need & _LOCALS) + (S + 1) * ("HKF" in need)
-    if z.shape[1] * slots * m * (m + n) * 8 > MASKED_BYTES_AT_MOST:
-        return None
-    try:
-        with np.errstate(all="ignore"):
-            out = _Replay(system, z[0], need, criterion).estimates(archs, bases)
-    except (NumericalError, *NUMERICAL_FAILURES):
-        return None
-    for e in out.values():
-        if not (all_finite(e.mean) and all_finite(e.cov)):
-            return None
     return out
 
 
-#: The architectures whose true error covariance under the model `replay_error_covariances`
-#: gives: the filters' own P (CKF, SKF, FBS), HKF's recursion, the local filters' fusions.
-_ANALYSED = {"CKF", "SKF", "HKF", "FBS", "MSC", "MSC-GMF", "CI", "AVG"}
+def _bases(system: System, archs: Sequence[str]) -> list[tuple[str, str | None]] | None:
+    """Each architecture's (rule, sensor) (`parse_arch`); None for a name it does not know."""
+    names = [s.name for s in system.sensors]
+    try:
+        return [parse_arch(a, names) for a in archs]
+    except ValueError:
+        return None
+
+
+def _computed(system: System, z: np.ndarray, bases, criterion: str, what):
+    """what(_Replay(...)) for the run z (K+1, m) and the architectures `bases`; None where
+    their slots' masked H and R would pass `MASKED_BYTES_AT_MOST` or a number fails."""
+    need = {b for b, _ in bases}
+    S, m, n = len(system.sensors), system.m, system.n
+    slots = bool(need & {"CKF", "FBS"}) + S * bool(need & _LOCALS) + (S + 1) * ("HKF" in need)
+    if z.shape[0] * slots * m * (m + n) * 8 > MASKED_BYTES_AT_MOST:
+        return None
+    try:
+        with np.errstate(all="ignore"):
+            return what(_Replay(system, z, need, criterion))
+    except (NumericalError, *NUMERICAL_FAILURES):
+        return None
 
 
 def replay_error_covariances(
@@ -132,25 +135,16 @@ def replay_error_covariances(
     z = np.where(present, 0.0, np.nan)[None]  # the covariances need only the pattern
     if not applies(system, z):
         return None
-    names = [s.name for s in system.sensors]
-    try:
-        bases = [parse_arch(a, names) for a in archs]
-    except ValueError:
+    bases = _bases(system, archs)
+    if bases is None:
         return None
-    keep = [b[0] in _ANALYSED and not (b[0] == "HKF" and wide_range(system)) for b in bases]
+    keep = [b[0] in _RULES and not (b[0] == "HKF" and wide_range(system)) for b in bases]
     archs = [a for a, k in zip(archs, keep, strict=True) if k]
     bases = [b for b, k in zip(bases, keep, strict=True) if k]
-    need = {b for b, _ in bases}
-    S, m, n = len(system.sensors), system.m, system.n
-    slots = bool(need & {"CKF", "FBS"}) + S * bool(need & _LOCALS) + (S + 1) * ("HKF" in need)
-    if z.shape[1] * slots * m * (m + n) * 8 > MASKED_BYTES_AT_MOST:
+    out = _computed(system, z[0], bases, criterion, lambda r: r.error_covariances(archs, bases))
+    if out is None or not all(all_finite(E) and all_finite(P) for E, P in out.values()):
         return None
-    try:
-        with np.errstate(all="ignore"):
-            out = _Replay(system, z[0], need, criterion).error_covariances(archs, bases)
-    except (NumericalError, *NUMERICAL_FAILURES):
-        return None
-    return out if all(all_finite(E) and all_finite(P) for E, P in out.values()) else None
+    return out
 
 
 class _Replay:
