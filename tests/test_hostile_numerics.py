@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 
 import pytest
-from cli_helpers import cli
+from cli_helpers import cli, ok, one_line_error
 
 IRREGULAR_N0 = """\
 [scenario]
@@ -122,3 +122,25 @@ def test_simulate_and_sweep_of_the_diverging_model_print_no_warning(tmp_path: Pa
     res = cli("sweep", sc, "--vary", "model.A=[[2.0]],[[0.5]]", "--workers", "0", "--out-dir",
               tmp_path / "o")  # fmt: skip
     assert res.exit_code == 0 and res.stderr == "", (res.stderr, res.exception)
+
+
+def test_an_estimate_that_overflows_names_the_file_the_architecture_and_the_step(
+    tmp_path: Path,
+) -> None:
+    """replay_robot with one motion-capture reading of 1e308: the one-run path hands the log to
+    the plans, whose step overflows; the line names the sensors file as well."""
+    root = Path(__file__).resolve().parents[1] / "pipeline"
+    (tmp_path / "data").mkdir()
+    for name in ("robot_ros2.mcap", "truth.csv"):
+        (tmp_path / "data" / name).write_bytes((root / "data" / name).read_bytes())
+    header, *rows = (root / "data" / "mocap.csv").read_text().splitlines()
+    cells = rows[50].split(",")
+    cells[1] = "1e308"
+    rows[50] = ",".join(cells)
+    (tmp_path / "data" / "mocap.csv").write_text("\n".join([header, *rows]) + "\n")
+    sc = tmp_path / "replay_robot.toml"
+    sc.write_text((root / "replay_robot.toml").read_text())
+    ok("import", sc, "-o", tmp_path / "s.mcap")
+    res = cli("estimate", tmp_path / "s.mcap", "-o", tmp_path / "e.mcap")
+    one_line_error(res, "s.mcap: architecture ", ", step ", "overflows")
+    assert not (tmp_path / "e.mcap").exists()

@@ -6,6 +6,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from fusionlog.errors import NumericalError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapFile, McapWriter
 from fusionlog.io.mcap.topics import estimates_topic
@@ -80,7 +81,10 @@ def estimate_to(
     if SCENARIO_META in mf.metadata:
         w.add_metadata(SCENARIO_META, mf.metadata[SCENARIO_META])
     for off, _runs, data in progress(mf.iter_run_blocks(topics, B), -(-M // B), "estimate"):
-        writers = est.estimate(off, data)
+        try:
+            writers = est.estimate(off, data)
+        except NumericalError as e:  # the core names the architecture and step; the file here
+            raise NumericalError(f"{sensors_name or sensors_path}: {e}") from None
         named = [(estimates_topic(a), write) for a, write in writers.items()]
         # The documented order (for each step, for each topic) lets a reader learn every
         # topic from the first messages of the file.
