@@ -32,6 +32,7 @@ from ..errors import NumericalError
 from .architectures import BlockDiagonal, Plan, StepMap
 from .linalg import mT, numerical_errors, sym, wide_diagonal
 from .model import System
+from .moments import congruences, forward_moments, hcat, mv, rmul
 from .quadratic_form import (
     expected_sqrt_quadratic,
     expected_sqrt_quadratic_many,
@@ -77,126 +78,12 @@ class Expected:
         return np.isfinite(self.P).all(axis=(-2, -1))
 
 
-def _coupling(plan: Plan, truth: System) -> bool:
-    """Whether the estimator state deviation zeta = s - D x depends on the true state x.
-
-    For an estimator built on the true dynamics and measurement matrices (F and H; the noise
-    covariances and the prior may differ), zeta_k = T zeta_{k-1} + (U H - D) w + U v exactly:
-    the x terms cancel, so x, whose covariance grows without bound for a random walk, can be
-    left out, avoiding a catastrophic cancellation. A different F or H keeps the x terms, however
-    small the difference: its effect grows with x.
-    """
-    model = plan.system
-    if model is None:
-        return True
-    same_F = np.array_equal(model.F, truth.F) and (
-        model.Fs is truth.Fs or (model.Fs is not None and np.array_equal(model.Fs, truth.Fs))
-    )
-    return not (same_F and np.array_equal(model.linear_measurement(), truth.linear_measurement()))
-
-
-def _mv(A: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """A x for x (d,) or (runs, d) and A (r, d) or (runs, r, d)."""
-    return A @ x if x.ndim == 1 else (A @ x[..., None])[..., 0]
-
-
-def _rmul(X: np.ndarray, S: np.ndarray) -> np.ndarray:
-    """X S for a matrix S shared by all runs: per-run X as one product of its stacked rows
-    (numpy calls BLAS once per run otherwise, which for small matrices costs more than the
-    arithmetic)."""
-    if X.ndim == 2 or S.ndim > 2:
-        return X @ S
-    return (X.reshape(-1, X.shape[-1]) @ S).reshape(X.shape[:-1] + S.shape[-1:])
-
-
-def _congruences(terms: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    """sum_i X_i S_i X_i^T, term by term in order (a product by a shared S through `_rmul`)."""
-    out = None
-    for X, S in terms:
-        term = _rmul(X, S) @ mT(X)
-        out = term if out is None else out + term
-    return out
-
-
-def _hcat(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """[a, b] side by side, the run axis broadcast when one of them has it."""
-    if a.ndim == b.ndim == 2:
-        return np.hstack([a, b])
-    batch = np.broadcast_shapes(a.shape[:-2], b.shape[:-2])
-    a = np.broadcast_to(a, batch + a.shape[-2:])
-    return np.concatenate([a, np.broadcast_to(b, batch + b.shape[-2:])], axis=-1)
-
-
-def _forward_moments(plan: Plan, truth: System) -> tuple[list, list, int, int]:
-    """Mean and covariance of Z_k = [x_k; zeta_k], zeta_k = s_k - D_k x_k, for every k.
-
-    Returns the lists, the size of the x block (0 when x decouples, see `_coupling`) and the
-    step from which the moments and the plan's map repeat (K + 1 if they never settle): once
-    the plan repeats its steady-state map and the moments stop changing, later steps repeat
-    them too (the same objects in the lists). Per-run maps give per-run moments (runs, ...).
-    """
-    n = truth.n
-    Ht = truth.linear_measurement()
-    init = truth.truth_initial
-    nx = n if _coupling(plan, truth) else 0
-    D0 = plan.D0
-    # Before the first update: x_0 ~ init, zeta_{-1} = s0 - D0 x_0.
-    Jx = np.vstack([np.eye(n), -D0])[n - nx :] if nx else -D0
-    mu = np.concatenate([init.mean, plan.s0 - D0 @ init.mean])[n - nx :]
-    C = Jx @ init.cov @ Jx.T
-    mus, Cs = [], []
-    D_prev = D0
-    K1 = len(plan.steps)
-    for k, st in enumerate(plan.steps):
-        d_prev = mu.shape[-1] - nx
-        d = st.T.shape[-2]
-        batch = np.broadcast_shapes(st.T.shape[:-2], st.U.shape[:-2], mu.shape[:-1])
-        F = truth.F_at(k) if k > 0 else np.eye(n)
-        UHD = _rmul(st.U, Ht) - st.D
-        Bw = UHD
-        if nx:
-            A = np.zeros(batch + (nx + d, nx + d_prev))
-            A[..., nx:, nx:] = st.T
-            A[..., :nx, :nx] = F
-            A[..., nx:, :nx] = st.T @ D_prev + UHD @ F
-            Bw = np.concatenate([np.broadcast_to(np.eye(n), UHD.shape[:-2] + (n, n)), UHD], -2)
-            Bv = np.zeros(batch + (nx + d, Ht.shape[0]))
-            Bv[..., nx:, :] = st.U
-        else:  # zeta alone: the maps themselves (contiguous, as a padded copy would be)
-            A, Bv = np.ascontiguousarray(st.T), np.ascontiguousarray(st.U)
-        mu_new = _mv(A, mu)
-        noise = [(Bv, truth.R_at(k))] + ([(Bw, truth.GQG_at(k))] if k > 0 else [])
-        C_new = sym(_congruences([(A, C), *noise]))
-        if (
-            not nx
-            and k > 1
-            and st is plan.steps[k - 1]
-            and np.abs(C_new - C).max() <= 1e-15 * np.abs(C_new).max()
-            and np.abs(mu_new - mu).max() <= 1e-15 * max(np.abs(mu_new).max(), 1e-300)
-        ):
-            mus.extend([mu_new] * (K1 - k))
-            Cs.extend([C_new] * (K1 - k))
-            return mus, Cs, nx, k
-        mu, C = mu_new, C_new
-        mus.append(mu)
-        Cs.append(C)
-        D_prev = st.D
-    # A non-finite entry stays non-finite (inf * 0 and inf - inf are NaN): the last step tells.
-    if not (np.isfinite(C).all() and np.isfinite(mu).all()):
-        k = next(
-            k
-            for k, (m, c) in enumerate(zip(mus, Cs, strict=True))
-            if not np.isfinite(c).all() or not np.isfinite(m).all()
-        )
-        raise NumericalError(f"step {k}: the true error covariance overflows")
-    return mus, Cs, nx, K1
-
-
 def analyse(plan: Plan, truth: System, *, chunk_runs: int = CHUNK_RUNS) -> Expected:
     """Exact error mean, MSE matrix, expected NEES and expected DM of a plan.
 
     A shared plan gives (K+1, ...) arrays; a per-run plan each run's statistics given its
-    measurement pattern, (M, K+1, ...), computed for `chunk_runs` runs at a time.
+    measurement pattern, (M, K+1, ...): on its history nodes when it has them and no smoother
+    (`exact_nodes`), else for `chunk_runs` runs at a time.
 
     Raises NumericalError (naming the architecture, the step and for a per-run plan the run)
     when the true error covariance overflows or the reported covariance is not positive
@@ -205,6 +92,10 @@ def analyse(plan: Plan, truth: System, *, chunk_runs: int = CHUNK_RUNS) -> Expec
     """
     if not plan.per_run:
         return _checked(plan, truth)
+    if plan.nodes is not None and plan.smoother is None:  # once per history node
+        from .exact_nodes import analyse_nodes
+
+        return _checked(plan, truth, first_run=0, analysis=analyse_nodes)
     nodes = plan.nodes  # maps per measurement history, see plan_of_runs
     M = len(nodes[0]) if nodes is not None else plan.reported_cov.shape[0]
     parts = [
@@ -218,8 +109,9 @@ def analyse(plan: Plan, truth: System, *, chunk_runs: int = CHUNK_RUNS) -> Expec
     )
 
 
-def _checked(plan: Plan, truth: System, first_run: int | None = None) -> Expected:
-    """`_analyse` with its failures named (`first_run`: the first run of a per-run chunk)."""
+def _checked(plan: Plan, truth: System, first_run: int | None = None, analysis=None) -> Expected:
+    """`analysis` (default `_analyse`) with its failures named (`first_run`: the first run of a
+    per-run chunk)."""
 
     def where(mask: np.ndarray) -> str:
         """Names the first entry of a (K+1,) or (runs, K+1) mask (or a leading part of it)."""
@@ -229,7 +121,7 @@ def _checked(plan: Plan, truth: System, first_run: int | None = None) -> Expecte
         return f"step {at[1]} of run {first_run + at[0]}"
 
     with numerical_errors(lambda: f"architecture {plan.name}, exact analysis"):
-        ex = _analyse(plan, truth, where)
+        ex = (analysis or _analyse)(plan, truth, where)
         finite = np.isfinite(ex.mse).all(axis=(-2, -1)) & np.isfinite(ex.nees) & np.isfinite(ex.dm)
         bad = ex.defined & ~finite
         if bad.any():
@@ -319,7 +211,7 @@ def shared_nees_and_dm(
 
 def _analyse(plan: Plan, truth: System, where) -> Expected:
     n = truth.n
-    mus, Cs, nx, settled = _forward_moments(plan, truth)
+    mus, Cs, nx, settled = forward_moments(plan, truth)
     K1 = len(plan.steps)
     P = plan.reported_cov
     batch = P.shape[:-3]  # () for a shared plan, (runs,) for a per-run one
@@ -327,7 +219,7 @@ def _analyse(plan: Plan, truth: System, where) -> Expected:
     def readout(A: np.ndarray, D: np.ndarray, extra: np.ndarray) -> np.ndarray:
         """Row block L with e = L Z - (noise terms): e = (I - A D - extra) x - A zeta."""
         if nx:
-            return _hcat(np.eye(n) - A @ D - extra, -A)
+            return hcat(np.eye(n) - A @ D - extra, -A)
         return -A
 
     def outer(b: np.ndarray) -> np.ndarray:
@@ -338,8 +230,8 @@ def _analyse(plan: Plan, truth: System, where) -> Expected:
     if plan.smoother is None:
         for k, st in enumerate(plan.steps[: settled + 1]):
             Lk = readout(st.O, st.D, 0.0)
-            bias[..., k, :] = _mv(Lk, mus[k])
-            mse[..., k, :, :] = sym(_congruences([(Lk, Cs[k])])) + outer(bias[..., k, :])
+            bias[..., k, :] = mv(Lk, mus[k])
+            mse[..., k, :, :] = sym(congruences([(Lk, Cs[k])])) + outer(bias[..., k, :])
         if settled < K1:  # steady state: the same map of the same moments at every later step
             bias[..., settled + 1 :, :] = bias[..., settled, None, :]
             mse[..., settled + 1 :, :, :] = mse[..., settled, None, :, :]
@@ -376,23 +268,23 @@ def _analyse(plan: Plan, truth: System, where) -> Expected:
                 continue
             if k < K1 - 1 and not steady:
                 V = sm.V[k + 1]
-                Bplus = Bk + _rmul(V, Ht)
-                Cplus = Ceta + _congruences([(V, truth.R_at(k + 1))])
+                Bplus = Bk + rmul(V, Ht)
+                Cplus = Ceta + congruences([(V, truth.R_at(k + 1))])
                 # L is about the inverse of the information in B+ and C+: multiplying it in
                 # first keeps B+ Q B+' (the square of an information) from overflowing.
                 LB = sm.L[k] @ Bplus
-                B_new = _rmul(LB, truth.F_at(k + 1))
-                C_new = sym(_congruences([(LB, truth.GQG_at(k + 1)), (sm.L[k], Cplus)]))
+                B_new = rmul(LB, truth.F_at(k + 1))
+                C_new = sym(congruences([(LB, truth.GQG_at(k + 1)), (sm.L[k], Cplus)]))
                 steady = repeated[k] and all(
                     np.abs(new - old).max() <= 1e-15 * max(np.abs(new).max(), 1e-300)
                     for new, old in ((B_new, Bk), (C_new, Ceta))
                 )
                 Bk, Ceta = B_new, C_new
             # e = x - A s_f - B (B_k x + eta) = (I - A D - B B_k) x - A zeta - B eta; with the
-            # true model I - A D - B B_k vanishes and B_k x is dropped with x (see _coupling).
+            # true model I - A D - B B_k vanishes and B_k x is dropped with x (see coupling).
             Lk = readout(sm.A[k], plan.steps[k].D, sm.B[k] @ Bk)
-            bias[..., k, :] = _mv(Lk, mus[k])
-            mse[..., k, :, :] = sym(_congruences([(Lk, Cs[k]), (sm.B[k], Ceta)])) + outer(
+            bias[..., k, :] = mv(Lk, mus[k])
+            mse[..., k, :, :] = sym(congruences([(Lk, Cs[k]), (sm.B[k], Ceta)])) + outer(
                 bias[..., k, :]
             )
             k -= 1

@@ -182,7 +182,7 @@ class StateEvaluator(Evaluator):
                 self.conditional = {}
             else:
                 z = np.concatenate([sensors[t] for t in self.sensor_topics], axis=-1)
-                plans, _ = self.plans.block_plans(self.known, z, per_run_maps=True)
+                plans, _ = self.plans.block_plans(self.known, z)
                 self._merge_expected(conditional_sums(plans, self.analysable[0], z.shape[0]))
         for a, t in zip(self.archs, self.topics, strict=True):
             mean, cov = estimates[t]

@@ -111,20 +111,18 @@ class PlanCache:
         return plan
 
     def block_plans(
-        self, archs: Sequence[str], z: np.ndarray, *, per_run_maps: bool = False
+        self, archs: Sequence[str], z: np.ndarray
     ) -> tuple[dict[str, Plan], np.ndarray | None]:
         """Each architecture's plan for the block z (runs, K+1, m) and its shared pattern (None
-        when the runs differ: plans built per run, on history nodes unless `per_run_maps`,
-        which the exact analysis needs); the pattern is recorded for `provenance`."""
+        when the runs differ: plans built per run, on history nodes, which the estimates and
+        the exact analysis both take); the pattern is recorded for `provenance`."""
         pattern = shared_pattern(z)
         self.patterns.append(None if pattern is None else np.packbits(pattern).tobytes())
         if pattern is not None:
             return {a: self.plan(a, pattern) for a in archs}, pattern
         present = ~np.isnan(z)
         return {
-            a: build_plan(
-                self.system, a, self.steps, present, self.criterion, history_nodes=not per_run_maps
-            )
+            a: build_plan(self.system, a, self.steps, present, self.criterion, history_nodes=True)
             for a in archs
         }, None
 
@@ -215,7 +213,7 @@ def estimate_block(
         cache.patterns.append(np.packbits(pattern).tobytes())
         results = fast
     else:
-        plans, pattern = cache.block_plans(archs, z, per_run_maps=expected_of is not None)
+        plans, pattern = cache.block_plans(archs, z)
         results = {a: run_plan(plan, z) for a, plan in plans.items()}
     runs = z.shape[0]
     estimates: dict[str, Estimate] = {}
@@ -247,7 +245,6 @@ def conditional_sums(plans: dict[str, Plan], truth: System, runs: int) -> dict[s
 
     out = {}
     for a, plan in plans.items():
-        plan = plan.per_run_maps()
         ce = ConditionalExpected(len(plan.steps), truth.n)
         ce.add(analyse(plan, truth), 1 if plan.per_run else runs)
         out[a] = ce
