@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import NumericalError
-from .linalg import finite_mean, overflow_is_inf, spd_inv_scaled, wide_diagonal
+from .linalg import finite_mean, overflow_is_inf, spd_inv, spd_inv_scaled, wide_diagonal
 
 __all__ = [
     "MetricsAccumulator",
@@ -344,8 +344,8 @@ def _cov_terms(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
         p_safe = np.where(cov_ok[..., None, None], cov, np.eye(cov.shape[-1]))
     try:
         # Badly scaled P (a position known to 1e-150 beside a velocity known to 0.1) loses its
-        # small entries in LU's inverse: those go through their Jacobi scaling.
-        p_inv = spd_inv_scaled(p_safe) if wide_diagonal(p_safe) else np.linalg.inv(p_safe)
+        # small entries in LU's inverse: Jacobi scaling. Many P: the batch Cholesky kernel (5x).
+        p_inv = spd_inv_scaled(p_safe) if wide_diagonal(p_safe) else spd_inv(p_safe)
     except (np.linalg.LinAlgError, NumericalError):
         p_inv = np.linalg.pinv(p_safe, hermitian=True)
     return p_inv, np.trace(p_safe, axis1=-2, axis2=-1), cov_ok

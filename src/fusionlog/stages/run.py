@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from fusionlog.core.architectures import keep_block_plans
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapWriter
 from fusionlog.memory import release_freed_memory
@@ -54,7 +55,8 @@ def run_pipeline(
         check_budget(sc, kind_of(sc.kind).bytes_per_run_step(sc), "simulating")
     seconds: dict[str, float] = {}
     notes: list[str] = []
-    with Outputs(list(outs.values()), force=force, inputs=inputs) as o:
+    # the evaluation's exact analysis takes the estimate's per-run plans of the same block
+    with Outputs(list(outs.values()), force=force, inputs=inputs) as o, keep_block_plans():
         t0 = time.perf_counter()
         if sc.replay is not None:
             from .replay import import_to, read_replay  # the decoders: only replays need them

@@ -30,6 +30,7 @@ from .block import (
     conditional_sums,
     estimate,
     estimate_block,
+    keep_block_plans,
     shared_pattern,
 )
 from .executor import DENSE_MAX_STEPS, STEADY_BLOCK, run_plan
@@ -71,6 +72,7 @@ __all__ = [
     "conditional_sums",
     "estimate",
     "estimate_block",
+    "keep_block_plans",
     "parse_arch",
     "run_plan",
     "shared_pattern",

@@ -18,8 +18,11 @@ records the blocks' patterns, which the estimates' provenance states (`provenanc
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
-from collections.abc import Sequence
+import pickle
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,8 +39,37 @@ __all__ = [
     "conditional_sums",
     "estimate",
     "estimate_block",
+    "keep_block_plans",
     "shared_pattern",
 ]
+
+#: Inside `keep_block_plans`: the per-run plans of the last block, {(block key, arch): plan}.
+_KEPT: dict[tuple[bytes, str], Plan] | None = None
+
+
+@contextmanager
+def keep_block_plans() -> Iterator[None]:
+    """Within it, the per-run plans of the last block of runs are kept for a later stage of
+    the same command on the same block: `fusionlog run` estimates, then the evaluation's exact
+    analysis takes the same plans (the same model, horizon and masks) instead of building them
+    again. One block's plans at most are kept (a log of several blocks: the last one's, which
+    the evaluation's first block does not match), and none after it."""
+    global _KEPT
+    _KEPT = {}
+    try:
+        yield
+    finally:
+        _KEPT = None
+
+
+def _block_key(cache: PlanCache, present: np.ndarray) -> bytes:
+    """What a block's per-run plans are made of: the model, horizon, criterion and masks."""
+    from .registry import NODES_AT_MOST  # the grouping's setting: a benchmark may change it
+
+    h = hashlib.sha256(pickle.dumps((cache.system, cache.steps, cache.criterion, NODES_AT_MOST)))
+    h.update(repr(present.shape).encode())
+    h.update(np.packbits(present).tobytes())
+    return h.digest()
 
 
 def shared_pattern(z: np.ndarray) -> np.ndarray | None:
@@ -121,10 +153,22 @@ class PlanCache:
         if pattern is not None:
             return {a: self.plan(a, pattern) for a in archs}, pattern
         present = ~np.isnan(z)
-        return {
-            a: build_plan(self.system, a, self.steps, present, self.criterion, history_nodes=True)
-            for a in archs
-        }, None
+        kept, key = _KEPT, b""
+        if kept is not None:
+            key = _block_key(self, present)
+            if any(k != key for k, _ in kept):  # another block: its plans go
+                kept.clear()
+        plans = {}
+        for a in archs:
+            plan = None if kept is None else kept.get((key, a))
+            if plan is None:
+                plan = build_plan(
+                    self.system, a, self.steps, present, self.criterion, history_nodes=True
+                )
+                if kept is not None:
+                    kept[key, a] = plan
+            plans[a] = plan
+        return plans, None
 
     def provenance(self) -> dict[str, str]:
         """The estimates' ``measurement_pattern`` (DESIGN.md "MCAP files"): "complete", the
