@@ -91,15 +91,20 @@ def test_wrap_maps_every_angle_into_the_half_open_interval() -> None:
 
 def test_wrap_is_the_mod_formula_to_the_last_bit() -> None:
     """`wrap` skips np.mod where pi - a is already in [0, 2 pi): the same numbers as
-    pi - ((pi - a) mod 2 pi) everywhere, the sign of zero included."""
+    pi - ((pi - a) mod 2 pi) everywhere, the sign of zero included, except where np.mod rounds
+    up to 2 pi (just above pi): the formula's -pi, outside (-pi, pi], is pi."""
     rng = np.random.default_rng(5)
     edges = [math.pi, -math.pi, 0.0, -0.0, 2 * math.pi, -2 * math.pi, 3 * math.pi, 1e-300]
     edges += [np.nextafter(math.pi, 4), np.nextafter(-math.pi, -4), 1e300, -1e300]
     a = np.concatenate([rng.uniform(-50, 50, 10**5), rng.uniform(-4, 4, 10**5), edges])
     expected = math.pi - np.mod(math.pi - a, 2.0 * math.pi)
+    assert (expected == -math.pi).sum() == 1  # np.nextafter(math.pi, 4)'s
+    expected[expected == -math.pi] = math.pi
     got = wrap(a)
     assert np.array_equal(got, expected) and np.array_equal(np.signbit(got), np.signbit(expected))
     assert wrap(-math.pi) == math.pi
+    assert wrap(np.nextafter(math.pi, 4)) == math.pi and wrap(np.float64(-math.pi)) == math.pi
+    assert np.all(got > -math.pi) and np.all(got <= math.pi)
     assert wrap(np.array(7.0)) == math.pi - np.mod(math.pi - 7.0, 2.0 * math.pi)
 
 
