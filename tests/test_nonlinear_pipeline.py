@@ -179,6 +179,54 @@ def test_bad_input_is_one_line(tmp_path: Path, edit: dict, fragments: list[str])
     one_line_error(cli("simulate", f, "-o", tmp_path / "s.mcap"), str(f), *fragments)
 
 
+#: A target due west of a bearing sensor and a radar at the origin: bearings about +-pi.
+WEST = """
+[scenario]
+name = "west"
+steps = 3
+runs = 500
+seed = 1
+dt = 1.0
+[model]
+kind = "constant-velocity"
+axes = 2
+n0 = 0.001
+[prior]
+mean = [-100.0, 0.0, 0.0, 0.0]
+cov = [[1.0, 0, 0, 0], [0, 0.01, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 0.01]]
+[[sensors]]
+name = "cam"
+kind = "bearing"
+position = [0.0, 0.0]
+R = 1e-2
+[[sensors]]
+name = "radar"
+kind = "range-bearing"
+position = [0.0, 0.0]
+R = [[1.0, 0.0], [0.0, 1e-2]]
+[estimate]
+filter = "EKF"
+architectures = ["CKF"]
+"""
+
+
+def test_simulated_bearings_are_in_the_half_open_interval(tmp_path: Path) -> None:
+    """A bearing read with its noise is an angle in (-pi, pi] like the noise-free one (they
+    were h + v, up to pi + 0.35 and below -pi here); the estimates are unchanged by it."""
+    from fusionlog.io.mcap import McapFile
+
+    f = tmp_path / "west.toml"
+    f.write_text(WEST)
+    ok("run", f, "--out-dir", tmp_path / "o")
+    mf = McapFile(tmp_path / "o" / "sensors.mcap")
+    ((_, _, data),) = mf.iter_run_blocks(["/sensors/cam", "/sensors/radar"], 500)
+    for b in (data["/sensors/cam"][..., 0], data["/sensors/radar"][..., 1]):
+        assert np.all(b > -np.pi) and np.all(b <= np.pi)
+        assert (b > 3.0).mean() > 0.3 and (b < -3.0).mean() > 0.3  # both sides of +-pi
+    s = _summary(tmp_path / "o")["architectures"]["CKF"]
+    assert abs(s["anees"] - 4.0) < 4 * s["stderr"]["anees"] + 0.05
+
+
 def test_a_sensor_at_the_target_is_refused_with_run_and_instant(tmp_path: Path) -> None:
     text = RADAR.read_text().replace("position = [0.0, 0.0]", "position = [2000.0, 3000.0]")
     f = tmp_path / "on_target.toml"
