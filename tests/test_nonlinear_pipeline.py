@@ -167,6 +167,10 @@ def test_the_system_round_trips_through_its_record() -> None:
          ["estimate.ukf.kappa", "<= 0"]),
         ({'filter = "EKF"': 'filter = "UKF"\nukf = {beta = 2.0, gamma = 1.0}'},
          ["estimate.ukf", "gamma"]),
+        ({'filter = "EKF"': 'filter = "UKF"\nukf = {alpha = 1e200}'},
+         ["estimate.ukf.alpha", "overflows"]),  # was an internal OverflowError, exit 3
+        ({'filter = "EKF"': 'filter = "UKF"\nukf = {alpha = 1e-300}'},
+         ["estimate.ukf.alpha", "underflows"]),  # it named kappa
     ],
 )  # fmt: skip
 def test_bad_input_is_one_line(tmp_path: Path, edit: dict, fragments: list[str]) -> None:
@@ -234,6 +238,22 @@ def test_a_sensor_at_the_target_is_refused_with_run_and_instant(tmp_path: Path) 
     ok("simulate", f, "-o", tmp_path / "s.mcap", "--runs", "3", "--steps", "2")
     res = cli("estimate", tmp_path / "s.mcap", "-o", tmp_path / "e.mcap", "--arch", "CKF")
     one_line_error(res, "radar1", "range 0", "run 0", "instant 0")
+
+
+@pytest.mark.parametrize("ukf", ["alpha = 1e153", "kappa = 1e308", "alpha = 1e-8"])
+def test_a_filter_that_fails_names_the_file_the_architecture_and_the_step(
+    tmp_path: Path, ukf: str
+) -> None:
+    """Sigma points spread past the float range (accepted parameters, hopeless numbers), or
+    a predicted covariance that is not positive definite: one line naming the sensors file,
+    the architecture and the step, as the linear filters' failures do (it was an internal
+    error with numpy's warnings, or a line naming none of them), no estimates file."""
+    f = tmp_path / "ukf.toml"
+    f.write_text(RADAR.read_text().replace('filter = "EKF"', f'filter = "UKF"\nukf = {{{ukf}}}'))
+    ok("simulate", f, "-o", tmp_path / "s.mcap", "--runs", "5", "--steps", "3")
+    res = cli("estimate", tmp_path / "s.mcap", "-o", tmp_path / "e.mcap")
+    one_line_error(res, "s.mcap: architecture ", ", step ")
+    assert not (tmp_path / "e.mcap").exists()
 
 
 def test_turn_scenario_errors() -> None:
