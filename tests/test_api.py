@@ -173,6 +173,9 @@ def test_bad_arguments_raise_the_documented_errors(tmp_path: Path) -> None:
     for call in (lambda: fl.simulate(identity), lambda: fl.estimate(identity, sim)):
         with pytest.raises(fl.FusionlogError, match="state scenarios"):
             call()
+    replay = ROOT / "pipeline/replay_robot.toml"
+    with pytest.raises(fl.FusionlogError, match="replay file is one recorded run.*runs=, seed="):
+        fl.simulate(replay, runs=10, seed=3)  # it returned the one recorded run
     with pytest.raises(TypeError, match="expected a scenario"):
         fl.estimate(None, sim)  # type: ignore[arg-type]
     assert issubclass(fl.ValidationError, fl.FusionlogError)

@@ -125,9 +125,18 @@ def simulate(
 ) -> Simulation:
     """Simulate `runs` runs (default the scenario's) of K = `steps` steps with `seed`: the
     runs `fusionlog simulate --runs --steps --seed` writes to its sensors file. `scenario` is
-    a loaded scenario or the path of its file (`load`)."""
+    a loaded scenario or the path of its file (`load`); a replay file gives its recorded
+    readings as one run (and takes no runs, seed or steps)."""
     scenario = _state_scenario(scenario)
-    if scenario.replay is not None:
+    if scenario.replay is not None:  # refused, not ignored (as `fusionlog run` refuses them)
+        given = [
+            f"{k}=" for k, v in (("runs", runs), ("seed", seed), ("steps", steps)) if v is not None
+        ]
+        if given:
+            raise FusionlogError(
+                f"{scenario.path or scenario.name}: a replay file is one recorded run on its "
+                f"measurement times: it takes no {', '.join(given)}"
+            )
         return _recorded(scenario)
     sc = scenario_with(scenario, runs=runs, steps=steps, seed=seed)
     x, zs = kind_of(sc.kind).simulate(sc, 0, sc.runs)
