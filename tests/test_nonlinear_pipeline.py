@@ -262,6 +262,9 @@ def test_turn_scenario_errors() -> None:
         scenario_from_text(text.replace("q_turn = 1.0e-5", "q_turn = 0.0"))
     with pytest.raises(Exception, match=r"model.n0.*not allowed"):
         scenario_from_text(text.replace("q_turn = 1.0e-5", "q_turn = 1.0e-5\nn0 = 1.0"))
+    # q is per axis, not per state (it said "expected 2 (the number of states)" of 5 states)
+    with pytest.raises(Exception, match=r"model.q: length 1, expected 2 \(\[qx, qy\]: one per"):
+        scenario_from_text(text.replace("q = [0.05, 0.05]", "q = [0.05]"))
     with pytest.raises(Exception, match=r"prior.*EKF and UKF start from"):
         start = text.index("[prior]")
         end = text.index("[[sensors]]")

@@ -106,7 +106,7 @@ def turn_section(
             )
     if dt is None:
         raise ctx.err("scenario.dt", "missing required key (kind = 'coordinated-turn' needs it)")
-    q = toml.vector(ctx, md["q"], "model.q", 2)
+    q = toml.vector(ctx, md["q"], "model.q", 2, "[qx, qy]: one per axis")
     q_turn = toml.number(ctx, md["q_turn"], "model.q_turn")
     # Q must be invertible: the PCRB's recursion for nonlinear motion needs Q^-1.
     for where, v in (("model.q", float(q.min())), ("model.q_turn", q_turn)):
