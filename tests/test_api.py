@@ -192,3 +192,23 @@ def test_a_path_and_one_name_are_taken_as_they_read(tmp_path: Path) -> None:
     sc = fl.load(path)
     want = fl.evaluate(sc, sim, fl.estimate(sc, sim, ["CKF"])).summary
     assert ev.summary["architectures"] == want["architectures"]
+
+
+def test_filter_overrides_the_local_filter_as_on_the_cli(tmp_path: Path) -> None:
+    """`fl.estimate(..., filter="EKF")` is `fusionlog run --filter EKF` (the turn scenario
+    says UKF): the same summary; without it the scenario's UKF, which differs."""
+    path = ROOT / "pipeline/coordinated_turn.toml"
+    ok("run", path, "--out-dir", tmp_path, "--runs", "20", "--steps", "6", "--seed", "3",
+       "--filter", "EKF", "--arch", "CKF", "--arch", "MSC")  # fmt: skip
+    cli_summary = json.loads((tmp_path / "summary.json").read_text())
+    sc = fl.load(path)
+    sim = fl.simulate(sc, runs=20, seed=3, steps=6)
+    ev = fl.evaluate(sc, sim, fl.estimate(sc, sim, ["CKF", "MSC"], filter="EKF"))
+    ukf = fl.evaluate(sc, sim, fl.estimate(sc, sim, ["CKF", "MSC"]))
+    for a in ("CKF", "MSC"):
+        theirs = cli_summary["architectures"][a]
+        for key in ("mse", "anees", "dm"):
+            _close(ev.summary["architectures"][a][key], theirs[key], f"{a} {key}")
+        assert ukf.summary["architectures"][a]["mse"] != pytest.approx(theirs["mse"], rel=1e-6)
+    with pytest.raises(fl.FusionlogError, match="unknown filter 'PF'"):
+        fl.estimate(sc, sim, ["CKF"], filter="PF")

@@ -197,13 +197,20 @@ def estimate(
     scenario: Scenario | str | os.PathLike[str],
     sim: Simulation,
     architectures: Sequence[str] | str | None = None,
+    *,
+    filter: str | None = None,
 ) -> Estimates:
     """Each architecture's estimates of the runs (default: the scenario's `[estimate]
     architectures`; one name may be given as a string), as `fusionlog estimate` computes
     them. `scenario` is the filters' model: the one simulated, or another (`fusionlog
-    estimate --model`), whose sensors are taken from `sim` by name."""
+    estimate --model`), whose sensors are taken from `sim` by name; `filter` ("EKF" or
+    "UKF") overrides its local filter as `--filter` does."""
     scenario = _state_scenario(scenario)
     system = scenario.system
+    if filter is not None:
+        from .stages.nonlinear import with_filter
+
+        system = with_filter(system, filter)
     if isinstance(architectures, str):  # "CKF", not the letters "C", "K", "F"
         architectures = [architectures]
     archs = check_architectures(
