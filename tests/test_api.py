@@ -151,3 +151,64 @@ def test_readme_example_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) ->
     assert (tmp_path / "evaluation.rrd").exists()
     # the shapes its comment states
     assert shown[0] == repr(((200, 21, 2), (21, 2, 2))), shown[0]
+
+
+def test_bad_arguments_raise_the_documented_errors(tmp_path: Path) -> None:
+    """Bad arguments are `fl.FusionlogError`s (`fl.ValidationError` for the scenario's
+    numbers) with a clear message; mismatched simulations and estimates were numpy's
+    ValueError (shapes that do not broadcast) deep inside the evaluator."""
+    path = ROOT / "tests/golden/small.toml"
+    sc = fl.load(path)
+    for kwargs, match in (({"runs": 0}, "--runs: must be >= 1"), ({"seed": -1}, "--seed")):
+        with pytest.raises(fl.ValidationError, match=match):
+            fl.simulate(sc, **kwargs)
+    sim = fl.simulate(sc, runs=4, seed=1, steps=3)
+    est = fl.estimate(sc, sim, ["CKF"])
+    for other in (fl.simulate(sc, runs=5, seed=1, steps=3), fl.simulate(sc, runs=4, steps=4)):
+        with pytest.raises(fl.FusionlogError, match="not of this simulation's"):
+            fl.evaluate(sc, other, est)
+    with pytest.raises(fl.FusionlogError, match="no estimates"):
+        fl.evaluate(sc, sim, fl.Estimates())
+    identity = ROOT / "pipeline/aircraft_identity.toml"
+    for call in (lambda: fl.simulate(identity), lambda: fl.estimate(identity, sim)):
+        with pytest.raises(fl.FusionlogError, match="state scenarios"):
+            call()
+    replay = ROOT / "pipeline/replay_robot.toml"
+    with pytest.raises(fl.FusionlogError, match="replay file is one recorded run.*runs=, seed="):
+        fl.simulate(replay, runs=10, seed=3)  # it returned the one recorded run
+    with pytest.raises(TypeError, match="expected a scenario"):
+        fl.estimate(None, sim)  # type: ignore[arg-type]
+    assert issubclass(fl.ValidationError, fl.FusionlogError)
+
+
+def test_a_path_and_one_name_are_taken_as_they_read(tmp_path: Path) -> None:
+    """`estimate` and `evaluate` take the scenario's path as `simulate` does, and one
+    architecture as a string ("CKF" was read as the unknown architectures C, K, F)."""
+    path = ROOT / "tests/golden/small.toml"
+    sim = fl.simulate(path, runs=6, seed=2, steps=4)
+    est = fl.estimate(str(path), sim, "CKF")
+    assert list(est) == ["CKF"]
+    ev = fl.evaluate(path, sim, est)
+    sc = fl.load(path)
+    want = fl.evaluate(sc, sim, fl.estimate(sc, sim, ["CKF"])).summary
+    assert ev.summary["architectures"] == want["architectures"]
+
+
+def test_filter_overrides_the_local_filter_as_on_the_cli(tmp_path: Path) -> None:
+    """`fl.estimate(..., filter="EKF")` is `fusionlog run --filter EKF` (the turn scenario
+    says UKF): the same summary; without it the scenario's UKF, which differs."""
+    path = ROOT / "pipeline/coordinated_turn.toml"
+    ok("run", path, "--out-dir", tmp_path, "--runs", "20", "--steps", "6", "--seed", "3",
+       "--filter", "EKF", "--arch", "CKF", "--arch", "MSC")  # fmt: skip
+    cli_summary = json.loads((tmp_path / "summary.json").read_text())
+    sc = fl.load(path)
+    sim = fl.simulate(sc, runs=20, seed=3, steps=6)
+    ev = fl.evaluate(sc, sim, fl.estimate(sc, sim, ["CKF", "MSC"], filter="EKF"))
+    ukf = fl.evaluate(sc, sim, fl.estimate(sc, sim, ["CKF", "MSC"]))
+    for a in ("CKF", "MSC"):
+        theirs = cli_summary["architectures"][a]
+        for key in ("mse", "anees", "dm"):
+            _close(ev.summary["architectures"][a][key], theirs[key], f"{a} {key}")
+        assert ukf.summary["architectures"][a]["mse"] != pytest.approx(theirs["mse"], rel=1e-6)
+    with pytest.raises(fl.FusionlogError, match="unknown filter 'PF'"):
+        fl.estimate(sc, sim, ["CKF"], filter="PF")

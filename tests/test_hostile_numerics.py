@@ -144,3 +144,43 @@ def test_an_estimate_that_overflows_names_the_file_the_architecture_and_the_step
     res = cli("estimate", tmp_path / "s.mcap", "-o", tmp_path / "e.mcap")
     one_line_error(res, "s.mcap: architecture ", ", step ", "overflows")
     assert not (tmp_path / "e.mcap").exists()
+
+
+OVERFLOWING_TRUTH = """\
+[scenario]
+name = "linbad"
+steps = 4
+runs = 20
+seed = 1
+dt = 1.0
+[model]
+F = [[1e120]]
+Q = [[1.0]]
+[prior]
+mean = [0.0]
+cov = [[1.0]]
+[[sensors]]
+name = "s"
+H = [[1.0]]
+R = 1.0
+[estimate]
+architectures = ["CKF"]
+"""
+
+
+def test_a_simulation_that_overflows_names_the_scenario_file(tmp_path: Path) -> None:
+    """The true state passes the float range at step 3: simulate, run and an in-process sweep
+    give one line naming the scenario file and the step (it named neither file nor anything
+    but "simulation"), and write nothing."""
+    sc = tmp_path / "linbad.toml"
+    sc.write_text(OVERFLOWING_TRUTH)
+    frags = (f"{sc}: simulation: the true state overflows at step 3",)
+    one_line_error(cli("simulate", sc, "-o", tmp_path / "s.mcap"), *frags)
+    one_line_error(cli("run", sc, "--out-dir", tmp_path / "r"), *frags)
+    res = cli("sweep", sc, "--vary", "scenario.steps=3,4", "--workers", "0",
+              "--out-dir", tmp_path / "w")  # fmt: skip
+    one_line_error(res, *frags)
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*")) == [
+        "linbad.toml",
+        "r",  # run's --out-dir, made before the simulation: empty
+    ]

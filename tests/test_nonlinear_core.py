@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -90,15 +91,20 @@ def test_wrap_maps_every_angle_into_the_half_open_interval() -> None:
 
 def test_wrap_is_the_mod_formula_to_the_last_bit() -> None:
     """`wrap` skips np.mod where pi - a is already in [0, 2 pi): the same numbers as
-    pi - ((pi - a) mod 2 pi) everywhere, the sign of zero included."""
+    pi - ((pi - a) mod 2 pi) everywhere, the sign of zero included, except where np.mod rounds
+    up to 2 pi (just above pi): the formula's -pi, outside (-pi, pi], is pi."""
     rng = np.random.default_rng(5)
     edges = [math.pi, -math.pi, 0.0, -0.0, 2 * math.pi, -2 * math.pi, 3 * math.pi, 1e-300]
     edges += [np.nextafter(math.pi, 4), np.nextafter(-math.pi, -4), 1e300, -1e300]
     a = np.concatenate([rng.uniform(-50, 50, 10**5), rng.uniform(-4, 4, 10**5), edges])
     expected = math.pi - np.mod(math.pi - a, 2.0 * math.pi)
+    assert (expected == -math.pi).sum() == 1  # np.nextafter(math.pi, 4)'s
+    expected[expected == -math.pi] = math.pi
     got = wrap(a)
     assert np.array_equal(got, expected) and np.array_equal(np.signbit(got), np.signbit(expected))
     assert wrap(-math.pi) == math.pi
+    assert wrap(np.nextafter(math.pi, 4)) == math.pi and wrap(np.float64(-math.pi)) == math.pi
+    assert np.all(got > -math.pi) and np.all(got <= math.pi)
     assert wrap(np.array(7.0)) == math.pi - np.mod(math.pi - 7.0, 2.0 * math.pi)
 
 
@@ -146,6 +152,31 @@ def test_turn_jacobian_matches_finite_differences(omega: float) -> None:
         [(ct.f(x + h * e, dt) - ct.f(x - h * e, dt))[0] / (2 * h) for e in np.eye(5)], -1
     )
     np.testing.assert_allclose(J, num, atol=1e-7 * np.abs(J).max())
+
+
+def _turn_slopes(theta: float) -> tuple[Fraction, Fraction]:
+    """d/dtheta of sin(theta)/theta and of (1 - cos theta)/theta, exactly from their series
+    (20 terms: the remainder is far below a double's last bit for |theta| < 0.1)."""
+    t = Fraction(theta)
+    da = sum(Fraction((-1) ** k * 2 * k, math.factorial(2 * k + 1)) * t ** (2 * k - 1)
+             for k in range(1, 21))  # fmt: skip
+    db = sum(Fraction((-1) ** (k + 1) * (2 * k - 1), math.factorial(2 * k)) * t ** (2 * k - 2)
+             for k in range(1, 21))  # fmt: skip
+    return da, db
+
+
+@pytest.mark.parametrize("theta", [1e-4, 1e-3, 5e-3, 0.0099, -0.0099, 0.0101])
+def test_turn_jacobian_omega_column_to_the_last_bits(theta: float) -> None:
+    """d x'/d omega = da vx - db vy and d y'/d omega = db vx + da vy (dt = 1) against their
+    exact series on both sides of the switch to the Taylor series: a few ulps below it (da's
+    series once stopped at theta^3: 3.6e-11 off just below the switch), what the closed
+    forms' cancellation leaves above it (~eps / theta^2)."""
+    ct = CoordinatedTurn((1.0, 1.0), 1.0)
+    J = ct.jacobian(np.array([[0.0, 1.0, 0.0, 0.0, theta]]), 1.0)[0]
+    da, db = _turn_slopes(theta)
+    tol = 8 * EPS if abs(theta) < 0.01 else 8 * EPS / theta**2
+    for got, want in ((J[0, 4], da), (J[2, 4], db)):
+        assert abs((Fraction(float(got)) - want) / want) < tol, (theta, float(got), want)
 
 
 def test_turn_is_the_exact_arc_and_tends_to_constant_velocity() -> None:

@@ -167,6 +167,10 @@ def test_the_system_round_trips_through_its_record() -> None:
          ["estimate.ukf.kappa", "<= 0"]),
         ({'filter = "EKF"': 'filter = "UKF"\nukf = {beta = 2.0, gamma = 1.0}'},
          ["estimate.ukf", "gamma"]),
+        ({'filter = "EKF"': 'filter = "UKF"\nukf = {alpha = 1e200}'},
+         ["estimate.ukf.alpha", "overflows"]),  # was an internal OverflowError, exit 3
+        ({'filter = "EKF"': 'filter = "UKF"\nukf = {alpha = 1e-300}'},
+         ["estimate.ukf.alpha", "underflows"]),  # it named kappa
     ],
 )  # fmt: skip
 def test_bad_input_is_one_line(tmp_path: Path, edit: dict, fragments: list[str]) -> None:
@@ -179,6 +183,54 @@ def test_bad_input_is_one_line(tmp_path: Path, edit: dict, fragments: list[str])
     one_line_error(cli("simulate", f, "-o", tmp_path / "s.mcap"), str(f), *fragments)
 
 
+#: A target due west of a bearing sensor and a radar at the origin: bearings about +-pi.
+WEST = """
+[scenario]
+name = "west"
+steps = 3
+runs = 500
+seed = 1
+dt = 1.0
+[model]
+kind = "constant-velocity"
+axes = 2
+n0 = 0.001
+[prior]
+mean = [-100.0, 0.0, 0.0, 0.0]
+cov = [[1.0, 0, 0, 0], [0, 0.01, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 0.01]]
+[[sensors]]
+name = "cam"
+kind = "bearing"
+position = [0.0, 0.0]
+R = 1e-2
+[[sensors]]
+name = "radar"
+kind = "range-bearing"
+position = [0.0, 0.0]
+R = [[1.0, 0.0], [0.0, 1e-2]]
+[estimate]
+filter = "EKF"
+architectures = ["CKF"]
+"""
+
+
+def test_simulated_bearings_are_in_the_half_open_interval(tmp_path: Path) -> None:
+    """A bearing read with its noise is an angle in (-pi, pi] like the noise-free one (they
+    were h + v, up to pi + 0.35 and below -pi here); the estimates are unchanged by it."""
+    from fusionlog.io.mcap import McapFile
+
+    f = tmp_path / "west.toml"
+    f.write_text(WEST)
+    ok("run", f, "--out-dir", tmp_path / "o")
+    mf = McapFile(tmp_path / "o" / "sensors.mcap")
+    ((_, _, data),) = mf.iter_run_blocks(["/sensors/cam", "/sensors/radar"], 500)
+    for b in (data["/sensors/cam"][..., 0], data["/sensors/radar"][..., 1]):
+        assert np.all(b > -np.pi) and np.all(b <= np.pi)
+        assert (b > 3.0).mean() > 0.3 and (b < -3.0).mean() > 0.3  # both sides of +-pi
+    s = _summary(tmp_path / "o")["architectures"]["CKF"]
+    assert abs(s["anees"] - 4.0) < 4 * s["stderr"]["anees"] + 0.05
+
+
 def test_a_sensor_at_the_target_is_refused_with_run_and_instant(tmp_path: Path) -> None:
     text = RADAR.read_text().replace("position = [0.0, 0.0]", "position = [2000.0, 3000.0]")
     f = tmp_path / "on_target.toml"
@@ -188,12 +240,31 @@ def test_a_sensor_at_the_target_is_refused_with_run_and_instant(tmp_path: Path) 
     one_line_error(res, "radar1", "range 0", "run 0", "instant 0")
 
 
+@pytest.mark.parametrize("ukf", ["alpha = 1e153", "kappa = 1e308", "alpha = 1e-8"])
+def test_a_filter_that_fails_names_the_file_the_architecture_and_the_step(
+    tmp_path: Path, ukf: str
+) -> None:
+    """Sigma points spread past the float range (accepted parameters, hopeless numbers), or
+    a predicted covariance that is not positive definite: one line naming the sensors file,
+    the architecture and the step, as the linear filters' failures do (it was an internal
+    error with numpy's warnings, or a line naming none of them), no estimates file."""
+    f = tmp_path / "ukf.toml"
+    f.write_text(RADAR.read_text().replace('filter = "EKF"', f'filter = "UKF"\nukf = {{{ukf}}}'))
+    ok("simulate", f, "-o", tmp_path / "s.mcap", "--runs", "5", "--steps", "3")
+    res = cli("estimate", tmp_path / "s.mcap", "-o", tmp_path / "e.mcap")
+    one_line_error(res, "s.mcap: architecture ", ", step ")
+    assert not (tmp_path / "e.mcap").exists()
+
+
 def test_turn_scenario_errors() -> None:
     text = TURN.read_text()
     with pytest.raises(Exception, match=r"model.q_turn.*> 0"):
         scenario_from_text(text.replace("q_turn = 1.0e-5", "q_turn = 0.0"))
     with pytest.raises(Exception, match=r"model.n0.*not allowed"):
         scenario_from_text(text.replace("q_turn = 1.0e-5", "q_turn = 1.0e-5\nn0 = 1.0"))
+    # q is per axis, not per state (it said "expected 2 (the number of states)" of 5 states)
+    with pytest.raises(Exception, match=r"model.q: length 1, expected 2 \(\[qx, qy\]: one per"):
+        scenario_from_text(text.replace("q = [0.05, 0.05]", "q = [0.05]"))
     with pytest.raises(Exception, match=r"prior.*EKF and UKF start from"):
         start = text.index("[prior]")
         end = text.index("[[sensors]]")

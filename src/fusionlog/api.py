@@ -125,15 +125,18 @@ def simulate(
 ) -> Simulation:
     """Simulate `runs` runs (default the scenario's) of K = `steps` steps with `seed`: the
     runs `fusionlog simulate --runs --steps --seed` writes to its sensors file. `scenario` is
-    a loaded scenario or the path of its file (`load`)."""
-    if not isinstance(scenario, Scenario):
-        scenario = load(scenario)
-    if scenario.kind != "state":
-        raise FusionlogError(
-            f"{scenario.path or scenario.name}: the Python API runs state scenarios "
-            f"(not {scenario.kind})"
-        )
-    if scenario.replay is not None:
+    a loaded scenario or the path of its file (`load`); a replay file gives its recorded
+    readings as one run (and takes no runs, seed or steps)."""
+    scenario = _state_scenario(scenario)
+    if scenario.replay is not None:  # refused, not ignored (as `fusionlog run` refuses them)
+        given = [
+            f"{k}=" for k, v in (("runs", runs), ("seed", seed), ("steps", steps)) if v is not None
+        ]
+        if given:
+            raise FusionlogError(
+                f"{scenario.path or scenario.name}: a replay file is one recorded run on its "
+                f"measurement times: it takes no {', '.join(given)}"
+            )
         return _recorded(scenario)
     sc = scenario_with(scenario, runs=runs, steps=steps, seed=seed)
     x, zs = kind_of(sc.kind).simulate(sc, 0, sc.runs)
@@ -141,6 +144,20 @@ def simulate(
     measures = sc.schedule.measures  # (K+1, S)
     scheduled = {name: measures[:, j] for j, name in enumerate(names)}
     return Simulation(sc, sc.times, x, dict(zip(names, zs, strict=True)), scheduled)
+
+
+def _state_scenario(scenario: Scenario | str | os.PathLike[str]) -> Scenario:
+    """A loaded scenario, or the one of a file (`load`), of the state kind."""
+    if isinstance(scenario, str | os.PathLike):
+        scenario = load(scenario)
+    if not isinstance(scenario, Scenario):
+        raise TypeError(f"expected a scenario (fusionlog.load) or its path, got {scenario!r}")
+    if scenario.kind != "state":
+        raise FusionlogError(
+            f"{scenario.path or scenario.name}: the Python API runs state scenarios "
+            f"(not {scenario.kind})"
+        )
+    return scenario
 
 
 def _recorded(scenario: Scenario) -> Simulation:
@@ -177,13 +194,25 @@ def _blocks(sim: Simulation) -> list[tuple[int, int]]:
 
 
 def estimate(
-    scenario: Scenario, sim: Simulation, architectures: Sequence[str] | None = None
+    scenario: Scenario | str | os.PathLike[str],
+    sim: Simulation,
+    architectures: Sequence[str] | str | None = None,
+    *,
+    filter: str | None = None,
 ) -> Estimates:
     """Each architecture's estimates of the runs (default: the scenario's `[estimate]
-    architectures`), as `fusionlog estimate` computes them. `scenario` is the filters' model:
-    the one simulated, or another (`fusionlog estimate --model`), whose sensors are taken
-    from `sim` by name."""
+    architectures`; one name may be given as a string), as `fusionlog estimate` computes
+    them. `scenario` is the filters' model: the one simulated, or another (`fusionlog
+    estimate --model`), whose sensors are taken from `sim` by name; `filter` ("EKF" or
+    "UKF") overrides its local filter as `--filter` does."""
+    scenario = _state_scenario(scenario)
     system = scenario.system
+    if filter is not None:
+        from .stages.nonlinear import with_filter
+
+        system = with_filter(system, filter)
+    if isinstance(architectures, str):  # "CKF", not the letters "C", "K", "F"
+        architectures = [architectures]
     archs = check_architectures(
         list(architectures or scenario.architectures), system, "architectures"
     )
@@ -215,7 +244,10 @@ def evaluate(scenario: Scenario, sim: Simulation, estimates: Estimates) -> Evalu
     """MSE (eq. 45), ANEES, DM (eq. 47) with their exact expected values, NIS where it says
     something, and sample runs: what `fusionlog evaluate` puts in summary.json and the
     recording (written only by `Evaluation.save`). `scenario` is the model the estimates
-    were made with (`estimate`); the truth is `sim`'s."""
+    were made with (`estimate`); the truth is `sim`'s: estimates of other runs or instants
+    are a FusionlogError."""
+    scenario = _state_scenario(scenario)
+    _check_estimates(sim, estimates)
     sc = sim.scenario  # the truth's: the runs, steps and seed simulated
     filter_sys, truth_sys = sim.on_instants(scenario.system), sim.on_instants(sc.system)
     # the estimates' record of their measurement pattern (plain dicts: none known, per run)
@@ -237,6 +269,23 @@ def evaluate(scenario: Scenario, sim: Simulation, estimates: Estimates) -> Evalu
         truth = None if sim.truth is None else sim.truth[off : off + n]
         ev.add(off, truth, ests, readings)
     return Evaluation(**vars(ev.evaluation({"command": "fusionlog.evaluate"})))
+
+
+def _check_estimates(sim: Simulation, estimates: Estimates) -> None:
+    """The estimates are of `sim`'s runs and instants (each architecture's mean (M, K+1, n)
+    and covariance (K+1, n, n) or (M, K+1, n, n)): one clear error, not numpy's deep inside."""
+    if not estimates:
+        raise FusionlogError("evaluate: no estimates (fusionlog.estimate gives them)")
+    M, K1 = sim.runs, len(sim.times)
+    for a, e in estimates.items():
+        mean, cov = np.shape(e.mean), np.shape(e.cov)
+        n = mean[-1] if len(mean) == 3 else None
+        want_cov = [(K1, n, n), (M, K1, n, n)]
+        if len(mean) != 3 or mean[:2] != (M, K1) or cov not in want_cov:
+            raise FusionlogError(
+                f"evaluate: the estimates of {a} (mean {mean}, covariance {cov}) are not of "
+                f"this simulation's {M} runs and {K1} instants"
+            )
 
 
 def _runs(e: Estimate, off: int, n: int) -> tuple[np.ndarray, np.ndarray]:

@@ -59,6 +59,8 @@ def _draw(
         for k in range(steps):
             x[:, k + 1] = system.propagate(x[:, k], k + 1) + w[:, k]
         z = system.h(x) + v
+        if not system.linear:  # a bearing read with its noise is still in (-pi, pi]
+            z = system.residual(z, np.zeros(z.shape[-1]))
     for what, a in (("the true state", x), ("the measurement", z)):
         if not np.isfinite(a).all():
             # Non-finite values would be read as missing measurements downstream: refuse them.

@@ -13,6 +13,7 @@ Every problem is one line naming the file, the key and the reason (`toml.Ctx.err
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from fusionlog.core.model import System
@@ -105,7 +106,7 @@ def turn_section(
             )
     if dt is None:
         raise ctx.err("scenario.dt", "missing required key (kind = 'coordinated-turn' needs it)")
-    q = toml.vector(ctx, md["q"], "model.q", 2)
+    q = toml.vector(ctx, md["q"], "model.q", 2, "[qx, qy]: one per axis")
     q_turn = toml.number(ctx, md["q_turn"], "model.q_turn")
     # Q must be invertible: the PCRB's recursion for nonlinear motion needs Q^-1.
     for where, v in (("model.q", float(q.min())), ("model.q_turn", q_turn)):
@@ -158,11 +159,20 @@ def filter_section(
         alpha, _, kappa = ukf
         if not alpha > 0:
             raise ctx.err("estimate.ukf.alpha", f"must be > 0, got {toml.fmt(alpha)}")
-        if not alpha**2 * (n + kappa) > 0:
+        # alpha * alpha, not alpha**2: float ** raises OverflowError where * gives inf
+        c = alpha * alpha * (n + kappa)
+        if not c > 0 and n + kappa > 0:  # alpha so small that its square underflows
+            raise ctx.err("estimate.ukf.alpha", f"too small: alpha^2 underflows to 0 (n = {n})")
+        if not c > 0:
             raise ctx.err(
                 "estimate.ukf.kappa",
-                f"makes n + lambda = alpha^2 (n + kappa) = {toml.fmt(alpha**2 * (n + kappa))} "
+                f"makes n + lambda = alpha^2 (n + kappa) = {toml.fmt(c)} "
                 f"<= 0 (n = {n}): the sigma points need n + kappa > 0",
+            )
+        if not math.isfinite(c):
+            raise ctx.err(
+                "estimate.ukf.alpha",
+                f"too large: n + lambda = alpha^2 (n + kappa) overflows (n = {n})",
             )
     return filt, ukf  # type: ignore[return-value]
 

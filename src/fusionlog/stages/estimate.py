@@ -88,10 +88,13 @@ def estimate_to(
         named = [(estimates_topic(a), write) for a, write in writers.items()]
         # The documented order (for each step, for each topic) lets a reader learn every
         # topic from the first messages of the file.
-        for k in range(K + 1):
-            t = float(times[k])
-            for topic, write in named:
-                write(w, topic, k, t, off)
+        try:  # nonlinear filters advance as they are written: their failures come here
+            for k in range(K + 1):
+                t = float(times[k])
+                for topic, write in named:
+                    write(w, topic, k, t, off)
+        except NumericalError as e:
+            raise NumericalError(f"{sensors_name or sensors_path}: {e}") from None
     # Written last, when what the whole file holds is known (e.g. the measurement pattern).
     w.add_metadata(
         PROVENANCE_META,

@@ -28,6 +28,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from fusionlog.core.architectures import Estimate, PlanCache, estimate_block
+from fusionlog.errors import NumericalError
 from fusionlog.memory import keep_freed_memory
 from fusionlog.scenario import Scenario
 
@@ -99,8 +100,15 @@ def _one_blas_thread(fn: Callable[..., T]) -> Callable[..., T]:
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> T:
         keep_freed_memory()
-        with _blas_controller().limit(limits=1, user_api="blas"):
-            return fn(*args, **kwargs)
+        try:
+            with _blas_controller().limit(limits=1, user_api="blas"):
+                return fn(*args, **kwargs)
+        except NumericalError as e:  # the core names the architecture and step; the file here
+            job = args[0] if args and isinstance(args[0], Job) else None
+            where = None if job is None else job.scenario.path or job.scenario.name
+            if where is None or str(e).startswith(f"{where}: "):
+                raise
+            raise NumericalError(f"{where}: {e}") from None
 
     return wrapper
 

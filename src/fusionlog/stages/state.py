@@ -20,7 +20,7 @@ from fusionlog.core.architectures import PlanCache, estimate_block
 from fusionlog.core.model import System
 from fusionlog.core.names import check_architectures
 from fusionlog.core.simulate import simulate
-from fusionlog.errors import FusionlogError
+from fusionlog.errors import FusionlogError, NumericalError
 from fusionlog.io.mcap import TRUTH, McapFile, McapWriter, arch_of, sensor_topic
 from fusionlog.io.mcap.topics import ESTIMATES_PREFIX
 from fusionlog.scenario import Scenario, load_model, system_from_dict, system_to_dict
@@ -54,7 +54,10 @@ class StateKind(Kind):
         sched = scenario.schedule
         system = scenario.system.on_times(sched.times)
         measures = None if sched.measures.all() else sched.measures
-        x, z = simulate(system, sched.steps, scenario.seed, run_offset, runs, measures)
+        try:
+            x, z = simulate(system, sched.steps, scenario.seed, run_offset, runs, measures)
+        except NumericalError as e:  # the core names the step; the scenario's file here
+            raise NumericalError(f"{scenario.path or scenario.name}: {e}") from None
         return x, [z[..., sl] for sl in system.sensor_slices]
 
     def model(self, sensors: McapFile, recorded: Scenario | None, model_path: Path | None) -> Model:

@@ -36,13 +36,18 @@ def wrap(a: np.ndarray) -> np.ndarray:
 
     t mod 2 pi is t itself (exactly: fmod is exact) for t in [0, 2 pi), which is where an
     angle already in (-pi, pi] puts t = pi - a: np.mod, ~7x slower than a subtraction, runs
-    only on the other entries; the numbers are np.mod's to the last bit either way."""
+    only on the other entries; the numbers are np.mod's to the last bit either way, except
+    where np.mod rounds a tiny negative t up to 2 pi itself (an angle an ulp or so above pi):
+    that would give -pi, the excluded end, and gives pi."""
     t = np.subtract(math.pi, a)
     if np.ndim(t) == 0:
-        return math.pi - np.mod(t, 2.0 * math.pi)
+        m = np.mod(t, 2.0 * math.pi)
+        return math.pi - (m if m < 2.0 * math.pi else 0.0)
     out = (t < 0.0) | (t >= 2.0 * math.pi)
     if out.any():
-        t[out] = np.mod(t[out], 2.0 * math.pi)
+        m = np.mod(t[out], 2.0 * math.pi)
+        m[m >= 2.0 * math.pi] = 0.0
+        t[out] = m
     np.subtract(math.pi, t, out=t)
     return t
 

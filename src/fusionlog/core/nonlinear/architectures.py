@@ -32,7 +32,7 @@ from ...errors import FusionlogError, NumericalError
 from ..ci import ci_omegas
 from ..fusion import gmf_weight_matrix
 from ..kernels import lanes
-from ..linalg import mT, spd_inv, sym
+from ..linalg import NUMERICAL_FAILURES, mT, spd_inv, sym
 from ..model import System
 from ..models.polar import PolarSensor
 from ..names import parse_arch
@@ -156,14 +156,40 @@ def estimate_steps(
         )
     st = _Steps(system, z, times, run_offset)
     if base == "CKF":
-        return _filter(st, list(range(len(names))))
+        return _named(_filter(st, list(range(len(names)))), arch)
     if base == "SKF":
-        return _filter(st, [names.index(sensor)])
+        return _named(_filter(st, [names.index(sensor)]), arch)
     if base == "FBS":
-        return _smoother(st)
+        return _named(_smoother(st), arch)
     if base == "HKF":
-        return _hkf(st)
-    return _track_to_track(st, base)
+        return _named(_hkf(st), arch)
+    return _named(_track_to_track(st, base), arch)
+
+
+def _named(steps: Steps, arch: str) -> Steps:
+    """`steps` with their numerical failures as one NumericalError naming the architecture
+    and the step (what the linear plans' errors name), and an estimate that overflows refused:
+    a NaN mean would be read downstream as "no estimate". The smoother's failures name the
+    step of its forward pass (its backward pass runs before its first step is given)."""
+    for k in range(np.iinfo(np.int64).max):
+        where = f"architecture {arch}, step {k}"
+        try:
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                x, P = next(steps)
+        except StopIteration:
+            return
+        except NumericalError as e:
+            if str(e).startswith("architecture "):  # named already (the smoother's filter)
+                raise
+            raise NumericalError(f"{where}: {e}") from None
+        except NUMERICAL_FAILURES as e:
+            raise NumericalError(
+                f"{where}: a matrix is singular or overflows to working precision "
+                f"({type(e).__name__}: {e})"
+            ) from e
+        if not (np.isfinite(x).all() and np.isfinite(P).all()):
+            raise NumericalError(f"{where}: the estimate overflows (not finite)")
+        yield x, P
 
 
 def _filter(st: _Steps, which: list[int], keep: list | None = None) -> Steps:
@@ -185,7 +211,8 @@ def _smoother(st: _Steps) -> Steps:
     keep: list = []
     M, K1 = st.z.shape[:2]
     out = _Out(M, K1, st.system.n)
-    for k, (x, P) in enumerate(_filter(st, list(range(len(st.system.sensors))), keep)):
+    forward = _named(_filter(st, list(range(len(st.system.sensors))), keep), "FBS")
+    for k, (x, P) in enumerate(forward):
         out.put(k, x, P)
     tr = out.track()
     mean, cov = tr.mean, tr.cov
