@@ -212,6 +212,24 @@ def test_bag_errors_are_one_line(tmp_path: Path) -> None:
     _fails("damaged or not a ROS bag", source=bad, topic="/fix", values=["latitude"])
 
 
+@pytest.mark.parametrize("named", ["folder", "db3"])
+def test_import_never_writes_onto_a_file_of_a_bag_folder(tmp_path: Path, named: str) -> None:
+    """A ROS 2 bag is its folder's files: neither its .db3 nor its metadata.yaml is ever an
+    output, whichever of them the replay names (even with --force)."""
+    bag = tmp_path / "ros2"
+    _write_bag(bag, 2)
+    db3 = next(bag.glob("*.db3"))
+    source = "ros2" if named == "folder" else f"ros2/{db3.name}"
+    f = tmp_path / "replay.toml"
+    f.write_text(_BASE + f'source = "{source}"\ntopic = "/fix"\n'
+                 'values = ["latitude", "longitude"]\ngeodetic = true\n')  # fmt: skip
+    before = {p.name: p.read_bytes() for p in bag.iterdir()}
+    for target in (db3, bag / "metadata.yaml"):
+        res = cli("import", f, "-o", target, "--force")
+        one_line_error(res, str(target), "is an input of this command, not an output")
+    assert {p.name: p.read_bytes() for p in bag.iterdir()} == before
+
+
 # -- geodetic ------------------------------------------------------------------------------
 
 

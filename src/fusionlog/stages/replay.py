@@ -81,6 +81,16 @@ def _read_all(replay, names: list[str]) -> tuple[list, list[str]]:
     return series, notes
 
 
+def replay_inputs(scenario: Scenario) -> list[Path]:
+    """Every file the replay's readers open (a bag folder's .db3 files and metadata.yaml too,
+    whichever of them is named): no output may be written onto one of them."""
+    from fusionlog.io.replay import source_files
+
+    replay = scenario.replay
+    streams = list(replay.sensors) + ([replay.truth] if replay.truth is not None else [])
+    return [f for st in streams for f in source_files(st.source)]
+
+
 def sha256_of_source(path: Path) -> str:
     """A source's sha256: the file's, or for a ROS 2 bag folder the hash of its files' names
     and hashes (sorted)."""
@@ -258,9 +268,7 @@ def run_import(
         )
     out = Path(out)
     inputs = [Path(scenario.path)] if scenario.path else []
-    inputs += [s.source for s in scenario.replay.sensors]
-    if scenario.replay.truth is not None:
-        inputs.append(scenario.replay.truth.source)
+    inputs += replay_inputs(scenario)
     with Outputs([out], force=force, inputs=inputs) as outs:
         data = read_replay(scenario)
         with McapWriter(outs.open(out), time_origin_ns=int(data.instants[0])) as w:
