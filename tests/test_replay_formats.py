@@ -212,6 +212,24 @@ def test_bag_errors_are_one_line(tmp_path: Path) -> None:
     _fails("damaged or not a ROS bag", source=bad, topic="/fix", values=["latitude"])
 
 
+def test_a_damaged_bag_is_not_sent_to_inspect_recover(tmp_path: Path) -> None:
+    """`inspect --recover` reads MCAP only: a damaged bag's error does not point there, and
+    `inspect --recover` on a bag says it is a bag (not "damaged: not a valid MCAP", exit 0)."""
+    bad = tmp_path / "bad.bag"
+    bad.write_bytes(b"#ROSBAG V2.0\nnot a bag")
+    line = one_line_error(cli("inspect", bad), str(bad), "damaged or not a ROS bag")
+    assert "--recover" not in line
+    f = tmp_path / "replay.toml"
+    f.write_text(_BASE + 'source = "bad.bag"\ntopic = "/fix"\nvalues = ["latitude", "longitude"]\n'
+                 "geodetic = true\n")  # fmt: skip
+    line = one_line_error(cli("import", f, "-o", tmp_path / "s.mcap"), "damaged or not a ROS bag")
+    assert "--recover" not in line and not (tmp_path / "s.mcap").exists()
+    _write_bag(tmp_path / "ros2", 2)
+    for target in (bad, tmp_path / "ros2"):
+        one_line_error(cli("inspect", "--recover", target), str(target), "is a ROS bag",
+                       "--recover reads damaged MCAP files only")  # fmt: skip
+
+
 @pytest.mark.parametrize("named", ["folder", "db3"])
 def test_import_never_writes_onto_a_file_of_a_bag_folder(tmp_path: Path, named: str) -> None:
     """A ROS 2 bag is its folder's files: neither its .db3 nor its metadata.yaml is ever an
