@@ -388,6 +388,25 @@ def test_bad_input_of_each_new_key_is_one_line(logs: Path, sensor, truth, fragme
     assert not (logs / "s.mcap").exists()
 
 
+def test_sensors_that_do_not_overlap_in_time_are_noted(logs: Path) -> None:
+    """One sensor on header stamps, one on the record time days later: the instants are still
+    their union, and the gap is said (not predicted across in silence)."""
+    (logs / "later.txt").write_text("time x y\n172800 1 2\n172801 2 3\n")
+    f = logs / "replay.toml"
+    f.write_text(
+        _BASE + 'source = "xy.txt"\nvalues = ["x", "y"]\n[[sensors]]\nname = "u"\n'
+        'source = "later.txt"\nvalues = ["x", "y"]\ntime = "time"\n'
+        "H = [[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]]\nR = [[1.0, 0.0], [0.0, 1.0]]\n"
+    )
+    res = ok("import", f, "-o", logs / "s.mcap")
+    assert (
+        "note: u and s do not overlap in time: u's first reading is 172798 s (2 days) after "
+        "s's last (u: time = 'time', s: the default time)"
+    ) in res.stdout, res.stdout
+    (logs / "later.txt").write_text("time x y\n1.5 1 2\n2.5 2 3\n")
+    assert "overlap" not in ok("import", f, "-o", logs / "s.mcap", "--force").stdout
+
+
 def test_truth_without_prior_runs_with_truth_metrics(logs: Path) -> None:
     """[truth] without [prior]: the filters start with no information; the truth metrics are
     there, the exact expected values (which need an initial distribution) are not."""

@@ -118,6 +118,29 @@ def _usable(cov: np.ndarray) -> np.ndarray:
     return out
 
 
+def _disjoint(names: list[str], times: list[str | None], series: list) -> list[str]:
+    """A note when two sensors' readings do not overlap in time: the filters then predict
+    across the whole gap. Usually one `time` is a header stamp and the other the log/record
+    time (drivers stamp with another clock, or a bag was recorded days later)."""
+    if len(series) < 2:
+        return []
+    a = max(range(len(series)), key=lambda j: int(series[j].times_ns[0]))  # starts last
+    b = min(range(len(series)), key=lambda j: int(series[j].times_ns[-1]))  # ends first
+    gap = int(series[a].times_ns[0]) - int(series[b].times_ns[-1])
+    if gap <= 0:
+        return []
+
+    def clock(j: int) -> str:
+        return f"time = {times[j]!r}" if times[j] is not None else "the default time"
+
+    days = f" ({gap / 86400e9:.3g} days)" if gap >= 86400 * 10**9 else ""
+    return [
+        f"{names[a]} and {names[b]} do not overlap in time: {names[a]}'s first reading is "
+        f"{gap / 1e9:.6g} s{days} after {names[b]}'s last ({names[a]}: {clock(a)}, {names[b]}: "
+        f"{clock(b)}); the filters predict across that gap"
+    ]
+
+
 @dataclass
 class ReplayData:
     """A replay's data on its instants: the scenario with its steps (and any nominal R) set,
@@ -142,6 +165,7 @@ def read_replay(scenario: Scenario) -> ReplayData:
     for name, s in zip(names + ["truth"], series, strict=False):
         notes += [f"{name}: {n}" for n in s.notes]
     sensor_series = series[: len(names)]
+    notes += _disjoint(names, [replay.sensors[j].time for j in range(len(names))], sensor_series)
     instants = np.unique(np.concatenate([s.times_ns for s in sensor_series]))
     sensors: list[_Sensor] = []
     nominal = []
