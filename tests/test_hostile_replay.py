@@ -108,6 +108,26 @@ def test_covariance_index_reads_the_right_element(tmp_path: Path) -> None:
     assert covs[0][7] != covs[0][0]
 
 
+def test_one_asymmetric_covariance_falls_back_to_r_alone(tmp_path: Path) -> None:
+    """R applies to the message whose block is not a covariance (here not symmetric), not to
+    every message of the stream."""
+    blocks = [[[4.0, 0.0], [0.0, 4.0]], [[4.0, 1.0], [0.0, 4.0]], [[9.0, 0.5], [0.5, 9.0]]]
+    msgs = []
+    for i, b in enumerate(blocks):
+        c = np.eye(6)
+        c[:2, :2] = b
+        msgs.append((T0 + i * 10**9, pose(c.ravel().tolist(), 1.0 + i)))
+    json_mcap(tmp_path / "p.mcap", msgs)
+    sc = replay(tmp_path, "p.mcap", '["pose.pose.position.x", "pose.pose.position.y"]',
+                'covariance = "pose.covariance"\ncovariance_index = [0, 1]\n'
+                "R = [[1.0, 0.0], [0.0, 1.0]]")  # fmt: skip
+    sc.write_text(sc.read_text().replace("H = [1.0, 0.0]", "H = [[1.0, 0.0], [0.0, 1.0]]"))
+    res = ok("import", sc, "-o", tmp_path / "out.mcap")
+    assert "1 of 3 messages with an all-zero or not positive definite covariance" in res.stdout
+    got = McapFile(tmp_path / "out.mcap").message_covariances("/sensors/s")
+    np.testing.assert_array_equal(got, [blocks[0], np.eye(2), blocks[2]])
+
+
 # ------------------------------------------------------------------ what a source may be
 
 

@@ -107,7 +107,9 @@ def sha256_of_source(path: Path) -> str:
 def _usable(cov: np.ndarray) -> np.ndarray:
     """(N,) whether each covariance is a usable R: not all zero, symmetric, positive definite."""
     ok = np.isfinite(cov).all(axis=(-2, -1)) & (np.abs(cov).max(axis=(-2, -1)) > 0)
-    ok &= np.allclose(cov, np.swapaxes(cov, -1, -2), rtol=1e-9, atol=0.0) | ~ok
+    # per message (one asymmetric matrix must not send every message to R)
+    sym = np.isclose(cov, np.swapaxes(cov, -1, -2), rtol=1e-9, atol=0.0).all(axis=(-2, -1))
+    ok &= sym
     out = np.zeros(len(cov), dtype=bool)
     for i in np.flatnonzero(ok):
         try:
