@@ -461,6 +461,28 @@ def test_run_workers_on_a_replay_is_a_one_line_error(logs: Path) -> None:
     assert not (logs / "out").exists()
 
 
+@pytest.mark.parametrize("flag", ["--runs", "--steps", "--seed"])
+def test_monte_carlo_flags_on_a_replay_are_refused_not_ignored(logs: Path, flag: str) -> None:
+    """A replay is one recorded run on its measurement times: `run --runs 5` said nothing and
+    ran one, as the file's own scenario.runs/steps/seed are refused."""
+    f = logs / "replay.toml"
+    f.write_text(_BASE + 'source = "xy.txt"\nvalues = ["x", "y"]\n')
+    res = cli("run", f, "--out-dir", logs / "out", flag, "5")
+    one_line_error(res, str(f), f"{flag}: not used with a replay file")
+    assert not (logs / "out").exists()
+
+
+def test_simulate_on_a_replay_is_a_one_line_error(logs: Path) -> None:
+    """`simulate` of a replay wrote one simulated instant from its model and prior (the
+    recorded readings ignored): it points to `import` instead."""
+    f = logs / "replay.toml"
+    f.write_text(_BASE + 'source = "xy.txt"\nvalues = ["x", "y"]\n')
+    res = cli("simulate", f, "-o", logs / "s.mcap")
+    one_line_error(res, str(f), "a replay file: its readings are recorded, not simulated",
+                   "fusionlog import")  # fmt: skip
+    assert not (logs / "s.mcap").exists()
+
+
 def test_sweep_on_a_replay_is_a_one_line_error(logs: Path) -> None:
     f = logs / "replay.toml"
     f.write_text(_BASE + 'source = "xy.txt"\nvalues = ["x", "y"]\n')
