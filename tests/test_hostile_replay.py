@@ -293,3 +293,26 @@ def test_every_command_refuses_a_fifo_input_without_blocking(
         f"fusionlog: error: {fifo}: is a FIFO (named pipe), not a regular file"
     ]
     assert listing(tmp_path) == [fifo]
+
+
+def test_a_stamp_far_from_its_log_time_is_noted(tmp_path: Path) -> None:
+    """A header stamp left at 0 among stamps that follow the log time (by a constant offset
+    here, as another clock would): noted with the message, not read in silence as 1970."""
+    msgs = []
+    for i in range(20):
+        t = T0 + i * 10**8
+        st = T0 - 5 * 10**9 + i * 10**8 if i != 7 else 0
+        stamp = {"sec": st // 10**9, "nanosec": st % 10**9}
+        msgs.append((t, {"header": {"stamp": stamp}, "v": float(i)}))
+    json_mcap(tmp_path / "p.mcap", msgs)
+    sc = replay(tmp_path, "p.mcap", '["v"]', 'time = "header.stamp"\nR = [[1.0]]')
+    out = ok("import", sc, "-o", tmp_path / "out.mcap").stdout
+    assert (
+        "note: s: 1 message whose time is more than 60 s off the others' (time - log time -5 s "
+        f"for most), e.g. message 8: time 0 ns at log time {T0 + 7 * 10**8} ns"
+    ) in out, out
+    # the offset alone (every stamp 5 s behind) is no note, nor the log time itself
+    json_mcap(tmp_path / "p.mcap", [(t, m) for t, m in msgs if t != T0 + 7 * 10**8])
+    assert "more than 60 s" not in ok("import", sc, "-o", tmp_path / "o2.mcap").stdout
+    sc.write_text(sc.read_text().replace('time = "header.stamp"', ""))
+    assert "more than 60 s" not in ok("import", sc, "-o", tmp_path / "o3.mcap").stdout
