@@ -316,3 +316,10 @@ def test_a_stamp_far_from_its_log_time_is_noted(tmp_path: Path) -> None:
     assert "more than 60 s" not in ok("import", sc, "-o", tmp_path / "o2.mcap").stdout
     sc.write_text(sc.read_text().replace('time = "header.stamp"', ""))
     assert "more than 60 s" not in ok("import", sc, "-o", tmp_path / "o3.mcap").stdout
+
+
+def test_stamps_all_zero_say_unset(tmp_path: Path) -> None:
+    msgs = [(T0 + i, {"header": {"stamp": {"sec": 0, "nanosec": 0}}, "v": 1.0}) for i in range(3)]
+    json_mcap(tmp_path / "p.mcap", msgs)
+    sc = replay(tmp_path, "p.mcap", '["v"]', 'time = "header.stamp"\nR = [[1.0]]')
+    refused(tmp_path, sc, "p.mcap", "duplicate instant 0 ns", "an unset stamp? (without `time`")

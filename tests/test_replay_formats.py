@@ -104,6 +104,22 @@ def test_text_table_bad_shapes_are_one_line(tmp_path: Path) -> None:
     _fails("line 3: 1 fields where the header has 2", source=p, topic=None, values=["x"])
 
 
+@pytest.mark.parametrize(
+    ("row", "says"),
+    [("1,1_000", "column 'x': '1_000' is not a number"),
+     ("1,\uff11", "column 'x': '\uff11' is not a number"),
+     ("1_0,1", "time column 'time' '1_0' is not a number"),
+     ("\u0661,1", "time column 'time' '\u0661' is not a number")],
+)  # fmt: skip
+def test_cells_python_reads_but_a_table_does_not_hold_are_not_numbers(
+    tmp_path: Path, row: str, says: str
+) -> None:
+    """float() and Decimal() read "1_000" and other scripts' digits: a table does not."""
+    p = tmp_path / "t.csv"
+    p.write_text(f"time,x\n{row}\n", encoding="utf-8")
+    _fails(f"line 2: {says}", source=p, topic=None, values=["x"])
+
+
 # -- bags ----------------------------------------------------------------------------------
 
 N_FIX = 12

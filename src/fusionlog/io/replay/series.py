@@ -161,12 +161,14 @@ class Collector:
             i = int(dup[0])
             a, b = sorted((self._origin[order[i]], self._origin[order[i + 1]]))
             more = np.unique(t[dup]).size - 1
+            unset = bool(self._record) and not t[i]  # a header stamp of 0 from a field
             raise fail(
                 self.source,
                 self.what,
                 f"duplicate instant {int(t[i])} ns: {self.label(a)} and {self.label(b)} have the "
-                f"same time" + (f" ({_plural(more, 'more duplicated instant')})" if more else ""),
-            )
+                f"same time" + (f" ({_plural(more, 'more duplicated instant')})" if more else "")
+                + (": an unset stamp? (without `time`, the log time is used)" if unset else ""),
+            )  # fmt: skip
         if self.bad_covs:
             notes.append(
                 f"{_plural(self.bad_covs, u)} with NaN or infinite covariance entries "
