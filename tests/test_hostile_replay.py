@@ -323,3 +323,20 @@ def test_stamps_all_zero_say_unset(tmp_path: Path) -> None:
     json_mcap(tmp_path / "p.mcap", msgs)
     sc = replay(tmp_path, "p.mcap", '["v"]', 'time = "header.stamp"\nR = [[1.0]]')
     refused(tmp_path, sc, "p.mcap", "duplicate instant 0 ns", "an unset stamp? (without `time`")
+
+
+def test_a_subnormal_variance_is_not_a_usable_covariance(tmp_path: Path) -> None:
+    """An uninitialised covariance (a VectorNav driver's 1.6e-315) is positive definite to a
+    Cholesky factorisation, but its inverse overflows: R applies there, as for zeros."""
+    msgs = []
+    for i, var in enumerate([2.0, 1.59173414e-315, 3.0]):
+        c = np.eye(6)
+        c[1, 1] = var
+        msgs.append((T0 + i * 10**9, pose(c.ravel().tolist(), 1.0 + i)))
+    json_mcap(tmp_path / "p.mcap", msgs)
+    sc = replay(tmp_path, "p.mcap", '["pose.pose.position.y"]',
+                'covariance = "pose.covariance"\ncovariance_index = [1]\nR = [[0.5]]')  # fmt: skip
+    res = ok("import", sc, "-o", tmp_path / "out.mcap")
+    assert "1 of 3 messages with an all-zero or not positive definite covariance" in res.stdout
+    got = McapFile(tmp_path / "out.mcap").message_covariances("/sensors/s")
+    assert got[:, 0, 0].tolist() == [2.0, 0.5, 3.0]

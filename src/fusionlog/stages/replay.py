@@ -110,6 +110,9 @@ def _usable(cov: np.ndarray) -> np.ndarray:
     # per message (one asymmetric matrix must not send every message to R)
     sym = np.isclose(cov, np.swapaxes(cov, -1, -2), rtol=1e-9, atol=0.0).all(axis=(-2, -1))
     ok &= sym
+    # a variance below the smallest normal double (uninitialised memory: 1.6e-315) passes a
+    # Cholesky factorisation but its inverse overflows: not a usable R either
+    ok &= (np.diagonal(cov, axis1=-2, axis2=-1) >= np.finfo(np.float64).tiny).all(axis=-1)
     out = np.zeros(len(cov), dtype=bool)
     for i in np.flatnonzero(ok):
         try:
