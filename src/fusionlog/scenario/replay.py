@@ -198,7 +198,7 @@ def _stream(ctx: Ctx, t: dict[str, Any], where: str, base: Path) -> Stream:
     if kind == "text" and path.is_dir():  # not "a topic for a text table": say what is wrong
         raise ctx.err(
             f"{where}.source",
-            f"{str(path)!r} is a folder but not a ROS 2 bag (no metadata.yaml beside its .db3)",
+            f"{str(path)!r} is a folder but not a ROS 2 bag (no metadata.yaml)",
         )
     topic = None
     if kind != "text":

@@ -20,8 +20,8 @@ from fusionlog.errors import ValidationError
 __all__ = ["Collector", "Series", "fail"]
 
 INT64_MAX = 2**63 - 1
-# a `time` field this far from what the stream's other messages' say about their log times
-# (time - log time, their median) is an unset or foreign stamp (a header stamp of 0)
+# a `time` field more than this off the offset (time - log time) that the stream's other
+# messages keep (their median) is an unset or foreign stamp (a header stamp of 0)
 FAR_NS = 60 * 10**9
 
 
