@@ -108,6 +108,26 @@ def test_covariance_index_reads_the_right_element(tmp_path: Path) -> None:
     assert covs[0][7] != covs[0][0]
 
 
+def test_one_asymmetric_covariance_falls_back_to_r_alone(tmp_path: Path) -> None:
+    """R applies to the message whose block is not a covariance (here not symmetric), not to
+    every message of the stream."""
+    blocks = [[[4.0, 0.0], [0.0, 4.0]], [[4.0, 1.0], [0.0, 4.0]], [[9.0, 0.5], [0.5, 9.0]]]
+    msgs = []
+    for i, b in enumerate(blocks):
+        c = np.eye(6)
+        c[:2, :2] = b
+        msgs.append((T0 + i * 10**9, pose(c.ravel().tolist(), 1.0 + i)))
+    json_mcap(tmp_path / "p.mcap", msgs)
+    sc = replay(tmp_path, "p.mcap", '["pose.pose.position.x", "pose.pose.position.y"]',
+                'covariance = "pose.covariance"\ncovariance_index = [0, 1]\n'
+                "R = [[1.0, 0.0], [0.0, 1.0]]")  # fmt: skip
+    sc.write_text(sc.read_text().replace("H = [1.0, 0.0]", "H = [[1.0, 0.0], [0.0, 1.0]]"))
+    res = ok("import", sc, "-o", tmp_path / "out.mcap")
+    assert "1 of 3 messages with an all-zero or not positive definite covariance" in res.stdout
+    got = McapFile(tmp_path / "out.mcap").message_covariances("/sensors/s")
+    np.testing.assert_array_equal(got, [blocks[0], np.eye(2), blocks[2]])
+
+
 # ------------------------------------------------------------------ what a source may be
 
 
@@ -273,3 +293,50 @@ def test_every_command_refuses_a_fifo_input_without_blocking(
         f"fusionlog: error: {fifo}: is a FIFO (named pipe), not a regular file"
     ]
     assert listing(tmp_path) == [fifo]
+
+
+def test_a_stamp_far_from_its_log_time_is_noted(tmp_path: Path) -> None:
+    """A header stamp left at 0 among stamps that follow the log time (by a constant offset
+    here, as another clock would): noted with the message, not read in silence as 1970."""
+    msgs = []
+    for i in range(20):
+        t = T0 + i * 10**8
+        st = T0 - 5 * 10**9 + i * 10**8 if i != 7 else 0
+        stamp = {"sec": st // 10**9, "nanosec": st % 10**9}
+        msgs.append((t, {"header": {"stamp": stamp}, "v": float(i)}))
+    json_mcap(tmp_path / "p.mcap", msgs)
+    sc = replay(tmp_path, "p.mcap", '["v"]', 'time = "header.stamp"\nR = [[1.0]]')
+    out = ok("import", sc, "-o", tmp_path / "out.mcap").stdout
+    assert (
+        "note: s: 1 message whose time is more than 60 s off the others' (time - log time -5 s "
+        f"for most), e.g. message 8: time 0 ns at log time {T0 + 7 * 10**8} ns"
+    ) in out, out
+    # the offset alone (every stamp 5 s behind) is no note, nor the log time itself
+    json_mcap(tmp_path / "p.mcap", [(t, m) for t, m in msgs if t != T0 + 7 * 10**8])
+    assert "more than 60 s" not in ok("import", sc, "-o", tmp_path / "o2.mcap").stdout
+    sc.write_text(sc.read_text().replace('time = "header.stamp"', ""))
+    assert "more than 60 s" not in ok("import", sc, "-o", tmp_path / "o3.mcap").stdout
+
+
+def test_stamps_all_zero_say_unset(tmp_path: Path) -> None:
+    msgs = [(T0 + i, {"header": {"stamp": {"sec": 0, "nanosec": 0}}, "v": 1.0}) for i in range(3)]
+    json_mcap(tmp_path / "p.mcap", msgs)
+    sc = replay(tmp_path, "p.mcap", '["v"]', 'time = "header.stamp"\nR = [[1.0]]')
+    refused(tmp_path, sc, "p.mcap", "duplicate instant 0 ns", "an unset stamp? (without `time`")
+
+
+def test_a_subnormal_variance_is_not_a_usable_covariance(tmp_path: Path) -> None:
+    """An uninitialised covariance (a VectorNav driver's 1.6e-315) is positive definite to a
+    Cholesky factorisation, but its inverse overflows: R applies there, as for zeros."""
+    msgs = []
+    for i, var in enumerate([2.0, 1.59173414e-315, 3.0]):
+        c = np.eye(6)
+        c[1, 1] = var
+        msgs.append((T0 + i * 10**9, pose(c.ravel().tolist(), 1.0 + i)))
+    json_mcap(tmp_path / "p.mcap", msgs)
+    sc = replay(tmp_path, "p.mcap", '["pose.pose.position.y"]',
+                'covariance = "pose.covariance"\ncovariance_index = [1]\nR = [[0.5]]')  # fmt: skip
+    res = ok("import", sc, "-o", tmp_path / "out.mcap")
+    assert "1 of 3 messages with an all-zero or not positive definite covariance" in res.stdout
+    got = McapFile(tmp_path / "out.mcap").message_covariances("/sensors/s")
+    assert got[:, 0, 0].tolist() == [2.0, 0.5, 3.0]

@@ -104,6 +104,22 @@ def test_text_table_bad_shapes_are_one_line(tmp_path: Path) -> None:
     _fails("line 3: 1 fields where the header has 2", source=p, topic=None, values=["x"])
 
 
+@pytest.mark.parametrize(
+    ("row", "says"),
+    [("1,1_000", "column 'x': '1_000' is not a number"),
+     ("1,\uff11", "column 'x': '\uff11' is not a number"),
+     ("1_0,1", "time column 'time' '1_0' is not a number"),
+     ("\u0661,1", "time column 'time' '\u0661' is not a number")],
+)  # fmt: skip
+def test_cells_python_reads_but_a_table_does_not_hold_are_not_numbers(
+    tmp_path: Path, row: str, says: str
+) -> None:
+    """float() and Decimal() read "1_000" and other scripts' digits: a table does not."""
+    p = tmp_path / "t.csv"
+    p.write_text(f"time,x\n{row}\n", encoding="utf-8")
+    _fails(f"line 2: {says}", source=p, topic=None, values=["x"])
+
+
 # -- bags ----------------------------------------------------------------------------------
 
 N_FIX = 12
@@ -212,6 +228,42 @@ def test_bag_errors_are_one_line(tmp_path: Path) -> None:
     _fails("damaged or not a ROS bag", source=bad, topic="/fix", values=["latitude"])
 
 
+def test_a_damaged_bag_is_not_sent_to_inspect_recover(tmp_path: Path) -> None:
+    """`inspect --recover` reads MCAP only: a damaged bag's error does not point there, and
+    `inspect --recover` on a bag says it is a bag (not "damaged: not a valid MCAP", exit 0)."""
+    bad = tmp_path / "bad.bag"
+    bad.write_bytes(b"#ROSBAG V2.0\nnot a bag")
+    line = one_line_error(cli("inspect", bad), str(bad), "damaged or not a ROS bag")
+    assert "--recover" not in line
+    f = tmp_path / "replay.toml"
+    f.write_text(_BASE + 'source = "bad.bag"\ntopic = "/fix"\nvalues = ["latitude", "longitude"]\n'
+                 "geodetic = true\n")  # fmt: skip
+    line = one_line_error(cli("import", f, "-o", tmp_path / "s.mcap"), "damaged or not a ROS bag")
+    assert "--recover" not in line and not (tmp_path / "s.mcap").exists()
+    _write_bag(tmp_path / "ros2", 2)
+    for target in (bad, tmp_path / "ros2"):
+        one_line_error(cli("inspect", "--recover", target), str(target), "is a ROS bag",
+                       "--recover reads damaged MCAP files only")  # fmt: skip
+
+
+@pytest.mark.parametrize("named", ["folder", "db3"])
+def test_import_never_writes_onto_a_file_of_a_bag_folder(tmp_path: Path, named: str) -> None:
+    """A ROS 2 bag is its folder's files: neither its .db3 nor its metadata.yaml is ever an
+    output, whichever of them the replay names (even with --force)."""
+    bag = tmp_path / "ros2"
+    _write_bag(bag, 2)
+    db3 = next(bag.glob("*.db3"))
+    source = "ros2" if named == "folder" else f"ros2/{db3.name}"
+    f = tmp_path / "replay.toml"
+    f.write_text(_BASE + f'source = "{source}"\ntopic = "/fix"\n'
+                 'values = ["latitude", "longitude"]\ngeodetic = true\n')  # fmt: skip
+    before = {p.name: p.read_bytes() for p in bag.iterdir()}
+    for target in (db3, bag / "metadata.yaml"):
+        res = cli("import", f, "-o", target, "--force")
+        one_line_error(res, str(target), "is an input of this command, not an output")
+    assert {p.name: p.read_bytes() for p in bag.iterdir()} == before
+
+
 # -- geodetic ------------------------------------------------------------------------------
 
 
@@ -314,6 +366,10 @@ def logs(tmp_path: Path) -> Path:
          "geodetic = true", "", ["log.bag", "no topic /gps in the bag (topics: /fix)"]),
         ('source = "log.bag"\nvalues = ["latitude", "longitude"]\ngeodetic = true', "",
          ["sensors[0].topic", "missing required key"]),
+        ('source = "."\ntopic = "/fix"\nvalues = ["x", "y"]', "",
+         ["sensors[0].source", "is a folder but not a ROS 2 bag (no metadata.yaml"]),
+        ('source = "."\nvalues = ["x", "y"]', "",
+         ["sensors[0].source", "is a folder but not a ROS 2 bag (no metadata.yaml"]),
         ('source = "log.bag"\ntopic = "/fix"\nvalues = ["latitude", "longitude"]', "",
          ["sensors[0].values", "'latitude' is in degrees: give geodetic = true"]),
         ('source = "fix.csv"\nvalues = ["lat", "lon"]\ngeodetic = true', "",
@@ -346,6 +402,25 @@ def test_bad_input_of_each_new_key_is_one_line(logs: Path, sensor, truth, fragme
     f.write_text(_BASE + sensor + "\n" + truth + "\n")
     one_line_error(cli("import", f, "-o", logs / "s.mcap"), *fragments)
     assert not (logs / "s.mcap").exists()
+
+
+def test_sensors_that_do_not_overlap_in_time_are_noted(logs: Path) -> None:
+    """One sensor on header stamps, one on the record time days later: the instants are still
+    their union, and the gap is said (not predicted across in silence)."""
+    (logs / "later.txt").write_text("time x y\n172800 1 2\n172801 2 3\n")
+    f = logs / "replay.toml"
+    f.write_text(
+        _BASE + 'source = "xy.txt"\nvalues = ["x", "y"]\n[[sensors]]\nname = "u"\n'
+        'source = "later.txt"\nvalues = ["x", "y"]\ntime = "time"\n'
+        "H = [[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]]\nR = [[1.0, 0.0], [0.0, 1.0]]\n"
+    )
+    res = ok("import", f, "-o", logs / "s.mcap")
+    assert (
+        "note: u and s do not overlap in time: u's first reading is 172798 s (2 days) after "
+        "s's last (u: time = 'time', s: the default time)"
+    ) in res.stdout, res.stdout
+    (logs / "later.txt").write_text("time x y\n1.5 1 2\n2.5 2 3\n")
+    assert "overlap" not in ok("import", f, "-o", logs / "s.mcap", "--force").stdout
 
 
 def test_truth_without_prior_runs_with_truth_metrics(logs: Path) -> None:
@@ -400,6 +475,28 @@ def test_run_workers_on_a_replay_is_a_one_line_error(logs: Path) -> None:
     res = cli("run", f, "--out-dir", logs / "out", "--workers", "1")
     one_line_error(res, "a replay is one recorded run", "without --workers")
     assert not (logs / "out").exists()
+
+
+@pytest.mark.parametrize("flag", ["--runs", "--steps", "--seed"])
+def test_monte_carlo_flags_on_a_replay_are_refused_not_ignored(logs: Path, flag: str) -> None:
+    """A replay is one recorded run on its measurement times: `run --runs 5` said nothing and
+    ran one, as the file's own scenario.runs/steps/seed are refused."""
+    f = logs / "replay.toml"
+    f.write_text(_BASE + 'source = "xy.txt"\nvalues = ["x", "y"]\n')
+    res = cli("run", f, "--out-dir", logs / "out", flag, "5")
+    one_line_error(res, str(f), f"{flag}: not used with a replay file")
+    assert not (logs / "out").exists()
+
+
+def test_simulate_on_a_replay_is_a_one_line_error(logs: Path) -> None:
+    """`simulate` of a replay wrote one simulated instant from its model and prior (the
+    recorded readings ignored): it points to `import` instead."""
+    f = logs / "replay.toml"
+    f.write_text(_BASE + 'source = "xy.txt"\nvalues = ["x", "y"]\n')
+    res = cli("simulate", f, "-o", logs / "s.mcap")
+    one_line_error(res, str(f), "a replay file: its readings are recorded, not simulated",
+                   "fusionlog import")  # fmt: skip
+    assert not (logs / "s.mcap").exists()
 
 
 def test_sweep_on_a_replay_is_a_one_line_error(logs: Path) -> None:

@@ -363,6 +363,20 @@ def test_json_float_seconds_and_stable_sort(tmp_path):
     assert s.times_ns.tolist() == [100_000_000, 2_500_000_000] and s.values[:, 0].tolist() == [2, 1]
 
 
+def test_json_decimal_seconds_become_nanoseconds_from_their_digits(tmp_path):
+    """As in text tables: 1305031102.160407 s is 1305031102160407000 ns, not the double's
+    1305031102160407066; a covariance of such numbers reads as floats."""
+    p = tmp_path / "j.mcap"
+    msgs = [(BASE, {"t": 1305031102.160407, "v": 0.1, "c": [0.25]}),
+            (BASE + 1, {"t": 1305031102.19433, "v": 2, "c": [1e-3]})]  # fmt: skip
+    write_json_mcap(p, {"/j": msgs})
+    s = read_series(p, topic="/j", values=["v"], time="t", covariance="c")
+    assert s.times_ns.tolist() == [1305031102160407000, 1305031102194330000]
+    assert s.values[:, 0].tolist() == [0.1, 2.0] and s.cov[:, 0, 0].tolist() == [0.25, 1e-3]
+    s = read_series(p, topic="/j", values=["v"], time="t", time_unit="ms")
+    assert s.times_ns.tolist() == [1305031102160407, 1305031102194330]
+
+
 # -- CSV ----------------------------------------------------------------------------------------
 
 

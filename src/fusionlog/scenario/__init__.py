@@ -12,7 +12,7 @@ import os
 from collections.abc import Mapping
 from typing import Any
 
-from fusionlog.errors import FusionlogError
+from fusionlog.errors import FusionlogError, ValidationError
 
 from . import toml
 from .base import KINDS, Scenario, check_budget, scenario_with
@@ -68,6 +68,13 @@ def load_scenario(
     """Read and validate a scenario file of either kind; `runs`, `steps`, `seed` override it."""
     file = os.fspath(path)
     scenario = _from_text(toml.read_text(file), file, file)
+    if scenario.replay is not None:  # as scenario.runs/steps/seed in the file: never ignored
+        for flag, v in (("--runs", runs), ("--steps", steps), ("--seed", seed)):
+            if v is not None:
+                raise ValidationError(
+                    f"{file}: {flag}: not used with a replay file (one recorded run; the "
+                    "instants are the measurement times)"
+                )
     return scenario_with(scenario, runs=runs, steps=steps, seed=seed)
 
 

@@ -195,6 +195,11 @@ def _stream(ctx: Ctx, t: dict[str, Any], where: str, base: Path) -> Stream:
     source = toml.string(ctx, t["source"], f"{where}.source")
     path = base / source
     kind = _source_kind(path)
+    if kind == "text" and path.is_dir():  # not "a topic for a text table": say what is wrong
+        raise ctx.err(
+            f"{where}.source",
+            f"{str(path)!r} is a folder but not a ROS 2 bag (no metadata.yaml)",
+        )
     topic = None
     if kind != "text":
         if "topic" not in t:

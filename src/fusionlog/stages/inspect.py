@@ -109,6 +109,13 @@ def describe(file: Path) -> Iterator[str]:
 
 def describe_damaged(file: Path) -> Iterator[str]:
     """The lines `fusionlog inspect --recover FILE` prints: what is readable."""
+    from fusionlog.io.replay import source_kind
+
+    if source_kind(Path(file)) == "bag":
+        raise FusionlogError(
+            f"{file}: is a ROS bag; --recover reads damaged MCAP files only (`fusionlog "
+            f"inspect {file}` reads a bag, or says why it cannot)"
+        )
     info = recover_file(file)
     yield f"{file}: {'damaged: ' + str(info['error']) if info['error'] else 'intact'}"
     for t, c in sorted(info["topics"].items()):

@@ -81,6 +81,16 @@ def _read_all(replay, names: list[str]) -> tuple[list, list[str]]:
     return series, notes
 
 
+def replay_inputs(scenario: Scenario) -> list[Path]:
+    """Every file the replay's readers open (a bag folder's .db3 files and metadata.yaml too,
+    whichever of them is named): no output may be written onto one of them."""
+    from fusionlog.io.replay import source_files
+
+    replay = scenario.replay
+    streams = list(replay.sensors) + ([replay.truth] if replay.truth is not None else [])
+    return [f for st in streams for f in source_files(st.source)]
+
+
 def sha256_of_source(path: Path) -> str:
     """A source's sha256: the file's, or for a ROS 2 bag folder the hash of its files' names
     and hashes (sorted)."""
@@ -97,7 +107,12 @@ def sha256_of_source(path: Path) -> str:
 def _usable(cov: np.ndarray) -> np.ndarray:
     """(N,) whether each covariance is a usable R: not all zero, symmetric, positive definite."""
     ok = np.isfinite(cov).all(axis=(-2, -1)) & (np.abs(cov).max(axis=(-2, -1)) > 0)
-    ok &= np.allclose(cov, np.swapaxes(cov, -1, -2), rtol=1e-9, atol=0.0) | ~ok
+    # per message (one asymmetric matrix must not send every message to R)
+    sym = np.isclose(cov, np.swapaxes(cov, -1, -2), rtol=1e-9, atol=0.0).all(axis=(-2, -1))
+    ok &= sym
+    # a variance below the smallest normal double (uninitialised memory: 1.6e-315) passes a
+    # Cholesky factorisation but its inverse overflows: not a usable R either
+    ok &= (np.diagonal(cov, axis1=-2, axis2=-1) >= np.finfo(np.float64).tiny).all(axis=-1)
     out = np.zeros(len(cov), dtype=bool)
     for i in np.flatnonzero(ok):
         try:
@@ -106,6 +121,29 @@ def _usable(cov: np.ndarray) -> np.ndarray:
         except np.linalg.LinAlgError:
             pass
     return out
+
+
+def _disjoint(names: list[str], times: list[str | None], series: list) -> list[str]:
+    """A note when two sensors' readings do not overlap in time: the filters then predict
+    across the whole gap. Usually one `time` is a header stamp and the other the log/record
+    time (drivers stamp with another clock, or a bag was recorded days later)."""
+    if len(series) < 2:
+        return []
+    a = max(range(len(series)), key=lambda j: int(series[j].times_ns[0]))  # starts last
+    b = min(range(len(series)), key=lambda j: int(series[j].times_ns[-1]))  # ends first
+    gap = int(series[a].times_ns[0]) - int(series[b].times_ns[-1])
+    if gap <= 0:
+        return []
+
+    def clock(j: int) -> str:
+        return f"time = {times[j]!r}" if times[j] is not None else "the default time"
+
+    days = f" ({gap / 86400e9:.3g} days)" if gap >= 86400 * 10**9 else ""
+    return [
+        f"{names[a]} and {names[b]} do not overlap in time: {names[a]}'s first reading is "
+        f"{gap / 1e9:.6g} s{days} after {names[b]}'s last ({names[a]}: {clock(a)}, {names[b]}: "
+        f"{clock(b)}); the filters predict across that gap"
+    ]
 
 
 @dataclass
@@ -132,6 +170,7 @@ def read_replay(scenario: Scenario) -> ReplayData:
     for name, s in zip(names + ["truth"], series, strict=False):
         notes += [f"{name}: {n}" for n in s.notes]
     sensor_series = series[: len(names)]
+    notes += _disjoint(names, [replay.sensors[j].time for j in range(len(names))], sensor_series)
     instants = np.unique(np.concatenate([s.times_ns for s in sensor_series]))
     sensors: list[_Sensor] = []
     nominal = []
@@ -258,9 +297,7 @@ def run_import(
         )
     out = Path(out)
     inputs = [Path(scenario.path)] if scenario.path else []
-    inputs += [s.source for s in scenario.replay.sensors]
-    if scenario.replay.truth is not None:
-        inputs.append(scenario.replay.truth.source)
+    inputs += replay_inputs(scenario)
     with Outputs([out], force=force, inputs=inputs) as outs:
         data = read_replay(scenario)
         with McapWriter(outs.open(out), time_origin_ns=int(data.instants[0])) as w:

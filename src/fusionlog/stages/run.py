@@ -49,8 +49,9 @@ def run_pipeline(
     outs = {k: Path(out_dir) / k for k in RUN_OUTPUTS}
     inputs = list(inputs or [])
     if sc.replay is not None:
-        inputs += [s.source for s in sc.replay.sensors]
-        inputs += [sc.replay.truth.source] if sc.replay.truth is not None else []
+        from .replay import replay_inputs
+
+        inputs += replay_inputs(sc)
     else:  # before the output folder is made: a run that cannot fit leaves nothing behind
         check_budget(sc, kind_of(sc.kind).bytes_per_run_step(sc), "simulating")
     seconds: dict[str, float] = {}

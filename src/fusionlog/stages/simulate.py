@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapWriter
 from fusionlog.io.mcap.topics import TRUTH, sensor_topic
@@ -73,6 +74,11 @@ def run_simulate(
 ) -> SimulateResult:
     """Simulate `scenario` into the sensors file `out` (committed only when complete)."""
     out = Path(out)
+    if scenario.replay is not None:  # its model and prior alone would simulate one instant
+        raise FusionlogError(
+            f"{scenario.path or scenario.name}: a replay file: its readings are recorded, not "
+            f"simulated (`fusionlog import` writes them as a sensors file)"
+        )
     inputs = [Path(scenario.path)] if scenario.path else []
     with Outputs([out], force=force, inputs=inputs) as outs:
         with McapWriter(outs.open(out)) as w:

@@ -25,7 +25,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from .bag_source import bag_topics, is_bag, read_bag
+from .bag_source import bag_files, bag_topics, is_bag, read_bag
 from .extract import StreamFields
 from .fields import leaf_fields
 from .geodetic import to_enu
@@ -42,6 +42,7 @@ __all__ = [
     "leaf_fields",
     "list_topics",
     "read_series",
+    "source_files",
     "source_kind",
     "to_enu",
 ]
@@ -55,6 +56,12 @@ def source_kind(source: Path) -> str:
     if is_bag(source):
         return "bag"
     return "text"
+
+
+def source_files(source: Path) -> list[Path]:
+    """The files a reader of ``source`` opens (a ROS 2 bag: every file of its folder)."""
+    source = Path(source)
+    return bag_files(source) if source_kind(source) == "bag" else [source]
 
 
 def read_series(

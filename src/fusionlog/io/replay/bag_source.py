@@ -24,7 +24,7 @@ from .series import Series, fail
 from .source import MAX_MCAP_BYTES, open_source
 from .topics import one_line
 
-__all__ = ["bag_path", "bag_topics", "is_bag", "read_bag"]
+__all__ = ["bag_files", "bag_path", "bag_topics", "is_bag", "read_bag"]
 
 
 def is_bag(path: Path) -> bool:
@@ -36,6 +36,18 @@ def is_bag(path: Path) -> bool:
 def bag_path(path: Path) -> Path:
     """What ``rosbags`` opens: the ``.bag`` file, or the ROS 2 bag's folder."""
     return path.parent if path.suffix.lower() == ".db3" else path
+
+
+def bag_files(source: Path) -> list[Path]:
+    """The files ``rosbags`` reads for ``source``: the ``.bag`` file, or every file of the ROS 2
+    bag's folder (``metadata.yaml``, the ``.db3`` files); what a command must never write onto."""
+    path = bag_path(source)
+    if not path.is_dir():
+        return [path]
+    try:
+        return sorted(p for p in path.iterdir() if not p.is_dir())
+    except OSError:  # an unreadable folder: opening it reports that
+        return [path]
 
 
 @contextmanager
@@ -50,15 +62,15 @@ def _open(source: Path, what: str | None) -> Iterator[Any]:
     if path.is_dir() and not (path / "metadata.yaml").is_file():
         raise FusionlogError(f"{prefix}a ROS 2 bag folder needs its metadata.yaml")
     # every file rosbags will open is a regular file of bounded size (never a FIFO, a device)
-    files = [path] if not path.is_dir() else [p for p in path.iterdir() if not p.is_dir()]
-    for f in files:
+    for f in bag_files(source):
         open_source(f, what, MAX_MCAP_BYTES, "a ROS bag").close()
     try:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
     except Exception as e:  # whatever a damaged or foreign file makes rosbags raise
+        # no path: `inspect --recover` (the CLI's hint for a damaged file) reads MCAP only
         raise DamagedFile(
-            f"{prefix}damaged or not a ROS bag ({type(e).__name__}: {one_line(e)})", source
+            f"{prefix}damaged or not a ROS bag ({type(e).__name__}: {one_line(e)})"
         ) from None
     try:
         yield reader
@@ -80,8 +92,7 @@ def _deserialize(reader: Any, source: Path, what: str | None, conn: Any, raw: by
         raise DamagedFile(
             f"{source}: {prefix}cannot decode message {k} of topic {conn.topic} "
             f"({conn.msgtype}): {type(e).__name__}: {one_line(e)} (a type the bag does not "
-            "define and that is not a standard ROS 2 message, or damaged bytes)",
-            source,
+            "define and that is not a standard ROS 2 message, or damaged bytes)"
         ) from None
 
 

@@ -4,12 +4,14 @@
 with FileDescriptorSet schemas. Neither package (nor ``mcap``) ships a decoder for
 ``message_encoding = "json"``, so :class:`JsonDecoderFactory` plugs ``json.loads`` into the same
 ``decoder_factories`` mechanism; its schema (JSON Schema, or none) is not needed to read fields.
+Its non-integer numbers decode as :class:`decimal.Decimal` (the digits as written).
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Callable
+from decimal import Decimal
 from typing import Any
 
 from mcap.decoder import DecoderFactory
@@ -24,7 +26,9 @@ SUPPORTED = "cdr (ros2msg schema), protobuf, json"
 
 
 def _decode_json(data: bytes) -> Any:
-    return json.loads(data)
+    # numbers with a fraction or an exponent as Decimal: a time such as 1305031102.160407 s
+    # becomes whole nanoseconds from its digits, never through a float (as in text tables)
+    return json.loads(data, parse_float=Decimal)
 
 
 class JsonDecoderFactory(DecoderFactory):

@@ -157,7 +157,7 @@ class Extractor:
         except PathError as e:
             where = f"topic {topic} ({kind})" + (f", message {k}" if k > 1 else "")
             raise fail(self.source, self.what, f"{where}: {e}") from None
-        col.add(k, t, vals, block)
+        col.add(k, t, vals, block, record_ns=default_time if self.time is not None else None)
 
     def read(self, decoded: Any, default_time: int) -> tuple[int | None, list[float], Any]:
         """(time ns or None for NaN, values, covariance block or None); PathError when a path

@@ -17,6 +17,7 @@ import math
 import re
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from decimal import ROUND_HALF_EVEN, Context, Decimal
 from fractions import Fraction
 from typing import Any
 
@@ -38,6 +39,7 @@ __all__ = [
 ]
 
 INT64_MAX = 2**63 - 1
+_CTX = Context(prec=80)  # exact for any time a JSON message can hold in 64-bit nanoseconds
 
 # (sec, nanosec) of ROS 2, (sec, nsec) of Foxglove JSON, (secs, nsecs) of ROS 1 style JSON,
 # (seconds, nanos) of google.protobuf.Timestamp
@@ -98,7 +100,7 @@ def _render(steps: Sequence[str | int]) -> str:
     return out
 
 
-_SCALARS = (str, int, float, bool, type(None))
+_SCALARS = (str, int, float, bool, type(None), Decimal)  # Decimal: JSON's non-integers
 _ARRAYS = (list, tuple, bytes, bytearray, memoryview)  # uint8[] of ROS 2 decodes as bytes
 
 
@@ -210,7 +212,7 @@ def describe(value: Any) -> str:
 def _is_number(value: Any) -> bool:
     if isinstance(value, bool):
         return False
-    return isinstance(value, int | float | np.integer | np.floating)
+    return isinstance(value, int | float | np.integer | np.floating | Decimal)
 
 
 def to_number(value: Any, path: str) -> float:
@@ -247,6 +249,14 @@ def to_time_ns(value: Any, path: str, unit: str) -> int | None:
     factor = TIME_UNITS[unit]
     if isinstance(value, int | np.integer):
         return _check_range(int(value) * factor, path)
+    if isinstance(value, Decimal):  # JSON: from the digits, rounded half to even
+        if not value.is_finite():
+            return None
+        try:
+            ns = _CTX.multiply(value, factor).to_integral_value(rounding=ROUND_HALF_EVEN)
+            return _check_range(int(ns), path)
+        except ArithmeticError:  # decimal.Overflow: beyond any clock
+            raise PathError(f"{path} = {value} does not fit 64-bit nanoseconds") from None
     v = float(value)
     if not math.isfinite(v):
         return None
@@ -264,7 +274,7 @@ def _type_name(value: Any) -> str:
         return "bool"
     if isinstance(value, int | np.integer):
         return "int"
-    if isinstance(value, float | np.floating):
+    if isinstance(value, float | np.floating | Decimal):
         return "float"
     if isinstance(value, str):
         return "string"
@@ -273,7 +283,7 @@ def _type_name(value: Any) -> str:
 
 def _preview(value: Any) -> str:
     text = repr(value) if isinstance(value, str) else str(value)
-    if isinstance(value, float | np.floating):
+    if isinstance(value, float | np.floating | Decimal):
         text = f"{float(value):.10g}"
     return text if len(text) <= 40 else text[:37] + "..."
 

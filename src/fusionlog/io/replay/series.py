@@ -20,6 +20,9 @@ from fusionlog.errors import ValidationError
 __all__ = ["Collector", "Series", "fail"]
 
 INT64_MAX = 2**63 - 1
+# a `time` field more than this off the offset (time - log time) that the stream's other
+# messages keep (their median) is an unset or foreign stamp (a header stamp of 0)
+FAR_NS = 60 * 10**9
 
 
 @dataclass(frozen=True)
@@ -68,12 +71,17 @@ class Collector:
         self._values = array("d")
         self._covs: list[np.ndarray] = []
         self._origin = array("q")
+        self._record = array("q")  # the log/record times, when the time is a field
         self.bad_values = 0
         self.bad_times = 0
         self.bad_covs = 0
         self.seen = 0
 
-    def add(self, origin: int, t_ns: int | None, values: list[float], cov=None) -> None:
+    def add(
+        self, origin: int, t_ns: int | None, values: list[float], cov=None, record_ns=None
+    ) -> None:
+        """Item `origin` at `t_ns` (None: NaN), with the log/record time `record_ns` of its
+        message when `t_ns` comes from a field of it."""
         self.seen += 1
         if t_ns is None:
             self.bad_times += 1
@@ -97,6 +105,25 @@ class Collector:
         self._times.append(t_ns)
         self._values.extend(values)
         self._origin.append(origin)
+        if record_ns is not None:
+            self._record.append(record_ns)
+
+    def _far(self, t: np.ndarray) -> str | None:
+        """A note on the items whose time is far from their log time, by the others' offset."""
+        if len(self._record) != len(t):
+            return None
+        off = t - np.frombuffer(self._record, dtype=np.int64)
+        typical = int(np.median(off))
+        far = np.flatnonzero(np.abs(off - typical) > FAR_NS)
+        if not far.size:
+            return None
+        i = int(far[0])
+        return (
+            f"{_plural(far.size, self.unit)} whose time is more than {FAR_NS // 10**9} s off "
+            f"the others' (time - log time {typical / 1e9:.6g} s for most), e.g. "
+            f"{self.label(self._origin[i])}: time {int(t[i])} ns at log time "
+            f"{self._record[i]} ns: an unset or foreign stamp? (kept)"
+        )
 
     def finish(self) -> Series:
         notes: list[str] = []
@@ -114,6 +141,9 @@ class Collector:
                 else f"no {u}s",
             )
         t = np.frombuffer(self._times, dtype=np.int64).copy()
+        far = self._far(t)
+        if far:
+            notes.append(far)
         values = np.frombuffer(self._values, dtype=np.float64).reshape(len(t), self.d).copy()
         cov = (
             np.array(self._covs, dtype=np.float64).reshape(len(t), self.d, self.d)
@@ -131,12 +161,14 @@ class Collector:
             i = int(dup[0])
             a, b = sorted((self._origin[order[i]], self._origin[order[i + 1]]))
             more = np.unique(t[dup]).size - 1
+            unset = bool(self._record) and not t[i]  # a header stamp of 0 from a field
             raise fail(
                 self.source,
                 self.what,
                 f"duplicate instant {int(t[i])} ns: {self.label(a)} and {self.label(b)} have the "
-                f"same time" + (f" ({_plural(more, 'more duplicated instant')})" if more else ""),
-            )
+                f"same time" + (f" ({_plural(more, 'more duplicated instant')})" if more else "")
+                + (": an unset stamp? (without `time`, the log time is used)" if unset else ""),
+            )  # fmt: skip
         if self.bad_covs:
             notes.append(
                 f"{_plural(self.bad_covs, u)} with NaN or infinite covariance entries "

@@ -62,6 +62,8 @@ def time_ns(text: str, unit: str) -> int | None:
     s = text.strip()
     if not s:
         raise ValueError("empty")
+    if "_" in s or not s.isascii():  # Python reads "1_000" and other scripts' digits
+        raise ValueError("not a number")
     factor = TIME_UNITS[unit]
     m = _DECIMAL.fullmatch(s)
     if m and (m.group(2) or m.group(3)):
@@ -91,6 +93,8 @@ def _number(text: str) -> float:
     s = text.strip()
     if not s:
         return math.nan  # an empty cell is a missing value: the row is skipped and counted
+    if "_" in s or not s.isascii():  # float() reads "1_000" and other scripts' digits
+        raise ValueError(s)
     return float(s)
 
 
