@@ -34,6 +34,7 @@ from fusionlog.io.rrd import read_recording
 ROOT = Path(__file__).resolve().parents[1]
 AJGL = ROOT / "pipeline" / "ajgl2009.toml"
 AIRCRAFT = ROOT / "pipeline" / "aircraft_identity.toml"
+DROPOUT = ROOT / "pipeline" / "ajgl2009_dropout.toml"
 
 
 def cli(*args: str | os.PathLike[str]) -> Result:
@@ -119,6 +120,16 @@ def reliable_run(tmp_path_factory) -> Path:
     return d
 
 
+@pytest.fixture(scope="module")
+def dropout_run(tmp_path_factory) -> Path:
+    """Sensors that drop measurements: `expected` is conditional on the drawn patterns and
+    says so with ``"conditional": true`` (DESIGN.md, summary.json)."""
+    d = tmp_path_factory.mktemp("dropout") / "out"
+    ok("run", DROPOUT, "--out-dir", d, "--runs", "60", "--steps", "6", "--arch", "CKF",
+       "--arch", "MSC")  # fmt: skip
+    return d
+
+
 # ------------------------------------------------------------------------------------------
 # strict JSON out
 # ------------------------------------------------------------------------------------------
@@ -155,7 +166,7 @@ def test_state_summary_is_strict_json(state_run: Path) -> None:
 # ------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("which", ["state_run", "reliable_run"])
+@pytest.mark.parametrize("which", ["state_run", "reliable_run", "dropout_run"])
 def test_perturbed_copy_matches_within_tolerance_only(which: str, request, tmp_path: Path):
     golden = request.getfixturevalue(which) / "summary.json"
     doc = strict_loads(golden.read_text())
@@ -276,6 +287,21 @@ def test_non_finite_literal_is_bad_input(state_run, tmp_path, side, value) -> No
     args = (bad, good) if side == "actual" else (good, bad)
     token = {math.inf: "Infinity", -math.inf: "-Infinity"}.get(value, "NaN")
     one_line_error(cli("compare", *args), str(bad), "architectures.CKF.mse", token, "not JSON")
+
+
+def test_conditional_expected_is_a_flag_not_a_metric(dropout_run, tmp_path) -> None:
+    """`"conditional": true` beside the expected values is part of the schema (a dropout
+    scenario's summary used to be refused as malformed); anything but a boolean there is not."""
+    golden = dropout_run / "summary.json"
+    doc = strict_loads(golden.read_text())
+    assert doc["architectures"]["CKF"]["expected"]["conditional"] is True
+    ok("compare", golden, golden)
+    key = ("architectures", "MSC", "expected", "conditional")
+    bad = write(tmp_path / "flag.json", put(doc, key, "yes"))
+    one_line_error(cli("compare", bad, golden), str(bad), key_path(key), "number")
+    res = cli("compare", write(tmp_path / "off.json", put(doc, key, False)), golden)
+    assert res.exit_code == 1, res.output
+    assert res.stdout.splitlines()[1:] == ["  MSC: expected.conditional: actual False, golden True"]
 
 
 @pytest.mark.parametrize(
