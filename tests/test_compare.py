@@ -130,6 +130,17 @@ def dropout_run(tmp_path_factory) -> Path:
     return d
 
 
+@pytest.fixture(scope="module")
+def sweep_run(tmp_path_factory) -> Path:
+    """A sweep's summary.json: its architectures are per grid point, one point with dropouts
+    (conditional expected values), one without."""
+    d = tmp_path_factory.mktemp("sweep") / "out"
+    vary = ["--vary", "scenario.steps=6", "--vary", "sensors.s1.dropout=0,0.2"]
+    ok("sweep", DROPOUT, *vary, "--runs", "60", "--workers", "0", "--arch", "CKF", "--arch", "MSC",
+       "--out-dir", d)  # fmt: skip
+    return d
+
+
 # ------------------------------------------------------------------------------------------
 # strict JSON out
 # ------------------------------------------------------------------------------------------
@@ -302,6 +313,29 @@ def test_conditional_expected_is_a_flag_not_a_metric(dropout_run, tmp_path) -> N
     res = cli("compare", write(tmp_path / "off.json", put(doc, key, False)), golden)
     assert res.exit_code == 1, res.output
     assert res.stdout.splitlines()[1:] == ["  MSC: expected.conditional: actual False, golden True"]
+
+
+def test_sweep_summaries_compare_point_by_point(sweep_run, tmp_path) -> None:
+    """`fusionlog sweep`'s summary.json is a summary too (it used to be refused: "not a
+    fusionlog summary"): its grid points' metrics are compared, and checked, as a run's."""
+    golden = sweep_run / "summary.json"
+    doc = strict_loads(golden.read_text())
+    assert doc["kind"] == "sweep" and "architectures" not in doc
+    ok("compare", write(tmp_path / "same.json", map_floats(doc, lambda v: v * (1 + 1e-9))), golden)
+    key = ("points", 1, "architectures", "CKF", "mse")
+    mse = doc["points"][1]["architectures"]["CKF"]["mse"]
+    res = cli("compare", write(tmp_path / "moved.json", put(doc, key, mse * 1.01)), golden)
+    assert res.exit_code == 1, res.output
+    assert res.stdout.splitlines()[1:] == [
+        f"  points[1].architectures.CKF.mse: actual {mse * 1.01:.10g}, golden {mse:.10g}"
+        " (rel. diff 0.01)"
+    ]
+    bad = write(tmp_path / "bad.json", put(doc, ("points", 0, "architectures", "MSC", "dm"), "1"))
+    one_line_error(
+        cli("compare", bad, golden), str(bad), "points[0].architectures.MSC.dm", "number"
+    )
+    bad = write(tmp_path / "points.json", put(doc, ("points",), {"0": {}}))
+    one_line_error(cli("compare", golden, bad), str(bad), "points: an object", "list")
 
 
 @pytest.mark.parametrize(
