@@ -77,6 +77,16 @@ def test_scheduler_timeout_must_be_positive(tmp_path: Path, timeout: str) -> Non
     assert not (tmp_path / "o").exists()
 
 
+def test_closed_port_is_one_line_at_once(tmp_path: Path) -> None:
+    """Nothing listens there: the refused connection is the answer, not --scheduler-timeout
+    seconds of Dask's retries (10 s by default)."""
+    address = f"tcp://127.0.0.1:{free_port()}"
+    t = time.monotonic()
+    res = cli(*SWEEP, "--scheduler", address, "--scheduler-timeout", "60", "--out-dir", tmp_path)
+    assert time.monotonic() - t < 10
+    one_line_error(res, f"--scheduler {address}", "cannot connect", "connection refused")
+
+
 class _Silent:
     """A TCP server that accepts connections and never says anything."""
 
