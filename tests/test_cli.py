@@ -742,6 +742,27 @@ def test_invalid_model_file_for_estimate(ajgl_run: Path, tmp_path: Path) -> None
     assert listing(out) == []
 
 
+def test_recorded_architecture_the_model_cannot_run(tmp_path: Path) -> None:
+    """Without --arch, estimate runs the recorded scenario's architectures; one that names a
+    sensor a --model lacks is refused naming the sensors file, not an --arch never given."""
+    text = AJGL.read_text()
+    archs = 'architectures = ["CKF", "HKF", "MSC-GMF", "MSC", "SKF", "CI", "FBS"]'
+    s3 = '[[sensors]]\nname = "s3"\nH = [[1.0, 0.0]]\nR = 1.0\n'
+    assert archs in text and s3 in text
+    sc = write_toml(tmp_path / "sc.toml", text.replace(archs, 'architectures = ["CKF", "SKF:s3"]'))
+    model = write_toml(tmp_path / "m.toml", text.replace(s3, ""))
+    log = tmp_path / "s.mcap"
+    ok("simulate", sc, "-o", log, "--runs", "20", "--steps", "3")
+    res = cli("estimate", log, "-o", tmp_path / "e.mcap", "--model", model)
+    line = assert_one_line_error(
+        res, str(log), "recorded architectures", "SKF:s3", "no sensor 's3'"
+    )
+    assert "--arch" not in line and not (tmp_path / "e.mcap").exists()
+    res = cli("estimate", log, "-o", tmp_path / "e.mcap", "--model", model, "--arch", "SKF:s3")
+    assert_one_line_error(res, "--arch", "no sensor 's3'")
+    ok("estimate", log, "-o", tmp_path / "e.mcap", "--model", model, "--arch", "SKF:s2")
+
+
 def test_invalid_override(tmp_path: Path) -> None:
     res = cli("simulate", AJGL, "-o", tmp_path / "s.mcap", "--runs", "0")
     assert_one_line_error(res, "--runs")

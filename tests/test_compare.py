@@ -34,6 +34,7 @@ from fusionlog.io.rrd import read_recording
 ROOT = Path(__file__).resolve().parents[1]
 AJGL = ROOT / "pipeline" / "ajgl2009.toml"
 AIRCRAFT = ROOT / "pipeline" / "aircraft_identity.toml"
+DROPOUT = ROOT / "pipeline" / "ajgl2009_dropout.toml"
 
 
 def cli(*args: str | os.PathLike[str]) -> Result:
@@ -119,6 +120,27 @@ def reliable_run(tmp_path_factory) -> Path:
     return d
 
 
+@pytest.fixture(scope="module")
+def dropout_run(tmp_path_factory) -> Path:
+    """Sensors that drop measurements: `expected` is conditional on the drawn patterns and
+    says so with ``"conditional": true`` (DESIGN.md, summary.json)."""
+    d = tmp_path_factory.mktemp("dropout") / "out"
+    ok("run", DROPOUT, "--out-dir", d, "--runs", "60", "--steps", "6", "--arch", "CKF",
+       "--arch", "MSC")  # fmt: skip
+    return d
+
+
+@pytest.fixture(scope="module")
+def sweep_run(tmp_path_factory) -> Path:
+    """A sweep's summary.json: its architectures are per grid point, one point with dropouts
+    (conditional expected values), one without."""
+    d = tmp_path_factory.mktemp("sweep") / "out"
+    vary = ["--vary", "scenario.steps=6", "--vary", "sensors.s1.dropout=0,0.2"]
+    ok("sweep", DROPOUT, *vary, "--runs", "60", "--workers", "0", "--arch", "CKF", "--arch", "MSC",
+       "--out-dir", d)  # fmt: skip
+    return d
+
+
 # ------------------------------------------------------------------------------------------
 # strict JSON out
 # ------------------------------------------------------------------------------------------
@@ -155,7 +177,7 @@ def test_state_summary_is_strict_json(state_run: Path) -> None:
 # ------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("which", ["state_run", "reliable_run"])
+@pytest.mark.parametrize("which", ["state_run", "reliable_run", "dropout_run"])
 def test_perturbed_copy_matches_within_tolerance_only(which: str, request, tmp_path: Path):
     golden = request.getfixturevalue(which) / "summary.json"
     doc = strict_loads(golden.read_text())
@@ -276,6 +298,44 @@ def test_non_finite_literal_is_bad_input(state_run, tmp_path, side, value) -> No
     args = (bad, good) if side == "actual" else (good, bad)
     token = {math.inf: "Infinity", -math.inf: "-Infinity"}.get(value, "NaN")
     one_line_error(cli("compare", *args), str(bad), "architectures.CKF.mse", token, "not JSON")
+
+
+def test_conditional_expected_is_a_flag_not_a_metric(dropout_run, tmp_path) -> None:
+    """`"conditional": true` beside the expected values is part of the schema (a dropout
+    scenario's summary used to be refused as malformed); anything but a boolean there is not."""
+    golden = dropout_run / "summary.json"
+    doc = strict_loads(golden.read_text())
+    assert doc["architectures"]["CKF"]["expected"]["conditional"] is True
+    ok("compare", golden, golden)
+    key = ("architectures", "MSC", "expected", "conditional")
+    bad = write(tmp_path / "flag.json", put(doc, key, "yes"))
+    one_line_error(cli("compare", bad, golden), str(bad), key_path(key), "number")
+    res = cli("compare", write(tmp_path / "off.json", put(doc, key, False)), golden)
+    assert res.exit_code == 1, res.output
+    assert res.stdout.splitlines()[1:] == ["  MSC: expected.conditional: actual False, golden True"]
+
+
+def test_sweep_summaries_compare_point_by_point(sweep_run, tmp_path) -> None:
+    """`fusionlog sweep`'s summary.json is a summary too (it used to be refused: "not a
+    fusionlog summary"): its grid points' metrics are compared, and checked, as a run's."""
+    golden = sweep_run / "summary.json"
+    doc = strict_loads(golden.read_text())
+    assert doc["kind"] == "sweep" and "architectures" not in doc
+    ok("compare", write(tmp_path / "same.json", map_floats(doc, lambda v: v * (1 + 1e-9))), golden)
+    key = ("points", 1, "architectures", "CKF", "mse")
+    mse = doc["points"][1]["architectures"]["CKF"]["mse"]
+    res = cli("compare", write(tmp_path / "moved.json", put(doc, key, mse * 1.01)), golden)
+    assert res.exit_code == 1, res.output
+    assert res.stdout.splitlines()[1:] == [
+        f"  points[1].architectures.CKF.mse: actual {mse * 1.01:.10g}, golden {mse:.10g}"
+        " (rel. diff 0.01)"
+    ]
+    bad = write(tmp_path / "bad.json", put(doc, ("points", 0, "architectures", "MSC", "dm"), "1"))
+    one_line_error(
+        cli("compare", bad, golden), str(bad), "points[0].architectures.MSC.dm", "number"
+    )
+    bad = write(tmp_path / "points.json", put(doc, ("points",), {"0": {}}))
+    one_line_error(cli("compare", golden, bad), str(bad), "points: an object", "list")
 
 
 @pytest.mark.parametrize(

@@ -68,10 +68,23 @@ def test_scheduler_address_scheme(tmp_path: Path, address: str, says: str) -> No
     assert not (tmp_path / "o").exists()
 
 
-def test_scheduler_timeout_must_be_positive(tmp_path: Path) -> None:
-    res = cli(*SWEEP, "--scheduler", "tcp://127.0.0.1:1", "--scheduler-timeout", "0",
+@pytest.mark.parametrize("timeout", ["0", "-1", "inf", "nan"])
+def test_scheduler_timeout_must_be_positive(tmp_path: Path, timeout: str) -> None:
+    """(inf used to reach Dask's connect, whose "Invalid time unit: inf" was the message.)"""
+    res = cli(*SWEEP, "--scheduler", "tcp://127.0.0.1:1", "--scheduler-timeout", timeout,
               "--out-dir", tmp_path / "o")  # fmt: skip
-    one_line_error(res, "--scheduler-timeout", "> 0")
+    one_line_error(res, "--scheduler-timeout", "finite number > 0", f"got {timeout}")
+    assert not (tmp_path / "o").exists()
+
+
+def test_closed_port_is_one_line_at_once(tmp_path: Path) -> None:
+    """Nothing listens there: the refused connection is the answer, not --scheduler-timeout
+    seconds of Dask's retries (10 s by default)."""
+    address = f"tcp://127.0.0.1:{free_port()}"
+    t = time.monotonic()
+    res = cli(*SWEEP, "--scheduler", address, "--scheduler-timeout", "60", "--out-dir", tmp_path)
+    assert time.monotonic() - t < 10
+    one_line_error(res, f"--scheduler {address}", "cannot connect", "connection refused")
 
 
 class _Silent:

@@ -33,6 +33,7 @@ from .scenario import Scenario, load_scenario, scenario_with
 from .stages.common import block_runs
 from .stages.kinds import kind_of
 from .stages.noise import with_covariances
+from .stages.state import check_discretisable
 from .stages.state_eval import SensorLog, StateEvaluator
 
 __all__ = ["Estimates", "Evaluation", "Simulation", "estimate", "evaluate", "load", "simulate"]
@@ -215,6 +216,12 @@ def estimate(
         architectures = [architectures]
     archs = check_architectures(
         list(architectures or scenario.architectures), system, "architectures"
+    )
+    check_discretisable(
+        system,
+        sim.scenario,
+        scenario.path or scenario.name,
+        f"the simulation of {sim.scenario.name}",
     )
     z = sim.z(system)
     cache = PlanCache(sim.on_instants(system), len(sim.times) - 1, one_run=z.shape[0] == 1)

@@ -467,7 +467,8 @@ def compare(actual, golden, rtol, atol) -> None:
     docs = []
     for path in (actual, golden):
         doc = load_json(path)
-        if not isinstance(doc, dict) or not isinstance(doc.get("architectures"), dict):
+        sweep = isinstance(doc, dict) and doc.get("kind") == "sweep"  # architectures per point
+        if not isinstance(doc, dict) or not (sweep or isinstance(doc.get("architectures"), dict)):
             raise FusionlogError(f"{path}: not a fusionlog summary (no 'architectures' object)")
         try:
             docs.append(check_summary(doc, strict=True))

@@ -351,26 +351,45 @@ def check_summary(doc: Any, *, strict: bool = False) -> dict[str, Any]:
             not isinstance(v, list | tuple) or not all(isinstance(x, str) for x in v)
         ):
             raise ValueError(f"{key}: {_describe(v)} where a list of strings is expected")
-    archs = out.get("architectures", {})
+    _check_architectures(out, "architectures")
+    if out.get("kind") == "sweep":  # a sweep's architectures are its grid points'
+        points = out.get("points")
+        if not isinstance(points, list | tuple):
+            raise ValueError(f"points: {_describe(points)} where a list of grid points is expected")
+        for i, p in enumerate(points):
+            if not isinstance(p, Mapping):
+                raise ValueError(f"points[{i}]: {_describe(p)} where an object is expected")
+            _check_architectures(p, f"points[{i}].architectures")
+    return out
+
+
+def _check_architectures(doc: Mapping[str, Any], at: str) -> None:
+    archs = doc.get("architectures", {})
     if not isinstance(archs, Mapping):
-        raise ValueError(f"architectures: {_describe(archs)} where an object is expected")
+        raise ValueError(f"{at}: {_describe(archs)} where an object is expected")
     for arch, entry in archs.items():
-        where = join_path("architectures", str(arch))
+        where = join_path(at, str(arch))
         if not isinstance(entry, Mapping):
             raise ValueError(f"{where}: {_describe(entry)} where an object of metrics is expected")
         for key, v in entry.items():
             path = join_path(where, str(key))
             if key in _ARCH_NUMBERS:
                 _want_number(v, path, nullable=False)
-            elif key == "expected" and v is None and "pcrb" in out:
+            elif key == "expected" and v is None and "pcrb" in doc:
                 continue  # a nonlinear model: no exact analysis, the PCRB stands instead
             elif key in _ARCH_GROUPS:
                 container, nullable, nesting = _ARCH_GROUPS[key]
                 if not isinstance(v, list | tuple if container is list else Mapping):
                     kind = "a list" if container is list else "an object"
                     raise ValueError(f"{path}: {_describe(v)} where {kind} of numbers is expected")
+                if key == "expected":  # per-run patterns: "conditional": true says so (DESIGN)
+                    v = {k: x for k, x in v.items() if not _flag(k, x)}
                 _want_numbers(v, path, nullable, nesting)
-    return out
+
+
+def _flag(key: str, v: Any) -> bool:
+    """`expected`'s ``conditional`` flag: a boolean beside the numbers, not a metric."""
+    return key == "conditional" and isinstance(v, bool)
 
 
 def _describe_int(v: int) -> str:

@@ -64,8 +64,31 @@ async def _identity(address: str, timeout: float) -> Any:
         comm.abort()
 
 
+def _refused(address: str, timeout: float) -> bool:
+    """Whether the host refuses a TCP connection to the port (nothing listens there): an answer
+    that needs no waiting, where Dask's connect would retry it for the whole timeout."""
+    import socket
+
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        host, port = parse_host_port(parse_address(address)[1])
+        socket.create_connection((host, port), timeout=min(timeout, 2.0)).close()
+    except ConnectionRefusedError:
+        return True
+    except (OSError, ValueError):  # unreachable, silent, unparsable: Dask's connect says
+        pass
+    return False
+
+
 def probe_scheduler(address: str, timeout: float) -> None:
-    """A Dask scheduler answers at `address` within `timeout` seconds, else one line."""
+    """A Dask scheduler answers at `address` within `timeout` seconds, else one line (at once
+    when the connection is refused)."""
+    if _refused(address, timeout):
+        raise FusionlogError(
+            f"--scheduler {address}: cannot connect to a Dask scheduler (connection refused: "
+            "nothing listens on that port)"
+        )
     try:
         # Dask's connect gives up at `timeout` with its reason; this bound is for the rest
         ident = asyncio.run(asyncio.wait_for(_identity(address, timeout), timeout + 2))

@@ -20,6 +20,7 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import logging
+import math
 import os
 import threading
 import time
@@ -343,8 +344,10 @@ def executor(
         raise FusionlogError("--workers and --scheduler: give one of them, not both")
     if workers is not None and workers < 0:
         raise FusionlogError(f"--workers: must be >= 0, got {workers}")
-    if not timeout > 0:
-        raise FusionlogError(f"--scheduler-timeout: must be > 0 seconds, got {timeout:g}")
+    if not 0 < timeout < math.inf:  # Dask's connect takes no infinite timeout (nor NaN)
+        raise FusionlogError(
+            f"--scheduler-timeout: must be a finite number > 0 of seconds, got {timeout:g}"
+        )
     if scheduler is not None:
         return DaskExecutor(scheduler=check_address(scheduler), timeout=timeout)
     if workers == 0 or (workers is None and local_default):

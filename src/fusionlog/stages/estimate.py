@@ -73,7 +73,9 @@ def estimate_to(
         model = model._replace(system=system, json=json.dumps(system_to_dict(system)))
     system = model.system
     topics = kind.check_sensor_topics(mf, system)
-    archs = kind.check_architectures(archs or model.architectures, system, "--arch")
+    # without --arch, the recorded scenario's list, which a --model's sensors may not fit
+    where = "--arch" if archs else f"{sensors_name or sensors_path}: recorded architectures"
+    archs = kind.check_architectures(archs or model.architectures, system, where)
     K, M = mf.steps() - 1, mf.runs()
     times = mf.times()
     est = kind.estimator(system, K, M, archs, mf)

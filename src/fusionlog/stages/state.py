@@ -33,6 +33,19 @@ from .nonlinear import step_writers
 from .state_eval import SensorLog, StateEvaluator
 
 
+def check_discretisable(system: System, truth: Scenario, model: str, where: str) -> None:
+    """A filter model for the instants of `truth`, a simulated scenario: explicit F, Q hold for
+    dt only, so irregular instants need a model discretisable for any interval (the rule a
+    scenario's own model meets on load, DESIGN.md "Timing"); else FusionlogError."""
+    if truth.replay is None and not truth.schedule.regular and system.continuous is None:
+        if system.motion_model is None:
+            raise FusionlogError(
+                f"{model}: model.F: explicit F, Q hold for dt only, but the instants of {where} "
+                "are irregular: give kind = 'constant-velocity' (n0, axes) or kind = "
+                "'continuous' (A, Qc)"
+            )
+
+
 class StateKind(Kind):
     name = "state"
 
@@ -71,6 +84,8 @@ class StateKind(Kind):
                     f"{model_path}: the model has {system.n} states, "
                     f"the scenario recorded in {sensors.path} has {recorded.system.n}"
                 )
+            if recorded is not None:
+                check_discretisable(system, recorded, str(model_path), str(sensors.path))
         archs = list(recorded.architectures) if recorded is not None else ["CKF"]
         return Model(system, source, json.dumps(system_to_dict(system)), archs)
 
