@@ -27,10 +27,10 @@ import pytest
 from click.testing import CliRunner, Result
 
 from fusionlog.cli import main
+from fusionlog.compare import compare_summaries
 from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap import McapFile
 from fusionlog.io.rrd import read_recording
-from fusionlog.report import compare_summaries
 
 ROOT = Path(__file__).resolve().parents[1]
 AJGL = ROOT / "pipeline" / "ajgl2009.toml"

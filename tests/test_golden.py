@@ -3,7 +3,7 @@
 `tests/golden/small.toml` (the paper's model, 3 sensors, M = 500, K = 10, seed 7, all seven
 architectures) is run with `fusionlog run` into a temporary folder and checked against:
 
-* `small_summary.json` -- the summary.json, compared with `fusionlog.report.compare_summaries`
+* `small_summary.json` -- the summary.json, compared with `fusionlog.compare.compare_summaries`
   at rtol = 1e-9. Why not exact: the simulation itself is bit-reproducible (a seeded PCG64
   stream per run), but every filter, the exact covariance analysis and the Monte Carlo sums go
   through numpy/BLAS/LAPACK, which choose kernels, SIMD widths, FMA use and summation order by
@@ -40,7 +40,7 @@ import pytest
 from click.testing import CliRunner
 
 from fusionlog.cli import main
-from fusionlog.report import compare_summaries
+from fusionlog.compare import compare_summaries
 
 GOLDEN = Path(__file__).resolve().parent / "golden"
 SCENARIO = GOLDEN / "small.toml"

@@ -22,11 +22,12 @@ import pytest
 from click.testing import CliRunner, Result
 
 from fusionlog.cli import main
+from fusionlog.compare import check_summary, compare_summaries
 from fusionlog.identity import belief, dempster_combine, plausibility
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapFile, McapWriter
 from fusionlog.io.rrd import read_recording, recording_id_for
-from fusionlog.report import check_summary, compare_summaries, format_table
+from fusionlog.report import format_table
 from fusionlog.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]

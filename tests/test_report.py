@@ -8,8 +8,9 @@ import math
 
 import pytest
 
+from fusionlog.compare import check_summary, compare_summaries
 from fusionlog.jsonout import dumps, resolve_non_finite, to_strict_json
-from fusionlog.report import check_summary, compare_summaries, format_table
+from fusionlog.report import format_table
 
 
 def summary() -> dict:

@@ -440,7 +440,7 @@ def _tolerance(name: str, default: float, text: str):
     """--rtol / --atol: a finite number >= 0 (else a usage error, exit 2)."""
 
     def check(ctx: click.Context, param: click.Parameter, value: float) -> float:
-        from fusionlog.report import check_tolerance
+        from fusionlog.compare import check_tolerance
 
         try:
             return check_tolerance(value, name)
@@ -462,7 +462,7 @@ def compare(actual, golden, rtol, atol) -> None:
 
     A file that is not a well-formed summary (not strict JSON, a metric that is not a number)
     is bad input (exit 2), not a regression."""
-    from fusionlog.report import check_summary, compare_summaries, load_json
+    from fusionlog.compare import check_summary, compare_summaries, load_json
 
     docs = []
     for path in (actual, golden):
