@@ -216,6 +216,22 @@ def test_one_worker_killed_mid_sweep_gives_the_same_table(tmp_path: Path, cluste
 # ------------------------------------------------------------------- workers and usage
 
 
+def test_a_task_failing_on_a_local_cluster_is_one_line(tmp_path: Path) -> None:
+    """A task that fails numerically in a LocalCluster's worker: our one line, not also the
+    worker's "Compute Failed" log with its traceback (the worker writes to the same stderr)."""
+    sc = tmp_path / "overflow.toml"
+    sc.write_text(
+        '[scenario]\nname = "overflow"\nsteps = 4\nruns = 20\nseed = 1\ndt = 1.0\n'
+        "[model]\nF = [[1e120]]\nQ = [[1.0]]\n[prior]\nmean = [0.0]\ncov = [[1.0]]\n"
+        '[[sensors]]\nname = "s"\nH = [[1.0]]\nR = 1.0\n'
+    )
+    p = fusionlog("sweep", sc, "--vary", "scenario.dt=1,2", "--workers", "2",
+                  "--out-dir", tmp_path / "o")  # fmt: skip
+    rc, _, err = finish(p)
+    assert_one_line(rc, err, str(sc), "the true state overflows")
+    assert not (tmp_path / "o").exists()
+
+
 def test_workers_beyond_the_cpus_are_capped_with_a_note(tmp_path: Path) -> None:
     cpus = len(os.sched_getaffinity(0))
     res = ok(*SWEEP, "--runs", "100", "--workers", str(cpus + 30), "--out-dir", tmp_path / "o")

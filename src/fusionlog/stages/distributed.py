@@ -144,7 +144,7 @@ class DaskExecutor(Executor):
                         # its metrics) on a free loopback port: without an address it takes
                         # 8787, and warns when another cluster has it
                         dashboard_address="127.0.0.1:0",
-                        silence_logs=logging.ERROR,
+                        silence_logs=logging.CRITICAL,  # a failing task: our one line only
                     )
                 self._client = Client(self._cluster, set_as_default=False)
                 self.description = f"on a LocalCluster of {n} worker process{'es' * (n != 1)}"
