@@ -9,8 +9,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from cli_helpers import cli, ok, one_line_error
+
+from fusionlog.core.architectures import estimate
+from fusionlog.core.model import ajgl2009
+from fusionlog.core.simulate import simulate
+from fusionlog.errors import NumericalError
 
 IRREGULAR_N0 = """\
 [scenario]
@@ -184,3 +190,14 @@ def test_a_simulation_that_overflows_names_the_scenario_file(tmp_path: Path) -> 
         "linbad.toml",
         "r",  # run's --out-dir, made before the simulation: empty
     ]
+
+
+@pytest.mark.parametrize("arch", ["CKF", "HKF", "MSC-GMF"])
+def test_an_infinite_reading_is_named_at_its_step(arch):
+    """A shared plan applied as one dense map mixes every step (inf x 0 is NaN everywhere):
+    the failure still names the step of the reading, as the step recursion finds it."""
+    system = ajgl2009()
+    _, z = simulate(system, 10, 1, 0, 3)
+    z[1, 5, 0] = np.inf
+    with pytest.raises(NumericalError, match=rf"architecture {arch}, step 5: the estimate"):
+        estimate(system, z, arch)

@@ -74,6 +74,9 @@ def run_plan(plan: Plan, z: np.ndarray, *, route: Route = "auto") -> Estimate:
     if not np.isfinite(mean).all():
         if not nan_zeroed and np.isnan(z).any():
             mean = _dense(np.where(np.isnan(z), 0.0, z), W, c)
+        if not np.isfinite(mean).all():  # the dense map mixes all steps: the recursion says
+            with np.errstate(over="ignore", invalid="ignore"):  # where it overflows
+                mean = _recursion(plan, np.where(np.isnan(z), 0.0, z), blocks=False)
         _require_defined(plan, mean, cov)
     return Estimate(mean, cov)
 
