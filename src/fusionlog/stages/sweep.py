@@ -127,7 +127,11 @@ def run_sweep(
     busy = 0.0
     # The outputs are checked before the cluster starts: a sweep that cannot write its results
     # is refused at once, not after its runs.
-    with Outputs(targets, force=force, inputs=[Path(scenario_path)]) as outs, ex:
+    with (
+        Outputs(targets, force=force, inputs=[Path(scenario_path)]) as outs,
+        ex,
+        contextlib.ExitStack() as stack,
+    ):
         t.append(time.perf_counter())
         token = uuid.uuid4().hex
         # points whose runs differ in their patterns (dropouts) have no exact analysis of
@@ -155,7 +159,11 @@ def run_sweep(
         conditional: list[dict[str, Any]] = [{} for _ in points]
         # the writers' imports (rerun, pyarrow, scipy.special: a second or more) while the
         # workers compute (forked ones are up by now: `worker_signals.FORK`)
-        threading.Thread(target=_import_writers, daemon=True).start()
+        importer = threading.Thread(target=_import_writers, daemon=True)
+        importer.start()
+        # a failed or interrupted sweep waits for it: a thread still importing C extensions
+        # while the interpreter shuts down may crash it
+        stack.callback(importer.join, 30)
         with contextlib.closing(ex.map(tasks, "sweep")) as results:
             for i, result in zip(owner, results, strict=True):
                 if isinstance(result, BlockSums):
