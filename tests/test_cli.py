@@ -742,6 +742,17 @@ def test_invalid_model_file_for_estimate(ajgl_run: Path, tmp_path: Path) -> None
     assert listing(out) == []
 
 
+def test_a_replay_file_is_not_a_filter_model(ajgl_run: Path, tmp_path: Path) -> None:
+    """A replay file as --model: one line saying what it is (it said `scenario.dt: missing
+    required key`, then `truth: unknown key 'source'`)."""
+    replay = ROOT / "pipeline" / "replay_robot.toml"
+    out = tmp_path / "out"
+    out.mkdir()
+    res = cli("estimate", ajgl_run / "sensors.mcap", "-o", out / "e.mcap", "--model", replay)
+    assert_one_line_error(res, str(replay), "a replay file, not a filter model")
+    assert listing(out) == []
+
+
 def test_recorded_architecture_the_model_cannot_run(tmp_path: Path) -> None:
     """Without --arch, estimate runs the recorded scenario's architectures; one that names a
     sensor a --model lacks is refused naming the sensors file, not an --arch never given."""

@@ -98,6 +98,11 @@ def load_model(path: str | os.PathLike[str], kind: str | None = None) -> Any:
 def model_from_text(text: str, source: str = "<string>", kind: str | None = None) -> Any:
     """Validate a model given as TOML text (see :func:`load_model`)."""
     doc = toml.parse_toml(text, source)
+    if is_replay_doc(doc):  # its sensors' R may come from the recorded messages alone
+        raise FusionlogError(
+            f"{source}: a replay file, not a filter model (give --model a scenario or model "
+            "file; `fusionlog run` replays the recorded data with this file's model)"
+        )
     own = "identity" if is_identity_doc(doc) else "state"
     if kind is not None and own != kind:
         what = "no [identity] section" if own == "state" else "it has [identity]"
