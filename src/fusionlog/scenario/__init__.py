@@ -95,6 +95,10 @@ def load_model(path: str | os.PathLike[str], kind: str | None = None) -> Any:
     return model_from_text(toml.read_text(file), file, kind)
 
 
+def _a(word: str) -> str:
+    return f"{'an' if word[:1] in 'aeiou' else 'a'} {word}"
+
+
 def model_from_text(text: str, source: str = "<string>", kind: str | None = None) -> Any:
     """Validate a model given as TOML text (see :func:`load_model`)."""
     doc = toml.parse_toml(text, source)
@@ -107,7 +111,7 @@ def model_from_text(text: str, source: str = "<string>", kind: str | None = None
     if kind is not None and own != kind:
         what = "no [identity] section" if own == "state" else "it has [identity]"
         raise FusionlogError(
-            f"{source}: a {own} model ({what}), but the sensors file holds a {kind} scenario"
+            f"{source}: {_a(own)} model ({what}), but the sensors file holds {_a(kind)} scenario"
         )
     if own == "identity":
         return identity_from_doc(doc, source, text, source, model=True)
