@@ -65,9 +65,20 @@ def load_scenario(
     steps: int | None = None,
     seed: int | None = None,
 ) -> Scenario:
-    """Read and validate a scenario file of either kind; `runs`, `steps`, `seed` override it."""
+    """Read and validate a scenario file of either kind; `runs`, `steps`, `seed` override it.
+    A replay file has none of them (one recorded run on its measurement times): an override
+    is refused rather than silently ignored."""
     file = os.fspath(path)
     scenario = _from_text(toml.read_text(file), file, file)
+    if scenario.replay is not None:
+        given = [
+            f"--{k}" for k, v in (("runs", runs), ("steps", steps), ("seed", seed)) if v is not None
+        ]
+        if given:
+            raise FusionlogError(
+                f"{file}: a replay file is one recorded run on its measurement times: "
+                f"it takes no {', '.join(given)}"
+            )
     return scenario_with(scenario, runs=runs, steps=steps, seed=seed)
 
 

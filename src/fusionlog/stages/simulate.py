@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapWriter
 from fusionlog.io.mcap.topics import TRUTH, sensor_topic
@@ -72,6 +73,11 @@ def run_simulate(
     command: str = "fusionlog simulate",
 ) -> SimulateResult:
     """Simulate `scenario` into the sensors file `out` (committed only when complete)."""
+    if scenario.replay is not None:  # its sensors are recordings: there is nothing to draw
+        raise FusionlogError(
+            f"{scenario.path or scenario.name}: a replay file (recorded data) is not simulated; "
+            "use `fusionlog import` (or `fusionlog run`) on it"
+        )
     out = Path(out)
     inputs = [Path(scenario.path)] if scenario.path else []
     with Outputs([out], force=force, inputs=inputs) as outs:
