@@ -942,6 +942,22 @@ def test_summary_of_a_non_recording(ajgl_run: Path) -> None:
     assert_one_line_error(res, str(ajgl_run / "summary.json"))
 
 
+def test_a_damaged_recording_or_bag_is_not_sent_to_inspect_recover(
+    ajgl_run: Path, tmp_path: Path
+) -> None:
+    """`inspect --recover` reads MCAP files only: the hint it shows what is readable was also
+    given for a truncated .rrd and a damaged ROS 1 bag, where it then failed (not MCAP)."""
+    rrd = tmp_path / "cut.rrd"
+    rrd.write_bytes((ajgl_run / "evaluation.rrd").read_bytes()[:3000])
+    line = assert_one_line_error(cli("summary", rrd), str(rrd), "Rerun recording")
+    assert "--recover" not in line
+    bag = tmp_path / "cut.bag"
+    data = (ROOT / "pipeline" / "data" / "gps_ros1.bag").read_bytes()
+    bag.write_bytes(data[: len(data) // 2])
+    line = assert_one_line_error(cli("inspect", bag), str(bag), "damaged")
+    assert "--recover" not in line
+
+
 @needs_fusionlog
 def test_exit_codes_and_debug_traceback_as_a_user_sees_them(tmp_path: Path) -> None:
     nope = tmp_path / "nope.toml"

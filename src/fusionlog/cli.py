@@ -47,7 +47,7 @@ def _hint(e: FusionlogError) -> str:
     """How to fix it, where that depends on the command line rather than on the library."""
     if isinstance(e, OutputExists):
         return "; use --force to overwrite"
-    if isinstance(e, DamagedFile) and e.path is not None:
+    if isinstance(e, DamagedFile) and e.path is not None and e.recoverable:
         return f"; `fusionlog inspect --recover {e.path}` shows what is still readable"
     return ""
 

@@ -58,7 +58,9 @@ def _open(source: Path, what: str | None) -> Iterator[Any]:
         reader.open()
     except Exception as e:  # whatever a damaged or foreign file makes rosbags raise
         raise DamagedFile(
-            f"{prefix}damaged or not a ROS bag ({type(e).__name__}: {one_line(e)})", source
+            f"{prefix}damaged or not a ROS bag ({type(e).__name__}: {one_line(e)})",
+            source,
+            recoverable=False,  # `inspect --recover` reads MCAP files only
         ) from None
     try:
         yield reader
@@ -82,6 +84,7 @@ def _deserialize(reader: Any, source: Path, what: str | None, conn: Any, raw: by
             f"({conn.msgtype}): {type(e).__name__}: {one_line(e)} (a type the bag does not "
             "define and that is not a standard ROS 2 message, or damaged bytes)",
             source,
+            recoverable=False,
         ) from None
 
 
