@@ -461,13 +461,16 @@ def compare(actual, golden, rtol, atol) -> None:
     """Compare SUMMARY.json with GOLDEN.json; exit 1 if any metric moved beyond tolerance.
 
     A file that is not a well-formed summary (not strict JSON, a metric that is not a number)
-    is bad input (exit 2), not a regression."""
+    is bad input (exit 2), not a regression. A sweep's summary.json compares point by point."""
     from fusionlog.report import check_summary, compare_summaries, load_json
 
     docs = []
     for path in (actual, golden):
         doc = load_json(path)
-        if not isinstance(doc, dict) or not isinstance(doc.get("architectures"), dict):
+        sweep = isinstance(doc, dict) and doc.get("kind") == "sweep" and "points" in doc
+        if not sweep and (
+            not isinstance(doc, dict) or not isinstance(doc.get("architectures"), dict)
+        ):
             raise FusionlogError(f"{path}: not a fusionlog summary (no 'architectures' object)")
         try:
             docs.append(check_summary(doc, strict=True))

@@ -342,6 +342,12 @@ def check_summary(doc: Any, *, strict: bool = False) -> dict[str, Any]:
         if isinstance(v, int) and not isinstance(v, bool) and abs(v).bit_length() > 1024:
             raise ValueError(f"{path}: a number too large for a double ({_describe_int(v)})")
     out = resolve_non_finite(doc, check=True)
+    if out.get("kind") == "sweep" and isinstance(out.get("points"), list):  # a sweep's points
+        for i, point in enumerate(out["points"]):
+            try:
+                check_summary(point)
+            except ValueError as e:
+                raise ValueError(f"points[{i}]: {e}") from None
     for key, v in out.items():
         if key in _TOP_NUMBERS:
             _want_number(v, key, nullable=False)
