@@ -958,6 +958,18 @@ def test_a_damaged_recording_or_bag_is_not_sent_to_inspect_recover(
     assert "--recover" not in line
 
 
+def test_a_reader_that_leaves_early_is_not_an_error(ajgl_run: Path) -> None:
+    """`fusionlog inspect X | head -1`: stdout's reader has gone; fusionlog stops quietly with
+    128 + SIGPIPE (it printed "fusionlog: error: Broken pipe" and exited 2, as for bad input)."""
+    cmd = [sys.executable, "-m", "fusionlog.cli", "inspect", str(ajgl_run / "sensors.mcap")]
+    with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV) as p:
+        assert p.stdout is not None and p.stderr is not None
+        p.stdout.close()  # no reader left: the first line written fails with EPIPE
+        err = p.stderr.read().decode()
+        assert p.wait(timeout=120) == 128 + signal.SIGPIPE, err
+    assert err == ""
+
+
 @needs_fusionlog
 def test_exit_codes_and_debug_traceback_as_a_user_sees_them(tmp_path: Path) -> None:
     nope = tmp_path / "nope.toml"

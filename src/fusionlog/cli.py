@@ -6,6 +6,7 @@ stderr naming the file and the problem; a traceback only with --debug), 130 inte
 
 from __future__ import annotations
 
+import os
 import shlex
 import signal
 import sys
@@ -26,7 +27,8 @@ OUTPUT = click.Path(path_type=Path)
 
 #: Exit codes (DESIGN.md): 0 success, 1 a regression found by `compare`, 2 bad usage, bad
 #: input or a failed output (one line on stderr), 3 an internal error (a bug: one line; the
-#: traceback with --debug), 128 + N killed by signal N (SIGINT 130, SIGHUP 129, SIGTERM 143).
+#: traceback with --debug), 128 + N killed by signal N (SIGINT 130, SIGHUP 129, SIGTERM 143;
+#: SIGPIPE 141, quietly, when stdout's reader has gone).
 EXIT_BAD_INPUT = 2
 EXIT_INTERNAL = 3
 
@@ -94,6 +96,11 @@ class _Group(click.Group):
                 "fusionlog: error: out of memory (use fewer runs per block or steps)", err=True
             )
             ctx.exit(EXIT_BAD_INPUT)
+        except BrokenPipeError:  # stdout closed early (`| head`): the reader's choice, no error
+            if debug:
+                raise
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no flush error
+            ctx.exit(128 + signal.SIGPIPE)
         except OSError as e:  # a file the library did not name: still one line
             if debug:
                 raise
@@ -467,10 +474,8 @@ def compare(actual, golden, rtol, atol) -> None:
     docs = []
     for path in (actual, golden):
         doc = load_json(path)
-        sweep = isinstance(doc, dict) and doc.get("kind") == "sweep" and "points" in doc
-        if not sweep and (
-            not isinstance(doc, dict) or not isinstance(doc.get("architectures"), dict)
-        ):
+        one = isinstance(doc, dict) and isinstance(doc.get("architectures"), dict)
+        if not one and not (isinstance(doc, dict) and doc.get("kind") == "sweep"):  # or a sweep's
             raise FusionlogError(f"{path}: not a fusionlog summary (no 'architectures' object)")
         try:
             docs.append(check_summary(doc, strict=True))
