@@ -144,3 +144,32 @@ def test_an_estimate_that_overflows_names_the_file_the_architecture_and_the_step
     res = cli("estimate", tmp_path / "s.mcap", "-o", tmp_path / "e.mcap")
     one_line_error(res, "s.mcap: architecture ", ", step ", "overflows")
     assert not (tmp_path / "e.mcap").exists()
+
+
+def test_an_infinite_reading_in_a_sensors_file_is_named_with_its_topic_and_step(
+    tmp_path: Path,
+) -> None:
+    """A sensors file (written by another tool) with one reading of -inf: the line named an
+    overflow of CKF "at step 0" -- the plans' product spreads inf * 0 = NaN to the steps
+    before it -- instead of the reading itself (NaN marks a missing reading, inf none)."""
+    import numpy as np
+
+    from fusionlog.io.mcap import McapFile, McapWriter
+
+    root = Path(__file__).resolve().parents[1] / "pipeline"
+    ok("simulate", root / "ajgl2009.toml", "-o", tmp_path / "s.mcap", "--runs", "20",
+       "--steps", "8")  # fmt: skip
+    mf = McapFile(tmp_path / "s.mcap")
+    topics = sorted(mf.topics)
+    data, times = mf.read_all(topics), mf.times()
+    data["/sensors/s2"][3, 4, 0] = -np.inf
+    with open(tmp_path / "inf.mcap", "wb") as f, McapWriter(f) as w:
+        for name, record in mf.metadata.items():
+            w.add_metadata(name, record)
+        for k, t in enumerate(times):
+            for topic in topics:
+                w.write_values(topic, k, float(t), 0, data[topic][:, k])
+    for extra in ([], ["--block-runs", "2", "--arch", "FBS"]):
+        res = cli("estimate", tmp_path / "inf.mcap", "-o", tmp_path / "e.mcap", *extra)
+        one_line_error(res, "inf.mcap: /sensors/s2: an infinite reading at step 4, run 3")
+    assert not (tmp_path / "e.mcap").exists()
