@@ -958,6 +958,20 @@ def test_a_damaged_recording_or_bag_is_not_sent_to_inspect_recover(
     assert "--recover" not in line
 
 
+def test_python_dash_m_fusionlog_is_the_command(ajgl_run: Path) -> None:
+    """`python -m fusionlog` (no console script on PATH) failed: no fusionlog.__main__."""
+    summary = str(ajgl_run / "summary.json")
+
+    def dash_m(*args: str) -> subprocess.CompletedProcess:
+        cmd = [sys.executable, "-m", "fusionlog", *args]
+        return subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=120)
+
+    p = dash_m("compare", summary, summary)
+    assert p.returncode == 0 and "matches" in p.stdout, p.stderr
+    p = dash_m("inspect")
+    assert p.returncode == 2 and p.stderr.startswith("fusionlog: error: Missing argument")
+
+
 def test_a_reader_that_leaves_early_is_not_an_error(ajgl_run: Path) -> None:
     """`fusionlog inspect X | head -1`: stdout's reader has gone; fusionlog stops quietly with
     128 + SIGPIPE (it printed "fusionlog: error: Broken pipe" and exited 2, as for bad input)."""
