@@ -742,6 +742,23 @@ def test_invalid_model_file_for_estimate(ajgl_run: Path, tmp_path: Path) -> None
     assert listing(out) == []
 
 
+def test_a_model_file_without_scenario_takes_the_recorded_dt(
+    ajgl_run: Path, tmp_path: Path
+) -> None:
+    """README: `estimate --model` takes the scenario's sections without [scenario]. The paper's
+    own [model] (constant velocity, N0 = n0 dt) was refused there: "scenario.dt: missing
+    required key". The recorded dt stands in: the same model gives the same estimates."""
+    text = AJGL.read_text()
+    model = write_toml(tmp_path / "m.toml", text[text.index("[model]") :])
+    s = ajgl_run / "sensors.mcap"
+    ok("estimate", s, "-o", tmp_path / "e.mcap", "--model", model, "--arch", "CKF")
+    ok("estimate", s, "-o", tmp_path / "ref.mcap", "--arch", "CKF")
+    got = McapFile(tmp_path / "e.mcap").read_all(["/estimates/CKF"])["/estimates/CKF"]
+    ref = McapFile(tmp_path / "ref.mcap").read_all(["/estimates/CKF"])["/estimates/CKF"]
+    for a, b in zip(got, ref, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_invalid_override(tmp_path: Path) -> None:
     res = cli("simulate", AJGL, "-o", tmp_path / "s.mcap", "--runs", "0")
     assert_one_line_error(res, "--runs")

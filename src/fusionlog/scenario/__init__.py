@@ -92,16 +92,25 @@ def kind_of_text(text: str, source: str = "<string>") -> str:
     return "identity" if is_identity_doc(toml.parse_toml(text, source)) else "state"
 
 
-def load_model(path: str | os.PathLike[str], kind: str | None = None) -> Any:
+def load_model(
+    path: str | os.PathLike[str], kind: str | None = None, dt: float | None = None
+) -> Any:
     """The filter model of ``estimate --model``: a state System, or for the identity kind an
-    identity Scenario (classes, prior, sensors). ``kind`` defaults to the file's own."""
+    identity Scenario (classes, prior, sensors). ``kind`` defaults to the file's own; ``dt``
+    (the recorded scenario's) stands for a missing ``scenario.dt`` of a state model."""
     file = os.fspath(path)
-    return model_from_text(toml.read_text(file), file, kind)
+    return model_from_text(toml.read_text(file), file, kind, dt)
 
 
-def model_from_text(text: str, source: str = "<string>", kind: str | None = None) -> Any:
+def model_from_text(
+    text: str, source: str = "<string>", kind: str | None = None, dt: float | None = None
+) -> Any:
     """Validate a model given as TOML text (see :func:`load_model`)."""
     doc = toml.parse_toml(text, source)
+    head = doc.get("scenario", {})
+    if dt is not None and isinstance(head, dict) and "dt" not in head:
+        # a model file need not repeat [scenario] (README): n0 * dt is the recorded dt's
+        doc = {**doc, "scenario": {**head, "dt": dt}}
     own = "identity" if is_identity_doc(doc) else "state"
     if kind is not None and own != kind:
         what = "no [identity] section" if own == "state" else "it has [identity]"
