@@ -774,6 +774,23 @@ def test_recorded_architecture_the_model_cannot_run(tmp_path: Path) -> None:
     ok("estimate", log, "-o", tmp_path / "e.mcap", "--model", model, "--arch", "SKF:s2")
 
 
+def test_a_model_file_without_scenario_takes_the_recorded_dt(
+    ajgl_run: Path, tmp_path: Path
+) -> None:
+    """README: `estimate --model` takes the scenario's sections without [scenario]. The paper's
+    own [model] (constant velocity, N0 = n0 dt) was refused there: "scenario.dt: missing
+    required key". The recorded dt stands in: the same model gives the same estimates."""
+    text = AJGL.read_text()
+    model = write_toml(tmp_path / "m.toml", text[text.index("[model]") :])
+    s = ajgl_run / "sensors.mcap"
+    ok("estimate", s, "-o", tmp_path / "e.mcap", "--model", model, "--arch", "CKF")
+    ok("estimate", s, "-o", tmp_path / "ref.mcap", "--arch", "CKF")
+    got = McapFile(tmp_path / "e.mcap").read_all(["/estimates/CKF"])["/estimates/CKF"]
+    ref = McapFile(tmp_path / "ref.mcap").read_all(["/estimates/CKF"])["/estimates/CKF"]
+    for a, b in zip(got, ref, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_invalid_override(tmp_path: Path) -> None:
     res = cli("simulate", AJGL, "-o", tmp_path / "s.mcap", "--runs", "0")
     assert_one_line_error(res, "--runs")
@@ -972,6 +989,48 @@ def test_input_is_a_directory(tmp_path: Path) -> None:
 def test_summary_of_a_non_recording(ajgl_run: Path) -> None:
     res = cli("summary", ajgl_run / "summary.json")
     assert_one_line_error(res, str(ajgl_run / "summary.json"))
+
+
+def test_a_damaged_recording_or_bag_is_not_sent_to_inspect_recover(
+    ajgl_run: Path, tmp_path: Path
+) -> None:
+    """`inspect --recover` reads MCAP files only: the hint it shows what is readable was also
+    given for a truncated .rrd and a damaged ROS 1 bag, where it then failed (not MCAP)."""
+    rrd = tmp_path / "cut.rrd"
+    rrd.write_bytes((ajgl_run / "evaluation.rrd").read_bytes()[:3000])
+    line = assert_one_line_error(cli("summary", rrd), str(rrd), "Rerun recording")
+    assert "--recover" not in line
+    bag = tmp_path / "cut.bag"
+    data = (ROOT / "pipeline" / "data" / "gps_ros1.bag").read_bytes()
+    bag.write_bytes(data[: len(data) // 2])
+    line = assert_one_line_error(cli("inspect", bag), str(bag), "damaged")
+    assert "--recover" not in line
+
+
+def test_python_dash_m_fusionlog_is_the_command(ajgl_run: Path) -> None:
+    """`python -m fusionlog` (no console script on PATH) failed: no fusionlog.__main__."""
+    summary = str(ajgl_run / "summary.json")
+
+    def dash_m(*args: str) -> subprocess.CompletedProcess:
+        cmd = [sys.executable, "-m", "fusionlog", *args]
+        return subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=120)
+
+    p = dash_m("compare", summary, summary)
+    assert p.returncode == 0 and "matches" in p.stdout, p.stderr
+    p = dash_m("inspect")
+    assert p.returncode == 2 and p.stderr.startswith("fusionlog: error: Missing argument")
+
+
+def test_a_reader_that_leaves_early_is_not_an_error(ajgl_run: Path) -> None:
+    """`fusionlog inspect X | head -1`: stdout's reader has gone; fusionlog stops quietly with
+    128 + SIGPIPE (it printed "fusionlog: error: Broken pipe" and exited 2, as for bad input)."""
+    cmd = [sys.executable, "-m", "fusionlog.cli", "inspect", str(ajgl_run / "sensors.mcap")]
+    with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV) as p:
+        assert p.stdout is not None and p.stderr is not None
+        p.stdout.close()  # no reader left: the first line written fails with EPIPE
+        err = p.stderr.read().decode()
+        assert p.wait(timeout=120) == 128 + signal.SIGPIPE, err
+    assert err == ""
 
 
 @needs_fusionlog

@@ -123,3 +123,58 @@ def test_gustafsson_scenarios(tmp_path, name):
         env={**os.environ, "RERUN_ANALYTICS": "0"},
     )
     assert verify.returncode == 0, verify.stderr
+
+
+def _tampered(src: Path, dst: Path, change) -> None:
+    """A copy of an estimates file with `change(topic, block)` applied to each decoded message,
+    written with the plain mcap writer (as another tool would)."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+    from mcap_protobuf.decoder import DecoderFactory
+
+    with open(src, "rb") as f, open(dst, "wb") as g:
+        r = make_reader(f, decoder_factories=[DecoderFactory()])
+        info = r.get_summary()
+        w = Writer(g)
+        w.start()
+        schemas = {
+            i: w.register_schema(x.name, x.encoding, x.data) for i, x in info.schemas.items()
+        }
+        channels = {
+            i: w.register_channel(c.topic, c.message_encoding, schemas[c.schema_id])
+            for i, c in info.channels.items()
+        }
+        for m in r.iter_metadata():
+            w.add_metadata(m.name, m.metadata)
+        for _, ch, msg, block in r.iter_decoded_messages(log_time_order=False):
+            change(ch.topic, block)
+            w.add_message(channels[ch.id], msg.log_time, block.SerializeToString(), msg.log_time)
+        w.finish()
+
+
+def test_estimates_that_are_not_what_fusionlog_writes_are_refused(tmp_path: Path) -> None:
+    """Estimates files (damaged, or from another tool) with the sensors file's sha256: a CKF
+    covariance of all -1 at step 3 gave a negative NEES and a DM of 0 (exit 0); a step 4 at
+    100 s (4 s in the sensors file) failed in the exact analysis, naming no file. Each is now
+    one line naming the file, and no output."""
+    from cli_helpers import cli, ok, one_line_error
+
+    s, e, bad = tmp_path / "s.mcap", tmp_path / "e.mcap", tmp_path / "bad.mcap"
+    ok("simulate", PAPER, "-o", s, "--runs", "20", "--steps", "6")
+    ok("estimate", s, "-o", e, "--arch", "CKF", "--arch", "MSC")
+
+    def negative(topic, block) -> None:
+        if topic == "/estimates/CKF" and block.step == 3:
+            block.covariance[:] = [-1.0] * len(block.covariance)
+
+    def late(topic, block) -> None:
+        if block.step == 4:
+            block.time = 100.0
+
+    for change, line in [
+        (negative, f"{bad}: /estimates/CKF: step 3: a covariance with a negative variance"),
+        (late, f"{bad}: step 4 is at 100.0 s, in {s} at 4.0 s"),
+    ]:
+        _tampered(e, bad, change)
+        one_line_error(cli("evaluate", s, bad, "-o", tmp_path / "ev.rrd", "--force"), line)
+        assert not (tmp_path / "ev.rrd").exists()

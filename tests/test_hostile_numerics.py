@@ -186,9 +186,9 @@ def test_a_simulation_that_overflows_names_the_scenario_file(tmp_path: Path) -> 
     res = cli("sweep", sc, "--vary", "scenario.steps=3,4", "--workers", "0",
               "--out-dir", tmp_path / "w")  # fmt: skip
     one_line_error(res, *frags)
+    # (run's --out-dir, made before the simulation, is removed with the failure)
     assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*")) == [
-        "linbad.toml",
-        "r",  # run's --out-dir, made before the simulation: empty
+        "linbad.toml"
     ]
 
 
@@ -201,3 +201,32 @@ def test_an_infinite_reading_is_named_at_its_step(arch):
     z[1, 5, 0] = np.inf
     with pytest.raises(NumericalError, match=rf"architecture {arch}, step 5: the estimate"):
         estimate(system, z, arch)
+
+
+def test_an_infinite_reading_in_a_sensors_file_is_named_with_its_topic_and_step(
+    tmp_path: Path,
+) -> None:
+    """A sensors file (written by another tool) with one reading of -inf: the line named an
+    overflow of CKF "at step 0" -- the plans' product spreads inf * 0 = NaN to the steps
+    before it -- instead of the reading itself (NaN marks a missing reading, inf none)."""
+    import numpy as np
+
+    from fusionlog.io.mcap import McapFile, McapWriter
+
+    root = Path(__file__).resolve().parents[1] / "pipeline"
+    ok("simulate", root / "ajgl2009.toml", "-o", tmp_path / "s.mcap", "--runs", "20",
+       "--steps", "8")  # fmt: skip
+    mf = McapFile(tmp_path / "s.mcap")
+    topics = sorted(mf.topics)
+    data, times = mf.read_all(topics), mf.times()
+    data["/sensors/s2"][3, 4, 0] = -np.inf
+    with open(tmp_path / "inf.mcap", "wb") as f, McapWriter(f) as w:
+        for name, record in mf.metadata.items():
+            w.add_metadata(name, record)
+        for k, t in enumerate(times):
+            for topic in topics:
+                w.write_values(topic, k, float(t), 0, data[topic][:, k])
+    for extra in ([], ["--block-runs", "2", "--arch", "FBS"]):
+        res = cli("estimate", tmp_path / "inf.mcap", "-o", tmp_path / "e.mcap", *extra)
+        one_line_error(res, "inf.mcap: /sensors/s2: an infinite reading at step 4, run 3")
+    assert not (tmp_path / "e.mcap").exists()

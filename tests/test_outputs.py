@@ -44,6 +44,7 @@ from test_cli import (
     ENV,
     FUSIONLOG,
     OUTPUTS,
+    ROOT,
     all_arrays,
     assert_one_line_error,
     assert_same_arrays,
@@ -670,6 +671,35 @@ def test_erofs_on_the_last_output(
     else:
         assert assert_one_line_error(res) == line
         assert listing(out) == []
+
+
+@pytest.mark.parametrize("name", COMMANDS)
+def test_a_failed_command_leaves_no_folder_it_made(
+    base: Path, tmp_path: Path, monkeypatch, name: str
+) -> None:
+    """Outputs into folders that did not exist: a failure removes the empty folders made for
+    them too (they were left behind, e.g. by `estimate -o new/e.mcap --arch BOGUS`)."""
+    out = tmp_path / "new" / "deeper"
+    args, targets = command(name, out, base)
+    inj = Injector(len(targets) - 1, 0, errno.EROFS)
+    monkeypatch.setattr(atomic, "open", inj.open, raising=False)
+    res = cli(*args)
+    assert assert_one_line_error(res) == (
+        f"fusionlog: error: {targets[-1]}: cannot write: Read-only file system"
+    )
+    assert listing(tmp_path) == []
+
+
+def test_bad_usage_after_the_outputs_were_claimed_leaves_no_folder(
+    base: Path, tmp_path: Path
+) -> None:
+    new = tmp_path / "new"
+    res = cli("estimate", base / "sensors.mcap", "-o", new / "e.mcap", "--arch", "BOGUS")
+    assert_one_line_error(res, "BOGUS")
+    res = cli("run", ROOT / "pipeline" / "aircraft_identity.toml", "--out-dir", new / "a" / "b",
+              "--filter", "UKF")  # fmt: skip
+    assert_one_line_error(res, "--filter")
+    assert listing(tmp_path) == []
 
 
 @pytest.mark.parametrize("name", COMMANDS)

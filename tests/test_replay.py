@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_helpers import ok
+from cli_helpers import cli, ok, one_line_error
 from filterpy.kalman import KalmanFilter
 from mcap.reader import make_reader
 
@@ -143,3 +143,23 @@ def test_a_recording_without_truth_is_evaluated_by_its_innovations(tmp_path) -> 
         assert 0.7 < entry["mean"] / entry["dof"] < 1.3, (name, entry)
     rec = read_recording(out / "evaluation.rrd")
     assert rec is not None
+
+
+def test_simulate_refuses_a_replay_file_and_writes_nothing(tmp_path) -> None:
+    """A replay's sensors are recordings: `simulate` once wrote a log of noise drawn from the
+    replay's model (exit 0) or failed with an overflow at step 0; it names the file instead."""
+    res = cli("simulate", REPLAY, "-o", tmp_path / "s.mcap")
+    one_line_error(res, str(REPLAY), "replay file", "fusionlog import")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "flags", [["--runs", "5"], ["--steps", "3"], ["--seed", "1", "--runs", "2"]]
+)
+def test_run_refuses_monte_carlo_flags_on_a_replay(tmp_path, flags) -> None:
+    """A replay is one recorded run on its measurement times (DESIGN.md "Replay files"):
+    --runs/--steps/--seed were silently ignored; now they are bad usage naming the file."""
+    res = cli("run", REPLAY, "--out-dir", tmp_path / "o", *flags)
+    line = one_line_error(res, str(REPLAY), "replay file")
+    assert all(f in line for f in flags if f.startswith("--"))
+    assert not (tmp_path / "o").exists()

@@ -429,3 +429,23 @@ def test_importing_the_cli_does_not_import_dask() -> None:
     code = f"import sys, fusionlog.cli; print(sorted(m for m in {heavy} if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV)
     assert out.stdout.strip() == "[]", out.stderr
+
+
+def test_compare_gates_a_sweep_summary_point_by_point(tmp_path: Path) -> None:
+    """DESIGN.md: `compare SUMMARY.json GOLDEN.json` on the summary.json a sweep writes (it was
+    refused as "not a fusionlog summary", exit 2): equal 0, a moved point 1 with its key path,
+    a malformed point 2."""
+    ok("sweep", AJGL, "--vary", "scenario.dt=1,2", "--runs", "20", *ARCHS, "--out-dir", tmp_path)
+    golden = tmp_path / "summary.json"
+    ok("compare", golden, golden)
+    doc = json.loads(golden.read_text())
+    doc["points"][1]["architectures"]["MSC"]["anees"] *= 1.05
+    moved = tmp_path / "moved.json"
+    moved.write_text(json.dumps(doc))
+    res = cli("compare", moved, golden)
+    assert res.exit_code == 1 and "points[1].architectures.MSC.anees" in res.stdout, res.output
+    assert cli("compare", moved, golden, "--rtol", "0.1").exit_code == 0
+    doc["points"][0]["architectures"]["CKF"]["mse"] = "0.2"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(doc))
+    one_line_error(cli("compare", bad, golden), str(bad), "points[0]", "architectures.CKF.mse")

@@ -6,6 +6,7 @@ stderr naming the file and the problem; a traceback only with --debug), 130 inte
 
 from __future__ import annotations
 
+import os
 import shlex
 import signal
 import sys
@@ -26,7 +27,8 @@ OUTPUT = click.Path(path_type=Path)
 
 #: Exit codes (DESIGN.md): 0 success, 1 a regression found by `compare`, 2 bad usage, bad
 #: input or a failed output (one line on stderr), 3 an internal error (a bug: one line; the
-#: traceback with --debug), 128 + N killed by signal N (SIGINT 130, SIGHUP 129, SIGTERM 143).
+#: traceback with --debug), 128 + N killed by signal N (SIGINT 130, SIGHUP 129, SIGTERM 143;
+#: SIGPIPE 141, quietly, when stdout's reader has gone).
 EXIT_BAD_INPUT = 2
 EXIT_INTERNAL = 3
 
@@ -47,7 +49,7 @@ def _hint(e: FusionlogError) -> str:
     """How to fix it, where that depends on the command line rather than on the library."""
     if isinstance(e, OutputExists):
         return "; use --force to overwrite"
-    if isinstance(e, DamagedFile) and e.path is not None:
+    if isinstance(e, DamagedFile) and e.path is not None and e.recoverable:
         return f"; `fusionlog inspect --recover {e.path}` shows what is still readable"
     return ""
 
@@ -64,51 +66,41 @@ class _Group(click.Group):
             signal.signal(sig, _on_signal)
         try:
             return super().invoke(ctx)
-        except FusionlogError as e:
-            if debug:
+        except (KeyboardInterrupt, Terminated, Exception) as e:
+            passed_on = (click.exceptions.Exit, click.ClickException, click.Abort)
+            if debug or (isinstance(e, passed_on) and not isinstance(e, click.UsageError)):
                 raise
-            click.echo(f"fusionlog: error: {_one_line(str(e))}{_hint(e)}", err=True)
-            ctx.exit(EXIT_BAD_INPUT)
-        except (KeyboardInterrupt, Terminated) as e:
-            if debug:
-                raise
-            signum = e.signum if isinstance(e, Terminated) else signal.SIGINT
-            click.echo("fusionlog: interrupted; no partial output was left behind", err=True)
-            ctx.exit(128 + int(signum))
-        except click.UsageError as e:  # one line too, not click's usage block
-            if debug:
-                raise
-            sub = e.ctx.info_name if e.ctx is not None and e.ctx.parent is not None else None
-            where = f"fusionlog {sub}" if sub else "fusionlog"
-            click.echo(
-                f"fusionlog: error: {_one_line(e.format_message())} (see: {where} --help)",
-                err=True,
-            )
-            ctx.exit(EXIT_BAD_INPUT)
-        except (click.exceptions.Exit, click.ClickException, click.Abort):
-            raise
-        except MemoryError:
-            if debug:
-                raise
-            click.echo(
-                "fusionlog: error: out of memory (use fewer runs per block or steps)", err=True
-            )
-            ctx.exit(EXIT_BAD_INPUT)
-        except OSError as e:  # a file the library did not name: still one line
-            if debug:
-                raise
-            where = f"{e.filename}: " if e.filename else ""
-            click.echo(f"fusionlog: error: {where}{e.strerror or e}", err=True)
-            ctx.exit(EXIT_BAD_INPUT)
-        except Exception as e:
-            if debug:
-                raise
-            click.echo(
-                f"fusionlog: internal error: {type(e).__name__}: {_one_line(str(e))} "
-                "(please report it; --debug shows the traceback)",
-                err=True,
-            )
-            ctx.exit(EXIT_INTERNAL)
+            line, code = _failure(e)
+            if line:
+                click.echo(line, err=True)
+            ctx.exit(code)
+
+
+def _failure(e: BaseException) -> tuple[str | None, int]:
+    """The one line on stderr (None: none) and the exit code of a failed command."""
+    if isinstance(e, FusionlogError):
+        return f"fusionlog: error: {_one_line(str(e))}{_hint(e)}", EXIT_BAD_INPUT
+    if isinstance(e, KeyboardInterrupt | Terminated):
+        signum = e.signum if isinstance(e, Terminated) else signal.SIGINT
+        return "fusionlog: interrupted; no partial output was left behind", 128 + int(signum)
+    if isinstance(e, click.UsageError):  # one line too, not click's usage block
+        sub = e.ctx.info_name if e.ctx is not None and e.ctx.parent is not None else None
+        where = f"fusionlog {sub}" if sub else "fusionlog"
+        line = f"fusionlog: error: {_one_line(e.format_message())} (see: {where} --help)"
+        return line, EXIT_BAD_INPUT
+    if isinstance(e, MemoryError):
+        return "fusionlog: error: out of memory (use fewer runs per block or steps)", EXIT_BAD_INPUT
+    if isinstance(e, BrokenPipeError):  # stdout closed early (`| head`): the reader's choice
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no flush error
+        return None, 128 + signal.SIGPIPE
+    if isinstance(e, OSError):  # a file the library did not name: still one line
+        where = f"{e.filename}: " if e.filename else ""
+        return f"fusionlog: error: {where}{e.strerror or e}", EXIT_BAD_INPUT
+    return (
+        f"fusionlog: internal error: {type(e).__name__}: {_one_line(str(e))} "
+        "(please report it; --debug shows the traceback)",
+        EXIT_INTERNAL,
+    )
 
 
 def _one_line(text: str) -> str:
@@ -461,7 +453,7 @@ def compare(actual, golden, rtol, atol) -> None:
     """Compare SUMMARY.json with GOLDEN.json; exit 1 if any metric moved beyond tolerance.
 
     A file that is not a well-formed summary (not strict JSON, a metric that is not a number)
-    is bad input (exit 2), not a regression."""
+    is bad input (exit 2), not a regression. A sweep's summary.json compares point by point."""
     from fusionlog.compare import check_summary, compare_summaries, load_json
 
     docs = []

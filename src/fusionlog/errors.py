@@ -23,11 +23,14 @@ class OutputExists(OutputError):
 
 
 class DamagedFile(FusionlogError):
-    """An input file is damaged (truncated, changed bytes). ``path`` is the file."""
+    """An input file is damaged (truncated, changed bytes). ``path`` is the file;
+    ``recoverable`` says `fusionlog inspect --recover` reads what is left of it (an MCAP file;
+    not a recording or a ROS bag, whose damage the CLI then does not send the user there for)."""
 
-    def __init__(self, message: str, path: object = None) -> None:
+    def __init__(self, message: str, path: object = None, *, recoverable: bool = True) -> None:
         super().__init__(message)
         self.path = path
+        self.recoverable = recoverable
 
 
 class NumericalError(FusionlogError):

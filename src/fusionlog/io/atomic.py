@@ -198,7 +198,7 @@ class Outputs:
 
     Use as a context manager; call :meth:`open` (or :meth:`temp_path`) per target, write, and
     :meth:`commit` at the end. Leaving the block without a commit (an error, Ctrl-C) deletes
-    every temporary file and leaves the targets as they were.
+    every temporary file, and the folders made for them, and leaves the targets as they were.
     """
 
     def __init__(
@@ -219,6 +219,7 @@ class Outputs:
             check_target(t, force=force, inputs=self.inputs)
         self._tmp: dict[Path, Path] = {}
         self._files: dict[Path, CheckedFile] = {}
+        self._made: list[Path] = []  # folders temp_path created, deepest first
 
     def __enter__(self) -> Outputs:
         return self
@@ -233,8 +234,10 @@ class Outputs:
             raise ValueError(f"{target} is not one of the outputs {self.targets}")
         if target in self._tmp:
             return self._tmp[target]
+        missing = [d for d in (target.parent, *target.parent.parents) if not d.exists()]
         try:
             target.parent.mkdir(parents=True, exist_ok=True)
+            self._made += [d for d in missing if d not in self._made]
         except OSError as e:
             raise OutputError(
                 f"{target}: cannot create folder {target.parent}: {_strerror(e)}"
@@ -288,6 +291,7 @@ class Outputs:
             _fsync_dir(d)
         self._tmp.clear()
         self._files.clear()
+        self._made.clear()  # committed: the folders hold the outputs
 
     def _commit_one(self, target: Path, tmp: Path) -> tuple[bool, Path | None]:
         """Move one output into place: (whether a file was replaced, a link to the old one)."""
@@ -333,6 +337,13 @@ class Outputs:
                 pass
         self._files.clear()
         self._tmp.clear()
+        # an empty folder made only for outputs that were never committed goes too
+        for d in sorted(self._made, key=lambda p: len(p.parts), reverse=True):
+            try:
+                d.rmdir()  # only if empty: never what another process put there
+            except OSError:
+                pass
+        self._made.clear()
 
 
 def _roll_back(done: list[tuple[Path, bool, Path | None]]) -> None:

@@ -65,16 +65,20 @@ def load_scenario(
     steps: int | None = None,
     seed: int | None = None,
 ) -> Scenario:
-    """Read and validate a scenario file of either kind; `runs`, `steps`, `seed` override it."""
+    """Read and validate a scenario file of either kind; `runs`, `steps`, `seed` override it.
+    A replay file has none of them (one recorded run on its measurement times): an override
+    is refused rather than silently ignored."""
     file = os.fspath(path)
     scenario = _from_text(toml.read_text(file), file, file)
     if scenario.replay is not None:  # as scenario.runs/steps/seed in the file: never ignored
-        for flag, v in (("--runs", runs), ("--steps", steps), ("--seed", seed)):
-            if v is not None:
-                raise ValidationError(
-                    f"{file}: {flag}: not used with a replay file (one recorded run; the "
-                    "instants are the measurement times)"
-                )
+        given = [
+            f for f, v in (("--runs", runs), ("--steps", steps), ("--seed", seed)) if v is not None
+        ]
+        if given:
+            raise ValidationError(
+                f"{file}: {', '.join(given)}: not used with a replay file (one recorded run; "
+                "the instants are the measurement times)"
+            )
     return scenario_with(scenario, runs=runs, steps=steps, seed=seed)
 
 
@@ -88,18 +92,23 @@ def kind_of_text(text: str, source: str = "<string>") -> str:
     return "identity" if is_identity_doc(toml.parse_toml(text, source)) else "state"
 
 
-def load_model(path: str | os.PathLike[str], kind: str | None = None) -> Any:
+def load_model(
+    path: str | os.PathLike[str], kind: str | None = None, dt: float | None = None
+) -> Any:
     """The filter model of ``estimate --model``: a state System, or for the identity kind an
-    identity Scenario (classes, prior, sensors). ``kind`` defaults to the file's own."""
+    identity Scenario (classes, prior, sensors). ``kind`` defaults to the file's own; ``dt``
+    (the recorded scenario's) stands for a missing ``scenario.dt`` of a state model."""
     file = os.fspath(path)
-    return model_from_text(toml.read_text(file), file, kind)
+    return model_from_text(toml.read_text(file), file, kind, dt)
 
 
 def _a(word: str) -> str:
     return f"{'an' if word[:1] in 'aeiou' else 'a'} {word}"
 
 
-def model_from_text(text: str, source: str = "<string>", kind: str | None = None) -> Any:
+def model_from_text(
+    text: str, source: str = "<string>", kind: str | None = None, dt: float | None = None
+) -> Any:
     """Validate a model given as TOML text (see :func:`load_model`)."""
     doc = toml.parse_toml(text, source)
     if is_replay_doc(doc):  # its sensors' R may come from the recorded messages alone
@@ -107,6 +116,10 @@ def model_from_text(text: str, source: str = "<string>", kind: str | None = None
             f"{source}: a replay file, not a filter model (give --model a scenario or model "
             "file; `fusionlog run` replays the recorded data with this file's model)"
         )
+    head = doc.get("scenario", {})
+    if dt is not None and isinstance(head, dict) and "dt" not in head:
+        # a model file need not repeat [scenario] (README): n0 * dt is the recorded dt's
+        doc = {**doc, "scenario": {**head, "dt": dt}}
     own = "identity" if is_identity_doc(doc) else "state"
     if kind is not None and own != kind:
         what = "no [identity] section" if own == "state" else "it has [identity]"

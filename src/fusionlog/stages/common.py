@@ -10,6 +10,8 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import TypeVar
 
+import numpy as np
+
 from fusionlog import __version__
 from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap import McapFile
@@ -136,5 +138,12 @@ def open_evaluation_inputs(
         raise FusionlogError(
             f"{estimates_path}: {est.runs()} runs x {est.steps()} steps do not match "
             f"{sensors_path} ({sens.runs()} x {sens.steps()})"
+        )
+    t_est, t_sens = est.times(), sens.times()  # the exact analysis runs on the estimates' times
+    if not np.array_equal(t_est, t_sens):
+        k = int(np.flatnonzero(t_est != t_sens)[0])
+        raise FusionlogError(
+            f"{estimates_path}: step {k} is at {float(t_est[k])!r} s, in {sensors_path} at "
+            f"{float(t_sens[k])!r} s"
         )
     return sens, est, prov, sc

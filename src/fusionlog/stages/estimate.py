@@ -6,6 +6,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from fusionlog.errors import NumericalError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapFile, McapWriter
@@ -86,7 +88,8 @@ def estimate_to(
         try:
             writers = est.estimate(off, data)
         except NumericalError as e:  # the core names the architecture and step; the file here
-            raise NumericalError(f"{sensors_name or sensors_path}: {e}") from None
+            what = _infinite_reading(data, off) or str(e)  # an input to blame, else the step
+            raise NumericalError(f"{sensors_name or sensors_path}: {what}") from None
         named = [(estimates_topic(a), write) for a, write in writers.items()]
         # The documented order (for each step, for each topic) lets a reader learn every
         # topic from the first messages of the file.
@@ -112,6 +115,17 @@ def estimate_to(
         ),
     )
     return EstimateResult(Path(sensors_path), archs, M, K)
+
+
+def _infinite_reading(data: dict, off: int) -> str | None:
+    """Where a block of readings holds an infinite value (NaN marks a missing one; an infinity
+    is no reading at all), for the error line: the overflow it causes shows up at whatever step
+    the plans' products first spread it to, not at the reading's."""
+    for topic, z in data.items():
+        if isinstance(z, np.ndarray) and np.isinf(z).any():
+            run, k = (int(i[0]) for i in np.nonzero(np.isinf(z).any(axis=-1)))
+            return f"{topic}: an infinite reading at step {k}, run {off + run}"
+    return None
 
 
 def run_estimate(

@@ -6,6 +6,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import TRUTH
 from fusionlog.jsonout import dumps
@@ -54,6 +57,9 @@ def evaluate_into(
         strict=True,
     )
     for (off, _runs, sdata), (_, _, edata) in progress(blocks, -(-M // B), "evaluate"):
+        for topic, e in edata.items():
+            if isinstance(e, tuple):  # a state estimate: (mean, cov)
+                _check_variances(estimates_path, topic, e[1])
         ev.add(off, sdata.pop(TRUTH, None), edata, sdata)
         # a block's arrays (of a long log: all its estimates, covariances included) are freed
         # before the next block is read and before the recording is encoded (what it draws,
@@ -72,6 +78,15 @@ def evaluate_into(
     if summary_path is not None:
         outs.open(summary_path).write(text.encode())
     return summary
+
+
+def _check_variances(path: Path, topic: str, cov: np.ndarray) -> None:
+    """A reported covariance with a negative variance is no covariance (a damaged or foreign
+    estimates file): its NEES would come out negative, its DM zero. NaN (undefined) passes."""
+    negative = (np.diagonal(cov, axis1=-2, axis2=-1) < 0).any(axis=-1)  # (K+1,) or (runs, K+1)
+    if negative.any():
+        k = int(np.flatnonzero(negative.reshape(-1, negative.shape[-1]).any(axis=0))[0])
+        raise FusionlogError(f"{path}: {topic}: step {k}: a covariance with a negative variance")
 
 
 def run_evaluate(

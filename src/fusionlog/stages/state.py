@@ -78,7 +78,8 @@ class StateKind(Kind):
             recorded = self.recorded(sensors, recorded)
             system, source = recorded.system, "scenario"
         else:
-            system, source = load_model(model_path, "state"), str(model_path)
+            dt = recorded.dt if recorded is not None else None
+            system, source = load_model(model_path, "state", dt), str(model_path)
             if recorded is not None and system.n != recorded.system.n:
                 raise FusionlogError(
                     f"{model_path}: the model has {system.n} states, "

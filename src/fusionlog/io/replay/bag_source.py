@@ -68,9 +68,10 @@ def _open(source: Path, what: str | None) -> Iterator[Any]:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
     except Exception as e:  # whatever a damaged or foreign file makes rosbags raise
-        # no path: `inspect --recover` (the CLI's hint for a damaged file) reads MCAP only
         raise DamagedFile(
-            f"{prefix}damaged or not a ROS bag ({type(e).__name__}: {one_line(e)})"
+            f"{prefix}damaged or not a ROS bag ({type(e).__name__}: {one_line(e)})",
+            source,
+            recoverable=False,  # `inspect --recover` reads MCAP files only
         ) from None
     try:
         yield reader
@@ -92,7 +93,9 @@ def _deserialize(reader: Any, source: Path, what: str | None, conn: Any, raw: by
         raise DamagedFile(
             f"{source}: {prefix}cannot decode message {k} of topic {conn.topic} "
             f"({conn.msgtype}): {type(e).__name__}: {one_line(e)} (a type the bag does not "
-            "define and that is not a standard ROS 2 message, or damaged bytes)"
+            "define and that is not a standard ROS 2 message, or damaged bytes)",
+            source,
+            recoverable=False,
         ) from None
 
 

@@ -41,14 +41,16 @@ def read_recording(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise FusionlogError(f"{path}: cannot read: {exc.strerror or exc}") from None
     except Exception as exc:  # the Rust reader raises assorted errors on damaged files
         raise DamagedFile(
-            f"{path}: not a readable Rerun recording ({_first_line(exc)})", path
+            f"{path}: not a readable Rerun recording ({_first_line(exc)})", path, recoverable=False
         ) from None
     if not stores:
         raise FusionlogError(f"{path}: contains no recording")
     try:
         name, properties, raw = _collect(chunks)
     except Exception as exc:  # decodable framing but unexpected columns: damaged content
-        raise DamagedFile(f"{path}: damaged recording ({_first_line(exc)})", path) from None
+        raise DamagedFile(
+            f"{path}: damaged recording ({_first_line(exc)})", path, recoverable=False
+        ) from None
     summary = _summary(path, properties)
     steps, times, series = _align(raw)
     return {
