@@ -164,3 +164,21 @@ def test_decimation_strides() -> None:
     assert stride("runs/0/x/CKF/mean") == 1 and stride("runs/0/x/measured/gps") == 1
     stride, _ = decimation(1_000_000, 40)  # 4e7 values: every 4th
     assert stride("runs/0/x/truth") == 4
+
+
+def test_each_sensor_has_one_colour_in_every_view(recording) -> None:
+    """A sensor's readings are drawn in the same colour in the States views of every state it
+    measures and in the trajectory, and two sensors never share one (pos measures x and y,
+    vel vx and vy: each the only reading of its state, so a colour per view would repeat)."""
+    from rerun.chunk import RrdReader
+
+    colours: dict[str, set[int]] = {}
+    for ch in RrdReader(str(recording)).store().stream().to_chunks():
+        path = str(ch.entity_path)
+        if ch.is_static and "/measured/" in path and path.startswith(("/runs/0/", "/traj")):
+            st = ch.to_record_batch().to_pydict()
+            col = (st.get("SeriesPoints:colors") or st.get("Points2D:colors"))[0][0]
+            colours.setdefault(path.rsplit("/", 1)[1], set()).add(col)
+    assert set(colours) == {"pos", "vel"}
+    assert all(len(c) == 1 for c in colours.values()), colours
+    assert colours["pos"] != colours["vel"]

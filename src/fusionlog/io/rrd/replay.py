@@ -103,8 +103,10 @@ def write_replay(
     samples: Mapping[int, Any],
     measured: Mapping[int, Mapping[str, np.ndarray]],
     innovations: Innovations,
+    sensor_color: Mapping[str, tuple[int, int, int]] | None = None,
 ) -> None:
-    """The trajectory (static 2-D strips and points) and the normalised innovations."""
+    """The trajectory (static 2-D strips and points) and the normalised innovations;
+    `sensor_color` gives each sensor's readings the colour they have in the other views."""
     i, j = ij
     rec = w.rec
     # a long log's paths: every n-th point, as the first run's states (io/rrd/decimation.py)
@@ -124,8 +126,9 @@ def write_replay(
     sensors = [s for s in measured.get(i, {}) if s in measured.get(j, {})]
     for k, s in enumerate(sensors):
         pts = _strip(np.stack([measured[i][s], measured[j][s]], axis=1))[::n]
+        col = (sensor_color or {}).get(s, class_color(k))
         rec.log(entity_path("trajectory", "measured", s),
-                rr.Points2D(pts, colors=[class_color(k)], radii=[-2.5]), static=True)  # fmt: skip
+                rr.Points2D(pts, colors=[col], radii=[-2.5]), static=True)  # fmt: skip
     for arch, parts in innovations.items():
         for part, nu in parts.items():
             for c in range(nu.shape[1]):

@@ -174,6 +174,10 @@ def write_evaluation(
     stride, decimated = decimation(len(times), n_full)
     if decimated:
         properties = {**(properties or {}), "decimation": decimated}
+    # A sensor's readings have one colour in every view (its place among the sensors, as in
+    # the Sensors tab), not its place among the sensors of one state.
+    sensors = dict.fromkeys([*avail, *(s for by in (measured or {}).values() for s in by)])
+    sensor_color = {s: class_color(k) for k, s in enumerate(sensors)}
     args = (scenario_name, seed, times, summary, properties, recording_id)
     with recording_stream(file, blueprint, *args) as w:
         w.stride = stride
@@ -183,9 +187,9 @@ def write_evaluation(
             w.line(p, np.asarray(pcrb, dtype=float)[:, i], "PCRB", BOUND_COLOR, 2.5)
         _write_sample_runs(w, state_names, samples)
         for i, by_sensor in (measured or {}).items():
-            for j, (sensor, v) in enumerate(by_sensor.items()):
+            for sensor, v in by_sensor.items():
                 p = entity_path("runs", 0, state_names[i], "measured", sensor)
-                w.points(p, v, f"{sensor} (measured)", class_color(j))
+                w.points(p, v, f"{sensor} (measured)", sensor_color[sensor])
         write_consistency(w, nis, avail)
         for arch, t in traces.items():
             w.line(
@@ -194,7 +198,7 @@ def write_evaluation(
         if plane is not None:
             write_plane(w, plane)
         if replay:
-            write_replay(w, ij, samples, measured or {}, ev.innovations)
+            write_replay(w, ij, samples, measured or {}, ev.innovations, sensor_color)
 
 
 def _check(
