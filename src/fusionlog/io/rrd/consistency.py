@@ -42,8 +42,15 @@ def check_consistency(
 
 
 def write_consistency(
-    w: SeriesWriter, nis: NisSeries, availability: Mapping[str, np.ndarray]
+    w: SeriesWriter,
+    nis: NisSeries,
+    availability: Mapping[str, np.ndarray],
+    confidence: float | None = None,
 ) -> None:
+    # Every architecture's band of a part is named alike ("χ² 95% lower", as the NEES band),
+    # so a view's legend lists the band once and the architectures after it: one entry per
+    # band and architecture (21 for 7 architectures) pushed most architectures off the legend.
+    band = f"χ² {confidence:.0%}" if confidence is not None else "χ²"
     for arch, parts in nis.items():
         col, width = arch_color(arch), arch_width(arch)
         for part, (mean, lower, upper) in parts.items():
@@ -51,7 +58,7 @@ def write_consistency(
             w.line(entity_path("metrics", "nis", arch, part), mean, label, col, width)
             for side, arr in (("lower", lower), ("upper", upper)):
                 p = entity_path("metrics", "nis", arch, part, side)
-                w.line(p, arr, f"{label} χ² {side}", BOUND_COLOR, 1.0)
+                w.line(p, arr, f"{band} {side}", BOUND_COLOR, 1.0)
     for i, (name, v) in enumerate(availability.items()):
         w.points(entity_path("sensors", name, "measured"), v, name, class_color(i))
 

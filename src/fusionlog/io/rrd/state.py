@@ -190,7 +190,7 @@ def write_evaluation(
             for sensor, v in by_sensor.items():
                 p = entity_path("runs", 0, state_names[i], "measured", sensor)
                 w.points(p, v, f"{sensor} (measured)", sensor_color[sensor])
-        write_consistency(w, nis, avail)
+        write_consistency(w, nis, avail, confidence)
         for arch, t in traces.items():
             w.line(
                 entity_path("metrics", "trace", arch), t, arch, arch_color(arch), arch_width(arch)
