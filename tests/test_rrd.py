@@ -243,6 +243,25 @@ def test_without_ckf_no_difference_entities(tmp_path: Path) -> None:
     assert "metrics/mse/pos/MSC" in keys
 
 
+def test_a_single_instant_is_drawn_as_markers(tmp_path: Path) -> None:
+    """steps = 0 (one static fusion): a line of one value is not drawn at all, which left
+    Fig. 5 and every Monte Carlo curve of the Overview empty; each series is then a marker of
+    its architecture's name and colour, with the same entity paths and values."""
+    data = synthetic(steps=1)
+    path = write(tmp_path / "e.rrd", **data)
+    styles = static_styles(path, "/metrics/")
+    for p in ("/metrics/mse/pos/HKF", "/metrics/mse_minus_ckf/pos/HKF", "/metrics/trace/CKF",
+              "/metrics/nees/CKF", "/metrics/dm/CKF", "/metrics/nees/bounds/upper"):  # fmt: skip
+        assert "SeriesLines:names" not in styles[p], p
+        assert styles[p]["SeriesPoints:names"][0], p
+    assert styles["/metrics/trace/CKF"]["SeriesPoints:names"] == [["CKF"]]
+    assert styles["/metrics/trace/CKF"]["SeriesPoints:colors"][0][0] == int.from_bytes(
+        bytes([*arch_color("CKF"), 255])
+    )
+    series = read_recording(path)["series"]
+    np.testing.assert_array_equal(series["metrics/trace/CKF"], data["series"]["CKF"]["trace"])
+
+
 def test_failure_in_the_writer_leaves_nothing(tmp_path: Path) -> None:
     """Data that cannot be sent (a non-numeric series) fail inside the stream: nothing is
     written, the previous output stays, no temporary file is left."""
