@@ -262,6 +262,41 @@ def test_a_single_instant_is_drawn_as_markers(tmp_path: Path) -> None:
     np.testing.assert_array_equal(series["metrics/trace/CKF"], data["series"]["CKF"]["trace"])
 
 
+def opening_ranges(path: Path) -> dict[str, tuple[float, float]]:
+    """{view name: the y range it opens on} of the recording's default blueprint."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(str(path))
+    names, ranges = {}, {}
+    for ch in reader.store(store=reader.blueprints()[0]).stream().to_chunks():
+        batch, e = ch.to_record_batch(), str(ch.entity_path)
+        if "ViewBlueprint:display_name" in batch.schema.names:
+            names[e] = batch.column("ViewBlueprint:display_name").to_pylist()[0][0]
+        if "ScalarAxis:range" in batch.schema.names:
+            ranges[e.rsplit("/", 1)[0]] = tuple(batch.column("ScalarAxis:range").to_pylist()[0][0])
+    return {names[v]: r for v, r in ranges.items()}
+
+
+def test_views_open_past_a_transient_that_would_flatten_them(tmp_path: Path) -> None:
+    """A prior's transient 100 times the later values (multirate.toml: the MSE of x falls
+    from 27 to 0.07, every curve lay on the axis): Figs. 4-6 open on the values after it,
+    zoomable; views without one (vel x here, every view of the paper's example) fit all."""
+    data = synthetic(steps=200)
+    for j, d in enumerate(data["series"].values()):
+        d["mse"][1, 0] = d["expected_mse"][0, 0] = 100.0 * (j + 1)
+        d["trace"][0] = 300.0
+    ranges = opening_ranges(write(tmp_path / "t.rrd", **data))
+    lo, hi = ranges["Fig. 4: MSE of pos (lines: Monte Carlo, dots: expected)"]
+    later = [d[k][5:, 0] for d in data["series"].values() for k in ("mse", "expected_mse")]
+    assert lo == 0.0 and max(map(np.max, later)) <= hi < 10, (lo, hi)
+    lo, hi = ranges["Fig. 5: MSE − MSE of CKF, pos"]
+    assert -5 < lo < 1 < hi < 5, (lo, hi)
+    lo, hi = ranges["Fig. 6: trace of P"]
+    assert lo == 0.0 and 1 <= hi < 10, (lo, hi)
+    assert not any("vel x" in name or "NEES" in name for name in ranges)
+    assert opening_ranges(write(tmp_path / "s.rrd", **synthetic(steps=200))) == {}
+
+
 def test_failure_in_the_writer_leaves_nothing(tmp_path: Path) -> None:
     """Data that cannot be sent (a non-numeric series) fail inside the stream: nothing is
     written, the previous output stays, no temporary file is left."""

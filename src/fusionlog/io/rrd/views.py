@@ -17,14 +17,21 @@ def query(*parts: str | int) -> str:
 
 
 def time_series_view(
-    name: str, contents: list[str], legend: bool = True, corner: str = "RightTop"
+    name: str,
+    contents: list[str],
+    legend: bool = True,
+    corner: str = "RightTop",
+    y_range: tuple[float, float] | None = None,
 ) -> rrb.TimeSeriesView:
-    """A time-series view of `contents` (queries), with its legend in `corner` or none."""
+    """A time-series view of `contents` (queries), with its legend in `corner` or none;
+    `y_range`: the y range it opens on (zooming out shows the rest), else the viewer's fit."""
+    axis = {} if y_range is None else {"axis_y": rrb.ScalarAxis(range=y_range, zoom_lock=False)}
     return rrb.TimeSeriesView(
         origin="/",
         contents=contents,
         name=name,
         plot_legend=rrb.PlotLegend(corner=corner, visible=legend),
+        **axis,
     )
 
 
