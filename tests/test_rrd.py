@@ -297,6 +297,35 @@ def test_views_open_past_a_transient_that_would_flatten_them(tmp_path: Path) -> 
     assert opening_ranges(write(tmp_path / "s.rrd", **synthetic(steps=200))) == {}
 
 
+def x_view_ranges(path: Path) -> tuple[int, list]:
+    """(number of time-series views, the x view ranges set) of the recording's blueprint."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(str(path))
+    views, ranges = 0, []
+    for ch in reader.store(store=reader.blueprints()[0]).stream().to_chunks():
+        batch = ch.to_record_batch()
+        if "ViewBlueprint:class_identifier" in batch.schema.names:
+            views += batch.column("ViewBlueprint:class_identifier").to_pylist() == [["TimeSeries"]]
+        if "TimeAxis:view_range" in batch.schema.names:
+            ranges += batch.column("TimeAxis:view_range").to_pylist()[0]
+    return views, ranges
+
+
+def test_every_time_series_view_opens_on_all_its_data(tmp_path: Path) -> None:
+    """A view of more than a minute on the `time` timeline opened on -30 s .. +30 s about
+    the cursor (heterogeneous.toml, 100 s: half the view empty, 70 s of data off it): every
+    time-series view's x axis is set to show everything, evaluation and identity alike."""
+    data = synthetic(steps=201)
+    data["times"] = np.arange(201) * 0.5
+    views, ranges = x_view_ranges(write(tmp_path / "e.rrd", **data))
+    assert views == 7 + 2 * 2  # Figs. 4, 5 per state, 6, NEES, DM; two runs of two states
+    assert ranges == [{"start": None, "end": None}] * views  # both ends infinite
+    views, ranges = x_view_ranges(write(tmp_path / "i.rrd", write_identity_recording,
+                                        **identity_data()))  # fmt: skip
+    assert views > 0 and ranges == [{"start": None, "end": None}] * views
+
+
 def test_failure_in_the_writer_leaves_nothing(tmp_path: Path) -> None:
     """Data that cannot be sent (a non-numeric series) fail inside the stream: nothing is
     written, the previous output stays, no temporary file is left."""

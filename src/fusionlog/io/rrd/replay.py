@@ -40,7 +40,7 @@ import rerun.blueprint as rrb
 
 from .stream import SeriesWriter, entity_path
 from .style import BOUND_COLOR, TRUTH_COLOR, arch_color, arch_width, class_color
-from .views import query, tabbed_blueprint
+from .views import WHOLE_X, query, tabbed_blueprint
 
 __all__ = ["opening_range", "plane_states", "replay_blueprint", "view_range", "write_replay"]
 
@@ -164,6 +164,7 @@ def _ts(name: str, contents: list[str], rng: tuple[float, float], legend: bool =
         origin="/",
         contents=contents,
         name=name,
+        axis_x=WHOLE_X,
         axis_y=rrb.ScalarAxis(range=rng, zoom_lock=False),
         plot_legend=rrb.PlotLegend(corner="RightTop", visible=legend),
     )

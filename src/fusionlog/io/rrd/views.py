@@ -8,7 +8,13 @@ import rerun.blueprint as rrb
 
 from .stream import entity_path
 
-__all__ = ["query", "tabbed_blueprint", "time_series_view"]
+__all__ = ["WHOLE_X", "query", "tabbed_blueprint", "time_series_view"]
+
+_INF = rrb.TimeRangeBoundary.infinite()
+#: The x axis a time-series view opens on: all its data. Without it the viewer opens a view of
+#: more than a minute on the `time` timeline (heterogeneous.toml: 100 s; a long recorded log)
+#: on -30 s .. +30 s about the cursor at 0: half the view empty, the rest of the data off it.
+WHOLE_X = rrb.TimeAxis(view_range=rrb.TimeRange(start=_INF, end=_INF))
 
 
 def query(*parts: str | int) -> str:
@@ -31,6 +37,7 @@ def time_series_view(
         contents=contents,
         name=name,
         plot_legend=rrb.PlotLegend(corner=corner, visible=legend),
+        axis_x=WHOLE_X,
         **axis,
     )
 
