@@ -326,6 +326,28 @@ def test_every_time_series_view_opens_on_all_its_data(tmp_path: Path) -> None:
     assert views > 0 and ranges == [{"start": None, "end": None}] * views
 
 
+def test_each_sensor_has_its_own_availability_view(tmp_path: Path) -> None:
+    """Without dropouts every share is 1: in one view the sensor drawn last hid the others'
+    instants (coordinated_turn.toml's camera under its radar); a view per sensor shows each."""
+    from rerun.chunk import RrdReader
+
+    data = synthetic(steps=8)
+    every, odd = np.ones(8), np.where(np.arange(8) % 2 == 1, 1.0, np.nan)
+    path = write(tmp_path / "a.rrd", **data, availability={"radar": every, "cam 2": odd})
+    reader = RrdReader(str(path))
+    names, queries = {}, {}
+    for ch in reader.store(store=reader.blueprints()[0]).stream().to_chunks():
+        batch, e = ch.to_record_batch(), str(ch.entity_path)
+        if "ViewBlueprint:display_name" in batch.schema.names:
+            names[e] = batch.column("ViewBlueprint:display_name").to_pylist()[0][0]
+        if "ViewContents:query" in batch.schema.names:
+            queries[e.rsplit("/", 1)[0]] = batch.column("ViewContents:query").to_pylist()[0]
+    sensors = {n.split(":")[0]: queries[v] for v, n in names.items() if "share of runs" in n}
+    assert sensors == {"radar": ["+ /sensors/radar/**"], "cam 2": ["+ /sensors/cam\\ 2/**"]}
+    series = read_recording(path)["series"]
+    np.testing.assert_array_equal(series["sensors/cam\\ 2/measured"], odd)
+
+
 def test_failure_in_the_writer_leaves_nothing(tmp_path: Path) -> None:
     """Data that cannot be sent (a non-numeric series) fail inside the stream: nothing is
     written, the previous output stays, no temporary file is left."""
