@@ -124,6 +124,21 @@ def test_sweep_over_a_radar_position(tmp_path: Path) -> None:
     ok("run", f, "--out-dir", tmp_path / "p1", "--runs", "40", "--seed", str(points[1]["seed"]),
        "--arch", "CKF")  # fmt: skip
     assert points[1]["pcrb"]["mse"] == pytest.approx(_summary(tmp_path / "p1")["pcrb"]["mse"])
+    # no exact analysis: sweep.rrd's MSE view says its points are Monte Carlo dots only
+    assert any("(dots: Monte Carlo, no exact values)" in t for t in _view_names(tmp_path))
+    assert not any("lines: exact" in t for t in _view_names(tmp_path))
+
+
+def _view_names(d: Path) -> list[str]:
+    """The view titles of the default blueprint of `d`/sweep.rrd."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(str(d / "sweep.rrd"))
+    return [
+        ch.to_record_batch().column("ViewBlueprint:display_name").to_pylist()[0][0]
+        for ch in reader.store(store=reader.blueprints()[0]).stream().to_chunks()
+        if "ViewBlueprint:display_name" in ch.to_record_batch().schema.names
+    ]
 
 
 def test_distributed_run_has_the_plain_runs_pcrb(tmp_path: Path) -> None:

@@ -164,3 +164,40 @@ def test_decimation_strides() -> None:
     assert stride("runs/0/x/CKF/mean") == 1 and stride("runs/0/x/measured/gps") == 1
     stride, _ = decimation(1_000_000, 40)  # 4e7 values: every 4th
     assert stride("runs/0/x/truth") == 4
+
+
+def test_each_sensor_has_one_colour_in_every_view(recording) -> None:
+    """A sensor's readings are drawn in the same colour in the States views of every state it
+    measures and in the trajectory, and two sensors never share one (pos measures x and y,
+    vel vx and vy: each the only reading of its state, so a colour per view would repeat)."""
+    from rerun.chunk import RrdReader
+
+    colours: dict[str, set[int]] = {}
+    for ch in RrdReader(str(recording)).store().stream().to_chunks():
+        path = str(ch.entity_path)
+        if ch.is_static and "/measured/" in path and path.startswith(("/runs/0/", "/traj")):
+            st = ch.to_record_batch().to_pydict()
+            col = (st.get("SeriesPoints:colors") or st.get("Points2D:colors"))[0][0]
+            colours.setdefault(path.rsplit("/", 1)[1], set()).add(col)
+    assert set(colours) == {"pos", "vel"}
+    assert all(len(c) == 1 for c in colours.values()), colours
+    assert colours["pos"] != colours["vel"]
+
+
+def test_nis_legend_lists_the_band_once_and_every_architecture(recording) -> None:
+    """Every architecture's χ² band of a sensor is named alike (as the NEES band), so a NIS
+    view's legend has the band and one entry per architecture, not one per band and
+    architecture (21 entries for seven architectures pushed most of them off the legend)."""
+    from rerun.chunk import RrdReader
+
+    names: dict[str, set[str]] = {}
+    for ch in RrdReader(str(recording)).store().stream().to_chunks():
+        path = str(ch.entity_path)
+        if ch.is_static and path.startswith("/metrics/nis/"):
+            sensor = path.split("/")[4]
+            names.setdefault(sensor, set()).add(ch.to_record_batch().to_pydict()
+                                                ["SeriesLines:names"][0][0])  # fmt: skip
+    for sensor in ("pos", "vel"):
+        assert names[sensor] == {
+            "χ² 95% lower", "χ² 95% upper", f"CKF ({sensor})", f"MSC ({sensor})"
+        }, names[sensor]  # fmt: skip

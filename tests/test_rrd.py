@@ -243,6 +243,111 @@ def test_without_ckf_no_difference_entities(tmp_path: Path) -> None:
     assert "metrics/mse/pos/MSC" in keys
 
 
+def test_a_single_instant_is_drawn_as_markers(tmp_path: Path) -> None:
+    """steps = 0 (one static fusion): a line of one value is not drawn at all, which left
+    Fig. 5 and every Monte Carlo curve of the Overview empty; each series is then a marker of
+    its architecture's name and colour, with the same entity paths and values."""
+    data = synthetic(steps=1)
+    path = write(tmp_path / "e.rrd", **data)
+    styles = static_styles(path, "/metrics/")
+    for p in ("/metrics/mse/pos/HKF", "/metrics/mse_minus_ckf/pos/HKF", "/metrics/trace/CKF",
+              "/metrics/nees/CKF", "/metrics/dm/CKF", "/metrics/nees/bounds/upper"):  # fmt: skip
+        assert "SeriesLines:names" not in styles[p], p
+        assert styles[p]["SeriesPoints:names"][0], p
+    assert styles["/metrics/trace/CKF"]["SeriesPoints:names"] == [["CKF"]]
+    assert styles["/metrics/trace/CKF"]["SeriesPoints:colors"][0][0] == int.from_bytes(
+        bytes([*arch_color("CKF"), 255])
+    )
+    series = read_recording(path)["series"]
+    np.testing.assert_array_equal(series["metrics/trace/CKF"], data["series"]["CKF"]["trace"])
+
+
+def opening_ranges(path: Path) -> dict[str, tuple[float, float]]:
+    """{view name: the y range it opens on} of the recording's default blueprint."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(str(path))
+    names, ranges = {}, {}
+    for ch in reader.store(store=reader.blueprints()[0]).stream().to_chunks():
+        batch, e = ch.to_record_batch(), str(ch.entity_path)
+        if "ViewBlueprint:display_name" in batch.schema.names:
+            names[e] = batch.column("ViewBlueprint:display_name").to_pylist()[0][0]
+        if "ScalarAxis:range" in batch.schema.names:
+            ranges[e.rsplit("/", 1)[0]] = tuple(batch.column("ScalarAxis:range").to_pylist()[0][0])
+    return {names[v]: r for v, r in ranges.items()}
+
+
+def test_views_open_past_a_transient_that_would_flatten_them(tmp_path: Path) -> None:
+    """A prior's transient 100 times the later values (multirate.toml: the MSE of x falls
+    from 27 to 0.07, every curve lay on the axis): Figs. 4-6 open on the values after it,
+    zoomable; views without one (vel x here, every view of the paper's example) fit all."""
+    data = synthetic(steps=200)
+    for j, d in enumerate(data["series"].values()):
+        d["mse"][1, 0] = d["expected_mse"][0, 0] = 100.0 * (j + 1)
+        d["trace"][0] = 300.0
+    ranges = opening_ranges(write(tmp_path / "t.rrd", **data))
+    lo, hi = ranges["Fig. 4: MSE of pos (lines: Monte Carlo, dots: expected)"]
+    later = [d[k][5:, 0] for d in data["series"].values() for k in ("mse", "expected_mse")]
+    assert lo == 0.0 and max(map(np.max, later)) <= hi < 10, (lo, hi)
+    lo, hi = ranges["Fig. 5: MSE − MSE of CKF, pos"]
+    assert -5 < lo < 1 < hi < 5, (lo, hi)
+    lo, hi = ranges["Fig. 6: trace of P"]
+    assert lo == 0.0 and 1 <= hi < 10, (lo, hi)
+    assert not any("vel x" in name or "NEES" in name for name in ranges)
+    assert opening_ranges(write(tmp_path / "s.rrd", **synthetic(steps=200))) == {}
+
+
+def x_view_ranges(path: Path) -> tuple[int, list]:
+    """(number of time-series views, the x view ranges set) of the recording's blueprint."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(str(path))
+    views, ranges = 0, []
+    for ch in reader.store(store=reader.blueprints()[0]).stream().to_chunks():
+        batch = ch.to_record_batch()
+        if "ViewBlueprint:class_identifier" in batch.schema.names:
+            views += batch.column("ViewBlueprint:class_identifier").to_pylist() == [["TimeSeries"]]
+        if "TimeAxis:view_range" in batch.schema.names:
+            ranges += batch.column("TimeAxis:view_range").to_pylist()[0]
+    return views, ranges
+
+
+def test_every_time_series_view_opens_on_all_its_data(tmp_path: Path) -> None:
+    """A view of more than a minute on the `time` timeline opened on -30 s .. +30 s about
+    the cursor (heterogeneous.toml, 100 s: half the view empty, 70 s of data off it): every
+    time-series view's x axis is set to show everything, evaluation and identity alike."""
+    data = synthetic(steps=201)
+    data["times"] = np.arange(201) * 0.5
+    views, ranges = x_view_ranges(write(tmp_path / "e.rrd", **data))
+    assert views == 7 + 2 * 2  # Figs. 4, 5 per state, 6, NEES, DM; two runs of two states
+    assert ranges == [{"start": None, "end": None}] * views  # both ends infinite
+    views, ranges = x_view_ranges(write(tmp_path / "i.rrd", write_identity_recording,
+                                        **identity_data()))  # fmt: skip
+    assert views > 0 and ranges == [{"start": None, "end": None}] * views
+
+
+def test_each_sensor_has_its_own_availability_view(tmp_path: Path) -> None:
+    """Without dropouts every share is 1: in one view the sensor drawn last hid the others'
+    instants (coordinated_turn.toml's camera under its radar); a view per sensor shows each."""
+    from rerun.chunk import RrdReader
+
+    data = synthetic(steps=8)
+    every, odd = np.ones(8), np.where(np.arange(8) % 2 == 1, 1.0, np.nan)
+    path = write(tmp_path / "a.rrd", **data, availability={"radar": every, "cam 2": odd})
+    reader = RrdReader(str(path))
+    names, queries = {}, {}
+    for ch in reader.store(store=reader.blueprints()[0]).stream().to_chunks():
+        batch, e = ch.to_record_batch(), str(ch.entity_path)
+        if "ViewBlueprint:display_name" in batch.schema.names:
+            names[e] = batch.column("ViewBlueprint:display_name").to_pylist()[0][0]
+        if "ViewContents:query" in batch.schema.names:
+            queries[e.rsplit("/", 1)[0]] = batch.column("ViewContents:query").to_pylist()[0]
+    sensors = {n.split(":")[0]: queries[v] for v, n in names.items() if "share of runs" in n}
+    assert sensors == {"radar": ["+ /sensors/radar/**"], "cam 2": ["+ /sensors/cam\\ 2/**"]}
+    series = read_recording(path)["series"]
+    np.testing.assert_array_equal(series["sensors/cam\\ 2/measured"], odd)
+
+
 def test_failure_in_the_writer_leaves_nothing(tmp_path: Path) -> None:
     """Data that cannot be sent (a non-numeric series) fail inside the stream: nothing is
     written, the previous output stays, no temporary file is left."""

@@ -42,8 +42,15 @@ def check_consistency(
 
 
 def write_consistency(
-    w: SeriesWriter, nis: NisSeries, availability: Mapping[str, np.ndarray]
+    w: SeriesWriter,
+    nis: NisSeries,
+    availability: Mapping[str, np.ndarray],
+    confidence: float | None = None,
 ) -> None:
+    # Every architecture's band of a part is named alike ("χ² 95% lower", as the NEES band),
+    # so a view's legend lists the band once and the architectures after it: one entry per
+    # band and architecture (21 for 7 architectures) pushed most architectures off the legend.
+    band = f"χ² {confidence:.0%}" if confidence is not None else "χ²"
     for arch, parts in nis.items():
         col, width = arch_color(arch), arch_width(arch)
         for part, (mean, lower, upper) in parts.items():
@@ -51,7 +58,7 @@ def write_consistency(
             w.line(entity_path("metrics", "nis", arch, part), mean, label, col, width)
             for side, arr in (("lower", lower), ("upper", upper)):
                 p = entity_path("metrics", "nis", arch, part, side)
-                w.line(p, arr, f"{label} χ² {side}", BOUND_COLOR, 1.0)
+                w.line(p, arr, f"{band} {side}", BOUND_COLOR, 1.0)
     for i, (name, v) in enumerate(availability.items()):
         w.points(entity_path("sensors", name, "measured"), v, name, class_color(i))
 
@@ -60,7 +67,7 @@ def consistency_views(
     nis: NisSeries, availability: Mapping[str, np.ndarray], traces: bool = False
 ) -> list:
     """A "Consistency without truth" tab (one NIS view per architecture, and the trace of P
-    when there is no truth to show it beside), and a "Sensors" tab."""
+    when there is no truth to show it beside), and a "Sensors" tab (a view per sensor)."""
     tabs: list = []
     if nis:
         views = [
@@ -75,10 +82,15 @@ def consistency_views(
             views.append(time_series_view("trace of P", [query("metrics", "trace") + "/**"]))
         tabs.append(rrb.Grid(*views, name="Consistency without truth"))
     if availability:
-        tabs.append(
+        # One view per sensor: without dropouts every share is 1, and in one view the sensor
+        # drawn last hid the others' instants (coordinated_turn.toml's camera under the radar).
+        views = [
             time_series_view(
-                "Sensors: share of runs measured at each of its instants (1 = none lost)",
-                [query("sensors") + "/**"],
+                f"{name}: share of runs measured at each of its instants (1 = none lost)",
+                [query("sensors", name) + "/**"],
+                legend=False,
             )
-        )
+            for name in availability
+        ]
+        tabs.append(rrb.Vertical(*views, name="Sensors"))
     return tabs

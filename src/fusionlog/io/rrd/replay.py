@@ -40,9 +40,9 @@ import rerun.blueprint as rrb
 
 from .stream import SeriesWriter, entity_path
 from .style import BOUND_COLOR, TRUTH_COLOR, arch_color, arch_width, class_color
-from .views import query, tabbed_blueprint
+from .views import WHOLE_X, query, tabbed_blueprint
 
-__all__ = ["plane_states", "replay_blueprint", "view_range", "write_replay"]
+__all__ = ["opening_range", "plane_states", "replay_blueprint", "view_range", "write_replay"]
 
 #: {ARCH: {sensor: (K+1, r) normalised innovations of the first run}}
 Innovations = Mapping[str, Mapping[str, np.ndarray]]
@@ -66,6 +66,24 @@ def view_range(curves: Sequence[np.ndarray], floor: float | None = None) -> tupl
     lo, hi = lo - pad, hi + pad
     if floor is not None:
         lo = max(lo, floor)
+    return lo, hi
+
+
+def opening_range(
+    curves: Sequence[np.ndarray], floor: float | None = None
+) -> tuple[float, float] | None:
+    """The range a Monte Carlo view opens on when the start's transient would flatten the
+    rest (a value beyond twice the span of `view_range` from its edge: multirate.toml's MSE
+    of x falls from 27 to 0.07, so every curve lay on the axis), else None (the viewer fits
+    all values, as the paper's figures show them)."""
+    lo, hi = view_range(curves, floor)
+    finite = [v[np.isfinite(v)] for v in (np.asarray(c, dtype=float) for c in curves)]
+    v = np.concatenate(finite) if finite else np.zeros(0)
+    span = hi - lo
+    if v.size == 0 or not (np.isfinite(span) and span > 0):
+        return None
+    if v.max() <= hi + 2 * span and v.min() >= lo - 2 * span:
+        return None
     return lo, hi
 
 
@@ -103,8 +121,10 @@ def write_replay(
     samples: Mapping[int, Any],
     measured: Mapping[int, Mapping[str, np.ndarray]],
     innovations: Innovations,
+    sensor_color: Mapping[str, tuple[int, int, int]] | None = None,
 ) -> None:
-    """The trajectory (static 2-D strips and points) and the normalised innovations."""
+    """The trajectory (static 2-D strips and points) and the normalised innovations;
+    `sensor_color` gives each sensor's readings the colour they have in the other views."""
     i, j = ij
     rec = w.rec
     # a long log's paths: every n-th point, as the first run's states (io/rrd/decimation.py)
@@ -124,8 +144,9 @@ def write_replay(
     sensors = [s for s in measured.get(i, {}) if s in measured.get(j, {})]
     for k, s in enumerate(sensors):
         pts = _strip(np.stack([measured[i][s], measured[j][s]], axis=1))[::n]
+        col = (sensor_color or {}).get(s, class_color(k))
         rec.log(entity_path("trajectory", "measured", s),
-                rr.Points2D(pts, colors=[class_color(k)], radii=[-2.5]), static=True)  # fmt: skip
+                rr.Points2D(pts, colors=[col], radii=[-2.5]), static=True)  # fmt: skip
     for arch, parts in innovations.items():
         for part, nu in parts.items():
             for c in range(nu.shape[1]):
@@ -143,6 +164,7 @@ def _ts(name: str, contents: list[str], rng: tuple[float, float], legend: bool =
         origin="/",
         contents=contents,
         name=name,
+        axis_x=WHOLE_X,
         axis_y=rrb.ScalarAxis(range=rng, zoom_lock=False),
         plot_legend=rrb.PlotLegend(corner="RightTop", visible=legend),
     )

@@ -50,7 +50,7 @@ from .consistency import NisSeries, check_consistency, consistency_views, write_
 from .decimation import decimation
 from .legend import legend_box, place_legend
 from .plane import check_plane, write_plane
-from .replay import plane_states, replay_blueprint, write_replay
+from .replay import opening_range, plane_states, replay_blueprint, write_replay
 from .stream import SeriesWriter, check_axes, entity_path, recording_error, recording_stream
 from .style import BOUND_COLOR, CKF, TRUTH_COLOR, arch_color, arch_width, class_color
 from .views import query, tabbed_blueprint, time_series_view
@@ -174,6 +174,10 @@ def write_evaluation(
     stride, decimated = decimation(len(times), n_full)
     if decimated:
         properties = {**(properties or {}), "decimation": decimated}
+    # A sensor's readings have one colour in every view (its place among the sensors, as in
+    # the Sensors tab), not its place among the sensors of one state.
+    sensors = dict.fromkeys([*avail, *(s for by in (measured or {}).values() for s in by)])
+    sensor_color = {s: class_color(k) for k, s in enumerate(sensors)}
     args = (scenario_name, seed, times, summary, properties, recording_id)
     with recording_stream(file, blueprint, *args) as w:
         w.stride = stride
@@ -183,10 +187,10 @@ def write_evaluation(
             w.line(p, np.asarray(pcrb, dtype=float)[:, i], "PCRB", BOUND_COLOR, 2.5)
         _write_sample_runs(w, state_names, samples)
         for i, by_sensor in (measured or {}).items():
-            for j, (sensor, v) in enumerate(by_sensor.items()):
+            for sensor, v in by_sensor.items():
                 p = entity_path("runs", 0, state_names[i], "measured", sensor)
-                w.points(p, v, f"{sensor} (measured)", class_color(j))
-        write_consistency(w, nis, avail)
+                w.points(p, v, f"{sensor} (measured)", sensor_color[sensor])
+        write_consistency(w, nis, avail, confidence)
         for arch, t in traces.items():
             w.line(
                 entity_path("metrics", "trace", arch), t, arch, arch_color(arch), arch_width(arch)
@@ -194,7 +198,7 @@ def write_evaluation(
         if plane is not None:
             write_plane(w, plane)
         if replay:
-            write_replay(w, ij, samples, measured or {}, ev.innovations)
+            write_replay(w, ij, samples, measured or {}, ev.innovations, sensor_color)
 
 
 def _check(
@@ -293,7 +297,9 @@ def _blueprint(
     timeline: str = "step",
     pcrb: bool = False,
 ) -> rrb.Blueprint:
-    """Tabs: [state plane], Overview (Figs. 4, 5, 6, NEES, DM), [sample runs].
+    """Tabs: [state plane], Overview (Figs. 4, 5, 6, NEES, DM), [sample runs]. Figs. 4-6
+    open on the values after the start where its transient would flatten them (multirate.toml:
+    `.replay.opening_range`), else on all of them.
 
     Colours are the same in every view, so each group of views (Fig. 4, Fig. 5, the sample
     runs) shows one legend, one entry per architecture (its line, dots and band share the
@@ -324,6 +330,7 @@ def _blueprint(
             + ([query("metrics", "pcrb", "mse", s)] if pcrb else []),
             legend=i == at4[0],
             corner=at4[1],
+            y_range=opening_range(mse[i], 0.0),
         )
         for i, s in enumerate(state_names)
     ]
@@ -340,10 +347,13 @@ def _blueprint(
             [query("metrics", "mse_minus_ckf", s) + "/**"],
             legend=i == at5[0],
             corner=at5[1],
+            y_range=opening_range(diff[i]) if diff else None,
         )
         for i, s in enumerate(state_names)
     ]
-    fig6 = time_series_view("Fig. 6: trace of P", [query("metrics", "trace") + "/**"], False)
+    traces = [np.asarray(d["trace"], dtype=float) for d in series.values()]
+    fig6 = time_series_view("Fig. 6: trace of P", [query("metrics", "trace") + "/**"], False,
+                            y_range=opening_range(traces, 0.0))  # fmt: skip
     nees = time_series_view(
         "NEES, run average (grey: χ² band)",
         [query("metrics", "nees") + "/**", query("metrics", "expected", "nees") + "/**"],

@@ -284,7 +284,12 @@ class SeriesWriter:
         )
 
     def line(self, path: str, values: np.ndarray, name: str, color: Sequence[int], width: float):
-        """A series drawn as a line (``SeriesLines``)."""
+        """A series drawn as a line (``SeriesLines``); with a single instant (``steps = 0``, a
+        sweep of one point) a line joins nothing and the viewer draws nothing, so the value is
+        a marker (``SeriesPoints``) of the same name and colour."""
+        if self.times.shape[0] == 1:
+            self.points(path, values, name, color)
+            return
         self.style_lines(path, name, color, width)
         self.send(path, values)
 

@@ -211,7 +211,11 @@ def _blueprint(
     away in the time panel)."""
     metrics = [m for m in _METRICS if m[2] or not exact_only]
     on_index = x is None or (log and len(values) > 2)
-    how = "lines: exact" if exact_only else "lines: exact, dots: Monte Carlo"
+    # nonlinear models have no exact analysis: their points are Monte Carlo dots only
+    exact = any(np.isfinite(line["expected_mse"]).any() for line in lines.values())
+    how = "lines: exact" if exact_only else "dots: Monte Carlo, no exact values"
+    if exact and not exact_only:
+        how = "lines: exact, dots: Monte Carlo"
     if on_index and x is not None:
         how += "; " + _axis_note(key, values)
     names = list(lines)

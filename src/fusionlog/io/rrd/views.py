@@ -8,7 +8,13 @@ import rerun.blueprint as rrb
 
 from .stream import entity_path
 
-__all__ = ["query", "tabbed_blueprint", "time_series_view"]
+__all__ = ["WHOLE_X", "query", "tabbed_blueprint", "time_series_view"]
+
+_INF = rrb.TimeRangeBoundary.infinite()
+#: The x axis a time-series view opens on: all its data. Without it the viewer opens a view of
+#: more than a minute on the `time` timeline (heterogeneous.toml: 100 s; a long recorded log)
+#: on -30 s .. +30 s about the cursor at 0: half the view empty, the rest of the data off it.
+WHOLE_X = rrb.TimeAxis(view_range=rrb.TimeRange(start=_INF, end=_INF))
 
 
 def query(*parts: str | int) -> str:
@@ -17,14 +23,22 @@ def query(*parts: str | int) -> str:
 
 
 def time_series_view(
-    name: str, contents: list[str], legend: bool = True, corner: str = "RightTop"
+    name: str,
+    contents: list[str],
+    legend: bool = True,
+    corner: str = "RightTop",
+    y_range: tuple[float, float] | None = None,
 ) -> rrb.TimeSeriesView:
-    """A time-series view of `contents` (queries), with its legend in `corner` or none."""
+    """A time-series view of `contents` (queries), with its legend in `corner` or none;
+    `y_range`: the y range it opens on (zooming out shows the rest), else the viewer's fit."""
+    axis = {} if y_range is None else {"axis_y": rrb.ScalarAxis(range=y_range, zoom_lock=False)}
     return rrb.TimeSeriesView(
         origin="/",
         contents=contents,
         name=name,
         plot_legend=rrb.PlotLegend(corner=corner, visible=legend),
+        axis_x=WHOLE_X,
+        **axis,
     )
 
 
