@@ -440,3 +440,76 @@ def test_ukf_equals_filterpy(arch: str, params) -> None:
         scale = np.abs(mean).max()
         np.testing.assert_allclose(est.mean[r], mean, rtol=0, atol=1e-9 * scale)
         np.testing.assert_allclose(est.cov[r], cov, rtol=0, atol=1e-9 * np.abs(cov).max())
+
+
+# --------------------------------------------------------------------------------------------
+# No prior: the information form
+
+
+def information_filter(system: System, z: np.ndarray, mask: np.ndarray, groups):
+    """An information filter started from Y = 0, y = 0 on runs z (M, K+1, m), updating with
+    each group of rows (a list of index arrays) as if the groups' noises were independent:
+    Y += H_g^T R_g^-1 H_g, y += H_g^T R_g^-1 z_g. Prediction in information form (defined for a
+    singular Y): M = F^-T Y F^-1, C = M (M + Q^-1)^-1, Y- = (I - C) M, y- = (I - C) F^-T y.
+    Returns Y (K+1, n, n) and y (M, K+1, n)."""
+    n, M, K1 = system.n, z.shape[0], z.shape[1]
+    Y, y = np.zeros((n, n)), np.zeros((M, n))
+    Ys, ys = np.empty((K1, n, n)), np.empty((M, K1, n))
+    eye = np.eye(n)
+    for k in range(K1):
+        if k:
+            Fi = np.linalg.inv(system.F_at(k))
+            Mk = Fi.T @ Y @ Fi
+            C = Mk @ np.linalg.inv(Mk + np.linalg.inv(system.GQG_at(k)))
+            Y = (eye - C) @ Mk
+            Y = 0.5 * (Y + Y.T)
+            y = y @ Fi @ (eye - C).T
+        for g in groups:
+            r = g[mask[k, g]]
+            if r.size:
+                Hg, Rg = system.H[r], system.R[np.ix_(r, r)]
+                Y = Y + Hg.T @ np.linalg.solve(Rg, Hg)
+                y = y + z[:, k, r] @ np.linalg.solve(Rg, Hg)
+        Ys[k], ys[:, k] = Y, y
+    return Ys, ys
+
+
+def no_prior_reference(system: System, arch: str, z: np.ndarray, mask: np.ndarray):
+    """CKF (one group: the full R), HKF (36-40 in information form: the fused information plus
+    each sensor's equivalent measurement H_j^T R_j^-1 H_j, its own R_j only) and MSC (the local
+    information filters' informations and vectors summed, 32-34)."""
+    per_sensor = [np.arange(system.m)[sl] for sl in system.sensor_slices]
+    if arch == "CKF":
+        Y, y = information_filter(system, z, mask, [np.arange(system.m)])
+    elif arch == "HKF":
+        Y, y = information_filter(system, z, mask, per_sensor)
+    elif arch == "MSC":
+        parts = [information_filter(system, z, mask, [g]) for g in per_sensor]
+        Y, y = sum(p[0] for p in parts), sum(p[1] for p in parts)
+    else:
+        raise AssertionError(arch)
+    P = np.linalg.inv(Y)
+    return np.einsum("mki,kij->mkj", y, P), P, np.linalg.cond(Y)
+
+
+@pytest.mark.parametrize("arch", ["CKF", "HKF", "MSC"])
+@pytest.mark.parametrize(("dims", "lost"), [([1, 1, 1], False), ([1, 2], True)])
+def test_no_prior_equals_the_information_form(arch: str, dims, lost: bool) -> None:
+    """Without a prior, every step whose information is well conditioned (cond < 1e8) has the
+    information filter's mean and covariance; ours reports no estimate only where the
+    information is singular to working precision."""
+    system = random_system(np.random.default_rng(50 + len(dims)), 3, dims, prior=False,
+                           correlated=True)  # fmt: skip
+    mask = _mask(system, 11, 0.2) if lost else np.ones((K + 1, system.m), bool)
+    z = _data(system, mask)
+    mean, cov, cond = no_prior_reference(system, arch, z, mask)
+    compute = _ours(arch, z)
+    got = compute(system)
+    sens = sensitivity(compute, system, ("mean", "cov"))
+    undefined = np.isnan(got.cov).any(axis=(1, 2))
+    assert (cond[undefined] > 1e8).all(), arch
+    use = (cond < 1e8) & ~sens.unsettled
+    assert use.sum() >= K - 2
+    mean_ref = np.swapaxes(mean, 0, 1)
+    assert_agree(got.mean[use], mean_ref[use], sens.tolerance("mean"), None, arch)
+    assert_agree(got.cov[use], cov[use], sens.tolerance("cov"), None, arch)
