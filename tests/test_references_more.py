@@ -59,7 +59,7 @@ def local_filters(system: System, z: np.ndarray, mask: np.ndarray):
     (K+1, S, S, n, n) of eq. (35): P_ij- = F P_ij+ F^T + G Q G^T, P_ij+ = (I - K_i H_i) P_ij-
     (I - K_j H_j)^T + K_i R_ij K_j^T (R_ij the cross-covariance of the present rows)."""
     n, S = system.n, len(system.sensors)
-    F, GQG, H, R = system.F, system.GQG, system.H, system.R
+    H, R = system.H, system.R
     M, K1, _ = z.shape
     x = np.tile(system.prior.mean, (S, M, 1))  # (S, M, n)
     J = np.zeros((S, S, n, n))
@@ -69,8 +69,9 @@ def local_filters(system: System, z: np.ndarray, mask: np.ndarray):
     eye = np.eye(n)
     for k in range(K1):
         if k:
+            F = system.F_at(k)
             x = x @ F.T
-            J = F @ J @ F.T + GQG
+            J = F @ J @ F.T + system.GQG_at(k)
         A, G, rows = [], [], []
         for j in range(S):
             r = _rows(system, j, mask[k])
@@ -148,7 +149,7 @@ def hkf(system: System, z: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np
     """The hierarchical KF with feedback, eqs. (36)-(40): the fused prediction (38) handed to
     every local KF, which updates with its own sensor believing its own R_j only; the centre
     adds the equivalent measurements P_j^-1 x_j - P^-1 x_pred (36)-(37)."""
-    n, F, GQG, H, R = system.n, system.F, system.GQG, system.H, system.R
+    n, H, R = system.n, system.H, system.R
     M, K1, _ = z.shape
     x = np.repeat(system.prior.mean[None], M, axis=0)
     P = system.prior.cov.copy()
@@ -156,8 +157,9 @@ def hkf(system: System, z: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np
     eye = np.eye(n)
     for k in range(K1):
         if k:
+            F = system.F_at(k)
             x = x @ F.T
-            P = F @ P @ F.T + GQG
+            P = F @ P @ F.T + system.GQG_at(k)
         Yp = np.linalg.inv(P)
         Y, y = Yp.copy(), x @ Yp
         for j in range(len(system.sensors)):
@@ -189,6 +191,20 @@ def reference(system: System, arch: str, z: np.ndarray, mask: np.ndarray):
 
 def _system(seed: int, dims: list[int], correlated: bool = True) -> System:
     return random_system(np.random.default_rng(seed), 3, dims, correlated=correlated)
+
+
+def _irregular(system: System, seed: int) -> System:
+    """`system` on irregular instants: a continuous model (A, Qc) discretised exactly for each
+    interval (F_k = expm(A dt_k), Q_k by Van Loan), intervals drawn in [0.2, 1.5]."""
+    rng = np.random.default_rng(seed)
+    n = system.n
+    A = 0.4 * rng.standard_normal((n, n)) - 0.2 * np.eye(n)
+    B = rng.standard_normal((n, n))
+    Qc = 0.1 * (B @ B.T / n + 0.2 * np.eye(n))
+    times = np.concatenate([[0.0], np.cumsum(rng.uniform(0.2, 1.5, K))])
+    out = dataclasses.replace(system, continuous=(A, Qc)).on_times(times)
+    assert out.Fs is not None and len(np.unique(np.diff(times))) == K
+    return out
 
 
 def _mask(system: System, seed: int, share: float = 0.3) -> np.ndarray:
@@ -255,6 +271,21 @@ def test_architecture_equals_its_equations_per_run(arch, dims, correlated, lost)
     assert_agree(got.cov, cov, sens.tolerance("cov"), sens.unsettled, arch)
 
 
+@pytest.mark.parametrize("arch", ["MSC", "MSC-GMF", "CI", "AVG", "HKF"])
+def test_architecture_equals_its_equations_on_irregular_instants(arch: str) -> None:
+    """The same on irregular instants (a transition and a process noise per interval)."""
+    dims = [2, 1] if arch == "CI" else [1, 2, 1]
+    system = _irregular(_system(61, dims), 2)
+    mask = _mask(system, 6)
+    z = _data(system, mask)
+    mean, cov = reference(system, arch, z, mask)
+    compute = _ours(arch, z)
+    got = compute(system)
+    sens = sensitivity(compute, system, ("mean", "cov"))
+    assert_agree(got.mean, np.swapaxes(mean, 0, 1), sens.tolerance("mean"), sens.unsettled, arch)
+    assert_agree(got.cov, cov, sens.tolerance("cov"), sens.unsettled, arch)
+
+
 def test_hkf_with_correlated_sensors_is_not_the_ckf() -> None:
     """The HKF case above is not the CKF in disguise: with correlated sensors they differ."""
     system = _system(34, [1, 2, 1])
@@ -281,7 +312,7 @@ def exact_by_superposition(filt: System, truth: System, arch: str, mask: np.ndar
     eta = 0, run i + 1 the i-th unit vector."""
     n, m = truth.n, truth.m
     init = truth.truth_initial
-    L0, Lw, Lv = _sqrt(init.cov), _sqrt(truth.GQG), _sqrt(truth.R)
+    L0, Lv = _sqrt(init.cov), _sqrt(truth.R)
     D = n + K * n + (K + 1) * m
     eta = np.vstack([np.zeros(D), np.eye(D)])  # (D + 1, D)
     runs = D + 1
@@ -291,7 +322,8 @@ def exact_by_superposition(filt: System, truth: System, arch: str, mask: np.ndar
     off = n
     for k in range(K + 1):
         if k:
-            x = x @ truth.F.T + eta[:, off : off + n] @ Lw.T
+            Lw = _sqrt(truth.GQG_at(k))
+            x = x @ truth.F_at(k).T + eta[:, off : off + n] @ Lw.T
             off += n
         X[:, k] = x
     for k in range(K + 1):
@@ -309,6 +341,10 @@ def _mismatched(filt: System, seed: int) -> System:
     initial state distribution other than their prior."""
     rng = np.random.default_rng(seed)
     n = filt.n
+    if filt.Fs is not None:  # irregular instants: other transitions and process noises
+        filt = dataclasses.replace(
+            filt, Fs=filt.Fs + 0.05 * rng.standard_normal(filt.Fs.shape), Qs=3.0 * filt.Qs
+        )
     sensors = tuple(dataclasses.replace(s, R=1.7 * s.R) for s in filt.sensors)
     cross = {key: 1.7 * 0.8 * v for key, v in filt.cross_R.items()}
     initial = Prior(filt.prior.mean + rng.standard_normal(n), 2.0 * filt.prior.cov)
@@ -341,10 +377,14 @@ EXACT_CASES = [
 
 
 @pytest.mark.parametrize(("arch", "dims", "lost"), EXACT_CASES)
-def test_exact_analysis_equals_superposition_under_mismatch(arch, dims, lost) -> None:
+@pytest.mark.parametrize("irregular", [False, True])
+def test_exact_analysis_equals_superposition_under_mismatch(arch, dims, lost, irregular) -> None:
     """`analyse` of the plan with the true model = the reference's exact bias, E[e e^T] and
-    NEES tr(P^-1 E[e e^T]), with a truth other than the filters' model and correlated noise."""
+    NEES tr(P^-1 E[e e^T]), with a truth other than the filters' model and correlated noise,
+    on regular and irregular instants."""
     filt = _system(41 + len(dims), dims)
+    if irregular:
+        filt = _irregular(filt, 4)
     truth = _mismatched(filt, 3)
     mask = _mask(filt, 9) if lost else np.ones((K + 1, filt.m), bool)
     bias, mse, P = exact_by_superposition(filt, truth, arch, mask)
