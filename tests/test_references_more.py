@@ -179,9 +179,39 @@ def hkf(system: System, z: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np
     return mean, cov
 
 
+def ckf(system: System, z: np.ndarray, mask: np.ndarray, smooth: bool = False):
+    """The centralised KF on the stacked present rows with their full R (29-31); `smooth`: then
+    the Rauch-Tung-Striebel pass, which the forward-backward smoother (25-28) equals."""
+    n, H, R = system.n, system.H, system.R
+    M, K1, _ = z.shape
+    x, P = np.repeat(system.prior.mean[None], M, axis=0), system.prior.cov.copy()
+    mean, cov = np.empty((M, K1, n)), np.empty((K1, n, n))
+    for k in range(K1):
+        if k:
+            F = system.F_at(k)
+            x, P = x @ F.T, F @ P @ F.T + system.GQG_at(k)
+        r = np.flatnonzero(mask[k])
+        if r.size:
+            Kg = np.linalg.solve(H[r] @ P @ H[r].T + R[np.ix_(r, r)], H[r] @ P).T
+            A = np.eye(n) - Kg @ H[r]
+            x = x + (z[:, k, r] - x @ H[r].T) @ Kg.T
+            P = A @ P @ A.T + Kg @ R[np.ix_(r, r)] @ Kg.T
+        mean[:, k], cov[k] = x, P
+    if smooth:
+        for k in range(K1 - 2, -1, -1):
+            F = system.F_at(k + 1)
+            Pp = F @ cov[k] @ F.T + system.GQG_at(k + 1)
+            C = np.linalg.solve(Pp, F @ cov[k]).T
+            mean[:, k] = mean[:, k] + (mean[:, k + 1] - mean[:, k] @ F.T) @ C.T
+            cov[k] = cov[k] + C @ (cov[k + 1] - Pp) @ C.T
+    return mean, cov
+
+
 def reference(system: System, arch: str, z: np.ndarray, mask: np.ndarray):
     if arch == "HKF":
         return hkf(system, z, mask)
+    if arch in ("CKF", "FBS"):
+        return ckf(system, z, mask, smooth=arch == "FBS")
     return fuse(arch, *local_filters(system, z, mask))
 
 
@@ -366,6 +396,8 @@ class Stats:
 
 
 EXACT_CASES = [
+    ("CKF", [1, 2, 1], True),
+    ("FBS", [1, 2, 1], True),
     ("MSC", [1, 2, 1], True),
     ("MSC-GMF", [1, 2, 1], True),
     ("MSC-GMF", [2, 2], False),
