@@ -23,6 +23,7 @@ tolerances come from the problem's own sensitivity to rounding (`conditioning`).
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,6 +32,7 @@ from conftest import random_system
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 from scipy.optimize import brentq
 
+import fusionlog as fl
 from fusionlog.core.architectures import build_plan, estimate
 from fusionlog.core.exact import analyse
 from fusionlog.core.model import Prior, System
@@ -40,6 +42,7 @@ from fusionlog.core.nonlinear import estimate as nonlinear_estimate
 from fusionlog.core.simulate import simulate
 
 K = 12
+PIPELINE = Path(__file__).resolve().parents[1] / "pipeline"
 
 
 # --------------------------------------------------------------------------------------------
@@ -730,3 +733,81 @@ def test_ekf_architectures_equal_their_equations_per_run(arch: str, turn: bool) 
             tol = np.maximum(1e-10, SAFETY * change / scale)
             err = np.abs(got - ref).max(axis=axes) / scale
             assert (err <= tol).all(), f"{arch} {f}: error {err} above {tol}"
+
+
+# --------------------------------------------------------------------------------------------
+# The posterior Cramer-Rao bound of a turning target with dropouts on irregular instants
+
+
+def _polar_jacobian(sensor, x: np.ndarray) -> np.ndarray:
+    """d[range, bearing]/dx (or the bearing's row) at x, written out: range = |d|,
+    bearing = atan2(dy, dx), d = target - sensor."""
+    ix, iy = sensor.idx
+    dx, dy = x[ix] - sensor.position[0], x[iy] - sensor.position[1]
+    r2 = dx * dx + dy * dy
+    rows = {"range": [dx / np.sqrt(r2), dy / np.sqrt(r2)], "bearing": [-dy / r2, dx / r2]}
+    kind = {"RangeBearingSensor": ("range", "bearing"), "BearingSensor": ("bearing",)}
+    H = np.zeros((len(kind[type(sensor).__name__]), len(x)))
+    for a, name in enumerate(kind[type(sensor).__name__]):
+        H[a, [ix, iy]] = rows[name]
+    return H
+
+
+def pcrb_reference(system: System, times, truth, measurements) -> tuple[np.ndarray, float]:
+    """Tichavsky-Muravchik-Nehorai (1998): J_0 = P_0^-1 + D_z(0); J_k = D22 - D21 (J_{k-1} +
+    D11)^-1 D12 + D_z(k) with D11 = E[F~^T Q^-1 F~], D12 = -E[F~^T] Q^-1, D22 = Q^-1 (Q and
+    F~ for each interval), D_z(k) = E[sum H~^T R^-1 H~] over the sensors that measured in each
+    run (lost or unscheduled: nothing), expectations the averages over the runs."""
+    M, K1, n = truth.shape
+    motion = system.motion_model
+
+    def Dz(k):
+        D = np.zeros((n, n))
+        for s in system.sensors:
+            for r in range(M):
+                if not np.isnan(measurements[s.name][r, k]).any():
+                    H = _polar_jacobian(s, truth[r, k])
+                    D += H.T @ np.linalg.solve(s.R, H)
+        return D / M
+
+    J = np.linalg.inv(system.truth_initial.cov) + Dz(0)
+    bound, worst = [np.linalg.inv(J)], np.linalg.cond(J)
+    for k in range(1, K1):
+        dt = times[k] - times[k - 1]
+        Qi = np.linalg.inv(motion.Q(dt))
+        Fs = [motion.jacobian(truth[r, k - 1], dt) for r in range(M)]
+        D11 = sum(F.T @ Qi @ F for F in Fs) / M
+        D12 = -(sum(Fs) / M).T @ Qi
+        J = Qi - D12.T @ np.linalg.solve(J + D11, D12) + Dz(k)
+        bound.append(np.linalg.inv(J))
+        worst = max(worst, np.linalg.cond(J))
+    return np.array(bound), worst
+
+
+def test_pcrb_of_a_turn_with_dropouts_on_irregular_instants(tmp_path) -> None:
+    """summary.json's pcrb (the Python API's) equals the recursion written here on the
+    simulation's own truth and lost measurements: coordinated_turn.toml with a radar losing a
+    fifth of its measurements and a camera every 1.5 s (irregular instants) losing a quarter.
+    The informations' condition numbers stay below 1e7 (asserted), so rounding moves the
+    bound by less than 1e-9."""
+    text = (PIPELINE / "coordinated_turn.toml").read_text()
+    text = text.replace(
+        "R = [[25.0, 0.0], [0.0, 1.0e-3]]", "dropout = 0.2\nR = [[25.0, 0.0], [0.0, 1.0e-3]]"
+    )
+    text = text.replace("period = 2.0", "period = 1.5\ndropout = 0.25")
+    assert text.count("dropout = ") == 2
+    path = tmp_path / "turn.toml"
+    path.write_text(text)
+    sc = fl.load(path)
+    sim = fl.simulate(sc, runs=30, seed=3, steps=20)
+    assert len(np.unique(np.round(np.diff(sim.times), 9))) == 2  # irregular instants
+    for name in ("radar", "camera"):
+        lost = np.isnan(sim.measurements[name]).any(axis=2)
+        assert 0 < lost.mean() < 1, name
+    summary = fl.evaluate(sc, sim, fl.estimate(sc, sim, ["CKF"])).summary
+    bound, cond = pcrb_reference(sc.system, sim.times, sim.truth, sim.measurements)
+    assert cond < 1e7
+    per_state = np.diagonal(bound, axis1=1, axis2=2)
+    want = per_state.sum(axis=1).mean() / sc.system.n
+    assert summary["pcrb"]["mse"] == pytest.approx(want, rel=1e-9)
+    np.testing.assert_allclose(summary["pcrb"]["mse_per_state"], per_state.mean(axis=0), rtol=1e-9)
