@@ -84,28 +84,28 @@ def gmf_weight_matrix(
     batch = joint.shape[:-2]
     general = E is not None
     E0, rhs = _kkt_constants(N, n)
-    # Scale so that the KKT matrix mixes blocks of comparable size (R may span 1e-8 .. 1e8).
-    scale = np.abs(joint.diagonal(0, -2, -1)).max(axis=-1)[..., None, None]
-    scale = np.where(scale > 0, scale, 1.0)
-    if general:
-        E = np.broadcast_to(E, batch + (N * n, n))
-        e_scale = np.abs(E).max(axis=(-2, -1))[..., None, None]
-        e_scale = np.where(e_scale > 0, e_scale, 1.0)
-        Es = E / e_scale
-    else:  # E = [I; ...; I] needs no scaling
-        Es = E0
+    E = np.broadcast_to(E0 if E is None else E, batch + (N * n, n))
+    # Scale every input and every state to unit size (Jacobi scaling): the KKT system of
+    # J~ = D^-1 J D^-1 and E~ = D^-1 E S^-1 has the weights C = S^-1 C~ D^-1 with the same P up
+    # to the weighting S^-1 P S^-1 of its trace, so the same optimum: the generalised Millman
+    # estimate does not depend on the units of the states. One scale for the whole matrix would
+    # let the rank cut-off below drop the variance of a state in small units (a turn rate
+    # beside positions, millimetres beside kilometres) as if it were rounding.
+    d = np.sqrt(np.abs(joint.diagonal(0, -2, -1)))  # (..., N n)
+    d = np.where(d > 0, d, 1.0)
+    Ed = E / d[..., :, None]
+    e = np.abs(Ed).max(axis=-2)  # (..., n)
+    e = np.where(e > 0, e, 1.0)
     kkt = np.zeros(batch + (N * n + n, N * n + n))
-    kkt[..., : N * n, : N * n] = joint / scale
-    kkt[..., : N * n, N * n :] = Es
-    kkt[..., N * n :, : N * n] = mT(Es)
+    kkt[..., : N * n, : N * n] = joint / (d[..., :, None] * d[..., None, :])
+    kkt[..., : N * n, N * n :] = Ed / e[..., None, :]
+    kkt[..., N * n :, : N * n] = mT(kkt[..., : N * n, N * n :])
     if kkt.ndim == 2:
         sol = np.linalg.lstsq(kkt, rhs, rcond=1e-12)[0]  # SVD-based minimum-norm solution
     else:  # lstsq does not batch; the pseudo-inverse gives the same minimum-norm solution
         sol = np.linalg.pinv(kkt, rcond=1e-12, hermitian=True) @ rhs
-    Ct = sol[..., : N * n, :]  # (N n, n): stacked c_i^T
-    if general:
-        Ct = Ct / e_scale  # back to the unscaled E
-    C = mT(Ct)
+    # C^T = D^-1 C~^T S^-1: back to the inputs' and the states' units
+    C = mT(sol[..., : N * n, :] / (d[..., :, None] * e[..., None, :]))
     if general:
         ok = np.max(np.abs(C @ E - np.eye(n)), axis=(-2, -1)) < 1e-8
         C = np.where(ok[..., None, None], C, np.nan)
