@@ -21,7 +21,8 @@ NUMERIC := tests/test_exact.py tests/test_exact_per_run.py tests/test_per_run.py
 	tests/test_reference_filterpy.py tests/test_metrics.py tests/test_replay_sources.py \
 	tests/test_models.py tests/test_api.py tests/test_nonlinear_core.py \
 	tests/test_replay_real_logs.py tests/test_replay_truth.py tests/test_replay_fast.py \
-	tests/test_exact_replay.py tests/test_exact_nodes.py tests/test_references_more.py
+	tests/test_exact_replay.py tests/test_exact_nodes.py \
+	tests/test_references_linear.py tests/test_references_exact.py tests/test_references_nonlinear.py
 
 test: $(STAMP)
 	$(BIN)/pytest
