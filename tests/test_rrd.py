@@ -4,6 +4,7 @@ Values against independent computations: test_rrd_values.py; write faults: test_
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import ok
 
 from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
@@ -171,6 +173,17 @@ def test_read_back_series_and_summary(written) -> None:
                 np.testing.assert_allclose(
                     ser[entity_path(*base, "lower")], mu[:, i] - 2 * sd[:, i]
                 )
+
+
+def test_reading_only_the_summary_keeps_no_series(written) -> None:
+    """`fusionlog summary` reads with series=False: the same summary and properties, and none
+    of the series (a 10^6-instant log's recording decoded whole took ~2 GB to print a table)."""
+    path, _ = written
+    full, only = read_recording(path), read_recording(path, series=False)
+    for key in ("application_id", "recording_id", "name", "properties", "summary"):
+        assert only[key] == full[key], key
+    assert only["series"] == {} and only["steps"].size == only["times"].size == 0
+    assert json.loads(ok("summary", path, "--json").stdout) == full["summary"]
 
 
 def test_escaped_entity_paths(written) -> None:
@@ -377,7 +390,8 @@ def test_inconsistent_input_rejected_before_writing(tmp_path: Path) -> None:
     "content",
     [None, b"", b"definitely not an rrd file" * 10, "truncated", "no footer", "cut header"],
 )
-def test_read_bad_file_is_one_line_error(tmp_path: Path, written, content) -> None:
+@pytest.mark.parametrize("series", [True, False])
+def test_read_bad_file_is_one_line_error(tmp_path: Path, written, content, series) -> None:
     path = tmp_path / "bad.rrd"
     good = written[0].read_bytes()
     if content == "truncated":
@@ -389,18 +403,20 @@ def test_read_bad_file_is_one_line_error(tmp_path: Path, written, content) -> No
     elif content is not None:
         path.write_bytes(content)
     with pytest.raises(FusionlogError) as info:
-        read_recording(path)
+        read_recording(path, series=series)
     msg = str(info.value)
     assert "\n" not in msg and str(path) in msg
 
 
-def test_read_truncated_anywhere_is_one_line_error(tmp_path: Path, written) -> None:
+@pytest.mark.parametrize("series", [True, False])
+def test_read_truncated_anywhere_is_one_line_error(tmp_path: Path, written, series) -> None:
+    """Also when only the summary is kept: every chunk is still decoded."""
     good = written[0].read_bytes()
     path = tmp_path / "cut.rrd"
     for cut in np.linspace(1, len(good) - 1, 25).astype(int):
         path.write_bytes(good[:cut])
         with pytest.raises(FusionlogError) as info:
-            read_recording(path)
+            read_recording(path, series=series)
         assert "\n" not in str(info.value), cut
 
 

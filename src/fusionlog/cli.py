@@ -413,7 +413,7 @@ def summary(recording, as_json) -> None:
     from fusionlog.jsonout import dumps
     from fusionlog.report import format_table
 
-    s = read_recording(recording)["summary"]
+    s = read_recording(recording, series=False)["summary"]  # the table needs no series
     if not isinstance(s, dict):
         kind = type(s).__name__ if s is not None else "null"
         raise FusionlogError(f"{recording}: the summary property is not a JSON object ({kind})")

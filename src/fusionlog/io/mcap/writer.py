@@ -29,6 +29,7 @@ from mcap.reader import SeekingReader
 
 from fusionlog.errors import OutputError
 
+from .bookkeeping import FirstTimes, StepSet
 from .chunks import one_line
 from .layout import LAYOUT_META, Layout
 from .schema import ESTIMATE, ESTIMATE_SCHEMA, SENSOR_SCHEMA, VALUES, file_descriptor_set
@@ -57,10 +58,11 @@ class _TopicState:
     """Per-topic writer state: channel number and its log function (payload, log_time in ns;
     the SDK sets publish_time = log_time), kind, dim and the cached block fields."""
 
-    __slots__ = ("cid", "log", "kind", "dim", "mid_key", "mid", "mid2")
+    __slots__ = ("cid", "log", "kind", "dim", "mid_key", "mid", "mid2", "seen")
 
     def __init__(self, cid: int, log: Any, kind: str, dim: int) -> None:
         self.cid, self.log, self.kind, self.dim = cid, log, kind, dim
+        self.seen = StepSet()  # its steps in the current block of runs
         self.mid_key: tuple[int, int, int] | None = None
         self.mid = self.mid2 = b""
 
@@ -119,9 +121,8 @@ class McapWriter:
         self._messages = 0
         self._block_offset, self._block_runs = -1, 0  # block of runs being written
         self._blocks = 0
-        self._seen: set[tuple[int, int]] = set()  # (channel, step) in the current block
-        self._first_times: dict[int, float] = {}  # step -> time, in the first block of runs
-        self._first_steps: dict[str, list[int]] = {}  # topic -> its steps in the first block
+        self._first_times = FirstTimes()  # step -> time, in the first block of runs
+        self._first_steps: dict[str, StepSet] = {}  # topic -> its steps in the first block
         self._hstep: int = -1  # step and time whose encoded fields are in _head
         self._htime: float = math.nan
         self._head = b""
@@ -213,24 +214,29 @@ class McapWriter:
             raise
 
     def _forget(self) -> None:
-        """Drop the per-message bookkeeping (a long log's: ~200 MB of Python objects at 10^6
-        instants), which only writing and the layout need, so that a closed writer still
+        """Drop the per-message bookkeeping (a long log's: ~30 MB at 10^6 instants, see
+        `.bookkeeping`), which only writing and the layout need, so that a closed writer still
         referenced by its caller does not hold it through the stages that follow."""
-        self._seen = set()
-        self._first_times = {}
+        self._forget_seen()
+        self._first_times = FirstTimes()
         self._first_steps = {}
+
+    def _forget_seen(self) -> None:
+        for st in self._topic_states.values():
+            st.seen = StepSet()
 
     def _layout(self) -> Layout | None:
         """The file's structure as written; None where the first block of runs does not have
         steps 0..K (the reader then scans, and says what is wrong)."""
-        steps = len(self._first_times)
-        if set(self._first_times) != set(range(steps)):
+        dense = self._first_times.times()
+        if dense is None:
             return None
-        times = np.array([self._first_times[k] for k in range(steps)], dtype=float)
+        steps = len(dense)
+        times = np.array(dense, dtype=float)
         dims = {t: st.dim for t, st in self._topic_states.items()}
         runs = max(0, self._block_offset + self._block_runs)
         sparse = {
-            t: sorted(s) for t, s in self._first_steps.items() if len(s) != steps and t in dims
+            t: s.sorted() for t, s in self._first_steps.items() if len(s) != steps and t in dims
         }
         return Layout(times, runs, self._blocks, dims, sparse)
 
@@ -315,7 +321,7 @@ class McapWriter:
             raise ValueError("run indices must fit in uint32")
         self._block_offset, self._block_runs = run_offset, runs
         self._blocks += 1
-        self._seen.clear()
+        self._forget_seen()
 
     def _set_head(self, step: int, time: float) -> None:
         """Encode the step and time fields once per step: every topic of the step shares them."""
@@ -351,14 +357,17 @@ class McapWriter:
             st = self._new_topic(topic, kind, dim)
         if run_offset != self._block_offset or runs != self._block_runs:
             self._new_block(topic, run_offset, runs)
-        key = (st.cid, step)
-        if key in self._seen:
-            raise ValueError(f"{topic}: step {step} written twice for runs from {run_offset}")
-        self._seen.add(key)
-        if run_offset == 0:  # the steps a topic has (every instant, or its own: layout record)
-            self._first_steps.setdefault(topic, []).append(step)
-        if step != self._hstep or time != self._htime:
+        if step != self._hstep or time != self._htime:  # checks the step: uint32
             self._set_head(step, time)
+        seen = st.seen
+        if step in seen:
+            raise ValueError(f"{topic}: step {step} written twice for runs from {run_offset}")
+        seen.add(step)
+        if run_offset == 0:  # the steps a topic has (every instant, or its own: layout record)
+            first = self._first_steps.get(topic)
+            if first is None:
+                first = self._first_steps[topic] = StepSet()
+            first.add(step)
         if st.mid_key != (run_offset, runs, len(p2)):
             st.set_mid(run_offset, runs, len(p2))
         st.log(b"".join((self._head, st.mid, p1, st.mid2, p2)), self._t_ns)

@@ -21,7 +21,7 @@ def _first_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
-def read_recording(path: str | os.PathLike[str]) -> dict[str, Any]:
+def read_recording(path: str | os.PathLike[str], *, series: bool = True) -> dict[str, Any]:
     """Read an evaluation recording.
 
     Returns {"application_id", "recording_id", "name", "properties": {property: {field: value}},
@@ -31,12 +31,17 @@ def read_recording(path: str | os.PathLike[str]) -> dict[str, Any]:
     missing or unreadable, DamagedFile if it is damaged (truncated, changed bytes), and
     FusionlogError if it is not a fusionlog recording (no summary, or one that is not a JSON
     object).
+
+    With ``series=False`` (``fusionlog summary``) every chunk is still decoded, so damage is
+    found as above, but only the properties are kept: "steps", "times" and "series" are empty.
+    Memory is then that of one chunk, not of the recording's series (a 10^6-instant log's
+    recording holds ~0.5 GB of them, decoded several times over).
     """
     path = Path(path)
     if not path.is_file():
         raise FusionlogError(f"{path}: no such file")
     try:
-        stores, chunks = _load(path)
+        stores, chunks = _load(path, series)
     except OSError as exc:
         raise FusionlogError(f"{path}: cannot read: {exc.strerror or exc}") from None
     except Exception as exc:  # the Rust reader raises assorted errors on damaged files
@@ -65,7 +70,12 @@ def read_recording(path: str | os.PathLike[str]) -> dict[str, Any]:
     }
 
 
-def _load(path: Path) -> tuple[list[Any], list[Any]]:
+def _is_property(chunk: Any) -> bool:
+    ent = str(chunk.entity_path)
+    return ent == "/__properties" or ent.startswith("/__properties/")
+
+
+def _load(path: Path, series: bool = True) -> tuple[list[Any], list[Any]]:
     from rerun.chunk import RrdReader
 
     with warnings.catch_warnings():
@@ -73,7 +83,10 @@ def _load(path: Path) -> tuple[list[Any], list[Any]]:
         warnings.simplefilter("ignore")
         reader = RrdReader(str(path))
         stores = [s for s in reader.recordings() if s.kind == "recording"]
-        chunks = list(reader.store().stream().to_chunks())
+        stream = reader.store().stream()
+        if not series:  # each chunk decoded (a damaged one fails), then dropped unless a property
+            stream = stream.flat_map(lambda ch: [ch] if _is_property(ch) else [])
+        chunks = list(stream.to_chunks())
     return stores, chunks
 
 
@@ -86,7 +99,7 @@ def _collect(chunks: list[Any]) -> tuple[Any, dict[str, dict[str, Any]], dict[st
         ent = str(ch.entity_path)
         rb = ch.to_record_batch()
         cols = {c: rb.column(c) for c in rb.schema.names if c != "rerun.controls.RowId"}
-        if ent == "/__properties" or ent.startswith("/__properties/"):
+        if _is_property(ch):
             if ent == "/__properties":
                 if "RecordingInfo:name" in cols:
                     name = cols["RecordingInfo:name"].to_pylist()[-1][0]
