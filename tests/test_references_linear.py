@@ -48,6 +48,16 @@ IDS = [
 ]
 
 
+def assert_equals_reference(system: System, arch: str, z, mean, cov) -> None:
+    """Ours equals the reference's means (runs last: (K+1, M, n)) and covariances to what
+    rounding can move ours by (`conditioning.sensitivity`)."""
+    compute = estimate_ours(arch, z)
+    got = compute(system)
+    sens = sensitivity(compute, system, ("mean", "cov"))
+    assert_agree(got.mean, np.swapaxes(mean, 0, 1), sens.tolerance("mean"), sens.unsettled, arch)
+    assert_agree(got.cov, cov, sens.tolerance("cov"), sens.unsettled, arch)
+
+
 @pytest.mark.parametrize(("arch", "dims", "correlated", "lost"), CASES, ids=IDS)
 def test_architecture_equals_its_equations_per_run(arch, dims, correlated, lost) -> None:
     """Means and reported covariances of every run equal the reference loop's."""
@@ -55,11 +65,7 @@ def test_architecture_equals_its_equations_per_run(arch, dims, correlated, lost)
     mask = mask_of(system, 5) if lost else np.ones((K + 1, system.m), bool)
     z = data_of(system, mask)
     mean, cov = reference(system, arch, z, mask)
-    compute = estimate_ours(arch, z)
-    got = compute(system)
-    sens = sensitivity(compute, system, ("mean", "cov"))
-    assert_agree(got.mean, np.swapaxes(mean, 0, 1), sens.tolerance("mean"), sens.unsettled, arch)
-    assert_agree(got.cov, cov, sens.tolerance("cov"), sens.unsettled, arch)
+    assert_equals_reference(system, arch, z, mean, cov)
 
 
 @pytest.mark.parametrize("arch", ["MSC", "MSC-GMF", "CI", "AVG", "HKF"])
@@ -70,11 +76,7 @@ def test_architecture_equals_its_equations_on_irregular_instants(arch: str) -> N
     mask = mask_of(system, 6)
     z = data_of(system, mask)
     mean, cov = reference(system, arch, z, mask)
-    compute = estimate_ours(arch, z)
-    got = compute(system)
-    sens = sensitivity(compute, system, ("mean", "cov"))
-    assert_agree(got.mean, np.swapaxes(mean, 0, 1), sens.tolerance("mean"), sens.unsettled, arch)
-    assert_agree(got.cov, cov, sens.tolerance("cov"), sens.unsettled, arch)
+    assert_equals_reference(system, arch, z, mean, cov)
 
 
 def test_hkf_with_correlated_sensors_is_not_the_ckf() -> None:
@@ -169,11 +171,7 @@ def test_paper_example_equals_the_equations(arch: str) -> None:
     mask[np.random.default_rng(8).random(K + 1) < 0.3, 0] = False
     z = data_of(system, mask)
     mean, cov = reference(system, arch, z, mask)
-    compute = estimate_ours(arch, z)
-    got = compute(system)
-    sens = sensitivity(compute, system, ("mean", "cov"))
-    assert_agree(got.mean, np.swapaxes(mean, 0, 1), sens.tolerance("mean"), sens.unsettled, arch)
-    assert_agree(got.cov, cov, sens.tolerance("cov"), sens.unsettled, arch)
+    assert_equals_reference(system, arch, z, mean, cov)
 
 
 # --------------------------------------------------------------------------------------------
@@ -264,11 +262,7 @@ def test_fbs_equals_the_batch_least_squares(prior: bool, irregular: bool) -> Non
     z = data_of(system, mask)
     mean, cov, cond = batch_smoother(system, z, mask)
     assert cond < 1e10
-    compute = estimate_ours("FBS", z)
-    got = compute(system)
-    sens = sensitivity(compute, system, ("mean", "cov"))
-    assert_agree(got.mean, np.swapaxes(mean, 0, 1), sens.tolerance("mean"), sens.unsettled, "FBS")
-    assert_agree(got.cov, cov, sens.tolerance("cov"), sens.unsettled, "FBS")
+    assert_equals_reference(system, "FBS", z, mean, cov)
 
 
 def _basis_runs(truth: System, mask: np.ndarray):

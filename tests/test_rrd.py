@@ -275,19 +275,25 @@ def test_a_single_instant_is_drawn_as_markers(tmp_path: Path) -> None:
     np.testing.assert_array_equal(series["metrics/trace/CKF"], data["series"]["CKF"]["trace"])
 
 
-def opening_ranges(path: Path) -> dict[str, tuple[float, float]]:
-    """{view name: the y range it opens on} of the recording's default blueprint."""
+def view_property(path: Path, column: str) -> dict[str, object]:
+    """{view name: its `column` (a blueprint property, e.g. "ScalarAxis:range")} of the views
+    of the recording's default blueprint that set it."""
     from rerun.chunk import RrdReader
 
     reader = RrdReader(str(path))
-    names, ranges = {}, {}
+    names, values = {}, {}
     for ch in reader.store(store=reader.blueprints()[0]).stream().to_chunks():
         batch, e = ch.to_record_batch(), str(ch.entity_path)
         if "ViewBlueprint:display_name" in batch.schema.names:
             names[e] = batch.column("ViewBlueprint:display_name").to_pylist()[0][0]
-        if "ScalarAxis:range" in batch.schema.names:
-            ranges[e.rsplit("/", 1)[0]] = tuple(batch.column("ScalarAxis:range").to_pylist()[0][0])
-    return {names[v]: r for v, r in ranges.items()}
+        if column in batch.schema.names:
+            values[e.rsplit("/", 1)[0]] = batch.column(column).to_pylist()[0]
+    return {names[v]: x for v, x in values.items()}
+
+
+def opening_ranges(path: Path) -> dict[str, tuple[float, float]]:
+    """{view name: the y range it opens on} of the recording's default blueprint."""
+    return {v: tuple(r[0]) for v, r in view_property(path, "ScalarAxis:range").items()}
 
 
 def test_views_open_past_a_transient_that_would_flatten_them(tmp_path: Path) -> None:
@@ -342,20 +348,12 @@ def test_every_time_series_view_opens_on_all_its_data(tmp_path: Path) -> None:
 def test_each_sensor_has_its_own_availability_view(tmp_path: Path) -> None:
     """Without dropouts every share is 1: in one view the sensor drawn last hid the others'
     instants (coordinated_turn.toml's camera under its radar); a view per sensor shows each."""
-    from rerun.chunk import RrdReader
 
     data = synthetic(steps=8)
     every, odd = np.ones(8), np.where(np.arange(8) % 2 == 1, 1.0, np.nan)
     path = write(tmp_path / "a.rrd", **data, availability={"radar": every, "cam 2": odd})
-    reader = RrdReader(str(path))
-    names, queries = {}, {}
-    for ch in reader.store(store=reader.blueprints()[0]).stream().to_chunks():
-        batch, e = ch.to_record_batch(), str(ch.entity_path)
-        if "ViewBlueprint:display_name" in batch.schema.names:
-            names[e] = batch.column("ViewBlueprint:display_name").to_pylist()[0][0]
-        if "ViewContents:query" in batch.schema.names:
-            queries[e.rsplit("/", 1)[0]] = batch.column("ViewContents:query").to_pylist()[0]
-    sensors = {n.split(":")[0]: queries[v] for v, n in names.items() if "share of runs" in n}
+    queries = view_property(path, "ViewContents:query")
+    sensors = {n.split(":")[0]: q for n, q in queries.items() if "share of runs" in n}
     assert sensors == {"radar": ["+ /sensors/radar/**"], "cam 2": ["+ /sensors/cam\\ 2/**"]}
     series = read_recording(path)["series"]
     np.testing.assert_array_equal(series["sensors/cam\\ 2/measured"], odd)

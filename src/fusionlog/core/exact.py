@@ -47,6 +47,7 @@ __all__ = [
     "analyse",
     "expected_sqrt_quadratic",
     "expected_sqrt_quadratic_many",
+    "not_definite",
     "plan_of_runs",
     "shared_nees_and_dm",
 ]
@@ -183,6 +184,14 @@ def plan_of_runs(plan: Plan, runs: slice | int) -> Plan:
 FIXED_GRID_ITEMS = 256
 
 
+def not_definite(where: str) -> NumericalError:
+    """The error of a reported covariance without NEES or DM at `where` (a step, a run)."""
+    return NumericalError(
+        f"{where}: the reported covariance is not positive definite to working precision "
+        "(no NEES or DM)"
+    )
+
+
 def shared_nees_and_dm(
     P: np.ndarray, bias: np.ndarray, mse: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -302,10 +311,7 @@ def _analyse(plan: Plan, truth: System, where) -> Expected:
         if not definite.all():
             failed = np.zeros_like(ok)
             failed[ok] = ~definite
-            raise NumericalError(
-                f"{where(failed)}: the reported covariance is not positive definite to working "
-                "precision (no NEES or DM)"
-            )
+            raise not_definite(where(failed))
         nees[..., :m][ok] = nees_k
         dm[..., :m][ok] = dm_k
     nees[..., m:] = nees[..., m - 1, None]

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import NumericalError
 from .architectures import BlockDiagonal, Plan, StepMap
-from .exact import Expected
+from .exact import Expected, not_definite
 from .linalg import sym
 from .model import System
 from .moments import congruences, hcat, initial_moments, mv, step_moments
@@ -49,6 +49,7 @@ def analyse_nodes(plan: Plan, truth: System, where: Callable[[np.ndarray], str])
     index = plan.nodes
     n = truth.n
     mu, C, nx = initial_moments(plan, truth)
+    Ht = truth.linear_measurement()
     D_prev = plan.D0
     node_stats: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # per step: P, bias, mse
     for k, st in enumerate(plan.steps):
@@ -60,7 +61,7 @@ def analyse_nodes(plan: Plan, truth: System, where: Callable[[np.ndarray], str])
             C = C[parent] if C.ndim > 2 else C
             D_prev = D_prev[parent] if D_prev is not None and D_prev.ndim > 2 else D_prev
         st = StepMap(*(_dense(getattr(st, f)) for f in ("T", "U", "O", "P", "D")))
-        mu, C = step_moments(st, k, mu, C, D_prev, truth, nx)
+        mu, C = step_moments(st, k, mu, C, D_prev, truth, nx, Ht)
         if not (np.isfinite(C).all() and np.isfinite(mu).all()):
             raise NumericalError(f"{where(_runs_of(mu, C, k, index))}: the true error covariance "
                                  "overflows")  # fmt: skip
@@ -79,7 +80,7 @@ def analyse_nodes(plan: Plan, truth: System, where: Callable[[np.ndarray], str])
         if not definite.all():
             failed = np.zeros(len(P), dtype=bool)
             failed[np.flatnonzero(ok)[~definite]] = True
-            raise _not_definite(where(_to_runs(failed, sizes, index)))
+            raise not_definite(where(_to_runs(failed, sizes, index)))
     return Expected(
         _to_runs(mse, sizes, index),
         _to_runs(bias, sizes, index),
@@ -102,10 +103,3 @@ def _runs_of(mu: np.ndarray, C: np.ndarray, k: int, index: list[np.ndarray]) -> 
     mask = np.zeros((len(index[0]), len(index)), dtype=bool)
     mask[:, k] = ~good[index[k]] if good.ndim else not good
     return mask
-
-
-def _not_definite(where: str) -> Exception:
-    return NumericalError(
-        f"{where}: the reported covariance is not positive definite to working precision "
-        "(no NEES or DM)"
-    )

@@ -86,12 +86,18 @@ def initial_moments(plan: Plan, truth: System) -> tuple[np.ndarray, np.ndarray, 
 
 
 def step_moments(
-    st: StepMap, k: int, mu: np.ndarray, C: np.ndarray, D_prev: np.ndarray, truth: System, nx: int
+    st: StepMap,
+    k: int,
+    mu: np.ndarray,
+    C: np.ndarray,
+    D_prev: np.ndarray,
+    truth: System,
+    nx: int,
+    Ht: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The moments of Z_k from those of Z_{k-1} through step k's map (dense maps; per-run or
-    per-node maps and moments broadcast over their leading axis)."""
+    per-node maps and moments broadcast over their leading axis); Ht the truth's stacked H."""
     n = truth.n
-    Ht = truth.linear_measurement()
     d_prev = mu.shape[-1] - nx
     d = st.T.shape[-2]
     batch = np.broadcast_shapes(st.T.shape[:-2], st.U.shape[:-2], mu.shape[:-1])
@@ -121,11 +127,12 @@ def forward_moments(plan: Plan, truth: System) -> tuple[list, list, int, int]:
     them too (the same objects in the lists). Per-run maps give per-run moments (runs, ...).
     """
     mu, C, nx = initial_moments(plan, truth)
+    Ht = truth.linear_measurement()
     mus, Cs = [], []
     D_prev = plan.D0
     K1 = len(plan.steps)
     for k, st in enumerate(plan.steps):
-        mu_new, C_new = step_moments(st, k, mu, C, D_prev, truth, nx)
+        mu_new, C_new = step_moments(st, k, mu, C, D_prev, truth, nx, Ht)
         if (
             not nx
             and k > 1
