@@ -230,3 +230,17 @@ def test_an_infinite_reading_in_a_sensors_file_is_named_with_its_topic_and_step(
         res = cli("estimate", tmp_path / "inf.mcap", "-o", tmp_path / "e.mcap", *extra)
         one_line_error(res, "inf.mcap: /sensors/s2: an infinite reading at step 4, run 3")
     assert not (tmp_path / "e.mcap").exists()
+
+
+def test_run_names_its_outputs_not_their_temporary_files(tmp_path: Path) -> None:
+    """R = 1e-300 with dropouts: a covariance rounds to a negative variance, which evaluation
+    refuses; `run` names estimates.mcap, not the temporary file it was being written to."""
+    root = Path(__file__).resolve().parents[1] / "pipeline"
+    text = (root / "ajgl2009_dropout.toml").read_text()
+    sc = tmp_path / "tiny_r.toml"
+    sc.write_text(
+        "\n".join("R = 1e-300" if ln.startswith("R = ") else ln for ln in text.split("\n"))
+    )
+    line = one_line_error(cli("run", sc, "--runs", "200", "--out-dir", tmp_path / "o"))
+    assert ".tmp" not in line and "fusionlog-" not in line, line
+    assert not (tmp_path / "o").exists()

@@ -36,9 +36,11 @@ def evaluate_into(
     block: int | None = None,
     scenario: Scenario | None = None,
     sensors_sha256: str | None = None,
+    estimates_name: str | None = None,
 ) -> dict[str, Any]:
     """Metrics of every architecture in `estimates_path` against the truth of `sensors_path`,
     written into the (uncommitted) outputs `out` (.rrd) and `summary_path` (JSON).
+    `estimates_name` names the estimates in errors (`run`: its output, not the temporary file).
 
     Metrics are sums over blocks of runs, so memory does not grow with M; what they are and
     which exact expected values stand beside them is the kind's business (its Evaluator).
@@ -59,7 +61,7 @@ def evaluate_into(
     for (off, _runs, sdata), (_, _, edata) in progress(blocks, -(-M // B), "evaluate"):
         for topic, e in edata.items():
             if isinstance(e, tuple):  # a state estimate: (mean, cov)
-                _check_variances(estimates_path, topic, e[1])
+                _check_variances(estimates_name or estimates_path, topic, e[1])
         ev.add(off, sdata.pop(TRUTH, None), edata, sdata)
         # a block's arrays (of a long log: all its estimates, covariances included) are freed
         # before the next block is read and before the recording is encoded (what it draws,
@@ -80,7 +82,7 @@ def evaluate_into(
     return summary
 
 
-def _check_variances(path: Path, topic: str, cov: np.ndarray) -> None:
+def _check_variances(path: Path | str, topic: str, cov: np.ndarray) -> None:
     """A reported covariance with a negative variance is no covariance (a damaged or foreign
     estimates file): its NEES would come out negative, its DM zero. NaN (undefined) passes."""
     negative = (np.diagonal(cov, axis1=-2, axis2=-1) < 0).any(axis=-1)  # (K+1,) or (runs, K+1)

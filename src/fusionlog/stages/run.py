@@ -103,6 +103,7 @@ def run_pipeline(
             block=block,
             scenario=sc,
             sensors_sha256=digest,
+            estimates_name="estimates.mcap",
         )
         o.commit()
         seconds["evaluate"] = time.perf_counter() - t2
