@@ -10,7 +10,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from doc_examples import ROOT, Block, blocks, commands, pages, run_command, run_page, scratch
 
 README = ROOT / "README.md"
