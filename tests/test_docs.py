@@ -43,6 +43,10 @@ def test_the_site_builds_strictly(tmp_path: Path) -> None:
     for name in ("fusionlog.api.simulate", "fusionlog.api.estimate", "fusionlog.api.evaluate"):
         assert name in api, name
     assert (site / "images/ajgl2009_recording.png").is_file()
+    for page in site.rglob("*.html"):  # docstrings rendered into the site point nowhere else
+        text = page.read_text(encoding="utf-8")
+        for outside in ("DESIGN.md", "../shared", "seed 00"):
+            assert outside not in text, (page.relative_to(site), outside)
 
 
 def test_the_arch_help_names_every_registered_architecture() -> None:

@@ -113,7 +113,7 @@ class Evaluation(evaluation.Evaluation):
 
 
 def load(path: str | os.PathLike[str]) -> Scenario:
-    """The validated scenario of a TOML file (DESIGN.md "Scenario TOML"); FusionlogError with
+    """The validated scenario of a TOML file (docs/reference/scenario.md); FusionlogError with
     the file, key and reason when it is not valid."""
     return load_scenario(path)
 
