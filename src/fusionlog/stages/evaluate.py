@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from fusionlog.core.linalg import not_a_covariance
 from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import TRUTH
@@ -85,7 +86,7 @@ def evaluate_into(
 def _check_variances(path: Path | str, topic: str, cov: np.ndarray) -> None:
     """A reported covariance with a negative variance is no covariance (a damaged or foreign
     estimates file): its NEES would come out negative, its DM zero. NaN (undefined) passes."""
-    negative = (np.diagonal(cov, axis1=-2, axis2=-1) < 0).any(axis=-1)  # (K+1,) or (runs, K+1)
+    negative = not_a_covariance(cov, semidefinite=False)  # (K+1,) or (runs, K+1)
     if negative.any():
         k = int(np.flatnonzero(negative.reshape(-1, negative.shape[-1]).any(axis=0))[0])
         raise FusionlogError(f"{path}: {topic}: step {k}: a covariance with a negative variance")
