@@ -188,7 +188,7 @@ class Evaluation(evaluation.Evaluation):
         """The results table `fusionlog summary` prints (`report.format_table`)."""
         from .report import format_table
 
-        return format_table(self.summary)
+        return format_table(self.summary, self.sensors)
 
     def save(self, path: str | os.PathLike[str], *, force: bool = False) -> Path:
         """Write the Rerun recording to `path` (atomically, `io.atomic.Outputs`; an existing

@@ -14,6 +14,7 @@ from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import TRUTH
 from fusionlog.jsonout import dumps
 from fusionlog.memory import release_freed_memory
+from fusionlog.report import model_sensors
 from fusionlog.scenario import Scenario
 
 from .common import open_evaluation_inputs, progress
@@ -25,6 +26,8 @@ class EvaluateResult:
     recording: Path
     summary_path: Path | None
     summary: dict[str, Any]
+    #: the filters' sensor names (`report.format_table` names a single sensor's row by it)
+    sensors: list[str] | None = None
 
 
 def evaluate_into(
@@ -38,9 +41,10 @@ def evaluate_into(
     scenario: Scenario | None = None,
     sensors_sha256: str | None = None,
     estimates_name: str | None = None,
-) -> dict[str, Any]:
+) -> tuple[dict[str, Any], list[str] | None]:
     """Metrics of every architecture in `estimates_path` against the truth of `sensors_path`,
-    written into the (uncommitted) outputs `out` (.rrd) and `summary_path` (JSON).
+    written into the (uncommitted) outputs `out` (.rrd) and `summary_path` (JSON); returns
+    the summary and the filters' sensor names (from the estimates' provenance).
     `estimates_name` names the estimates in errors (`run`: its output, not the temporary file).
 
     Metrics are sums over blocks of runs, so memory does not grow with M; what they are and
@@ -80,7 +84,7 @@ def evaluate_into(
     kind.write_evaluation(outs.open(out), evaluation)
     if summary_path is not None:
         outs.open(summary_path).write(text.encode())
-    return summary
+    return summary, model_sensors(prov)
 
 
 def _check_variances(path: Path | str, topic: str, cov: np.ndarray) -> None:
@@ -105,8 +109,8 @@ def run_evaluate(
     targets = [Path(out)] + ([Path(summary_path)] if summary_path else [])
     inputs = [Path(sensors_path), Path(estimates_path)]
     with Outputs(targets, force=force, inputs=inputs) as outs:
-        summary = evaluate_into(
+        summary, sensors = evaluate_into(
             sensors_path, estimates_path, outs, Path(out), summary_path, block=block
         )
         outs.commit()
-    return EvaluateResult(Path(out), summary_path, summary)
+    return EvaluateResult(Path(out), summary_path, summary, sensors)
