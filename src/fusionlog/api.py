@@ -14,9 +14,10 @@ random streams belong to chunks of runs, so the runs are those `fusionlog simula
 one plan cache, and `evaluate` is the state evaluator fed the same blocks: the same scenario,
 runs and seed give the CLI's numbers.
 
-Bad arguments fail as the CLI does: one `ValidationError` (a `FusionlogError`) naming the
-argument (`runs`, `filter`, `architectures`, `sim.measurements['s1']`, `estimates['CKF'].cov`)
-and the problem (`fusionlog.arguments`), never numpy's error from deep inside; `simulate`
+Bad arguments fail as the CLI does: one `FusionlogError` (a `ValidationError` for the shapes
+and values of arrays) naming the argument (`runs`, `filter`, `architectures`,
+`sim.measurements['s1']`, `estimates['CKF'].cov`) and the problem (`fusionlog.arguments`),
+never numpy's error from deep inside; `simulate`
 refuses runs that cannot all be held in memory before allocating them
 (`scenario.base.memory_shortfall`, the CLI's memory decision).
 """
@@ -30,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _API
 from .arguments import (
     check_architecture_names,
     check_estimate_shapes,
@@ -51,16 +53,7 @@ from .stages.noise import with_covariances
 from .stages.state import check_discretisable
 from .stages.state_eval import SensorLog, StateEvaluator
 
-__all__ = [
-    "Estimate",
-    "Estimates",
-    "Evaluation",
-    "Simulation",
-    "estimate",
-    "evaluate",
-    "load",
-    "simulate",
-]
+__all__ = list(_API)  # the names `fusionlog` itself offers
 
 
 @dataclass
@@ -72,7 +65,9 @@ class Simulation:
     NaN where it did not measure (its timing) or lost the reading (dropout); `scheduled
     [sensor]` (K+1,) bool, the instants it measures at; `covariances[sensor]` (K+1, m, m) the
     R a recorded sensor's messages carry (NaN at instants without one); `scenario` the
-    scenario with the runs, steps and seed used.
+    scenario with the runs, steps and seed used; `z` (M, K+1, m) the measurements stacked as
+    in eq. (30). A replay's `times` count seconds from its first instant. `estimate` and
+    `evaluate` check these arrays against each other and the scenario (`check`).
     """
 
     scenario: Scenario
