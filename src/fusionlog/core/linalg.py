@@ -186,8 +186,13 @@ def not_a_covariance(P: np.ndarray, semidefinite: bool = True) -> np.ndarray:
         with np.errstate(over="ignore", invalid="ignore"):  # beyond +-1 by far: refused below
             C = Q / s[:, :, None] / s[:, None, :]
         finite = np.isfinite(C).all(axis=(-2, -1))
-        low = np.full(len(todo), -np.inf)
-        low[finite] = np.linalg.eigvalsh(sym(C[finite]))[:, 0]
+        unsure = finite.copy()
+        if kernels_for(C):  # C + tol I factors: lambda_min(C) > -tol, no eigenvalues needed
+            with np.errstate(invalid="ignore", divide="ignore"):  # the others: eigenvalues
+                _, ok = cholesky(lanes(lanes_copy(C + SEMIDEFINITE_TOL * np.eye(n))))
+            unsure &= ~ok
+        low = np.where(finite, 0.0, -np.inf)  # a correlation beyond +-1 by far: refused
+        low[unsure] = np.linalg.eigvalsh(sym(C[unsure]))[:, 0]
         bad[todo] = low < -SEMIDEFINITE_TOL
     return bad.reshape(P.shape[:-2])
 
