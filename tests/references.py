@@ -200,6 +200,12 @@ def ckf(system: System, z: np.ndarray, mask: np.ndarray, smooth: bool = False):
 
 
 def reference(system: System, arch: str, z: np.ndarray, mask: np.ndarray):
+    """The means (M, K+1, n) and covariances (K+1, n, n) of `arch` (SKF:name: the CKF of that
+    sensor alone)."""
+    if arch.startswith("SKF:"):
+        j = system.sensor_index(arch[4:])
+        rows = np.arange(system.m)[system.sensor_slices[j]]
+        return ckf(system.subset([j]), z[..., rows], mask[:, rows])
     if arch == "HKF":
         return hkf(system, z, mask)
     if arch in ("CKF", "FBS"):
@@ -238,7 +244,9 @@ def information_filter(system: System, z: np.ndarray, mask: np.ndarray, groups):
 def no_prior_reference(system: System, arch: str, z: np.ndarray, mask: np.ndarray):
     """CKF (one group: the full R), HKF (36-40 in information form: the fused information plus
     each sensor's equivalent measurement H_j^T R_j^-1 H_j, its own R_j only) and MSC (the local
-    information filters' informations and vectors summed, 32-34)."""
+    information filters' informations and vectors summed, 32-34). Returns the means, the
+    covariances Y^-1 (NaN where Y is singular to working precision, condition >= 1e12: no
+    estimate) and the condition numbers of Y."""
     per_sensor = [np.arange(system.m)[sl] for sl in system.sensor_slices]
     if arch == "CKF":
         Y, y = information_filter(system, z, mask, [np.arange(system.m)])
@@ -249,8 +257,12 @@ def no_prior_reference(system: System, arch: str, z: np.ndarray, mask: np.ndarra
         Y, y = sum(p[0] for p in parts), sum(p[1] for p in parts)
     else:
         raise AssertionError(arch)
-    P = np.linalg.inv(Y)
-    return np.einsum("mki,kij->mkj", y, P), P, np.linalg.cond(Y)
+    sv = np.linalg.svd(Y, compute_uv=False)  # descending
+    cond = np.full(len(Y), np.inf)
+    np.divide(sv[:, 0], sv[:, -1], out=cond, where=sv[:, -1] > 0)
+    P = np.full_like(Y, np.nan)
+    P[cond < 1e12] = np.linalg.inv(Y[cond < 1e12])
+    return np.einsum("mki,kij->mkj", y, P), P, cond
 
 
 def basis_runs(truth: System, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

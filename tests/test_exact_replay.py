@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from cli_helpers import ok
 from conditioning import assert_agree, sensitivity
-from references import exact_by_superposition, reference
+from references import exact_by_superposition
 from replay_helpers import REPLAY, gappy, head, robot_log, state_archs
 from scipy import special
 
@@ -153,15 +153,6 @@ def test_the_evaluate_stage_takes_it_for_one_run(tmp_path, monkeypatch) -> None:
             assert fast["architectures"][a]["expected"][f] == pytest.approx(v, rel=1e-9), (a, f)
 
 
-def _superposition_reference(filt, arch, Z, mask):
-    """`references.reference`, SKF:name as the CKF of that sensor alone."""
-    if arch.startswith("SKF:"):
-        j = filt.sensor_index(arch[4:])
-        rows = np.arange(filt.m)[filt.sensor_slices[j]]
-        return reference(filt.subset([j]), "CKF", Z[..., rows], mask[:, rows])
-    return reference(filt, arch, Z, mask)
-
-
 def test_every_architecture_equals_superposition_of_its_equations() -> None:
     """Independently of the plans: each architecture's exact bias, MSE matrix and NEES from
     `replay_expected` on the correlated sensors with gaps equal those of the reference written
@@ -176,7 +167,7 @@ def test_every_architecture_equals_superposition_of_its_equations() -> None:
     fast = replay_expected(system, system, archs, present, K)
     assert sorted(fast) == sorted(archs)
     for a in archs:
-        bias, mse, P = exact_by_superposition(system, system, a, present, _superposition_reference)
+        bias, mse, P = exact_by_superposition(system, system, a, present)
         nees = np.einsum("kij,kji->k", np.linalg.inv(P), mse)
 
         def ours(s, a=a):
