@@ -223,24 +223,19 @@ def test_turn_below_a_tenth_is_the_exact_turn_to_the_closed_form_s_rounding(thet
     x = np.array([[0.0, vx, 0.0, vy, theta]])
     a, b, c, s = _turn_values(theta)
     da, db = _turn_slopes(theta)
-    want = {
-        "x'": a * vx - b * vy,
-        "vx'": c * vx - s * vy,
-        "y'": b * vx + a * vy,
-        "vy'": s * vx + c * vy,
-        "dx'/domega": da * vx - db * vy,
-        "dy'/domega": db * vx + da * vy,
+    terms = {  # each a sum of two rounded products: its error is relative to their sizes
+        "x'": (a * vx, -b * vy),
+        "vx'": (c * vx, -s * vy),
+        "y'": (b * vx, a * vy),
+        "vy'": (s * vx, c * vy),
+        "dx'/domega": (da * vx, -db * vy),
+        "dy'/domega": (db * vx, da * vy),
     }
     f, J = ct.f(x, 1.0)[0], ct.jacobian(x, 1.0)[0]
-    got = dict(zip(want, [f[0], f[1], f[2], f[3], J[0, 4], J[2, 4]], strict=True))
+    got = dict(zip(terms, [f[0], f[1], f[2], f[3], J[0, 4], J[2, 4]], strict=True))
     tol = 8 * EPS / theta**2
-    for name, w in want.items():
-        # relative to the terms summed (|a vx| + |b vy| etc.): a sum of two rounded terms
-        scale = {"x'": abs(a * vx) + abs(b * vy), "y'": abs(b * vx) + abs(a * vy),
-                 "vx'": abs(c * vx) + abs(s * vy), "vy'": abs(s * vx) + abs(c * vy),
-                 "dx'/domega": abs(da * vx) + abs(db * vy),
-                 "dy'/domega": abs(db * vx) + abs(da * vy)}[name]  # fmt: skip
-        err = abs(Fraction(float(got[name])) - w) / scale
+    for name, (p, q) in terms.items():
+        err = abs(Fraction(float(got[name])) - (p + q)) / (abs(p) + abs(q))
         assert err < tol, (theta, name, float(err), tol)
 
 
