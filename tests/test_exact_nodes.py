@@ -2,9 +2,9 @@
 statistics computed once per node equal the per-run analysis of the same plan with every run's
 maps gathered (`Plan.per_run_maps`), for every architecture, with and without a prior,
 correlated sensors, and a truth that differs from the filters' model; and, independently of
-the moments code both share, without a prior under a mismatched truth, each run's statistics
-equal the superposition of the information filters written in `references`; failures name a
-run."""
+the moments code both share, under a mismatched truth with and without a prior, each run's
+statistics equal the superposition of the references written from the equations
+(`references`); failures name a run."""
 
 from __future__ import annotations
 
@@ -89,8 +89,8 @@ def test_nodes_under_a_mismatched_truth_equal_superposition(arch, prior):
     information filters, whose map of the true state D_k changes at every step) on the
     run's own pattern, by superposition (`exact_by_superposition`), where the information is
     well conditioned (< 1e8) and rounding decides nothing (`conditioning`); ours reports no
-    estimate only where it is not. An analysis holding D_0 at every step was 10 % off in
-    MSE and 57 times in NEES without a prior."""
+    estimate only where it is not. An analysis holding D_0 at every step (never advancing
+    D_prev) fails it without a prior."""
     rng = np.random.default_rng(zlib.crc32(f"{arch} {prior} superposition".encode()))
     dims = [2, 1] if arch == "CI" else [1, 2, 1]  # the CI reference fuses two inputs
     system = random_system(rng, 3, dims, prior=prior, correlated=True)

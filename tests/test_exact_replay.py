@@ -7,6 +7,9 @@ instants (per-message R, irregular instants) and on correlated sensors with gaps
 than the model goes to the plans; `fusionlog run` takes it. And DM of a shared plan's many
 distinct statistics (a replay's instants), integrated on the per-run analysis' fitted grid:
 against the fixed 1601-node grid within its truncation and, for the CKF, the chi mean.
+Independently of the plans: every architecture against superposition of the references
+written from the equations (`references`), and a filter prior other than the truth's initial
+distribution through the Python API against the true error covariance propagated here.
 """
 
 from __future__ import annotations
@@ -196,9 +199,10 @@ def test_a_filter_prior_other_than_the_truth_s_initial_covariance(tmp_path) -> N
     the CKF and of SKF:pose at every instant equals the true error covariance propagated here
     with the filter's own gains (from its P), C+ = A C- A^T + K R K^T, C- = F C+ F^T + Q,
     started from the truth's covariance (the identity), on the recorded instants (F, Q in
-    closed form, Qc = n0 dt = 0.02) with each pose message's own R. Taking the filter's P for
-    it is 55-72 % off at the first instants. Both propagations are contractions of
-    well-conditioned matrices: 1e-9 relative is far above their rounding."""
+    closed form, Qc = n0 dt = 0.02) with each pose message's own R. The filter's P taken for
+    it (the truth seen as the model when only the initial covariance differs) is up to 8
+    times off. Both propagations are contractions of well-conditioned matrices: 1e-9
+    relative is far above their rounding."""
     text = REPLAY.read_text().replace('source = "data/', f'source = "{REPLAY.parent}/data/')
     p_filter = np.diag([4.0, 0.25, 9.0, 0.5])
     p_filter[0, 2] = p_filter[2, 0] = 1.5
