@@ -131,7 +131,7 @@ class Estimate:
     `cov` (M, K+1, n, n), for linear and nonlinear scenarios alike.
 
     Where every run has the same covariance (a linear model without per-run dropouts: the
-    gains are computed once for all runs, DESIGN.md "Vectorise over runs") `cov` is a
+    gains are computed once for all runs: docs/internals.md) `cov` is a
     read-only view of one (K+1, n, n) array broadcast over the runs, so it costs no memory
     per run: `shared_cov` is then True and `cov[0]` is that array. Otherwise `cov` holds each
     run's own. NaN in both mean and cov marks an instant without an estimate (no prior yet).
