@@ -31,10 +31,10 @@ from .errors import FusionlogError
 from .io.mcap import estimates_topic, sensor_topic
 from .scenario import Scenario, load_scenario, scenario_with
 from .stages.common import block_runs
+from .stages.evaluator import SensorLog, StateEvaluator
 from .stages.kinds import kind_of
 from .stages.noise import with_covariances
-from .stages.state import check_discretisable
-from .stages.state_eval import SensorLog, StateEvaluator
+from .stages.state_kind import check_discretisable
 
 __all__ = ["Estimates", "Evaluation", "Simulation", "estimate", "evaluate", "load", "simulate"]
 
@@ -209,7 +209,7 @@ def estimate(
     scenario = _state_scenario(scenario)
     system = scenario.system
     if filter is not None:
-        from .stages.nonlinear import with_filter
+        from .stages.state_kind import with_filter
 
         system = with_filter(system, filter)
     if isinstance(architectures, str):  # "CKF", not the letters "C", "K", "F"
