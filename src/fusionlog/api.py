@@ -163,7 +163,7 @@ def _state_scenario(scenario: Scenario | str | os.PathLike[str]) -> Scenario:
 
 def _recorded(scenario: Scenario) -> Simulation:
     """A replay's readings on their instants (what `fusionlog import` writes), as one run."""
-    from .stages.replay import read_replay  # the decoders: only replays need them
+    from .stages.import_data import read_replay  # the decoders: only replays need them
 
     data = read_replay(scenario)
     sc = data.scenario

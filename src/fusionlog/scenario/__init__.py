@@ -1,9 +1,9 @@
 """Scenario definitions (pipeline/*.toml, DESIGN.md "Scenario TOML"): loading and validation.
 
-The kind of a scenario (``state`` or ``identity``, see :mod:`.base`) is decided here, once,
+The kind of a scenario (``state`` or ``identity``, see :mod:`.scenario_base`) is decided here, once,
 from the file (:func:`load_scenario`) or from the sensors file's metadata
 (:func:`scenario_from_metadata`); the parsers of the two kinds sit side by side in
-:mod:`.state` and :mod:`.identity`, on the shared helpers of :mod:`.toml`.
+:mod:`.state_file` and :mod:`.identity_file`, on the shared helpers of :mod:`.toml`.
 """
 
 from __future__ import annotations
@@ -15,10 +15,16 @@ from typing import Any
 from fusionlog.errors import FusionlogError, ValidationError
 
 from . import toml
-from .base import KINDS, Scenario, check_budget, scenario_with
-from .identity import check_identity_architectures, identity_from_doc, is_identity_doc
-from .replay import Replay, Stream, is_replay_doc, replay_from_doc
-from .state import MODEL_KINDS, model_from_doc, state_from_doc, system_from_dict, system_to_dict
+from .identity_file import check_identity_architectures, identity_from_doc, is_identity_doc
+from .replay_file import Replay, Stream, is_replay_doc, replay_from_doc
+from .scenario_base import KINDS, Scenario, check_budget, scenario_with
+from .state_file import (
+    MODEL_KINDS,
+    model_from_doc,
+    state_from_doc,
+    system_from_dict,
+    system_to_dict,
+)
 
 __all__ = [
     "KINDS",

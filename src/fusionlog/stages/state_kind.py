@@ -25,7 +25,7 @@ from fusionlog.errors import FusionlogError, NumericalError
 from fusionlog.io.mcap import TRUTH, McapFile, McapWriter, arch_of, sensor_topic
 from fusionlog.io.mcap.topics import ESTIMATES_PREFIX
 from fusionlog.scenario import Scenario, load_model, system_from_dict, system_to_dict
-from fusionlog.scenario.model import bytes_per_instant
+from fusionlog.scenario.model_section import bytes_per_instant
 
 from .common import block_runs
 from .evaluator import SensorLog, StateEvaluator
@@ -50,7 +50,7 @@ def with_filter(system: Any, name: str | None) -> Any:
     """The system with its local filter set by ``--filter`` (None: as recorded)."""
     if name is None:
         return system
-    from fusionlog.scenario.nonlinear import FILTERS
+    from fusionlog.scenario.nonlinear_syntax import FILTERS
 
     if not isinstance(system, System):
         raise FusionlogError("--filter: only state scenarios have a local filter")

@@ -40,14 +40,15 @@ from fusionlog.core.models import SensorModel
 from fusionlog.core.names import STATE_ARCHITECTURES, parse_arch
 from fusionlog.core.timing import SensorTiming
 
-from . import nonlinear, toml
+from . import nonlinear_syntax as nonlinear
 from . import sensors as sensor_tables
-from .base import DEFAULT_CONFIDENCE, DEFAULT_SAMPLE_RUNS, Scenario, header
-from .model import (
+from . import toml
+from .model_section import (
     MODEL_KINDS,
     check_schedule,
     model_section,
 )
+from .scenario_base import DEFAULT_CONFIDENCE, DEFAULT_SAMPLE_RUNS, Scenario, header
 from .toml import Ctx
 
 __all__ = [

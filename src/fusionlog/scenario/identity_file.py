@@ -39,7 +39,7 @@ from fusionlog.core.identity.model import (
 from fusionlog.errors import FusionlogError
 
 from . import toml
-from .base import DEFAULT_SAMPLE_RUNS, Scenario, header
+from .scenario_base import DEFAULT_SAMPLE_RUNS, Scenario, header
 from .toml import Ctx
 
 __all__ = ["check_identity_architectures", "identity_from_doc", "is_identity_doc"]

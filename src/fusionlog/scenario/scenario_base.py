@@ -68,7 +68,7 @@ class Scenario:
     plane_view: bool = False  # a 2-D view of the state plane (n = 2): estimates and ellipses
     source: str = ""  # the TOML text as loaded (overrides are not written back into it)
     path: str | None = None
-    replay: Any = None  # a replay's recorded data (scenario.replay.Replay); None: simulated
+    replay: Any = None  # a replay's recorded data (scenario.replay_file.Replay); None: simulated
 
     @cached_property
     def schedule(self) -> Schedule:
@@ -219,7 +219,9 @@ def scenario_with(
         "--runs" if runs is not None else "scenario.runs",
     )
     if steps is not None and hasattr(new.system, "schedule"):
-        from .model import check_schedule  # the state kind's sensors: timing on the new horizon
+        from .model_section import (
+            check_schedule,  # the state kind's sensors: timing on the new horizon
+        )
 
         check_schedule(ctx, new.system, new.steps, steps_key, len(new.architectures))
     return new

@@ -38,10 +38,10 @@ from fusionlog.core.model import Sensor, System
 from fusionlog.core.timing import TIME_UNITS
 
 from . import toml
-from .base import Header, Scenario
-from .model import model_section
+from .model_section import model_section
+from .scenario_base import Header, Scenario
 from .sensors import sensor_matrices
-from .state import (
+from .state_file import (
     architectures_section,
     correlations_section,
     evaluate_section,
