@@ -30,7 +30,7 @@ import numpy as np
 from fusionlog.core.architectures import Estimate, PlanCache, estimate_block
 from fusionlog.errors import NumericalError
 from fusionlog.memory import keep_freed_memory
-from fusionlog.scenario import Scenario
+from fusionlog.scenario import NonlinearScenario, Scenario
 
 from .common import block_runs
 from .kinds import kind_of
@@ -276,7 +276,7 @@ def scenario_bound(scenario: Any) -> dict[str, Any] | None:
     block by block (the bound needs their truth and which measurements they made, no
     estimate: a sweep's point, computed where the points are summarised); None when the
     model is linear (its exact analysis stands instead)."""
-    if scenario.kind != "state" or scenario.system.linear:
+    if not isinstance(scenario, NonlinearScenario):
         return None
     from .evaluator.pcrb_part import PcrbPart
 
