@@ -1,13 +1,5 @@
 """Which route computes a result where there are several, decided in one place.
 
-The reference switch: ``FUSIONLOG_REFERENCE_PATHS=1`` in the environment sends every kept fast
-path to its plain reference path (benchmarks/README.md "Fast paths" lists each, the workload it
-serves and what it gains there): one run estimated without plans (`architectures.replay`), the
-exact analysis of one recorded log without plans (`exact_replay`), the regex decoding of
-canonical protobuf messages (`io.mcap.wire`). The answers agree to rounding (the tests run the
-goldens and the exactness tests once with the switch on), so the switch is how a suspected
-fast path is told from the reference.
-
 The exact analysis of an evaluation (Section IV's expected MSE, NEES and DM) has three routes:
 
 * ``per-run``: runs whose measurement patterns differ (dropouts): each run's exact values given
@@ -21,23 +13,17 @@ The exact analysis of an evaluation (Section IV's expected MSE, NEES and DM) has
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
-import numpy as np
+from .reference import reference_paths
 
-from .model import System
+if TYPE_CHECKING:
+    import numpy as np
 
-__all__ = ["REFERENCE_PATHS_ENV", "exact_route", "reference_paths", "shared_expected"]
+    from .model import System
 
-#: The environment variable that forces the plain reference paths ("1"; unset or "0": not).
-REFERENCE_PATHS_ENV = "FUSIONLOG_REFERENCE_PATHS"
-
-
-def reference_paths() -> bool:
-    """Whether the plain reference paths are forced (read at each decision, so a test or a
-    process can set it at any time)."""
-    return os.environ.get(REFERENCE_PATHS_ENV, "") not in ("", "0")
+__all__ = ["exact_route", "shared_expected"]
 
 
 def exact_route(per_run: bool, runs: int, recorded: bool) -> str:
