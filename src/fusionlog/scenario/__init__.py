@@ -47,6 +47,7 @@ __all__ = [
     "check_budget",
     "check_identity_architectures",
     "doc_kind",
+    "is_replay_text",
     "kind_of_text",
     "load_model",
     "load_scenario",
@@ -118,6 +119,12 @@ def scenario_from_text(text: str, source: str = "<string>") -> Scenario:
 def kind_of_text(text: str, source: str = "<string>") -> str:
     """The kind of a scenario or model file's text (``state`` unless it has [identity])."""
     return _recorded_kind(doc_kind(toml.parse_toml(text, source)))
+
+
+def is_replay_text(text: str, source: str = "<string>") -> bool:
+    """Whether a scenario's TOML text (as a file's ``fusionlog.scenario`` record keeps it) is
+    a replay file (its sensors name a `source`): one recorded run, no seed."""
+    return doc_kind(toml.parse_toml(text, source)) == "replay"
 
 
 def load_model(

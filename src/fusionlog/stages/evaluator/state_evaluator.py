@@ -77,6 +77,7 @@ class StateEvaluator(Evaluator):
         self.topics = [estimates_topic(a) for a in self.archs]
         self.sc, self.prov, self.source = sc, prov, source
         self.n = truth_sys.n
+        self.sensors = tuple(s.name for s in filter_sys.sensors)  # the filters' (NIS rows)
         self.times = np.asarray(times, dtype=float)
         self.K, self.M = len(self.times) - 1, runs
         log = log or SensorLog()
@@ -186,5 +187,6 @@ class StateEvaluator(Evaluator):
             state_names=tuple(self.sc.state_names),
             confidence=self.sc.confidence,
             properties={"scenario": self.sc.source, "provenance": provenance or self.prov},
+            sensors=self.sensors,
             **into.fields,
         )
