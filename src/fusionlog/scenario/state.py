@@ -267,7 +267,21 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
         ukf=ukf,
     )
     nonlinear.check_nonlinear(ctx, system, bool(cross_R))
+    check_determined(ctx, system)
     return system
+
+
+def check_determined(ctx: Ctx, system: System) -> None:
+    """Without a prior every state must be determined by the sensors through the model (a
+    replay with a state nothing measures gave every metric NaN, exit 0, and no word why)."""
+    if system.prior is None and system.linear and (lost := system.undetermined_states()):
+        names = ", ".join(system.state_names[i] for i in lost)
+        raise ctx.err(
+            "prior",
+            f"missing, and no sensor ever determines {names} through the model (unobservable): "
+            "without a prior no filter would ever have a covariance and every metric would be "
+            "NaN; give [prior] (mean, cov) or a sensor that measures them",
+        )
 
 
 def prior_section(ctx: Ctx, doc: dict[str, Any], F: np.ndarray) -> Prior | None:
