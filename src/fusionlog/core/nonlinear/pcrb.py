@@ -82,10 +82,12 @@ class PcrbAccumulator:
             if self.linear_motion:
                 F = motion.F(dt)
                 P = sym(Q + F @ out[k - 1] @ F.T)
-                if definite(P, strict=True):
+                # after a definite bound (J known) the information form as it always was, with
+                # no test; after a singular one, a test: a singular Q keeps a known state known
+                if J is not None or definite(P, strict=True):
                     J = spd_inv(P, "Q + F J^-1 F'") + Dz[k]
                     out[k] = spd_inv(J, "the Fisher information")
-                else:  # a singular Q beside a known state
+                else:
                     out[k] = _inverse_of_sum(P, Dz[k])
                 continue
             Qi = spd_inv(Q, "the process noise covariance Q")
