@@ -33,6 +33,7 @@ from .block import (
     keep_block_plans,
     shared_pattern,
 )
+from .definition import LOCALS, Architecture, Rule
 from .executor import DENSE_MAX_STEPS, STEADY_BLOCK, run_plan
 from .plan import (
     BlockDiagonal,
@@ -47,9 +48,11 @@ from .plan import (
 from .registry import (
     REGISTRY,
     STATE_ARCHITECTURES,
-    Architecture,
     build_plan,
+    definition,
     parse_arch,
+    register,
+    unregister,
 )
 
 __all__ = [
@@ -58,6 +61,8 @@ __all__ = [
     "STATE_ARCHITECTURES",
     "STEADY_BLOCK",
     "Architecture",
+    "LOCALS",
+    "Rule",
     "Block",
     "PlanCache",
     "BlockDiagonal",
@@ -70,10 +75,13 @@ __all__ = [
     "StepMap",
     "build_plan",
     "conditional_sums",
+    "definition",
     "estimate",
     "estimate_block",
     "keep_block_plans",
     "parse_arch",
+    "register",
     "run_plan",
     "shared_pattern",
+    "unregister",
 ]
