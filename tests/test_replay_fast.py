@@ -18,13 +18,13 @@ from conditioning import assert_agree, sensitivity
 from replay_helpers import gappy, head, robot_log, state_archs
 
 from fusionlog.core.architectures import (
-    block,
     build_plan,
     estimate,
     replay,
     run_plan,
 )
 from fusionlog.core.architectures.replay import applies, replay_estimates
+from fusionlog.driver import plans
 from fusionlog.io.mcap import McapFile
 
 #: The first instants of the log (every sensor measures in them, the localiser a few times):
@@ -113,7 +113,7 @@ def test_the_estimate_command_takes_it_for_one_run(robot, tmp_path, monkeypatch)
     def no_plans(*args, **kwargs):
         raise AssertionError("a plan was built for a one-run log")
 
-    monkeypatch.setattr(block, "build_plan", no_plans)
+    monkeypatch.setattr(plans, "build_plan", no_plans)  # the driver's plan cache
     archs = ["CKF", "HKF", "MSC-GMF", "MSC", "SKF:mocap", "CI", "FBS", "AVG"]
     out = tmp_path / "e.mcap"
     ok("estimate", path, "-o", out, *[x for a in archs for x in ("--arch", a)])

@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from fusionlog.core.architectures import PlanCache
 from fusionlog.core.model import System
+from fusionlog.driver import PlanCache
 from fusionlog.errors import FusionlogError
 
 __all__ = ["PcrbPart", "scenario_bound", "simulated_readings", "step_writers", "with_filter"]

@@ -19,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from fusionlog.core.architectures import PlanCache, conditional_sums
 from fusionlog.core.evaluation import Evaluation
 from fusionlog.core.model import System
 from fusionlog.core.names import known_arch
+from fusionlog.driver import KeptPlans, PlanCache, conditional_sums
 from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap.topics import estimates_topic, sensor_topic
 from fusionlog.scenario import Scenario
@@ -93,6 +93,7 @@ class StateEvaluator(Evaluator):
         prov: dict[str, str],
         log: SensorLog | None = None,
         source: str = "",
+        kept: KeptPlans | None = None,
     ) -> None:
         # here, not at the top: core.metrics imports scipy.special (~0.25 s), which only an
         # evaluation needs, and this module is loaded by simulate and estimate too
@@ -110,7 +111,7 @@ class StateEvaluator(Evaluator):
         self.filter_sys, self.truth_sys = filter_sys, truth_sys
         self.times = np.asarray(times, dtype=float)
         self.K, self.M = len(self.times) - 1, runs
-        self.plans = PlanCache(filter_sys, self.K)
+        self.plans = PlanCache(filter_sys, self.K, kept=kept)
         self.known = [a for a in self.archs if known_arch(a, filter_sys)]
         self.analysable = exact_setup(prov, filter_sys, truth_sys)
         self._fast: dict[str, Any] | None = None  # one run's `exact_replay` statistics
