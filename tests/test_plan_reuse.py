@@ -1,6 +1,7 @@
 """`fusionlog run` hands the estimate stage's per-run plans of a block to the evaluation's exact
-analysis (a `driver.KeptPlans` both stages' caches are given): the same plan for the same model and masks, never another
-block's, and the run's summary is that of the stages run one by one."""
+analysis (a `driver.KeptPlans` both stages' caches are given): the same plan for the same
+model and masks, never another block's, and the run's summary is that of the stages run one
+by one."""
 
 from __future__ import annotations
 
@@ -11,9 +12,9 @@ from pathlib import Path
 import numpy as np
 from cli_helpers import ok
 
-from fusionlog.driver import KeptPlans, PlanCache
 from fusionlog.core.model import ajgl2009
 from fusionlog.core.simulate import simulate
+from fusionlog.driver import KeptPlans, PlanCache
 
 ROOT = Path(__file__).resolve().parents[1]
 DROPOUT = ROOT / "pipeline" / "ajgl2009_dropout.toml"
