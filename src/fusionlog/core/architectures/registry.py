@@ -19,6 +19,7 @@ from . import rules
 from .definition import Architecture
 from .fbs import build_fbs
 from .hkf import build_hkf
+from .ici import ICI
 from .plan import BuildRequest, HistoryNodes, Plan
 from .single import build_ckf, build_skf
 from .track_to_track import build_avg, build_ci, build_msc, build_msc_gmf, build_rule
@@ -125,6 +126,7 @@ for _a in (
         build=build_avg,
         default=True,
     ),
+    ICI,
 ):
     register(_a)
 
