@@ -19,8 +19,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fusionlog.core.architectures import Plan, build_plan, shared_pattern
+from fusionlog.core.architectures import HistoryNodes, Plan, build_plan, shared_pattern
 from fusionlog.core.architectures import registry as _registry
+from fusionlog.core.architectures.registry import group_by_history
 from fusionlog.core.model import System
 
 __all__ = ["KeptPlans", "PlanCache", "pattern_record"]
@@ -122,12 +123,21 @@ class PlanCache:
             return {a: self.plan(a, pattern) for a in archs}, pattern
         present = ~np.isnan(z)
         kept = None if self.kept is None else self.kept.of_block(_block_key(self, present))
-        plans = {}
+        plans: dict[str, Plan] = {}
+        groups: HistoryNodes | None | str = "group"  # the runs grouped once for all archs
         for a in archs:
             plan = None if kept is None else kept.get(a)
             if plan is None:
+                if isinstance(groups, str):
+                    groups = group_by_history(present)
                 plan = build_plan(
-                    self.system, a, self.steps, present, self.criterion, history_nodes=True
+                    self.system,
+                    a,
+                    self.steps,
+                    present,
+                    self.criterion,
+                    history_nodes=True,
+                    groups=groups,
                 )
                 if kept is not None:
                     kept[a] = plan

@@ -170,6 +170,7 @@ def build_plan(
     criterion: str = "trace",
     *,
     history_nodes: bool = False,
+    groups: HistoryNodes | None | str = "group",
 ) -> Plan:
     """Compile architecture `arch` for instants k = 0..steps.
 
@@ -180,14 +181,15 @@ def build_plan(
 
     Per run, the maps are computed once per measurement history (`HistoryNodes`) and, unless
     `history_nodes`, gathered into per-run maps (a leading run axis, what the exact analysis
-    cuts by runs); `run_plan` takes either (`estimate` keeps the nodes: less memory).
+    cuts by runs); `run_plan` takes either (`estimate` keeps the nodes: less memory). `groups`
+    is `group_by_history(present)` where the caller has it already ("group": grouped here).
     """
     base, sensor = parse_arch(arch, [s.name for s in system.sensors])
     if present is None:
         present = np.ones((steps + 1, system.m), dtype=bool)
     request = BuildRequest(system, arch, present, sensor, criterion, step=None)
     if present.ndim == 3:
-        request.nodes = group_by_history(present)
+        request.nodes = group_by_history(present) if isinstance(groups, str) else groups
     with numerical_errors(lambda: _where(request)):
         check_model(system)
         arch = REGISTRY[base]
@@ -206,33 +208,13 @@ NODES_AT_MOST = 0.8
 def group_by_history(present: np.ndarray) -> HistoryNodes | None:
     """The runs of the per-run mask `present` (M, K+1, m) grouped by history, or None when
     that would not pay (`NODES_AT_MOST`; over 16 components the grouping itself is slow).
-
-    The architectures of one estimate (and the exact analysis after them) are built on the
-    same mask one after the other: the last mask's grouping is kept and reused when the next
-    mask is the same, byte for byte (comparing 10^4 runs' masks costs ~1 % of grouping them,
-    23 ms at 20 % dropouts). The nodes are only read by the builders and the executor."""
-    global _LAST_GROUPING
+    The architectures of one block are built on the same mask one after the other: the
+    driver groups once and hands the grouping to each `build_plan` (`groups`)."""
     M, K1, m = present.shape
     if m > 16:
         return None
-    key = (NODES_AT_MOST, present.shape, np.packbits(present).tobytes())
-    last = _LAST_GROUPING
-    if last is not None and last[0] == key:
-        return last[1]
     nodes = HistoryNodes.of(present)
-    grouping = nodes if nodes.count <= NODES_AT_MOST * M * K1 else None
-    _LAST_GROUPING = (key, grouping)  # one assignment: safe beside other threads
-    return grouping
-
-
-_LAST_GROUPING: tuple[tuple[float, tuple[int, ...], bytes], HistoryNodes | None] | None = None
-
-
-def forget_grouping() -> None:
-    """Drop the kept grouping (a benchmark timing one architecture at a time calls this, so
-    that every timed build groups its runs as a lone architecture would)."""
-    global _LAST_GROUPING
-    _LAST_GROUPING = None
+    return nodes if nodes.count <= NODES_AT_MOST * M * K1 else None
 
 
 def check_model(system: System) -> None:
