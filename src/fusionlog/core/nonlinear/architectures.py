@@ -159,7 +159,7 @@ def estimate_steps(
     if kind.locals == "single":
         return _named(_filter(st, [names.index(sensor)]), arch)
     if kind.locals == "smoother":
-        return _named(_smoother(st), arch)
+        return _named(_smoother(st, arch), arch)
     if kind.locals == "hierarchical":
         return _named(_hkf(st), arch)
     return _named(_track_to_track(st, kind), arch)
@@ -205,12 +205,12 @@ def _filter(st: _Steps, which: list[int], keep: list | None = None) -> Steps:
         yield x, P
 
 
-def _smoother(st: _Steps) -> Steps:
+def _smoother(st: _Steps, arch: str) -> Steps:
     """The extended / unscented RTS smoother on the CKF (module docstring)."""
     keep: list = []
     M, K1 = st.z.shape[:2]
     out = _Out(M, K1, st.system.n)
-    forward = _named(_filter(st, list(range(len(st.system.sensors))), keep), "FBS")
+    forward = _named(_filter(st, list(range(len(st.system.sensors))), keep), arch)
     for k, (x, P) in enumerate(forward):
         out.put(k, x, P)
     tr = out.track()
