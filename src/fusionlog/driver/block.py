@@ -20,7 +20,6 @@ from typing import Any
 import numpy as np
 
 from fusionlog.core.architectures import Estimate, Plan, run_plan, shared_pattern
-from fusionlog.core.architectures.replay import replay_estimates
 from fusionlog.core.exact import ConditionalExpected, analyse
 from fusionlog.core.model import System
 from fusionlog.core.nonlinear import estimate as nonlinear_estimate
@@ -90,6 +89,8 @@ def estimate_block(
         )
     fast = None
     if cache.one_run and expected_of is None:
+        from fusionlog.core.architectures.replay import replay_estimates  # a replay's path
+
         fast = replay_estimates(cache.system, archs, z, cache.criterion)
     if fast is not None:  # one run, no exact analysis: no plans
         pattern = shared_pattern(z)

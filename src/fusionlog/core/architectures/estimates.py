@@ -10,7 +10,6 @@ import numpy as np
 from .executor import run_plan
 from .plan import Estimate
 from .registry import build_plan
-from .replay import replay_estimates
 
 
 def shared_pattern(z: np.ndarray) -> np.ndarray | None:
@@ -38,6 +37,8 @@ def estimate(system, z: np.ndarray, arch: str, criterion: str = "trace") -> Esti
         track = nonlinear_estimate(system, arch, z, None)
         return Estimate(track.mean, track.cov)
     if z.shape[0] == 1:
+        from .replay import replay_estimates  # on first use: a replay's path
+
         fast = replay_estimates(system, [arch], z, criterion)
         if fast is not None:
             return fast[arch]
