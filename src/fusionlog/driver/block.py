@@ -23,6 +23,7 @@ from fusionlog.core.architectures import Estimate, Plan, run_plan, shared_patter
 from fusionlog.core.exact import ConditionalExpected, analyse
 from fusionlog.core.model import System
 from fusionlog.core.nonlinear import estimate as nonlinear_estimate
+from fusionlog.core.reference import reference_paths
 
 from .plans import PlanCache
 
@@ -88,7 +89,7 @@ def estimate_block(
             ((a, Estimate(t.mean, t.cov)) for a, t in lanes), None, truth, workspace, keep
         )
     fast = None
-    if cache.one_run and expected_of is None:
+    if cache.one_run and expected_of is None and not reference_paths():
         from fusionlog.core.architectures.replay import replay_estimates  # a replay's path
 
         fast = replay_estimates(cache.system, archs, z, cache.criterion)

@@ -71,7 +71,7 @@ def estimate_to(
     if filter_name is not None:
         from fusionlog.scenario import system_to_dict
 
-        from .nonlinear import with_filter
+        from .state_kind import with_filter
 
         system = with_filter(model.system, filter_name)
         model = model._replace(system=system, json=json.dumps(system_to_dict(system)))
@@ -82,6 +82,8 @@ def estimate_to(
     archs = kind.check_architectures(archs or model.architectures, system, where)
     K, M = mf.steps() - 1, mf.runs()
     times = mf.times()
+    # a replay's estimates keep its recording's clock: the log_time of its sensor messages
+    w.set_time_origin(mf.time_origin_ns())
     est = kind.estimator(system, K, M, archs, mf, kept)
     B = est.block_runs(block)
     if SCENARIO_META in mf.metadata:

@@ -49,7 +49,7 @@ def run_pipeline(
     outs = {k: Path(out_dir) / k for k in RUN_OUTPUTS}
     inputs = list(inputs or [])
     if sc.replay is not None:
-        from .replay import replay_inputs
+        from .import_data import replay_inputs
 
         inputs += replay_inputs(sc)
     else:  # before the output folder is made: a run that cannot fit leaves nothing behind
@@ -61,7 +61,7 @@ def run_pipeline(
     with Outputs(list(outs.values()), force=force, inputs=inputs) as o:
         t0 = time.perf_counter()
         if sc.replay is not None:
-            from .replay import import_to, read_replay  # the decoders: only replays need them
+            from .import_data import import_to, read_replay  # the decoders: only replays need them
 
             data = read_replay(sc)
             sc, notes = data.scenario, data.notes
@@ -96,7 +96,7 @@ def run_pipeline(
         seconds["estimate"] = time.perf_counter() - t1
         release_freed_memory()
         t2 = time.perf_counter()
-        summary = evaluate_into(
+        summary, _ = evaluate_into(
             o.temp_path(outs["sensors.mcap"]),
             o.temp_path(outs["estimates.mcap"]),
             o,

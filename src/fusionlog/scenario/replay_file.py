@@ -35,21 +35,24 @@ from typing import Any
 import numpy as np
 
 from fusionlog.core.model import Sensor, System
-from fusionlog.core.timing import TIME_UNITS
+from fusionlog.core.timing import MAX_PERIOD_S, MIN_PERIOD_S, TIME_UNITS
+from fusionlog.errors import ValidationError
 
 from . import toml
-from .base import Header, Scenario
-from .model import model_section
+from .model_section import model_section
+from .scenario_base import Header
 from .sensors import sensor_matrices
-from .state import (
+from .state_file import (
+    StateScenario,
     architectures_section,
+    check_determined,
     correlations_section,
     evaluate_section,
     prior_section,
 )
 from .toml import Ctx
 
-__all__ = ["Replay", "Stream", "is_replay_doc", "replay_from_doc"]
+__all__ = ["Replay", "ReplayScenario", "Stream", "is_replay_doc", "replay_from_doc"]
 
 _TOP_KEYS = ("scenario", "model", "prior", "truth", "sensors", "correlations", "estimate",
              "evaluate")  # fmt: skip
@@ -97,6 +100,22 @@ class Replay:
     truth_states: tuple[int, ...] = ()
     match: str = "nearest"  # how truth samples are associated with the instants
     max_diff_ns: int = 10_000_000  # the largest time difference of an associated sample
+
+
+@dataclass(frozen=True, eq=False)
+class ReplayScenario(StateScenario):
+    """A state scenario whose sensors' readings are recorded (`replay`: where they are and how
+    they are read): one run on the measurement times."""
+
+    replay: Replay = None  # type: ignore[assignment] - always given (replay_from_doc)
+
+    def check_overrides(self, file: str, given: list[str]) -> None:
+        """As scenario.runs/steps/seed in the file: refused, never ignored."""
+        if given:
+            raise ValidationError(
+                f"{file}: {', '.join(given)}: not used with a replay file (one recorded run; "
+                "the instants are the measurement times)"
+            )
 
 
 def is_replay_doc(doc: dict[str, Any]) -> bool:
@@ -266,7 +285,9 @@ def _covariance(ctx: Ctx, t: dict[str, Any], where: str, m: int) -> tuple[str | 
     return field, tuple(idx)
 
 
-def replay_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None) -> Scenario:
+def replay_from_doc(
+    doc: dict[str, Any], file: str, source: str, path: str | None
+) -> ReplayScenario:
     """A replay scenario from a parsed TOML document (`file` names it in errors; sources are
     relative to the folder of `path`, or of `file` when there is no path)."""
     ctx = Ctx(file)
@@ -328,13 +349,13 @@ def replay_from_doc(doc: dict[str, Any], file: str, source: str, path: str | Non
     cross_R = correlations_section(ctx, doc, tuple(sensors))
     system = System(F=F, Q=Q, G=G, sensors=tuple(sensors), prior=prior, cross_R=cross_R, dt=dt,
                     state_names=state_names, continuous=continuous)  # fmt: skip
+    check_determined(ctx, system)
     architectures = architectures_section(ctx, doc, system)
     confidence, sample_runs, plane_view = evaluate_section(ctx, doc)
     if plane_view and n != 2:
         raise ctx.err("evaluate.plane_view", f"needs a 2-D state, this one has {n}")
     h = Header(name, description, 0, 1, 0, dt)
-    return Scenario.of(
-        "state",
+    return ReplayScenario.of(
         h,
         system,
         dt=dt,
@@ -376,7 +397,14 @@ def _truth(
         if match == "exact":
             raise ctx.err("truth.max_diff", "not used with match = 'exact'")
         max_diff = toml.number(ctx, tr["max_diff"], "truth.max_diff")
-        if not (max_diff > 0 and max_diff < 1e9):
-            raise ctx.err("truth.max_diff", f"must be > 0 seconds, got {toml.fmt(max_diff)}")
+        # the range of a sensor's period (`core.timing`): whole nanoseconds, far inside the
+        # 64-bit nanosecond clock
+        if not MIN_PERIOD_S <= max_diff <= MAX_PERIOD_S:
+            raise ctx.err(
+                "truth.max_diff",
+                f"must be > 0 seconds, from {toml.fmt(MIN_PERIOD_S)} (one nanosecond, the "
+                f"resolution of a log's time) to {toml.fmt(MAX_PERIOD_S)} (about 31.7 years), "
+                f"got {toml.fmt(max_diff)}",
+            )
     max_diff_ns = round(Decimal(repr(max_diff)) * 1_000_000_000)
     return stream, tuple(state_names.index(s) for s in states), match, max_diff_ns
