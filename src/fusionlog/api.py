@@ -10,7 +10,7 @@
 
 The CLI is an adapter over the same functions: `simulate` is the simulate stage's hook (the
 random streams belong to chunks of runs, so the runs are those `fusionlog simulate` writes),
-`estimate` is `core.architectures.estimate_block` in the estimate stage's blocks of runs with
+`estimate` is `driver.estimate_block` in the estimate stage's blocks of runs with
 one plan cache, and `evaluate` is the state evaluator fed the same blocks: the same scenario,
 runs and seed give the CLI's numbers.
 
@@ -40,9 +40,9 @@ from .arguments import (
 )
 from .core import evaluation
 from .core.architectures import Estimate as BlockEstimate
-from .core.architectures import PlanCache, estimate_block
 from .core.model import System
 from .core.names import check_architectures
+from .driver import PlanCache, estimate_block
 from .errors import FusionlogError, ValidationError
 from .io.mcap import estimates_topic, sensor_topic
 from .scenario import Scenario, load_scenario, scenario_with
