@@ -25,7 +25,7 @@ PATH = click.Path(path_type=Path, dir_okay=False)
 @click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
               help="TUNED.toml: the scenario with the identified values.")  # fmt: skip
 @click.option("--report", type=click.Path(path_type=Path),
-              help="REPORT.json: values, standard errors, the given values and their cost.")  # fmt: skip
+              help="REPORT.json: values, standard errors, given values, their cost.")  # fmt: skip
 @click.option("--with-truth", is_flag=True, help="Add the truth's likelihood (the log's truth).")
 @click.option("--force", is_flag=True, help="Overwrite existing outputs.")
 def identify(scenario, sensors, params, output, report, with_truth, force) -> None:

@@ -209,9 +209,9 @@ def _same(a: Any, b: Any) -> bool:
 def _resolve(
     doc: dict[str, Any], key: str, segments: tuple[str, ...], option: str = "--vary"
 ) -> list[str | int]:
-    """The path of `key` (its `segments`) in the document: each segment a table key or an array index (an
-    element of an array of tables may be named by its `name`, which may hold dots). Only the
-    last key (and tables leading to it) may be missing."""
+    """The path of `key` (its `segments`) in the document: each segment a table key or an
+    array index (an element of an array of tables may be named by its `name`, which may hold
+    dots). Only the last key (and tables leading to it) may be missing."""
     path: list[str | int] = []
     node: Any = doc
     segs = list(segments)

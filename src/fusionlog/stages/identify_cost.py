@@ -25,7 +25,9 @@ from .montecarlo import expected_overall
 __all__ = ["cost_of", "format_identification", "whiteness_of"]
 
 
-def cost_of(given: Scenario, tuned: Scenario, sim: Any) -> dict[str, dict[str, float | None] | None]:
+def cost_of(
+    given: Scenario, tuned: Scenario, sim: Any
+) -> dict[str, dict[str, float | None] | None]:
     """{arch: {"mse_given", "mse_tuned", "anees_given", "anees_tuned"}} for the scenario's
     architectures; None for each where no exact analysis exists (a nonlinear model)."""
     from fusionlog.api import _blocks
