@@ -162,8 +162,8 @@ def ljung_box(normalised: np.ndarray, lags: int = LJUNG_BOX_LAGS) -> dict[str, f
     the sequence is white, rho_h the autocorrelation about zero (the innovations' mean under
     the hypothesis: a sample mean would bias every rho_h by -1/N, which summed over many
     short runs rejects a consistent filter); the sequences' Q are summed (independent runs
-    and, for a consistent filter, uncorrelated components), with L degrees of freedom each. L = `lags`, or a quarter
-    of the shortest sequence when that is less. Returns the lag, Q, the degrees of freedom
+    and, for a consistent filter, uncorrelated components), with L degrees of freedom each.
+    L = `lags`, or a quarter of the shortest sequence when that is less. Returns the lag, Q, the degrees of freedom
     and the p-value (chi-square survival function): a small p says the innovations are not
     white (the noise model misses something, e.g. a drift)."""
     from scipy.stats import chi2
