@@ -486,6 +486,7 @@ def inspect(file, recover) -> None:
     for line in describe_damaged(file) if recover else describe(file):
         click.echo(line)
 
+
 main.add_command(cli_identify.identify)
 
 if __name__ == "__main__":

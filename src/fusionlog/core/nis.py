@@ -163,9 +163,9 @@ def ljung_box(normalised: np.ndarray, lags: int = LJUNG_BOX_LAGS) -> dict[str, f
     the hypothesis: a sample mean would bias every rho_h by -1/N, which summed over many
     short runs rejects a consistent filter); the sequences' Q are summed (independent runs
     and, for a consistent filter, uncorrelated components), with L degrees of freedom each.
-    L = `lags`, or a quarter of the shortest sequence when that is less. Returns the lag, Q, the degrees of freedom
-    and the p-value (chi-square survival function): a small p says the innovations are not
-    white (the noise model misses something, e.g. a drift)."""
+    L = `lags`, or a quarter of the shortest sequence when that is less. Returns the lag, Q,
+    the degrees of freedom and the p-value (chi-square survival function): a small p says
+    the innovations are not white (the noise model misses something, e.g. a drift)."""
     from scipy.stats import chi2
 
     M, K1, r = normalised.shape

@@ -325,4 +325,3 @@ def _moved_sources(text: str, want: dict[str, Any], src: str, dst: str) -> str:
         truth["source"] = moved(truth["source"])
         text = _replace(text, ("truth", "source"), truth["source"]) or text
     return text
-

@@ -49,8 +49,9 @@ def log_simulation(path: Path, sc: Scenario) -> Any:
         mf.times(),
         data[TRUTH] if with_truth else None,
         {n: data[t] for n, t in zip(names, topics, strict=True)},
-        covariances={n: c for n, t in zip(names, topics, strict=True)
-                     if (c := covs.get(t)) is not None},  # fmt: skip
+        covariances={
+            n: c for n, t in zip(names, topics, strict=True) if (c := covs.get(t)) is not None
+        },  # fmt: skip
         truth_info=info,
     )
 
