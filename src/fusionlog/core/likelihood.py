@@ -99,23 +99,23 @@ def loglik(
 def _block(system: System, z: np.ndarray, noise: Noise, truth_rows) -> np.ndarray:
     """The log-likelihood (C,) of one block of runs z (B, K+1, m [+ t])."""
     B, K1, m_all = z.shape
-    C, n = noise.candidates, system.n
-    m = system.m
+    C, n, m = noise.candidates, system.n, system.m
     linear = system.linear
     present = ~np.isnan(z)
     shared = shared_pattern(z) if linear else None
     pattern = present if shared is None else shared[None]  # (Mp, K+1, m_all)
     x = np.broadcast_to(system.prior.mean, (C, B, n)).copy()
-    P = np.broadcast_to(noise.P0[:, None], (C, 1, n, n)).copy()
-    if not linear or shared is None:
-        P = np.broadcast_to(P, (C, B, n, n)).copy()
+    P = np.broadcast_to(noise.P0[:, None], (C, 1 if shared is not None else B, n, n)).copy()
     H_all = _stacked_H(system, truth_rows) if linear else None
+    one_R = noise.R.shape[1] == 1
+    steps = _Steps(pattern, H_all, _R_block(noise, 0, m, m_all) if one_R else None)
+    count = present.sum(axis=(0, 2))  # readings per instant
     ll = np.zeros(C)
     bad = np.zeros(C, dtype=bool)
-    eye_n = np.eye(n)
+    counted = 0
     for k in range(K1):
         if k > 0:
-            Qk = noise.Q[:, noise.q_at[k - 1]][:, None]  # (C, 1, n, n)
+            Qk = noise.Q[:, noise.q_at[k - 1], None]  # (C, 1, n, n)
             if linear:
                 F = system.F_at(k)
                 x = x @ F.T
@@ -124,42 +124,76 @@ def _block(system: System, z: np.ndarray, noise: Noise, truth_rows) -> np.ndarra
                 F = _motion_jacobian(system, x, k)  # at the filtered mean, before moving it
                 x = system.propagate(x, k)
                 P = F @ P @ mT(F) + Qk
-            P = sym(P)
-        p = pattern[:, k]  # (Mp, m_all)
-        rows = np.flatnonzero(p.any(axis=0))
-        if len(rows) == 0:
+        step = steps.at(k)
+        if step is None:
             continue
-        pf = p[:, rows].astype(float)  # (Mp, r)
-        here = present[:, k, rows]  # (B, r)
+        rows, H, keep, Rm = step
+        if Rm is None:
+            Rm = steps.masked_R(_R_block(noise, k, m, m_all), k)
         if linear:
-            H = H_all[rows] * pf[..., None]  # (Mp, r, n)
-            pred = x @ H_all[rows].T  # (C, B, r)
-            nu = z[:, k, rows] - pred
+            nu = z[:, k, rows] - x @ H_all[rows].T  # (C, B, r)
         else:
             pred, J = _predicted(system, x, truth_rows)
-            H = J[..., rows, :] * pf[..., None]  # (C, B, r, n)
+            H = J[..., rows, :] * keep[..., None]  # (C, B, r, n)
             nu = _residual(system, np.nan_to_num(z[:, k]), pred, m)[..., rows]
-        nu = np.where(here, nu, 0.0)
-        Rk = _R_block(noise, k, m, m_all)[:, None][..., rows[:, None], rows]  # (C, 1, r, r)
-        eye = np.eye(len(rows))
-        Rm = Rk * (pf[..., :, None] * pf[..., None, :]) + eye * (1.0 - pf)[..., None, :]
+        if steps.partial[k]:
+            nu = np.where(present[:, k, rows], nu, 0.0)
         PHt = P @ mT(H)
-        S = sym(H @ PHt + Rm)
+        S = H @ PHt + Rm
         L, failed = _cholesky(S)
         bad |= failed
-        u = np.linalg.solve(L, nu[..., None])[..., 0]  # S^-1/2 nu, (C, B, r)
-        logdet = 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=-1)  # (C, Mp)
-        weight = B if logdet.shape[1] == 1 else 1
-        ll -= 0.5 * ((u**2).sum(axis=(1, 2)) + weight * logdet.sum(axis=1))
-        ll -= 0.5 * LOG_2PI * here.sum()
-        # K = P H' S^-1 through the factor: K' = L'^-1 L^-1 H P
+        u = np.linalg.solve(L, nu[..., None])  # S^-1/2 nu, (C, B, r, 1)
+        logdet = np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=(1, 2))
+        ll -= 0.5 * (u * u).sum(axis=(1, 2, 3)) + (B / L.shape[1]) * logdet
+        counted += int(count[k])
+        # K = P H' S^-1 through the factor (K' = L'^-1 L^-1 H P); P+ = P - K S K' = P - P H' K'
         Kt = np.linalg.solve(mT(L), np.linalg.solve(L, mT(PHt)))  # (C, Mp, r, n)
-        K = mT(Kt)
-        x = x + (K @ nu[..., None])[..., 0]
-        IKH = eye_n - K @ H
-        P = sym(IKH @ P @ mT(IKH) + K @ Rm @ Kt)
+        x = x + (nu[..., None, :] @ Kt)[..., 0, :]
+        P = sym(P - PHt @ Kt)
+    ll -= 0.5 * LOG_2PI * counted
     ll[bad | ~np.isfinite(ll)] = -np.inf
     return ll
+
+
+class _Steps:
+    """What each instant's update needs of the pattern of present readings, worked out once:
+    the rows some run has, the masked H (Mp, r, n) (linear models), the presence as floats
+    (Mp, r), whether some run lacks a row; and, when R is the same at
+    every instant, the masked R (C, Mp, r, r) per distinct pattern."""
+
+    def __init__(self, pattern: np.ndarray, H_all: np.ndarray | None, R: np.ndarray | None):
+        self.pattern, self.H_all, self.R = pattern, H_all, R
+        # some run lacks a row another run has (only when runs differ)
+        self.partial = (pattern.any(axis=0) & ~pattern.all(axis=0)).any(axis=-1)
+        self._cache: dict[bytes, tuple] = {}
+
+    def at(self, k: int):
+        p = self.pattern[:, k]
+        if not p.any():
+            return None
+        key = np.packbits(p).tobytes() if p.shape[0] == 1 else None
+        if key is not None and key in self._cache:
+            return self._cache[key]
+        rows = np.flatnonzero(p.any(axis=0))
+        keep = p[:, rows].astype(float)  # (Mp, r)
+        H = None if self.H_all is None else self.H_all[rows] * keep[..., None]
+        Rm = None if self.R is None else self._mask(self.R, rows, keep)
+        out = (rows, H, keep, Rm)
+        if key is not None:
+            self._cache[key] = out
+        return out
+
+    def masked_R(self, R: np.ndarray, k: int) -> np.ndarray:
+        rows, _, keep, _ = self.at(k)
+        return self._mask(R, rows, keep)
+
+    @staticmethod
+    def _mask(R: np.ndarray, rows: np.ndarray, keep: np.ndarray) -> np.ndarray:
+        """R (C, m, m) on `rows`, with the absent ones' rows and columns replaced by the
+        identity's: (C, Mp, r, r)."""
+        Rr = R[:, None][..., rows[:, None], rows]
+        eye = np.eye(len(rows))
+        return Rr * (keep[..., :, None] * keep[..., None, :]) + eye * (1.0 - keep)[..., None, :]
 
 
 def _stacked_H(system: System, truth_rows) -> np.ndarray:
