@@ -207,9 +207,9 @@ def _same(a: Any, b: Any) -> bool:
 
 
 def _resolve(
-    doc: dict[str, Any], key: str, segments: tuple[str, ...], option: str = "--vary"
+    doc: dict[str, Any], name: str, segments: tuple[str, ...], option: str = "--vary"
 ) -> list[str | int]:
-    """The path of `key` (its `segments`) in the document: each segment a table key or an
+    """The path of key `name` (its `segments`) in the document: each segment a table key or an
     array index (an element of an array of tables may be named by its `name`, which may hold
     dots). Only the last key (and tables leading to it) may be missing."""
     path: list[str | int] = []
@@ -224,7 +224,7 @@ def _resolve(
             if key in node:
                 node = node[key]
             elif i + 1 < len(segs) and segs[i + 1].isdigit():
-                raise _bad(key, f"the file has no {'.'.join(map(str, path))} array", option)
+                raise _bad(name, f"the file has no {'.'.join(map(str, path))} array", option)
             else:
                 # the last key or a missing table on the way to it: the loader judges the name
                 node = {}
@@ -235,7 +235,7 @@ def _resolve(
             if idx is None:
                 have = ", ".join(str(n) for n in names if isinstance(n, str)) or "none"
                 raise _bad(
-                    key,
+                    name,
                     f"{where} has no element {segs[i]!r} (an index 0..{len(node) - 1}"
                     + (f" or a name: {have})" if names else ")"),
                     option,
@@ -245,7 +245,7 @@ def _resolve(
             node = node[idx]
             i += used
         else:
-            raise _bad(key, f"{where} is {toml.tname(node)}, it has no key {segs[i]!r}", option)
+            raise _bad(name, f"{where} is {toml.tname(node)}, it has no key {segs[i]!r}", option)
     return path
 
 
