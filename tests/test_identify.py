@@ -356,3 +356,40 @@ def test_no_data_and_a_likelihood_not_finite_at_the_start(tmp_path):
     with pytest.raises(fl.FusionlogError, match="not finite at the file's values"):
         fl.identify(sc, sim, ["sensors.s1.R"], with_truth=True)
     assert res.exit_code in (0, 2)
+
+
+def test_one_entry_of_a_matrix_is_a_parameter_and_written_back_in_its_matrix(tmp_path):
+    """sensors.gps.R.1.1 (the sweep's key of one entry): a positive scalar, the tuned file's
+    matrix holds it and keeps the other entries."""
+    p = tmp_path / "xy.toml"
+    p.write_text(textwrap.dedent("""
+        [scenario]
+        name = "xy"
+        description = "two axes"
+        steps = 20
+        runs = 100
+        seed = 4
+        dt = 1.0
+        state_names = ["x", "vx", "y", "vy"]
+        [model]
+        kind = "constant-velocity"
+        axes = 2
+        n0 = 0.2
+        [prior]
+        mean = [0.0, 1.0, 0.0, -1.0]
+        cov = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+        [[sensors]]
+        name = "gps"
+        H = [[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]]
+        R = [[1.0, 0.0],
+             [0.0, 2.0]]   # per axis
+        [estimate]
+        architectures = ["CKF"]
+    """))
+    out = tmp_path / "tuned.toml"
+    ok("identify", p, "--param", "sensors.gps.R.1.1", "-o", out, "--report", tmp_path / "r.json")
+    rep = json.loads((tmp_path / "r.json").read_text())["parameters"]["sensors.gps.R.1.1"]
+    R = fl.load(out).system.sensors[0].R
+    assert R[1, 1] == rep["value"] and R[0, 0] == 1.0 and R[0, 1] == 0.0
+    assert abs(rep["value"] - 2.0) < 4 * rep["stderr"]
+    assert "# per axis" in out.read_text()

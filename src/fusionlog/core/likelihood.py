@@ -142,13 +142,14 @@ def _block(system: System, z: np.ndarray, noise: Noise, truth_rows) -> np.ndarra
         S = H @ PHt + Rm
         L, failed = _cholesky(S)
         bad |= failed
-        u = np.linalg.solve(L, nu[..., None])  # S^-1/2 nu, (C, B, r, 1)
+        Linv = np.linalg.solve(L, np.eye(L.shape[-1]))
+        u = _apply(Linv, nu)  # S^-1/2 nu, (C, B, r)
         logdet = np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=(1, 2))
-        ll -= 0.5 * (u * u).sum(axis=(1, 2, 3)) + (B / L.shape[1]) * logdet
+        ll -= 0.5 * (u * u).sum(axis=(1, 2)) + (B / L.shape[1]) * logdet
         counted += int(count[k])
         # K = P H' S^-1 through the factor (K' = L'^-1 L^-1 H P); P+ = P - K S K' = P - P H' K'
-        Kt = np.linalg.solve(mT(L), np.linalg.solve(L, mT(PHt)))  # (C, Mp, r, n)
-        x = x + (nu[..., None, :] @ Kt)[..., 0, :]
+        Kt = mT(Linv) @ (Linv @ mT(PHt))  # (C, Mp, r, n)
+        x = x + _apply(mT(Kt), nu)
         P = sym(P - PHt @ Kt)
     ll -= 0.5 * LOG_2PI * counted
     ll[bad | ~np.isfinite(ll)] = -np.inf
@@ -194,6 +195,15 @@ class _Steps:
         Rr = R[:, None][..., rows[:, None], rows]
         eye = np.eye(len(rows))
         return Rr * (keep[..., :, None] * keep[..., None, :]) + eye * (1.0 - keep)[..., None, :]
+
+
+def _apply(A: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """A v for maps A (C, Mp, p, q) and vectors v (C, B, q): one product per candidate when
+    the runs share the map (Mp = 1; a stacked product of B tiny matrices costs B times more),
+    one per run otherwise. (C, B, p)."""
+    if A.shape[1] == 1:
+        return v @ mT(A[:, 0])
+    return (A @ v[..., None])[..., 0]
 
 
 def _stacked_H(system: System, truth_rows) -> np.ndarray:

@@ -290,8 +290,13 @@ def written_back(
     folder, `sources_to` the output's), so that the tuned file reads the same recordings."""
     out = text
     want = edited(doc, params, values)
-    for p, v in zip(params, values, strict=True):
-        new = _replace(out, p.path, p.value(v))
+    for p in params:
+        # the key's whole value (an entry of a matrix, sensors.s1.R.0.0, rewrites the matrix)
+        at = p.path[:3] if len(p.path) > 1 and isinstance(p.path[1], int) else p.path[:2]
+        node: Any = want
+        for q in at:
+            node = node[q]
+        new = _replace(out, at, node)
         if new is None:
             raise FusionlogError(
                 f"{file}: cannot write {p.key} back (it is not written as `key = value` under "
