@@ -393,3 +393,16 @@ def test_one_entry_of_a_matrix_is_a_parameter_and_written_back_in_its_matrix(tmp
     assert R[1, 1] == rep["value"] and R[0, 0] == 1.0 and R[0, 1] == 0.0
     assert abs(rep["value"] - 2.0) < 4 * rep["stderr"]
     assert "# per axis" in out.read_text()
+
+
+def test_a_cross_covariance_of_sensors_that_never_measure_together_is_refused(tmp_path):
+    """s1 at even seconds, s2 at odd ones: their cross-covariance never enters a reading's
+    density (it acts only between readings of one instant), refused before optimising."""
+    extra = "[[correlations]]\nsensors = [\"s1\", \"s2\"]\ncov = [[0.0]]"
+    p = scenario(tmp_path, steps=20, runs=30, s1_extra="period = 2.0",
+                 s2_extra="period = 2.0\noffset = 1.0", extra=extra)  # fmt: skip
+    one_line_error(
+        cli("identify", p, "--param", "sensors.s1.R", "--param", "correlations.0.cov", "-o",
+            tmp_path / "t.toml"),
+        "--param correlations.0.cov", "not identifiable",
+    )  # fmt: skip

@@ -234,6 +234,32 @@ def _flat(params: list[ip.Param], info: np.ndarray, rounding: float) -> str | No
     return params[int(np.argmax(share))].key
 
 
+def _flat_at(f: _Objective, theta: np.ndarray, ll: float) -> int | None:
+    """The first coordinate along which the likelihood does not move at all at theta (to
+    rounding, both ways): a parameter the data say nothing of (say a cross-covariance of two
+    sensors that never measure at the same instant). Checked at the file's values, before
+    the optimiser wanders along it."""
+    h = H_HESS * np.maximum(1.0, np.abs(theta))
+    P = len(theta)
+    ll_pm = f(np.vstack([theta + np.diag(h), theta - np.diag(h)]))
+    still = np.abs(ll_pm - ll) <= 1e-13 * max(1.0, abs(ll))
+    flat = np.flatnonzero(still[:P] & still[P:])
+    return int(flat[0]) if len(flat) else None
+
+
+def _refuse_flat(params: list[ip.Param], flat: int | str | None) -> None:
+    """The one-line refusal of a parameter the data cannot tell (a coordinate, or a key)."""
+    if flat is None:
+        return
+    if isinstance(flat, int):
+        owner = np.repeat(np.arange(len(params)), [p.size for p in params])
+        flat = params[int(owner[flat])].key
+    raise FusionlogError(
+        f"--param {flat}: not identifiable from these data (the likelihood is flat along it: "
+        "its information matrix is singular)"
+    )
+
+
 def identify(
     scenario: Scenario | str | os.PathLike[str],
     sim: Any,
@@ -267,18 +293,14 @@ def identify(
             "with a covariance that is not positive definite, or a reading beyond the float "
             "range)"
         )
+    _refuse_flat(plist, _flat_at(f, theta0, ll0))
     observations = int(np.isfinite(data.z).sum())
     if data.truth is not None:
         observations += int(np.isfinite(data.truth).sum())
     theta, iterations = _maximise(f, theta0, observations)
     info, rounding = _hessian(f, theta)
     info = -info
-    flat = _flat(plist, info, rounding)
-    if flat is not None:
-        raise FusionlogError(
-            f"--param {flat}: not identifiable from these data (the likelihood is flat along "
-            "it: its information matrix is singular)"
-        )
+    _refuse_flat(plist, _flat(plist, info, rounding))
     cov_theta = np.linalg.inv(info)
     values = ip.from_theta(plist, theta)
     J = ip.jacobian(plist, theta)
@@ -287,8 +309,6 @@ def identify(
     for p, v in zip(plist, values, strict=True):
         stderr[p.key] = p.value(se[at : at + v.size].reshape(v.shape))
         at += v.size
-    tuned_doc = ip.edited(doc, plist, values)
-    tuned = scenario_from_doc(tuned_doc, file, sc.source, sc.path)
     text = ip.written_back(sc.source, doc, plist, values, file)
     out = Identification(
         keys=[p.key for p in plist],
@@ -299,12 +319,11 @@ def identify(
         loglik_given=ll0,
         with_truth=with_truth,
         exact=data.system.linear,
-        scenario=scenario_from_doc(tuned_doc, file, text, sc.path),
+        scenario=scenario_from_doc(ip.edited(doc, plist, values), file, text, sc.path),
         toml=text,
         iterations=iterations,
         observations=observations,
     )
-    del tuned
     if cost:
         from .identify_cost import cost_of, whiteness_of
 
