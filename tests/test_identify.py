@@ -418,3 +418,96 @@ def test_a_cross_covariance_of_sensors_that_never_measure_together_is_refused(tm
             tmp_path / "t.toml"),
         "--param correlations.0.cov", "not identifiable",
     )  # fmt: skip
+
+
+# -- recorded logs --------------------------------------------------------------------------------
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_a_replay_identifies_from_its_recordings_and_the_tuned_file_reads_them(tmp_path):
+    """pipeline/replay_tum.toml: a SLAM track whose readings are the motion-capture positions
+    plus N(0, 0.02^2) per axis (pipeline/data/make_more_logs.py), with the interpolated truth
+    of the positions: R = 0.0004 I within 4 SE entry by entry; TUNED.toml, written in another
+    folder, reads the same recordings (its sources made relative to it) and runs."""
+    out = tmp_path / "elsewhere" / "tuned.toml"
+    rep = tmp_path / "r.json"
+    ok("identify", REPO / "pipeline" / "replay_tum.toml", "--param", "sensors.slam.R",
+       "--with-truth", "-o", out, "--report", rep)  # fmt: skip
+    r = json.loads(rep.read_text())["parameters"]["sensors.slam.R"]
+    v, se = np.array(r["value"]), np.array(r["stderr"])
+    assert (np.abs(v - 0.0004 * np.eye(3)) < 4 * se).all(), (v, se)
+    assert json.loads(rep.read_text())["with_truth"] is True
+    tuned = fl.load(out)
+    assert np.array_equal(tuned.system.sensors[0].R, v)
+    ok("run", out, "--out-dir", tmp_path / "run")
+
+
+EVO_BAG = Path("/work/shared/data/logs/evo_ROS_example.bag")
+
+
+@pytest.mark.skipif(not EVO_BAG.exists(), reason="evo's ROS_example.bag is not available")
+def test_evo_bag_the_two_slam_systems_cross_covariance_is_refused(tmp_path):
+    """evo's ROS_example.bag (docs/tutorials/identify.md): ORB-SLAM and S-PTAM never stamp a
+    pose at the same instant, so the cross-covariance of their errors is not in the data."""
+    toml_text = EVO_REPLAY.format(bag=EVO_BAG)
+    toml_text += '\n[[correlations]]\nsensors = ["orb", "sptam"]\n'
+    toml_text += "cov = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]\n"
+    p = tmp_path / "evo.toml"
+    p.write_text(toml_text)
+    one_line_error(
+        cli("identify", p, "--param", "correlations.0.cov", "-o", tmp_path / "t.toml"),
+        "--param correlations.0.cov",
+        "not identifiable",
+    )
+
+
+EVO_REPLAY = """
+[scenario]
+name = "evo_ros_example"
+description = "evo's ROS_example.bag: ORB-SLAM and S-PTAM positions against the ground truth"
+state_names = ["x", "vx", "y", "vy", "z", "vz"]
+
+[model]
+kind = "constant-velocity"
+axes = 3
+n0 = 0.01
+
+[prior]
+mean = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+cov = [[0.01, 0.0, 0.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0, 0.0, 0.0],
+       [0.0, 0.0, 0.01, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0, 0.0, 0.0],
+       [0.0, 0.0, 0.0, 0.0, 0.01, 0.0], [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]]
+
+[[sensors]]
+name = "orb"
+source = "{bag}"
+topic = "ORB-SLAM"
+values = ["pose.position.x", "pose.position.y", "pose.position.z"]
+time = "header.stamp"
+R = [[0.01, 0.0, 0.0], [0.0, 0.01, 0.0], [0.0, 0.0, 0.01]]
+H = [[1.0, 0.0, 0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+     [0.0, 0.0, 0.0, 0.0, 1.0, 0.0]]
+
+[[sensors]]
+name = "sptam"
+source = "{bag}"
+topic = "S-PTAM"
+values = ["pose.position.x", "pose.position.y", "pose.position.z"]
+time = "header.stamp"
+R = [[0.01, 0.0, 0.0], [0.0, 0.01, 0.0], [0.0, 0.0, 0.01]]
+H = [[1.0, 0.0, 0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+     [0.0, 0.0, 0.0, 0.0, 1.0, 0.0]]
+
+[truth]
+source = "{bag}"
+topic = "groundtruth"
+values = ["pose.position.x", "pose.position.y", "pose.position.z"]
+time = "header.stamp"
+states = ["x", "y", "z"]
+match = "nearest"
+max_diff = 0.05
+
+[estimate]
+architectures = ["CKF", "SKF:orb", "SKF:sptam"]
+"""
