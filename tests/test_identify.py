@@ -511,3 +511,15 @@ max_diff = 0.05
 [estimate]
 architectures = ["CKF", "SKF:orb", "SKF:sptam"]
 """
+
+
+def test_a_nonlinear_model_is_identified_by_the_ekf_approximation_without_a_cost():
+    """pipeline/radar_tracking.toml (range-bearing radars, EKF): R of the first radar and
+    n0 within 4 SE of the values simulated; no exact analysis, so the cost is null."""
+    sc = fl.load(REPO / "pipeline" / "radar_tracking.toml")
+    res = fl.identify(sc, fl.simulate(sc, runs=100, seed=3), ["sensors.0.R", "model.n0"])
+    assert res.exact is False and "EKF" in res.table()
+    v, se = np.array(res.values["sensors.0.R"]), np.array(res.stderr["sensors.0.R"])
+    assert (np.abs(v - np.diag([100.0, 3.0e-4])) < 4 * se).all(), (v, se)
+    assert abs(res.values["model.n0"] - 0.5) < 4 * res.stderr["model.n0"]
+    assert res.report["cost"] and all(c is None for c in res.report["cost"].values())
