@@ -523,3 +523,45 @@ def test_a_nonlinear_model_is_identified_by_the_ekf_approximation_without_a_cost
     assert (np.abs(v - np.diag([100.0, 3.0e-4])) < 4 * se).all(), (v, se)
     assert abs(res.values["model.n0"] - 0.5) < 4 * res.stderr["model.n0"]
     assert res.report["cost"] and all(c is None for c in res.report["cost"].values())
+
+
+def test_the_estimates_of_one_run_are_statsmodels_maximum_likelihood(tmp_path):
+    """Two position sensors with correlated noise, one run of 31 instants: R1, R2, their
+    cross-covariance and n0 maximise statsmodels' likelihood of the same model too (its own
+    filter and optimiser), to the optimisers' tolerance."""
+    sm = pytest.importorskip("statsmodels.tsa.statespace.mlemodel")
+    extra = '[[correlations]]\nsensors = ["s1", "s2"]\ncov = [[0.3]]'
+    sim = fl.simulate(fl.load(scenario(tmp_path, "t.toml", runs=1, extra=extra)), seed=2)
+    believed = '[[correlations]]\nsensors = ["s1", "s2"]\ncov = [[0.0]]'
+    sc = fl.load(scenario(tmp_path, "m.toml", runs=1, r1=1.0, r2=1.0, n0=0.16, extra=believed))
+    keys = ["sensors.s1.R", "sensors.s2.R", "correlations.0.cov", "model.n0"]
+    res = fl.identify(sc, sim, keys, cost=False)
+
+    class CV(sm.MLEModel):
+        def __init__(self, endog):
+            super().__init__(endog, k_states=2)
+            self["design"] = np.array([[1.0, 0.0], [1.0, 0.0]])
+            self["transition"] = np.array([[1.0, 1.0], [0.0, 1.0]])
+            self["selection"] = np.eye(2)
+            self.initialize_known(np.array([0.0, 1.0]), np.diag([4.0, 1.0]))
+
+        @property
+        def start_params(self):
+            return np.array([1.0, 1.0, 0.0, 0.16])
+
+        def transform_params(self, u):
+            return np.array([np.exp(u[0]), np.exp(u[1]), u[2], np.exp(u[3])])
+
+        def untransform_params(self, p):
+            return np.array([np.log(p[0]), np.log(p[1]), p[2], np.log(p[3])])
+
+        def update(self, params, **kwargs):
+            r1, r2, c, n0 = super().update(params, **kwargs)
+            self["obs_cov"] = np.array([[r1, c], [c, r2]])
+            self["state_cov"] = n0 * np.array([[1 / 3, 1 / 2], [1 / 2, 1.0]])
+
+    y = np.concatenate([sim.measurements["s1"][0], sim.measurements["s2"][0]], axis=1)
+    theirs = CV(y).fit(disp=False, maxiter=500)
+    ours = [float(np.ravel(res.values[k])[0]) for k in keys]
+    assert np.allclose(ours, theirs.params, rtol=1e-3, atol=1e-4), (ours, theirs.params)
+    assert res.loglik == pytest.approx(theirs.llf, rel=1e-8)
