@@ -127,11 +127,11 @@ def _block(system: System, z: np.ndarray, noise: Noise, truth_rows) -> np.ndarra
         step = steps.at(k)
         if step is None:
             continue
-        rows, H, keep, Rm = step
+        rows, H, keep, Rm, Ht = step
         if Rm is None:
             Rm = steps.masked_R(_R_block(noise, k, m, m_all), k)
         if linear:
-            nu = z[:, k, rows] - x @ H_all[rows].T  # (C, B, r)
+            nu = z[:, k, rows] - x @ Ht  # (C, B, r)
         else:
             pred, J = _predicted(system, x, truth_rows)
             H = J[..., rows, :] * keep[..., None]  # (C, B, r, n)
@@ -145,7 +145,7 @@ def _block(system: System, z: np.ndarray, noise: Noise, truth_rows) -> np.ndarra
         Linv = np.linalg.solve(L, np.eye(L.shape[-1]))
         u = _apply(Linv, nu)  # S^-1/2 nu, (C, B, r)
         logdet = np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=(1, 2))
-        ll -= 0.5 * (u * u).sum(axis=(1, 2)) + (B / L.shape[1]) * logdet
+        ll -= 0.5 * np.einsum("cbr,cbr->c", u, u) + (B / L.shape[1]) * logdet
         counted += int(count[k])
         # K = P H' S^-1 through the factor (K' = L'^-1 L^-1 H P); P+ = P - K S K' = P - P H' K'
         Kt = mT(Linv) @ (Linv @ mT(PHt))  # (C, Mp, r, n)
@@ -177,15 +177,17 @@ class _Steps:
             return self._cache[key]
         rows = np.flatnonzero(p.any(axis=0))
         keep = p[:, rows].astype(float)  # (Mp, r)
-        H = None if self.H_all is None else self.H_all[rows] * keep[..., None]
+        H = Ht = None
+        if self.H_all is not None:
+            H, Ht = self.H_all[rows] * keep[..., None], self.H_all[rows].T.copy()
         Rm = None if self.R is None else self._mask(self.R, rows, keep)
-        out = (rows, H, keep, Rm)
+        out = (rows, H, keep, Rm, Ht)
         if key is not None:
             self._cache[key] = out
         return out
 
     def masked_R(self, R: np.ndarray, k: int) -> np.ndarray:
-        rows, _, keep, _ = self.at(k)
+        rows, _, keep, _, _ = self.at(k)
         return self._mask(R, rows, keep)
 
     @staticmethod
@@ -250,6 +252,10 @@ def _residual(system: System, z: np.ndarray, pred: np.ndarray, m: int) -> np.nda
 def _cholesky(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Lower Cholesky factors of S (C, Mp, r, r) and the candidates (C,) with one that is not
     positive definite or not finite (their S replaced by the identity, their likelihood -inf)."""
+    try:  # the usual case: one call (a non-finite S gives a non-finite likelihood, -inf)
+        return np.linalg.cholesky(S), np.zeros(S.shape[0], dtype=bool)
+    except np.linalg.LinAlgError:
+        pass
     ok = np.isfinite(S).all(axis=(-2, -1))
     S = np.where(ok[..., None, None], S, np.eye(S.shape[-1]))
     try:
