@@ -5,7 +5,16 @@ __version__ = "0.1.0"
 from .errors import FusionlogError, NumericalError, ValidationError
 
 #: The Python API (`fusionlog.api`), loaded on first use: `import fusionlog.cli` stays light.
-_API = ("Estimates", "Evaluation", "Simulation", "estimate", "evaluate", "load", "simulate")
+_API = (
+    "Estimate",
+    "Estimates",
+    "Evaluation",
+    "Simulation",
+    "estimate",
+    "evaluate",
+    "load",
+    "simulate",
+)
 
 #: what the API raises on bad input: FusionlogError (ValidationError for a scenario, and
 #: NumericalError for numbers that cannot be computed with, are FusionlogErrors)

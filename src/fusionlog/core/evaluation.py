@@ -56,6 +56,8 @@ class Evaluation:
     #: analysis (nonlinear models; summary.json's "pcrb")
     pcrb: np.ndarray | None = None
     innovations: dict[str, dict[str, np.ndarray]] | None = None
+    #: the filters' sensor names, in their order (the table names a single sensor's row)
+    sensors: tuple[str, ...] = ()
 
     @property
     def architectures(self) -> list[str]:

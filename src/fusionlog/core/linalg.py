@@ -140,6 +140,46 @@ def _spd_inv_scaled_lapack(A: np.ndarray, spread: float, what: str) -> np.ndarra
     return np.where(wide, scaled, spd_inv(np.where(wide, np.eye(A.shape[-1]), A), what))
 
 
+#: In `definite`: eigenvalues of the Jacobi-scaled matrix within DEF_RTOL * n * max|eig| of zero
+#: count as zero (its diagonal is 1, so this is about n * 1e-12 whatever the units).
+DEF_RTOL = 1e-12
+
+
+def definite(A: np.ndarray, *, strict: bool, rtol: float = DEF_RTOL) -> bool:
+    """Whether the symmetric matrix A is positive definite (`strict`) or semidefinite to working
+    precision: the one decision for every covariance a definition gives (R, Q, a prior's and a
+    truth's covariance, cross-covariances) and for the bound's initial covariance.
+
+    Decided on the Jacobi scaling C = D^-1/2 A D^-1/2 (D = diag A), a correlation matrix, so
+    that it does not depend on the units of the states or measurements: a radar's
+    R = diag(9e6 m^2, 1e-6 rad^2) is C = I, while its eigenvalues relative to the largest
+    (1e-13) mix m^2 with rad^2. Cholesky's success depends on C in the same way (van der
+    Sluis). A zero variance is allowed (semidefinite) only with a zero row: a nonzero
+    covariance beside it makes a 2 x 2 minor negative, in any units.
+    """
+    A = 0.5 * A + 0.5 * A.T  # not (A + A^T) / 2: entries near 1e308 would overflow
+    n = A.shape[0]
+    d = np.diagonal(A)
+    if (d < 0).any() or (strict and not (d > 0).all()):
+        return False
+    keep = d > 0
+    if not keep.all():
+        if (A[~keep] != 0).any():
+            return False
+        A, d = A[np.ix_(keep, keep)], d[keep]
+        if not d.size:  # all zero: semidefinite
+            return True
+    s = np.sqrt(d)
+    with np.errstate(over="ignore"):  # |C_ij| far above 1 (overflowing): indefinite anyway
+        C = A / s[:, None] / s[None, :]
+    if not np.isfinite(C).all():
+        return False
+    np.fill_diagonal(C, 1.0)  # d_i / s_i / s_i up to rounding
+    w = np.linalg.eigvalsh(C)
+    tol = rtol * n * float(np.max(np.abs(w)))
+    return bool(w[0] > tol) if strict else bool(w[0] >= -tol)
+
+
 def is_invertible(Y: np.ndarray, rtol: float = 1e-13) -> np.ndarray:
     """Whether each symmetric PSD matrix has full rank: its smallest eigenvalue above rtol times
     its largest, or that of its Jacobi scaling D^-1/2 Y D^-1/2 (D = diag Y) is.
@@ -159,6 +199,42 @@ def is_invertible(Y: np.ndarray, rtol: float = 1e-13) -> np.ndarray:
     if kernels_for(Y):
         return _inverse_if_invertible(Y, rtol)[1]
     return _is_invertible_lapack(Y, rtol)
+
+
+#: How far below zero the smallest eigenvalue of a reported covariance's correlation matrix
+#: may lie (`not_a_covariance`): rounding moves it by about n eps times the conditioning of
+#: the computation that made P; 1e-8 leaves that room and still refuses any real indefiniteness.
+SEMIDEFINITE_TOL = 1e-8
+
+
+def not_a_covariance(P: np.ndarray, semidefinite: bool = True) -> np.ndarray:
+    """(...,) which of a batch of reported covariances (..., n, n) cannot be one: a negative
+    variance, or (with `semidefinite`) a correlation matrix C = D^-1/2 P D^-1/2 (D = diag P, 1
+    where it is zero, so the test does not depend on the units: m^2 beside rad^2) whose smallest
+    eigenvalue is below -SEMIDEFINITE_TOL, i.e. P is not positive semidefinite. A matrix with a
+    NaN or an infinity passes here: what an undefined estimate may be is the caller's rule."""
+    bad = (np.diagonal(P, axis1=-2, axis2=-1) < 0).any(axis=-1)
+    if not semidefinite:
+        return bad
+    n = P.shape[-1]
+    flat, bad = P.reshape(-1, n, n), bad.reshape(-1)
+    todo = np.flatnonzero(~bad & np.isfinite(flat).all(axis=(-2, -1)))
+    if len(todo):
+        Q = flat[todo]
+        d = np.diagonal(Q, axis1=-2, axis2=-1)
+        s = np.sqrt(np.where(d > 0, d, 1.0))
+        with np.errstate(over="ignore", invalid="ignore"):  # beyond +-1 by far: refused below
+            C = Q / s[:, :, None] / s[:, None, :]
+        finite = np.isfinite(C).all(axis=(-2, -1))
+        unsure = finite.copy()
+        if kernels_for(C):  # C + tol I factors: lambda_min(C) > -tol, no eigenvalues needed
+            with np.errstate(invalid="ignore", divide="ignore"):  # the others: eigenvalues
+                _, ok = cholesky(lanes(lanes_copy(C + SEMIDEFINITE_TOL * np.eye(n))))
+            unsure &= ~ok
+        low = np.where(finite, 0.0, -np.inf)  # a correlation beyond +-1 by far: refused
+        low[unsure] = np.linalg.eigvalsh(sym(C[unsure]))[:, 0]
+        bad[todo] = low < -SEMIDEFINITE_TOL
+    return bad.reshape(P.shape[:-2])
 
 
 def _inverse_if_invertible(Y: np.ndarray, rtol: float = 1e-13) -> tuple[np.ndarray, np.ndarray]:

@@ -80,6 +80,8 @@ def estimate_to(
     archs = kind.check_architectures(archs or model.architectures, system, where)
     K, M = mf.steps() - 1, mf.runs()
     times = mf.times()
+    # a replay's estimates keep its recording's clock: the log_time of its sensor messages
+    w.set_time_origin(mf.time_origin_ns())
     est = kind.estimator(system, K, M, archs, mf)
     B = est.block_runs(block)
     if SCENARIO_META in mf.metadata:

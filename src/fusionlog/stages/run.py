@@ -94,7 +94,7 @@ def run_pipeline(
         seconds["estimate"] = time.perf_counter() - t1
         release_freed_memory()
         t2 = time.perf_counter()
-        summary = evaluate_into(
+        summary, _ = evaluate_into(
             o.temp_path(outs["sensors.mcap"]),
             o.temp_path(outs["estimates.mcap"]),
             o,

@@ -394,4 +394,5 @@ class StateEvaluator(Evaluator):
             ),
             properties={"scenario": self.sc.source, "provenance": provenance or self.prov},
             pcrb=None if self.pcrb is None else self.pcrb.per_state(),
+            sensors=tuple(s.name for s in self.filter_sys.sensors),
         )
