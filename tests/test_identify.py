@@ -112,7 +112,7 @@ def test_loglik_equals_the_dense_normal_density_of_the_stacked_readings(tmp_path
     sc = fl.load(p)
     sim = fl.simulate(sc)
     s = sim.on_instants(sc.system)
-    z = sim.z(s)
+    z = sim.stacked(s)
     assert np.isnan(z).any() and len(sim.times) > 8  # lost readings, irregular instants
     K = len(sim.times) - 1
     Qs = np.array([s.GQG_at(k) for k in range(1, K + 1)])
@@ -131,12 +131,13 @@ def test_identified_loglik_is_the_dense_density_at_the_identified_values(tmp_pat
     res = fl.identify(sc, sim, ["sensors.s1.R", "model.n0"], cost=False)
     tuned = res.scenario.system
     assert tuned.sensors[0].R[0, 0] == res.values["sensors.s1.R"]
-    assert res.loglik == pytest.approx(dense_loglik(tuned, sim.times, sim.z(tuned)), rel=1e-10)
+    want = dense_loglik(tuned, sim.times, sim.stacked(tuned))
+    assert res.loglik == pytest.approx(want, rel=1e-10)
     # with the truth: p(x, z) = p(x) p(z | x), x_0 from the prior, the increments from Q
     res = fl.identify(sc, sim, ["sensors.s1.R", "model.n0"], with_truth=True, cost=False)
     s = res.scenario.system
     want = 0.0
-    for x, z in zip(sim.truth, sim.z(s), strict=True):
+    for x, z in zip(sim.truth, sim.stacked(s), strict=True):
         want += multivariate_normal(s.prior.mean, s.prior.cov).logpdf(x[0])
         for k in range(1, len(x)):
             want += multivariate_normal(s.F @ x[k - 1], s.GQG).logpdf(x[k])
@@ -188,7 +189,7 @@ def test_loglik_equals_statsmodels_for_a_one_dimensional_model(tmp_path):
     K = len(y) - 1
     noise = Noise(s.prior.cov[None], s.GQG[None, None], np.zeros(K, int), s.R[None, None],
                   np.zeros(K + 1, int))  # fmt: skip
-    assert loglik(s, sim.z(s), noise)[0] == pytest.approx(mod.ssm.loglike(), rel=1e-10)
+    assert loglik(s, sim.stacked(s), noise)[0] == pytest.approx(mod.ssm.loglike(), rel=1e-10)
 
 
 # -- the estimates and their standard errors ---------------------------------------------------

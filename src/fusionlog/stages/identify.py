@@ -168,7 +168,7 @@ def _data(sc: Scenario, sim: Any, with_truth: bool) -> _Data:
             f"{file}: identify needs a [prior] (the likelihood of the first readings is that "
             "of their prediction from it)"
         )
-    z = sim.z(system)
+    z = sim.stacked(system)
     if not np.isfinite(z).any():
         raise FusionlogError(f"{file}: no data (no reading of any sensor)")
     truth = rows = None

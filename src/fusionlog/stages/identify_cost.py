@@ -39,7 +39,7 @@ def cost_of(
         return dict.fromkeys(archs)
     K = len(sim.times) - 1
     models = {"given": sim.on_instants(given.system), "tuned": truth}
-    z = sim.z(truth)
+    z = sim.stacked(truth)
     sums: dict[str, dict[str, Any]] = {w: {} for w in models}
     for w, system in models.items():
         cache = PlanCache(system, K)
@@ -72,7 +72,7 @@ def whiteness_of(tuned: Scenario, sim: Any) -> dict[str, dict[str, Any]]:
     if not system.linear:
         return {}
     est = estimate(tuned, sim, ["CKF"])["CKF"]
-    z = sim.z(system)
+    z = sim.stacked(system)
     out = {}
     for s, sl in zip(system.sensors, system.sensor_slices, strict=True):
         rows = np.arange(system.m)[sl]
