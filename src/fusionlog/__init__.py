@@ -18,10 +18,14 @@ _API = (
 
 #: what the API raises on bad input: FusionlogError (ValidationError for a scenario, and
 #: NumericalError for numbers that cannot be computed with, are FusionlogErrors)
-__all__ = [*_API, "FusionlogError", "NumericalError", "ValidationError"]
+__all__ = [*_API, "identify", "FusionlogError", "NumericalError", "ValidationError"]
 
 
 def __getattr__(name: str):
+    if name == "identify":  # `fusionlog.stages.identify`: noise from the data
+        from .stages.identify import identify
+
+        return identify
     if name in _API:
         from . import api
 

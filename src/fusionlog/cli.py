@@ -15,7 +15,7 @@ from typing import Any
 
 import click
 
-from fusionlog import __version__
+from fusionlog import __version__, cli_identify
 from fusionlog.errors import DamagedFile, FusionlogError, OutputExists
 from fusionlog.memory import keep_freed_memory, leave_objects_at_exit, one_blas_thread
 
@@ -487,6 +487,8 @@ def inspect(file, recover) -> None:
     for line in describe_damaged(file) if recover else describe(file):
         click.echo(line)
 
+
+main.add_command(cli_identify.identify)
 
 if __name__ == "__main__":
     main()

@@ -25,7 +25,7 @@ import numpy as np
 from .linalg import mT, overflow_is_inf, sym
 from .model import System
 
-__all__ = ["Innovations", "innovations", "whiteness"]
+__all__ = ["Innovations", "innovations", "ljung_box", "whiteness"]
 
 
 @dataclass
@@ -148,3 +148,44 @@ def whiteness(normalised: np.ndarray, lags: int = 10) -> dict[str, float]:
         "bound": float(bound),
         "fraction_inside": float((a <= bound).mean()),
     }
+
+
+#: The Ljung-Box test's lag when the sequences are long enough (the usual choice for daily
+#: and sensor series alike; shorter sequences take a quarter of their length).
+LJUNG_BOX_LAGS = 20
+
+
+def ljung_box(normalised: np.ndarray, lags: int = LJUNG_BOX_LAGS) -> dict[str, float]:
+    """The Ljung-Box portmanteau test (Ljung and Box 1978) of normalised innovations
+    (M, K+1, r) (NaN: absent): for each run's sequence of present values of each component,
+    Q = N (N + 2) sum_{h=1..L} rho_h^2 / (N - h), chi-square with L degrees of freedom when
+    the sequence is white, rho_h the autocorrelation about zero (the innovations' mean under
+    the hypothesis: a sample mean would bias every rho_h by -1/N, which summed over many
+    short runs rejects a consistent filter); the sequences' Q are summed (independent runs
+    and, for a consistent filter, uncorrelated components), with L degrees of freedom each.
+    L = `lags`, or a quarter of the shortest sequence when that is less. Returns the lag, Q,
+    the degrees of freedom and the p-value (chi-square survival function): a small p says
+    the innovations are not white (the noise model misses something, e.g. a drift)."""
+    from scipy.stats import chi2
+
+    M, K1, r = normalised.shape
+    # each (run, component) sequence's present values moved to its front, zeros after them:
+    # the padding adds nothing to the lagged products
+    seqs = np.moveaxis(normalised, 2, 1).reshape(M * r, K1)
+    present = np.isfinite(seqs)
+    N = present.sum(axis=1)
+    keep = N >= 8
+    seqs, present, N = seqs[keep], present[keep], N[keep]
+    if not len(N):
+        return {"lags": 0, "q": float("nan"), "dof": 0, "p": float("nan")}
+    order = np.argsort(~present, axis=1, kind="stable")
+    packed = np.where(np.take_along_axis(present, order, 1), np.take_along_axis(seqs, order, 1), 0)
+    L = max(1, min(lags, int(N.min()) // 4))
+    den = (packed**2).sum(axis=1)
+    use = den > 0
+    q = 0.0
+    for h in range(1, L + 1):
+        rho = (packed[use, :-h] * packed[use, h:]).sum(axis=1) / den[use]
+        q += float((N[use] * (N[use] + 2) * rho**2 / (N[use] - h)).sum())
+    dof = L * int(len(N))
+    return {"lags": L, "q": q, "dof": dof, "p": float(chi2.sf(q, dof))}

@@ -42,6 +42,26 @@ def progress(items: Iterable[T], total: int, desc: str, unit: str = "block") -> 
     yield from tqdm(items, total=total, desc=desc, unit=unit, leave=False)
 
 
+class Counter:
+    """A progress bar counting events of unknown number (an optimiser's iterations) on a
+    terminal, nothing when stderr is piped or captured (as `progress`)."""
+
+    def __init__(self, desc: str, unit: str) -> None:
+        self._bar = None
+        if sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self._bar = tqdm(desc=desc, unit=unit, leave=False)
+
+    def update(self, n: int = 1) -> None:
+        if self._bar is not None:
+            self._bar.update(n)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+
+
 def sha256_of(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:

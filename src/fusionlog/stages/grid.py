@@ -39,7 +39,7 @@ from fusionlog.scenario import Scenario, scenario_from_doc, scenario_with, toml
 
 from .common import progress
 
-__all__ = ["GridPoint", "Vary", "grid_points", "parse_vary", "point_seed"]
+__all__ = ["GridPoint", "Vary", "assign", "grid_points", "key_path", "parse_vary", "point_seed"]
 
 #: A range: start:stop:num with an optional :log (numbers, no brackets or quotes).
 _RANGE = re.compile(r"^\s*([^:\[\]\"',]+):([^:\[\]\"',]+):([^:\[\]\"',]+)(?::(log|lin))?\s*$")
@@ -89,8 +89,8 @@ class GridPoint:
         return f"{self.scenario.path} [point {self.index}: {self.label}]"
 
 
-def _bad(spec: str, reason: str) -> FusionlogError:
-    return FusionlogError(f"--vary {spec}: {reason}")
+def _bad(spec: str, reason: str, option: str = "--vary") -> FusionlogError:
+    return FusionlogError(f"{option} {spec}: {reason}")
 
 
 def _number_text(v: float | int) -> str:
@@ -178,9 +178,7 @@ def parse_vary(spec: str) -> Vary:
     key = key.strip()
     if not eq or not key:
         raise _bad(spec, "expected KEY=VALUES, e.g. scenario.dt=0.5,1,2 or scenario.dt=0.1:2:20")
-    segments = tuple(_INDEX.sub(r".\1", key).split("."))
-    if any(not s for s in segments):
-        raise _bad(spec, f"{key!r} is not a dotted key path (an empty part)")
+    segments = _segments(spec, key)
     m = _RANGE.match(text)
     if m is not None:
         values, texts, log = _range(spec, m)
@@ -193,17 +191,35 @@ def parse_vary(spec: str) -> Vary:
     return Vary(key, segments, tuple(values), tuple(texts), log)
 
 
+def _segments(spec: str, key: str, option: str = "--vary") -> tuple[str, ...]:
+    """The parts of a dotted key (the loader's sensors[1].R spelled sensors.1.R)."""
+    segments = tuple(_INDEX.sub(r".\1", key).split("."))
+    if any(not s for s in segments):
+        raise _bad(spec, f"{key!r} is not a dotted key path (an empty part)", option)
+    return segments
+
+
+def key_path(doc: dict[str, Any], key: str, option: str) -> list[str | int]:
+    """The path of a dotted `key` in a parsed scenario document (see the module docstring),
+    for another command's `option` (``--param`` of ``fusionlog identify``), whose name leads
+    its one-line errors. Only the last key (and tables leading to it) may be missing."""
+    key = key.strip()
+    return _resolve(doc, key, _segments(key, key, option), option)
+
+
 def _same(a: Any, b: Any) -> bool:
     return type(a) is type(b) and a == b
 
 
-def _resolve(doc: dict[str, Any], vary: Vary) -> list[str | int]:
-    """The path of `vary` in the document: each segment a table key or an array index (an
-    element of an array of tables may be named by its `name`, which may hold dots). Only the
-    last key (and tables leading to it) may be missing."""
+def _resolve(
+    doc: dict[str, Any], name: str, segments: tuple[str, ...], option: str = "--vary"
+) -> list[str | int]:
+    """The path of key `name` (its `segments`) in the document: each segment a table key or an
+    array index (an element of an array of tables may be named by its `name`, which may hold
+    dots). Only the last key (and tables leading to it) may be missing."""
     path: list[str | int] = []
     node: Any = doc
-    segs = list(vary.segments)
+    segs = list(segments)
     i = 0
     while i < len(segs):
         where = ".".join(str(p) for p in path) or "(top level)"
@@ -213,7 +229,7 @@ def _resolve(doc: dict[str, Any], vary: Vary) -> list[str | int]:
             if key in node:
                 node = node[key]
             elif i + 1 < len(segs) and segs[i + 1].isdigit():
-                raise _bad(vary.key, f"the file has no {'.'.join(map(str, path))} array")
+                raise _bad(name, f"the file has no {'.'.join(map(str, path))} array", option)
             else:
                 # the last key or a missing table on the way to it: the loader judges the name
                 node = {}
@@ -224,16 +240,17 @@ def _resolve(doc: dict[str, Any], vary: Vary) -> list[str | int]:
             if idx is None:
                 have = ", ".join(str(n) for n in names if isinstance(n, str)) or "none"
                 raise _bad(
-                    vary.key,
+                    name,
                     f"{where} has no element {segs[i]!r} (an index 0..{len(node) - 1}"
                     + (f" or a name: {have})" if names else ")"),
+                    option,
                 )
             idx, used = idx
             path.append(idx)
             node = node[idx]
             i += used
         else:
-            raise _bad(vary.key, f"{where} is {toml.tname(node)}, it has no key {segs[i]!r}")
+            raise _bad(name, f"{where} is {toml.tname(node)}, it has no key {segs[i]!r}", option)
     return path
 
 
@@ -251,7 +268,8 @@ def _element(node: list[Any], segs: list[str], i: int) -> tuple[int, int] | None
     return None
 
 
-def _assign(doc: dict[str, Any], path: list[str | int], value: Any) -> None:
+def assign(doc: dict[str, Any], path: list[str | int], value: Any) -> None:
+    """Set the value at `path` (`key_path`) of a parsed document, making missing tables."""
     node: Any = doc
     for p in path[:-1]:
         if isinstance(node, dict) and p not in node:
@@ -293,7 +311,7 @@ def grid_points(
         )
     text = toml.read_text(file)
     doc = toml.parse_toml(text, file)
-    paths = [_resolve(doc, v) for v in varies]
+    paths = [_resolve(doc, v.key, v.segments) for v in varies]
     for v, p in zip(varies, paths, strict=True):
         for q, w in zip(paths, varies, strict=True):
             if w is not v and p[: len(q)] == q and len(p) > len(q):
@@ -304,7 +322,7 @@ def grid_points(
         label = _label(varies, combo)
         edited = copy.deepcopy(doc)
         for v, p, j in zip(varies, paths, combo, strict=True):
-            _assign(edited, p, v.values[j])
+            assign(edited, p, v.values[j])
         where = f"{file} [point {index}: {label}]"
         sc = scenario_from_doc(edited, where, text, file)
         if sc.kind != "state":
