@@ -56,6 +56,9 @@ class Evaluation:
     #: analysis (nonlinear models; summary.json's "pcrb")
     pcrb: np.ndarray | None = None
     innovations: dict[str, dict[str, np.ndarray]] | None = None
+    #: the trajectory metrics' recording (`stages.trajectory_eval.TrajectoryPart.recording`):
+    #: position state names, APE and RPE over time, run 0's aligned positions and alignment
+    trajectory: dict[str, Any] | None = None
 
     @property
     def architectures(self) -> list[str]:

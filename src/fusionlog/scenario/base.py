@@ -69,6 +69,8 @@ class Scenario:
     source: str = ""  # the TOML text as loaded (overrides are not written back into it)
     path: str | None = None
     replay: Any = None  # a replay's recorded data (scenario.replay.Replay); None: simulated
+    #: the trajectory metrics' settings (core.trajectory.TrajectorySettings); None: none
+    trajectory: Any = None
 
     @cached_property
     def schedule(self) -> Schedule:

@@ -48,6 +48,7 @@ from .state import (
     prior_section,
 )
 from .toml import Ctx
+from .trajectory import trajectory_section
 
 __all__ = ["Replay", "Stream", "is_replay_doc", "replay_from_doc"]
 
@@ -346,6 +347,9 @@ def replay_from_doc(doc: dict[str, Any], file: str, source: str, path: str | Non
         source=source,
         path=path,
         replay=Replay(tuple(streams), truth, truth_states, match, max_diff_ns),
+        trajectory=trajectory_section(
+            ctx, doc, state_names, [state_names[i] for i in truth_states] if truth else None
+        ),
     )
 
 

@@ -40,7 +40,7 @@ from fusionlog.core.models import SensorModel
 from fusionlog.core.names import STATE_ARCHITECTURES, parse_arch
 from fusionlog.core.timing import SensorTiming
 
-from . import nonlinear, toml
+from . import nonlinear, toml, trajectory
 from . import sensors as sensor_tables
 from .base import DEFAULT_CONFIDENCE, DEFAULT_SAMPLE_RUNS, Scenario, header
 from .model import (
@@ -76,7 +76,7 @@ _SCENARIO_KEYS = ("name", "description", "steps", "runs", "seed", "dt", "state_n
 _PRIOR_KEYS = ("mean", "cov")
 _TRUTH_KEYS = ("initial_mean", "initial_cov")
 _CORRELATION_KEYS = ("sensors", "cov")
-_EVALUATE_KEYS = ("confidence", "sample_runs", "plane_view")
+_EVALUATE_KEYS = ("confidence", "sample_runs", "plane_view", *trajectory.KEYS)
 
 
 def system_to_dict(system: System) -> dict[str, Any]:
@@ -176,6 +176,7 @@ def state_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None
         plane_view=plane_view,
         source=source,
         path=path,
+        trajectory=trajectory.trajectory_section(ctx, doc, system.state_names),
     )
 
 

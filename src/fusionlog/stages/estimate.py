@@ -12,6 +12,7 @@ from fusionlog.errors import NumericalError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapFile, McapWriter
 from fusionlog.io.mcap.topics import estimates_topic
+from fusionlog.io.trajectory_text import first_log_time
 from fusionlog.scenario import Scenario, kind_of_text, toml
 
 from .common import (
@@ -143,7 +144,8 @@ def run_estimate(
     out = Path(out)
     inputs = [Path(sensors_path)] + ([Path(model_path)] if model_path else [])
     with Outputs([out], force=force, inputs=inputs) as outs:
-        with McapWriter(outs.open(out)) as w:
+        # a replay's estimates keep the recording's clock (DESIGN.md, "MCAP files")
+        with McapWriter(outs.open(out), time_origin_ns=first_log_time(sensors_path)) as w:
             res = estimate_to(
                 sensors_path,
                 w,

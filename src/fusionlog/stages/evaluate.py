@@ -14,6 +14,7 @@ from fusionlog.io.mcap import TRUTH
 from fusionlog.jsonout import dumps
 from fusionlog.memory import release_freed_memory
 from fusionlog.scenario import Scenario
+from fusionlog.scenario.trajectory import with_align
 
 from .common import open_evaluation_inputs, progress
 from .kinds import kind_of
@@ -37,10 +38,12 @@ def evaluate_into(
     scenario: Scenario | None = None,
     sensors_sha256: str | None = None,
     estimates_name: str | None = None,
+    align: str | None = None,
 ) -> dict[str, Any]:
     """Metrics of every architecture in `estimates_path` against the truth of `sensors_path`,
     written into the (uncommitted) outputs `out` (.rrd) and `summary_path` (JSON).
-    `estimates_name` names the estimates in errors (`run`: its output, not the temporary file).
+    `estimates_name` names the estimates in errors (`run`: its output, not the temporary file);
+    `align` (``--align``) overrides the scenario's ``[evaluate] align``.
 
     Metrics are sums over blocks of runs, so memory does not grow with M; what they are and
     which exact expected values stand beside them is the kind's business (its Evaluator).
@@ -48,6 +51,7 @@ def evaluate_into(
     sens, est, prov, sc = open_evaluation_inputs(
         sensors_path, estimates_path, scenario, sensors_sha256
     )
+    sc = with_align(sc, align)
     kind = kind_of(sc.kind)
     ev = kind.evaluator(sc, est, prov, sens)
     M = sens.runs()
@@ -99,13 +103,14 @@ def run_evaluate(
     summary_path: Path | None = None,
     force: bool = False,
     block: int | None = None,
+    align: str | None = None,
 ) -> EvaluateResult:
     """Evaluate into `out` (and `summary_path`): both committed together or neither."""
     targets = [Path(out)] + ([Path(summary_path)] if summary_path else [])
     inputs = [Path(sensors_path), Path(estimates_path)]
     with Outputs(targets, force=force, inputs=inputs) as outs:
         summary = evaluate_into(
-            sensors_path, estimates_path, outs, Path(out), summary_path, block=block
+            sensors_path, estimates_path, outs, Path(out), summary_path, block=block, align=align
         )
         outs.commit()
     return EvaluateResult(Path(out), summary_path, summary)

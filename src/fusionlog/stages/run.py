@@ -11,6 +11,7 @@ from typing import Any
 from fusionlog.core.architectures import keep_block_plans
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapWriter
+from fusionlog.io.trajectory_text import first_log_time
 from fusionlog.memory import release_freed_memory
 from fusionlog.scenario import Scenario, check_budget
 
@@ -79,7 +80,8 @@ def run_pipeline(
         # digest is taken once: the estimate and evaluate steps do not read them again
         sensors = o.temp_path(outs["sensors.mcap"])
         digest = sha256_of(sensors)
-        with McapWriter(o.open(outs["estimates.mcap"])) as w:
+        origin = first_log_time(sensors)  # a replay's: the recording's clock (DESIGN.md)
+        with McapWriter(o.open(outs["estimates.mcap"]), time_origin_ns=origin) as w:
             estimate_to(
                 sensors,
                 w,

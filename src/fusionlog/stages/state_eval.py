@@ -30,6 +30,7 @@ from fusionlog.scenario import Scenario
 from .common import block_runs
 from .kind import Array, Evaluator, Readings, Topics
 from .nonlinear import PcrbPart
+from .trajectory_eval import TrajectoryPart
 
 __all__ = ["SensorLog", "StateEvaluator", "exact_setup"]
 
@@ -155,6 +156,8 @@ class StateEvaluator(Evaluator):
         self.pcrb = None if truth_sys.linear else PcrbPart(truth_sys, self.times)
         if self.pcrb is not None:
             self.sensor_topics = self.pcrb.topics
+        # APE/RPE after the alignment (DESIGN.md "Trajectory metrics"; None: no position states)
+        self.trajectory = TrajectoryPart.of(sc, self.archs, self.times, log.has_truth, source)
         self.n_samples = min(sc.sample_runs, self.M)
         self.samples: dict[int, Any] = {}
         self.plane_pts: dict[str, np.ndarray] = {}
@@ -202,6 +205,9 @@ class StateEvaluator(Evaluator):
                 c = cov if cov.ndim == 3 else cov[r - off]
                 std = np.sqrt(np.clip(np.diagonal(c, axis1=-2, axis2=-1), 0, None))
                 self.samples.setdefault(r, (x[r - off], {}))[1][a] = (mean[r - off], std)
+        if self.trajectory is not None and truth is not None:  # the shapes checked above
+            means = {a: estimates[t][0] for a, t in zip(self.archs, self.topics, strict=True)}
+            self.trajectory.add(off, x, means)
 
     def _mean_trace(self, a: str) -> float:
         """The mean over the instants of tr P (those with a covariance: a filter without a
@@ -239,9 +245,17 @@ class StateEvaluator(Evaluator):
         summary["mse_per_state"] = per_state
         return series, summary
 
-    def merge(self, sums: dict[str, Any], expected: dict[str, Any] | None = None) -> None:
+    def merge(
+        self,
+        sums: dict[str, Any],
+        expected: dict[str, Any] | None = None,
+        trajectory: dict[str, Any] | None = None,
+    ) -> None:
         """Add metric sums accumulated elsewhere (`estimate_block`'s, of runs not `add`ed
-        here) and, for per-run patterns, those runs' conditional exact sums."""
+        here) and, for per-run patterns, those runs' conditional exact sums (and their
+        trajectory sums, `trajectory_eval.trajectory_block`)."""
+        if trajectory and self.trajectory is not None:
+            self.trajectory.merge(trajectory)
         for a, acc in sums.items():
             self.accs[a] = self.accs[a].merge(acc) if a in self.accs else acc
         if expected:
@@ -331,6 +345,8 @@ class StateEvaluator(Evaluator):
                 arch_summary[a]["expected"]["conditional"] = True
             if a in nis:
                 arch_summary[a]["nis"] = nis[a]
+            if self.trajectory is not None:
+                arch_summary[a] |= self.trajectory.summary(a)
             if bounds is None:
                 bounds = (res.nees_lower, res.nees_upper)
         summary = {
@@ -394,4 +410,5 @@ class StateEvaluator(Evaluator):
             ),
             properties={"scenario": self.sc.source, "provenance": provenance or self.prov},
             pcrb=None if self.pcrb is None else self.pcrb.per_state(),
+            trajectory=None if self.trajectory is None else self.trajectory.recording(),
         )

@@ -1,0 +1,89 @@
+"""The evaluator's trajectory metrics (DESIGN.md "Trajectory metrics"): APE and RPE of each
+architecture after the scenario's alignment, for replays and simulations alike.
+
+Each block's runs are aligned and measured one by one (`core.trajectory.block_sums`); the sums
+merge in block order. The evaluator calls `add` with a block's truth and means (or `merge`
+with sums made elsewhere: a Dask worker's), then `summary` per architecture and `recording`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from fusionlog.core.trajectory import AlignmentError, TrajectorySums, block_sums
+from fusionlog.errors import FusionlogError
+
+__all__ = ["TrajectoryPart", "trajectory_block"]
+
+
+def trajectory_block(
+    sc: Any,
+    times: np.ndarray,
+    truth: np.ndarray,
+    means: dict[str, np.ndarray],
+    run_offset: int,
+    source: str,
+) -> dict[str, TrajectorySums] | None:
+    """The trajectory sums of a block (None: the scenario has no position states); an
+    alignment that cannot be fitted is a one-line FusionlogError naming `source`."""
+    if sc.trajectory is None:
+        return None
+    try:
+        return block_sums(sc.trajectory, times, truth, means, run_offset, sc.runs > 1)
+    except AlignmentError as e:
+        raise FusionlogError(f"{source}: {e}") from None
+
+
+class TrajectoryPart:
+    """APE/RPE sums per architecture over the blocks of an evaluation."""
+
+    def __init__(self, sc: Any, archs: Sequence[str], times: np.ndarray, source: str) -> None:
+        self.sc, self.times, self.source = sc, np.asarray(times, dtype=float), source
+        self.archs = list(archs)
+        self.sums: dict[str, TrajectorySums] = {}
+
+    @classmethod
+    def of(
+        cls, sc: Any, archs: Sequence[str], times: np.ndarray, has_truth: bool, source: str
+    ) -> TrajectoryPart | None:
+        """The part, or None when there is nothing to measure (no position states, no truth)."""
+        if sc.trajectory is None or not has_truth:
+            return None
+        return cls(sc, archs, times, source)
+
+    def add(self, off: int, truth: np.ndarray, means: dict[str, np.ndarray]) -> None:
+        sums = trajectory_block(self.sc, self.times, truth, means, off, self.source)
+        self.merge(sums or {})
+
+    def merge(self, sums: dict[str, TrajectorySums]) -> None:
+        for a, s in sums.items():
+            self.sums[a] = self.sums[a].merge(s) if a in self.sums else s
+
+    def summary(self, arch: str) -> dict[str, Any]:
+        """{"ape": ..., "rpe": ...} of summary.json (empty where no run was measured)."""
+        s = self.sums.get(arch)
+        if s is None:
+            return {}
+        ape, rpe = s.summary()
+        return {"ape": ape, "rpe": rpe}
+
+    def recording(self) -> dict[str, Any] | None:
+        """What the recording draws: the position states' names, each architecture's APE and
+        RPE over time and run 0's aligned positions (K+1, m), with its truth's."""
+        if not self.sums:
+            return None
+        pos = list(self.sc.trajectory.positions)
+        names = [self.sc.state_names[i] for i in pos]
+        out: dict[str, Any] = {"states": names, "series": {}, "aligned": {}, "alignment": {}}
+        for a in self.archs:
+            s = self.sums.get(a)
+            if s is None:
+                continue
+            out["series"][a] = s.series()
+            if s.first is not None:
+                out["aligned"][a] = s.first.aligned
+                out["alignment"][a] = s.first.alignment
+        return out
