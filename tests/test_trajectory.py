@@ -1,0 +1,340 @@
+"""Issue 33, trajectory metrics and interchange (DESIGN.md "Trajectory metrics"): Umeyama's
+alignment against a constructed similarity, APE/RPE against evo's own implementation (its
+Python API, GPL: a test-only dependency), the pipeline's summary against evo on the files
+`fusionlog export` writes, the exported files read back, `align = "none"` leaving every other
+number as it was, and the one-line errors."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import fusionlog as fl
+from fusionlog.core.trajectory import (
+    AlignmentError,
+    TrajectorySettings,
+    error_statistics,
+    run_trajectory,
+    umeyama,
+)
+from fusionlog.io.mcap import McapFile
+from cli_helpers import cli, ok, one_line_error
+
+evo_traj = pytest.importorskip("evo.core.trajectory")
+evo_metrics = pytest.importorskip("evo.core.metrics")
+evo_io = pytest.importorskip("evo.tools.file_interface")
+evo_sync = pytest.importorskip("evo.core.sync")
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def rodrigues(axis: np.ndarray, angle: float) -> np.ndarray:
+    """R = I + sin θ K + (1 − cos θ) K², K the cross-product matrix of the unit axis."""
+    a = axis / np.linalg.norm(axis)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+
+
+@pytest.mark.parametrize("m", [2, 3])
+def test_umeyama_recovers_a_constructed_similarity(m):
+    rng = np.random.default_rng(5)
+    p = rng.normal(scale=10.0, size=(40, m))
+    if m == 3:
+        R = rodrigues(np.array([0.3, -0.5, 0.8]), 0.7)
+    else:
+        th = 0.7
+        R = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+    t, c = rng.normal(scale=100.0, size=m), 2.5
+    g = c * p @ R.T + t  # exact: the fit must return (c, R, t) to rounding
+    a = umeyama(p, g, with_scale=True)
+    # |p| ~ 30, |t| ~ 100: rounding of the means and the SVD at ~1e-13 relative
+    np.testing.assert_allclose(a.rotation, R, atol=1e-12)
+    assert a.scale == pytest.approx(c, rel=1e-12)
+    np.testing.assert_allclose(a.translation, t, rtol=0, atol=1e-10)
+    rigid = umeyama(p, g, with_scale=False)
+    np.testing.assert_allclose(rigid.rotation, R, atol=1e-12)  # the rotation does not need c
+    assert rigid.scale == 1.0
+
+
+def test_umeyama_refuses_collinear_points_in_3d():
+    s = np.linspace(0, 10, 20)[:, None]
+    line = s * np.array([1.0, 2.0, 3.0])
+    with pytest.raises(AlignmentError, match="collinear"):
+        umeyama(line, line + 1.0, with_scale=False)
+
+
+def _evo(p, g, t, align, delta, unit):
+    """evo's APE and RPE (translation part) of positions p on truth g at times t: evo aligns
+    (Umeyama / origin) and measures; RPE on the aligned positions with identity orientation
+    (DESIGN.md: evo's definitions for positions)."""
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (len(t), 1))
+    ref, est = evo_traj.PoseTrajectory3D(g, q, t), evo_traj.PoseTrajectory3D(p, q, t)
+    if align == "rigid":
+        est.align(ref)
+    elif align == "similarity":
+        est.align(ref, correct_scale=True)
+    elif align == "origin":
+        est.align_origin(ref)
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    flat = evo_traj.PoseTrajectory3D(est.positions_xyz, q, t)
+    u = evo_metrics.Unit.frames if unit == "frames" else evo_metrics.Unit.meters
+    rpe = evo_metrics.RPE(evo_metrics.PoseRelation.translation_part, delta, u, all_pairs=False)
+    rpe.process_data((ref, flat))
+    return ape, rpe
+
+
+@pytest.mark.parametrize("align", ["none", "origin", "rigid", "similarity"])
+@pytest.mark.parametrize(("delta", "unit"), [(1, "frames"), (7, "frames"), (4.0, "m")])
+def test_ape_and_rpe_equal_evos(align, delta, unit):
+    rng = np.random.default_rng(11)
+    n = 300
+    t = np.arange(n) * 0.1
+    g = np.cumsum(rng.normal(size=(n, 3)), axis=0)
+    R = rodrigues(np.array([0.1, 0.2, 1.0]), 0.25)
+    p = 1.2 * g @ R.T + [3.0, -2.0, 1.0] + rng.normal(scale=0.3, size=(n, 3))
+    ape, rpe = _evo(p, g, t, align, delta, unit)
+    rt = run_trajectory(p, g, t, TrajectorySettings((0, 1, 2), align, None, delta, unit))
+    assert len(rt.rpe) == len(rpe.error)
+    ours, theirs = error_statistics(rt.ape), ape.get_all_statistics()
+    # the errors are O(1) differences of O(10) positions: rounding ~1e-14 relative
+    for k in ("rmse", "mean", "median", "std", "min", "max"):
+        assert ours[k] == pytest.approx(theirs[k], rel=1e-9, abs=1e-12), k
+    ours, theirs = error_statistics(rt.rpe), rpe.get_all_statistics()
+    for k in ("rmse", "mean", "median", "std", "min", "max"):
+        assert ours[k] == pytest.approx(theirs[k], rel=1e-9, abs=1e-12), k
+
+
+def test_rpe_in_seconds_pairs_each_instant_with_the_first_delta_later():
+    """rpe_unit = "s" (evo has none): pairs i -> the first instant at least delta seconds on,
+    written here from the definition on irregular instants."""
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.uniform(0.05, 0.4, size=80))
+    g = np.cumsum(rng.normal(size=(80, 2)), axis=0)
+    p = g + rng.normal(scale=0.2, size=(80, 2))
+    rt = run_trajectory(p, g, t, TrajectorySettings((0, 1), "none", None, 1.0, "s"))
+    ids = [0]
+    while True:
+        later = [k for k in range(ids[-1] + 1, len(t)) if t[k] - t[ids[-1]] >= 1.0 - 1e-9]
+        if not later:
+            break
+        ids.append(later[0])
+    want = [np.linalg.norm((p[j] - p[i]) - (g[j] - g[i])) for i, j in zip(ids, ids[1:])]
+    np.testing.assert_allclose(rt.rpe, want, rtol=1e-12)
+    np.testing.assert_array_equal(rt.rpe_at, ids[1:])
+
+
+SCENARIO = """
+[scenario]
+name = "walk3d"
+steps = {steps}
+runs = {runs}
+seed = 4
+dt = 1.0
+state_names = ["x", "vx", "y", "vy", "z", "vz"]
+
+[model]
+kind = "constant-velocity"
+axes = 3
+n0 = 0.5
+
+[prior]
+mean = [0.0, 1.0, 0.0, 0.5, 0.0, -0.2]
+cov = [[4.0,0,0,0,0,0],[0,1.0,0,0,0,0],[0,0,4.0,0,0,0],[0,0,0,1.0,0,0],[0,0,0,0,4.0,0],[0,0,0,0,0,1.0]]
+
+[[sensors]]
+name = "pos"
+H = [[1.0,0,0,0,0,0],[0,0,1.0,0,0,0],[0,0,0,0,1.0,0]]
+R = [[1.0,0,0],[0,1.0,0],[0,0,1.0]]
+
+[estimate]
+architectures = ["CKF", "SKF"]
+
+[evaluate]
+sample_runs = 1
+{evaluate}
+"""
+
+
+def _scenario(tmp_path: Path, evaluate: str = "", steps: int = 60, runs: int = 1) -> Path:
+    f = tmp_path / f"walk3d_{abs(hash(evaluate)) % 10**8}_{steps}_{runs}.toml"
+    f.write_text(SCENARIO.format(evaluate=evaluate, steps=steps, runs=runs))
+    return f
+
+
+def _run(tmp_path: Path, scenario: Path, *args: str) -> tuple[Path, dict]:
+    out = tmp_path / f"out-{scenario.stem}-{'-'.join(args) or 'default'}"
+    ok("run", scenario, "--out-dir", out, "--force", *args)
+    return out, json.loads((out / "summary.json").read_text())
+
+
+@pytest.mark.parametrize("align", ["rigid", "similarity"])
+def test_the_summary_equals_evo_on_the_exported_files(tmp_path, align):
+    """`fusionlog run` then `export` of the truth and each estimate as TUM: evo reads them,
+    aligns and measures; its APE and RPE equal summary.json's."""
+    sc = _scenario(tmp_path, "rpe_delta = 3\nalign_first = 40")
+    out, summary = _run(tmp_path, sc, "--align", align)
+    ok("export", out / "sensors.mcap", "--truth", "--format", "tum", "-o", out / "truth.txt")
+    ref = evo_io.read_tum_trajectory_file(str(out / "truth.txt"))
+    for arch in ("CKF", "SKF"):
+        f = out / f"{arch}.txt"
+        ok("export", out / "estimates.mcap", "--arch", arch, "--format", "tum", "-o", f)
+        est = evo_io.read_tum_trajectory_file(str(f))
+        r, e = evo_sync.associate_trajectories(ref, est)
+        e.align(r, correct_scale=align == "similarity", n=40)
+        ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+        ape.process_data((r, e))
+        q = np.tile([1.0, 0, 0, 0], (e.num_poses, 1))
+        flat = evo_traj.PoseTrajectory3D(e.positions_xyz, q, e.timestamps)
+        rpe = evo_metrics.RPE(evo_metrics.PoseRelation.translation_part, 3, evo_metrics.Unit.frames)
+        rpe.process_data((r, flat))
+        got = summary["architectures"][arch]
+        assert got["ape"]["align"] == align and got["rpe"]["pairs"] == len(rpe.error)
+        for k, v in ape.get_all_statistics().items():
+            if k != "sse":
+                assert got["ape"][k] == pytest.approx(v, rel=1e-9), (arch, k)
+        for k, v in rpe.get_all_statistics().items():
+            if k != "sse":
+                assert got["rpe"][k] == pytest.approx(v, rel=1e-9), (arch, k)
+
+
+def test_exported_files_read_back_equal_the_estimates(tmp_path):
+    sc = _scenario(tmp_path)
+    out, _ = _run(tmp_path, sc)
+    mean, cov = McapFile(out / "estimates.mcap").read_all(["/estimates/CKF"])["/estimates/CKF"]
+    times = McapFile(out / "estimates.mcap").times()
+    pos = mean[0][:, [0, 2, 4]]
+    ok("export", out / "estimates.mcap", "--arch", "CKF", "--format", "tum", "-o", out / "c.tum")
+    tum = evo_io.read_tum_trajectory_file(str(out / "c.tum"))
+    np.testing.assert_array_equal(tum.positions_xyz, pos)  # repr: every bit
+    np.testing.assert_array_equal(tum.timestamps, times)
+    np.testing.assert_array_equal(tum.orientations_quat_wxyz, np.tile([1.0, 0, 0, 0], (61, 1)))
+    ok(
+        "export",
+        out / "estimates.mcap",
+        "--arch",
+        "CKF",
+        "--format",
+        "kitti",
+        "-o",
+        out / "c.kitti",
+    )
+    kitti = evo_io.read_kitti_poses_file(str(out / "c.kitti"))
+    np.testing.assert_array_equal(kitti.positions_xyz, pos)
+    ok("export", out / "estimates.mcap", "--arch", "CKF", "--format", "csv", "-o", out / "c.csv")
+    lines = (out / "c.csv").read_text().splitlines()
+    names = ["x", "vx", "y", "vy", "z", "vz"]
+    assert lines[0].split(",") == ["time"] + [c for s in names for c in (s, f"{s}_std")]
+    table = np.array([[float(v) for v in line.split(",")] for line in lines[1:]])
+    np.testing.assert_array_equal(table[:, 1::2], mean[0])
+    std = np.sqrt(np.diagonal(cov if cov.ndim == 3 else cov[0], axis1=-2, axis2=-1))
+    np.testing.assert_array_equal(table[:, 2::2], std)
+    assert (
+        fl.export(out / "estimates.mcap", arch="CKF", format="tum") == (out / "c.tum").read_text()
+    )
+
+
+def test_align_none_leaves_every_other_number_as_it_was(tmp_path):
+    """The trajectory metrics add ape/rpe and change nothing else, bit for bit; with align
+    "none" the APE's rmse is the root of the position states' MSE summed (every instant
+    matched, every run)."""
+    plain, with_none, rigid = (
+        _run(tmp_path, _scenario(tmp_path, ev, runs=30), *args)[1]
+        for ev, args in (
+            ("position_states = []", ()),
+            ('align = "none"', ()),
+            ("", ("--align", "rigid")),
+        )
+    )
+    for s in (with_none, rigid):
+        for a, e in s["architectures"].items():
+            assert {k: v for k, v in e.items() if k not in ("ape", "rpe")} == plain[
+                "architectures"
+            ][a]
+    for a, e in with_none["architectures"].items():
+        assert "ape" not in plain["architectures"][a]
+        mse = e["mse_per_state"]
+        assert e["ape"]["rmse"] ** 2 == pytest.approx(mse[0] + mse[2] + mse[4], rel=1e-12)
+        assert e["ape"]["rotation"] == np.eye(3).tolist() and e["ape"]["scale"] == 1.0
+        assert rigid["architectures"][a]["ape"]["rotation"] is None  # one per run
+
+
+def test_the_table_shows_ape_and_rpe_after_mse_and_the_alignment(tmp_path):
+    res = ok("run", _scenario(tmp_path), "--out-dir", tmp_path / "o", "--align", "similarity")
+    header = next(line for line in res.stdout.splitlines() if line.startswith("architecture"))
+    assert header.split()[:4] == ["architecture", "MSE", "APE", "RPE"]
+    assert any(
+        line.startswith("CKF: similarity alignment: rotation ") for line in res.stdout.splitlines()
+    )
+
+
+def test_bad_input_is_one_line(tmp_path):
+    bad = _scenario(tmp_path, 'position_states = ["x", "w"]')
+    one_line_error(
+        cli("run", bad, "--out-dir", tmp_path / "b"), "evaluate.position_states[1]", "'w'"
+    )
+    short = _scenario(tmp_path, "", steps=1)
+    one_line_error(
+        cli("run", short, "--out-dir", tmp_path / "s", "--align", "rigid"),
+        "2 matched instant",
+        "at least 3",
+    )
+    out, _ = _run(tmp_path, _scenario(tmp_path))
+    est = out / "estimates.mcap"
+    one_line_error(
+        cli("export", est, "--arch", "MSC", "--format", "tum", "-o", tmp_path / "x"),
+        "no architecture 'MSC'",
+    )
+    one_line_error(
+        cli("export", est, "--arch", "CKF", "--run", "1", "--format", "tum", "-o", tmp_path / "x"),
+        "no run 1",
+    )
+    one_line_error(
+        cli("export", est, "--arch", "CKF", "--format", "tum", "-o", est, "--force"), "input"
+    )
+    one_line_error(
+        cli("export", est, "--truth", "--format", "tum", "-o", tmp_path / "x"), "no /truth"
+    )
+    (tmp_path / "x").write_text("keep")
+    one_line_error(
+        cli("export", est, "--arch", "CKF", "--format", "csv", "-o", tmp_path / "x"), "exists"
+    )
+    assert (tmp_path / "x").read_text() == "keep"
+
+
+def test_a_collinear_truth_cannot_be_aligned_rigidly(tmp_path):
+    """The truth moves along x only (no process noise on y and z, which start known): the
+    Umeyama covariance has rank 1 in 3-D, the rotation is not determined."""
+    text = """
+[scenario]
+name = "line"
+steps = 30
+runs = 1
+seed = 1
+dt = 1.0
+state_names = ["x", "y", "z"]
+[model]
+F = [[1.0,0,0],[0,1.0,0],[0,0,1.0]]
+Q = [[1.0,0,0],[0,0,0],[0,0,0]]
+[prior]
+mean = [0.0, 0.0, 0.0]
+cov = [[1.0,0,0],[0,1.0,0],[0,0,1.0]]
+[truth]
+initial_mean = [0.0, 0.0, 0.0]
+initial_cov = [[1.0,0,0],[0,0,0],[0,0,0]]
+[[sensors]]
+name = "p"
+H = [[1.0,0,0],[0,1.0,0],[0,0,1.0]]
+R = [[1.0,0,0],[0,1.0,0],[0,0,1.0]]
+[estimate]
+architectures = ["CKF"]
+[evaluate]
+align = "rigid"
+"""
+    f = tmp_path / "line.toml"
+    f.write_text(text)
+    one_line_error(cli("run", f, "--out-dir", tmp_path / "o"), "CKF", "collinear")
