@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import cli, ok, one_line_error
 
 import fusionlog as fl
 from fusionlog.core.trajectory import (
@@ -22,7 +23,6 @@ from fusionlog.core.trajectory import (
     umeyama,
 )
 from fusionlog.io.mcap import McapFile
-from cli_helpers import cli, ok, one_line_error
 
 evo_traj = pytest.importorskip("evo.core.trajectory")
 evo_metrics = pytest.importorskip("evo.core.metrics")
@@ -123,7 +123,7 @@ def test_rpe_in_seconds_pairs_each_instant_with_the_first_delta_later():
         if not later:
             break
         ids.append(later[0])
-    want = [np.linalg.norm((p[j] - p[i]) - (g[j] - g[i])) for i, j in zip(ids, ids[1:])]
+    want = [np.linalg.norm((p[j] - p[i]) - (g[j] - g[i])) for i, j in zip(ids[:-1], ids[1:], strict=True)]
     np.testing.assert_allclose(rt.rpe, want, rtol=1e-12)
     np.testing.assert_array_equal(rt.rpe_at, ids[1:])
 
@@ -144,7 +144,8 @@ n0 = 0.5
 
 [prior]
 mean = [0.0, 1.0, 0.0, 0.5, 0.0, -0.2]
-cov = [[4.0,0,0,0,0,0],[0,1.0,0,0,0,0],[0,0,4.0,0,0,0],[0,0,0,1.0,0,0],[0,0,0,0,4.0,0],[0,0,0,0,0,1.0]]
+cov = [[4.0,0,0,0,0,0],[0,1.0,0,0,0,0],[0,0,4.0,0,0,0],
+       [0,0,0,1.0,0,0],[0,0,0,0,4.0,0],[0,0,0,0,0,1.0]]
 
 [[sensors]]
 name = "pos"
