@@ -123,7 +123,8 @@ def test_rpe_in_seconds_pairs_each_instant_with_the_first_delta_later():
         if not later:
             break
         ids.append(later[0])
-    want = [np.linalg.norm((p[j] - p[i]) - (g[j] - g[i])) for i, j in zip(ids[:-1], ids[1:], strict=True)]
+    pairs = zip(ids[:-1], ids[1:], strict=True)
+    want = [np.linalg.norm((p[j] - p[i]) - (g[j] - g[i])) for i, j in pairs]
     np.testing.assert_allclose(rt.rpe, want, rtol=1e-12)
     np.testing.assert_array_equal(rt.rpe_at, ids[1:])
 
