@@ -76,7 +76,7 @@ def export_text(
     if not 0 <= run < runs:
         raise FusionlogError(f"{path}: no run {run} (the file has runs 0..{runs - 1})")
     values, cov = _one_run(mf, topic, run)
-    origin = first_log_time(mf.path, topic)
+    origin = first_log_time(mf.path)  # the first instant: some topic has a message there
     times_ns = np.rint(mf.times() * 1e9).astype(np.int64)
     stamps = [origin - int(times_ns[0]) + int(t) for t in times_ns]
     if fmt == "csv":

@@ -71,13 +71,14 @@ class TrajectoryPart:
         return {"ape": ape, "rpe": rpe}
 
     def recording(self) -> dict[str, Any] | None:
-        """What the recording draws: the position states' names, each architecture's APE and
-        RPE over time and run 0's aligned positions (K+1, m), with its truth's."""
+        """What the recording draws (`io.rrd.trajectory`): the position states' names and
+        indices, each architecture's APE and RPE over time and run 0's aligned positions
+        (K+1, m)."""
         if not self.sums:
             return None
         pos = list(self.sc.trajectory.positions)
         names = [self.sc.state_names[i] for i in pos]
-        out: dict[str, Any] = {"states": names, "series": {}, "aligned": {}, "alignment": {}}
+        out: dict[str, Any] = {"states": names, "positions": pos, "series": {}, "aligned": {}}
         for a in self.archs:
             s = self.sums.get(a)
             if s is None:
@@ -85,5 +86,4 @@ class TrajectoryPart:
             out["series"][a] = s.series()
             if s.first is not None:
                 out["aligned"][a] = s.first.aligned
-                out["alignment"][a] = s.first.alignment
         return out
