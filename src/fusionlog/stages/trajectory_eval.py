@@ -44,6 +44,7 @@ class TrajectoryPart:
         self.sc, self.times, self.source = sc, np.asarray(times, dtype=float), source
         self.archs = list(archs)
         self.sums: dict[str, TrajectorySums] = {}
+        self.spread: np.ndarray | None = None  # run 0's truth: variance of each position
 
     @classmethod
     def of(
@@ -57,6 +58,10 @@ class TrajectoryPart:
     def add(self, off: int, truth: np.ndarray, means: dict[str, np.ndarray]) -> None:
         sums = trajectory_block(self.sc, self.times, truth, means, off, self.source)
         self.merge(sums or {})
+        if off == 0 and truth.shape[0]:
+            g = truth[0][:, list(self.sc.trajectory.positions)]
+            g = g[np.isfinite(g).all(axis=1)]
+            self.spread = g.var(axis=0) if len(g) else None
 
     def merge(self, sums: dict[str, TrajectorySums]) -> None:
         for a, s in sums.items():
@@ -79,6 +84,8 @@ class TrajectoryPart:
         pos = list(self.sc.trajectory.positions)
         names = [self.sc.state_names[i] for i in pos]
         out: dict[str, Any] = {"states": names, "positions": pos, "series": {}, "aligned": {}}
+        if self.spread is not None:  # run 0's truth: the recording's plane of the paths
+            out["spread"] = self.spread
         for a in self.archs:
             s = self.sums.get(a)
             if s is None:

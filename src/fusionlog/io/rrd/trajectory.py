@@ -5,7 +5,8 @@ time, and the first run's estimates after the alignment beside the raw ones.
 ``metrics/ape/<ARCH>``                          APE at each instant (run average, metres)
 ``metrics/rpe/<ARCH>``                          RPE of the pairs ending at each instant
 ``aligned/truth``, ``aligned/<ARCH>``           run 0's truth and aligned estimates in the
-                                                plane of the first two position states
+                                                plane of two position states (of three, the
+                                                two along which the truth spreads most)
 ``raw/truth``, ``raw/<ARCH>``                   the same, as estimated (not aligned)
 =============================================  ============================================
 
@@ -37,8 +38,13 @@ def _path(xy: np.ndarray) -> np.ndarray:
 
 
 def _plane(traj: Mapping[str, Any]) -> list[int]:
-    """Columns (of the position states) drawn: the first two, or the one."""
-    return list(range(min(2, len(traj["states"]))))
+    """Columns (of the position states) drawn: of three, the two along which run 0's truth
+    spreads most (a camera frame's ground plane is x-z), in order; else those there are."""
+    m = len(traj["states"])
+    spread = traj.get("spread")
+    if m <= 2 or spread is None:
+        return list(range(min(2, m)))
+    return sorted(int(i) for i in np.argsort(-np.asarray(spread, dtype=float), kind="stable")[:2])
 
 
 def write_trajectory(
@@ -77,7 +83,7 @@ def trajectory_tabs(traj: Mapping[str, Any] | None) -> list[Any]:
     tabs: list[Any] = []
     cols = _plane(traj)
     if len(cols) == 2:
-        plane = f"({names[0]}, {names[1]})"
+        plane = f"({names[cols[0]]}, {names[cols[1]]})"
         tabs.append(rrb.Tabs(
             rrb.Spatial2DView(origin="/aligned", name=f"Trajectory: aligned {plane}"),
             rrb.Spatial2DView(origin="/raw", name=f"Trajectory: raw {plane}"),
