@@ -340,3 +340,78 @@ align = "rigid"
     f = tmp_path / "line.toml"
     f.write_text(text)
     one_line_error(cli("run", f, "--out-dir", tmp_path / "o"), "CKF", "collinear")
+
+
+@pytest.mark.parametrize("gap", [False, True])
+def test_runs_are_measured_one_by_one_and_averaged(gap):
+    """Over M runs each run is aligned and measured on its own (evo, per run, here) and the
+    summary is the documented aggregate: rmse the root mean of the runs' squared rmse, min and
+    max the extremes, the others the mean over runs; APE over time the mean over the runs at
+    each instant. With `gap` one run misses an instant (it is then measured alone)."""
+    from fusionlog.core.trajectory import block_sums
+
+    rng = np.random.default_rng(8)
+    M, K1 = 6, 40
+    t = np.arange(K1) * 0.5
+    truth = np.cumsum(rng.normal(size=(M, K1, 4)), axis=1)
+    est = truth + rng.normal(scale=0.4, size=truth.shape) + [1.0, 0.0, -2.0, 0.0]
+    if gap:
+        est[3, 7] = np.nan
+    s = TrajectorySettings((0, 2), "similarity", None, 2, "frames")
+    sums = block_sums(s, t, truth, {"A": est}, run_offset=0)["A"]
+    ape, rpe = sums.summary()
+    per_run, per_run_rpe, at = [], [], np.zeros(K1)
+    count = np.zeros(K1)
+    for r in range(M):
+        ok_ = np.isfinite(est[r]).all(axis=1)
+        p3 = np.zeros((ok_.sum(), 3))
+        g3 = np.zeros((ok_.sum(), 3))
+        p3[:, :2], g3[:, :2] = est[r][ok_][:, [0, 2]], truth[r][ok_][:, [0, 2]]
+        a, b = _evo(p3, g3, t[ok_], "similarity", 2, "frames")
+        per_run.append(a.get_all_statistics())
+        per_run_rpe.append(b.get_all_statistics())
+        at[ok_] += a.error
+        count[ok_] += 1
+    for got, runs in ((ape, per_run), (rpe, per_run_rpe)):
+        want = {k: np.mean([x[k] for x in runs]) for k in ("mean", "median", "std")}
+        want["rmse"] = math.sqrt(np.mean([x["rmse"] ** 2 for x in runs]))
+        want["min"] = min(x["min"] for x in runs)
+        want["max"] = max(x["max"] for x in runs)
+        for k, v in want.items():
+            assert got[k] == pytest.approx(v, rel=1e-9), k
+    assert ape["rotation"] is None and ape["scale"] is None  # one per run
+    np.testing.assert_allclose(sums.series()["ape"], at / count, rtol=1e-9)
+
+
+def test_distributed_runs_and_sweeps_carry_the_trajectory_metrics(tmp_path):
+    sc = _scenario(tmp_path, 'align = "rigid"', runs=40)
+    _, plain = _run(tmp_path, sc)
+    _, spread = _run(tmp_path, sc, "--workers", "0", "--block-runs", "7")
+    for a, e in plain["architectures"].items():
+        for key in ("ape", "rpe"):
+            for k, v in e[key].items():
+                if isinstance(v, float):
+                    assert spread["architectures"][a][key][k] == pytest.approx(v, rel=1e-12)
+    out = tmp_path / "sweep"
+    ok("sweep", sc, "--vary", "model.n0=0.1,0.5", "--runs", "20", "--out-dir", out)
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(out / "sweep.parquet").to_pylist()
+    summary = json.loads((out / "summary.json").read_text())
+    for row in table:
+        point = next(p for p in summary["points"] if p["values"]["model.n0"] == row["model.n0"])
+        e = point["architectures"][row["architecture"]]
+        assert row["ape_rmse"] == e["ape"]["rmse"] and row["rpe_rmse"] == e["rpe"]["rmse"]
+        assert row["ape_rmse"] > 0
+
+
+def test_the_recording_has_ape_and_rpe_over_time(tmp_path):
+    from fusionlog.io.rrd.read import read_recording
+
+    out, summary = _run(tmp_path, _scenario(tmp_path), "--align", "rigid")
+    rec = read_recording(out / "evaluation.rrd")
+    for a, e in summary["architectures"].items():
+        ape = rec["series"][f"metrics/ape/{a}"]
+        assert math.sqrt(np.nanmean(ape**2)) == pytest.approx(e["ape"]["rmse"], rel=1e-12)
+        rpe = rec["series"][f"metrics/rpe/{a}"]
+        assert np.count_nonzero(np.isfinite(rpe)) == e["rpe"]["pairs"]

@@ -52,6 +52,8 @@ __all__ = [
     "rpe_pairs",
     "run_trajectory",
     "umeyama",
+    "umeyama_batch",
+    "align_batch",
 ]
 
 ALIGNMENTS = ("none", "origin", "rigid", "similarity")
@@ -65,7 +67,11 @@ TIME_TOL = 1e-9
 
 class AlignmentError(ValueError):
     """The matched positions cannot be aligned (too few, degenerate); the caller adds the file,
-    architecture and run."""
+    architecture and run (`run`: which of a batch's runs, None: every one)."""
+
+    def __init__(self, message: str, run: int | None = None) -> None:
+        super().__init__(message)
+        self.run = run
 
 
 @dataclass(frozen=True)
@@ -97,52 +103,72 @@ class Alignment:
         return self.scale * (p @ self.rotation.T) + self.translation
 
 
-def umeyama(est: np.ndarray, truth: np.ndarray, with_scale: bool) -> Alignment:
-    """The similarity (c, R, t) minimising Σ‖g_k − (c R p_k + t)‖² over the pairs (p_k, g_k) of
-    est (N, m) and truth (N, m): Umeyama 1991, means (34, 35), variance of p (36), covariance
+def umeyama_batch(
+    est: np.ndarray, truth: np.ndarray, with_scale: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each run r of est (R, N, m) and truth (R, N, m), the similarity (c, R, t) minimising
+    Σ‖g_k − (c R p_k + t)‖²: Umeyama 1991, means (34, 35), variance of p (36), covariance
     Σ = (1/N) Σ (g − μ_g)(p − μ_p)ᵀ (38), Σ = U D Vᵀ, S = diag(1, ..., 1, det U det V) (43),
-    R = U S Vᵀ (40), c = tr(D S) / σ_p² (42) or 1, t = μ_g − c R μ_p (41).
+    R = U S Vᵀ (40), c = tr(D S) / σ_p² (42) or 1, t = μ_g − c R μ_p (41). Returns rotations
+    (R, m, m), translations (R, m), scales (R,).
 
     The solution is unique when rank Σ ≥ m − 1 (Umeyama's condition; in 3-D: the positions
-    are not collinear); otherwise AlignmentError. Singular values below max(N, m) ε times the
-    largest count as zero (the rank rule of numpy's matrix_rank)."""
-    n, m = est.shape
-    mu_p, mu_g = est.mean(axis=0), truth.mean(axis=0)
-    dp, dg = est - mu_p, truth - mu_g
-    var_p = float(np.einsum("ij,ij->", dp, dp)) / n
-    sigma = dg.T @ dp / n
+    are not collinear); otherwise AlignmentError naming the first such run (its index in the
+    batch). Singular values below max(N, m) ε times the largest count as zero (the rank rule of
+    numpy's matrix_rank)."""
+    _, n, m = est.shape
+    mu_p, mu_g = est.mean(axis=1), truth.mean(axis=1)
+    dp, dg = est - mu_p[:, None], truth - mu_g[:, None]
+    var_p = np.einsum("rij,rij->r", dp, dp) / n
+    sigma = np.einsum("rki,rkj->rij", dg, dp) / n
     u, d, vt = np.linalg.svd(sigma)
-    tol = d[0] * max(n, m) * np.finfo(float).eps if d.size else 0.0
-    rank = int(np.count_nonzero(d > tol))
-    if d[0] == 0.0 or rank < m - 1:
-        what = "collinear" if m == 3 and rank == 1 else "degenerate"
+    tol = d[:, :1] * max(n, m) * np.finfo(float).eps
+    rank = np.count_nonzero(d > tol, axis=1)
+    bad = np.flatnonzero((d[:, 0] == 0.0) | (rank < m - 1))
+    if bad.size:
+        r0, k = int(bad[0]), int(rank[bad[0]])
+        what = "collinear" if m == 3 and k == 1 else "degenerate"
         raise AlignmentError(
-            f"the matched positions are {what} (rank {rank} of {m}): a rotation cannot be fitted"
+            f"the matched positions are {what} (rank {k} of {m}): a rotation cannot be fitted", r0
         )
-    s = np.ones(m)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0.0:
-        s[-1] = -1.0  # a proper rotation, not a reflection (eq. 43)
-    r = (u * s) @ vt
-    c = float(np.dot(d, s)) / var_p if with_scale else 1.0
-    return Alignment(r, mu_g - c * (r @ mu_p), c)
+    sgn = np.ones((len(d), m))
+    sgn[np.linalg.det(u) * np.linalg.det(vt) < 0.0, -1] = -1.0  # a rotation, not a reflection
+    rot = (u * sgn[:, None, :]) @ vt
+    c = np.einsum("ri,ri->r", d, sgn) / var_p if with_scale else np.ones(len(d))
+    return rot, mu_g - c[:, None] * np.einsum("rij,rj->ri", rot, mu_p), c
 
 
-def align(est: np.ndarray, truth: np.ndarray, mode: str, first: int | None = None) -> Alignment:
-    """The alignment `mode` of the matched positions est (N, m) onto truth (N, m), fitted on
-    the first `first` of them (None: all)."""
-    n, m = est.shape
+def umeyama(est: np.ndarray, truth: np.ndarray, with_scale: bool) -> Alignment:
+    """`umeyama_batch` of one run: est (N, m), truth (N, m)."""
+    rot, t, c = umeyama_batch(est[None], truth[None], with_scale)
+    return Alignment(rot[0], t[0], float(c[0]))
+
+
+def align_batch(
+    est: np.ndarray, truth: np.ndarray, mode: str, first: int | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The alignment `mode` of each run's matched positions est (R, N, m) onto truth (R, N, m),
+    fitted on the first `first` of them (None: all): rotations, translations, scales."""
+    runs, n, m = est.shape
+    eye = np.broadcast_to(np.eye(m), (runs, m, m))
     if mode == "none":
-        return Alignment.identity(m)
+        return eye, np.zeros((runs, m)), np.ones(runs)
     if n == 0:
         raise AlignmentError("no matched instant to align")
     if mode == "origin":
-        return Alignment(np.eye(m), truth[0] - est[0], 1.0)
+        return eye, truth[:, 0] - est[:, 0], np.ones(runs)
     k = n if first is None else min(first, n)
     if k < MIN_FIT:
         raise AlignmentError(
             f"{k} matched instant(s) to fit a {mode} alignment, at least {MIN_FIT} needed"
         )
-    return umeyama(est[:k], truth[:k], mode == "similarity")
+    return umeyama_batch(est[:, :k], truth[:, :k], mode == "similarity")
+
+
+def align(est: np.ndarray, truth: np.ndarray, mode: str, first: int | None = None) -> Alignment:
+    """`align_batch` of one run: est (N, m) onto truth (N, m)."""
+    rot, t, c = align_batch(est[None], truth[None], mode, first)
+    return Alignment(rot[0], t[0], float(c[0]))
 
 
 def rpe_pairs(
@@ -176,18 +202,23 @@ def rpe_pairs(
     return ids[:-1], ids[1:]
 
 
+def statistics_batch(e: np.ndarray) -> dict[str, np.ndarray]:
+    """Each run's rmse, mean, median, std (population), min, max of its errors e (R, N > 0)."""
+    return {
+        "rmse": np.sqrt(np.mean(e * e, axis=1)),
+        "mean": np.mean(e, axis=1),
+        "median": np.median(e, axis=1),
+        "std": np.std(e, axis=1),
+        "min": np.min(e, axis=1),
+        "max": np.max(e, axis=1),
+    }
+
+
 def error_statistics(e: np.ndarray) -> dict[str, float]:
-    """rmse, mean, median, std (population), min, max of the errors e (NaN for none)."""
+    """rmse, mean, median, std (population), min, max of the errors e (N,) (NaN for none)."""
     if e.size == 0:
         return dict.fromkeys(STATISTICS, math.nan)
-    return {
-        "rmse": math.sqrt(float(np.mean(e * e))),
-        "mean": float(np.mean(e)),
-        "median": float(np.median(e)),
-        "std": float(np.std(e)),
-        "min": float(np.min(e)),
-        "max": float(np.max(e)),
-    }
+    return {k: float(v[0]) for k, v in statistics_batch(e[None]).items()}
 
 
 def rotation_angles(r: np.ndarray) -> tuple[float, np.ndarray | None]:
@@ -223,21 +254,34 @@ class RunTrajectory:
     rpe_at: np.ndarray
 
 
+def _measure(p: np.ndarray, g: np.ndarray, t: np.ndarray, s: TrajectorySettings) -> tuple:
+    """Runs matched at the same instants t (N,): positions p, g (R, N, m) -> the alignments
+    (rotations, translations, scales), aligned p (R, N, m), APE (R, N), the pairs (i, j) and
+    RPE (R, P). The ``m`` rule's pairs follow the first run's path (one run per call there)."""
+    rot, tr, c = align_batch(p, g, s.align, s.align_first)
+    al = c[:, None, None] * np.einsum("rij,rkj->rki", rot, p) + tr[:, None, :]
+    ape = np.linalg.norm(al - g, axis=2)
+    i, j = rpe_pairs(al[0] if len(al) else al.reshape(0, p.shape[2]), t, s.rpe_delta, s.rpe_unit)
+    rpe = np.linalg.norm((al[:, j] - al[:, i]) - (g[:, j] - g[:, i]), axis=2)
+    return rot, tr, c, al, ape, i, j, rpe
+
+
+def _run_of(out: tuple, r: int, matched: np.ndarray, instants: int) -> RunTrajectory:
+    rot, tr, c, al, ape, _, j, rpe = out
+    aligned = np.full((instants, al.shape[2]), np.nan)
+    aligned[matched] = al[r]
+    a = Alignment(rot[r], tr[r], float(c[r]))
+    return RunTrajectory(a, aligned, matched, ape[r], rpe[r], matched[j])
+
+
 def run_trajectory(
     est: np.ndarray, truth: np.ndarray, times: np.ndarray, s: TrajectorySettings
 ) -> RunTrajectory:
     """The metrics of one run: est and truth (K+1, n) full states, times (K+1,) s."""
     p, g = est[:, s.positions], truth[:, s.positions]
     matched = np.flatnonzero(np.isfinite(p).all(axis=1) & np.isfinite(g).all(axis=1))
-    pm, gm = p[matched], g[matched]
-    a = align(pm, gm, s.align, s.align_first)
-    aligned_m = a.apply(pm)
-    aligned = np.full(p.shape, np.nan)
-    aligned[matched] = aligned_m
-    ape = np.linalg.norm(aligned_m - gm, axis=1)
-    i, j = rpe_pairs(aligned_m, times[matched], s.rpe_delta, s.rpe_unit)
-    rpe = np.linalg.norm((aligned_m[j] - aligned_m[i]) - (gm[j] - gm[i]), axis=1)
-    return RunTrajectory(a, aligned, matched, ape, rpe, matched[j])
+    out = _measure(p[None, matched], g[None, matched], times[matched], s)
+    return _run_of(out, 0, matched, len(times))
 
 
 @dataclass
@@ -254,17 +298,17 @@ class _StatSums:
     count: int = 0  # errors (pairs for the RPE) over all runs
 
     def add(self, e: np.ndarray) -> None:
+        """The errors e (R, N) of R runs."""
         self.count += e.size
         if e.size == 0:
             return
-        st = error_statistics(e)
-        self.runs += 1
-        self.rmse2 += st["rmse"] ** 2
-        self.mean += st["mean"]
-        self.median += st["median"]
-        self.std += st["std"]
-        self.min = min(self.min, st["min"])
-        self.max = max(self.max, st["max"])
+        st = statistics_batch(e)
+        self.runs += e.shape[0]
+        self.rmse2 += float(np.sum(st["rmse"] ** 2))
+        for k in ("mean", "median", "std"):
+            setattr(self, k, getattr(self, k) + float(np.sum(st[k])))
+        self.min = min(self.min, float(st["min"].min()))
+        self.max = max(self.max, float(st["max"].max()))
 
     def merge(self, o: _StatSums) -> None:
         self.runs += o.runs
@@ -309,14 +353,19 @@ class TrajectorySums:
             if getattr(self, k) is None:
                 setattr(self, k, np.zeros(self.instants))
 
+    def add(self, matched: np.ndarray, ape: np.ndarray, at: np.ndarray, rpe: np.ndarray) -> None:
+        """R runs matched at the instants `matched` (N,) (indices of the K+1, increasing): APE
+        (R, N); RPE (R, P) of the pairs ending at the instants `at` (P,)."""
+        self.runs += ape.shape[0]
+        self.ape.add(ape)
+        self.rpe.add(rpe)
+        self.ape_at[matched] += ape.sum(axis=0)
+        self.ape_n[matched] += ape.shape[0]
+        self.rpe_at[at] += rpe.sum(axis=0)
+        self.rpe_n[at] += rpe.shape[0]
+
     def add_run(self, rt: RunTrajectory, first: bool = False) -> None:
-        self.runs += 1
-        self.ape.add(rt.ape)
-        self.rpe.add(rt.rpe)
-        np.add.at(self.ape_at, rt.matched, rt.ape)
-        np.add.at(self.ape_n, rt.matched, 1.0)
-        np.add.at(self.rpe_at, rt.rpe_at, rt.rpe)
-        np.add.at(self.rpe_n, rt.rpe_at, 1.0)
+        self.add(rt.matched, rt.ape[None], rt.rpe_at, rt.rpe[None])
         if first:
             self.first = rt
 
@@ -368,17 +417,26 @@ def block_sums(
     name_runs: bool = True,
 ) -> dict[str, TrajectorySums]:
     """The trajectory sums of a block of runs: truth (runs, K+1, n), means {arch: (runs, K+1,
-    n)}; run `run_offset` is the block's first. An AlignmentError names the architecture (and
-    the run when `name_runs`)."""
+    n)}; run `run_offset` is the block's first. Runs matched at the same instants are measured
+    together (a simulation's), unless the pairs follow each run's path (``m``); others one by
+    one. An AlignmentError names the architecture (and the run when `name_runs`)."""
     out = {}
+    s, pos = settings, list(settings.positions)
     for a, mean in means.items():
-        sums = TrajectorySums(settings, truth.shape[1])
-        for r in range(truth.shape[0]):
+        sums = TrajectorySums(s, truth.shape[1])
+        p, g = mean[..., pos], truth[..., pos]
+        ok = np.isfinite(p).all(axis=2) & np.isfinite(g).all(axis=2)
+        together = s.rpe_unit != "m" and len(ok) > 0 and bool((ok == ok[0]).all())
+        runs = [np.arange(len(ok))] if together else [np.array([r]) for r in range(len(ok))]
+        for rr in runs:
+            m = np.flatnonzero(ok[rr[0]])
             try:
-                rt = run_trajectory(mean[r], truth[r], times, settings)
+                res = _measure(p[rr][:, m], g[rr][:, m], times[m], s)
             except AlignmentError as e:
-                where = f"{a}: run {run_offset + r}" if name_runs else a
+                where = f"{a}: run {run_offset + int(rr[e.run or 0])}" if name_runs else a
                 raise AlignmentError(f"{where}: {e}") from None
-            sums.add_run(rt, first=run_offset + r == 0)
+            sums.add(m, res[4], m[res[6]], res[7])
+            if run_offset + rr[0] == 0:
+                sums.first = _run_of(res, 0, m, truth.shape[1])
         out[a] = sums
     return out
