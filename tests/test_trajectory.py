@@ -415,3 +415,24 @@ def test_the_recording_has_ape_and_rpe_over_time(tmp_path):
         assert math.sqrt(np.nanmean(ape**2)) == pytest.approx(e["ape"]["rmse"], rel=1e-12)
         rpe = rec["series"][f"metrics/rpe/{a}"]
         assert np.count_nonzero(np.isfinite(rpe)) == e["rpe"]["pairs"]
+
+
+def test_the_api_export_writes_only_when_asked_and_names_its_arguments(tmp_path, monkeypatch):
+    out, _ = _run(tmp_path, _scenario(tmp_path))
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    monkeypatch.chdir(scratch)
+    text = fl.export(out / "estimates.mcap", arch="SKF", format="csv")
+    assert text.startswith("time,x,x_std") and list(scratch.iterdir()) == []
+    assert fl.export(out / "estimates.mcap", "s.csv", arch="SKF", format="csv") == text
+    assert (scratch / "s.csv").read_text() == text
+    with pytest.raises(fl.FusionlogError, match="exists"):
+        fl.export(out / "estimates.mcap", "s.csv", arch="SKF", format="csv")
+    for kw, msg in (
+        ({"arch": "SKF", "format": "xyz"}, "^format: unknown format 'xyz'"),
+        ({"arch": "SKF", "run": -1}, "^run: expected an integer >= 0"),
+        ({"arch": "SKF", "run": True}, "^run: "),
+        ({"arch": "nope"}, "no architecture 'nope'"),
+    ):
+        with pytest.raises(fl.FusionlogError, match=msg):
+            fl.export(out / "estimates.mcap", **kw)

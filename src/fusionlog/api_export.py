@@ -11,12 +11,12 @@ __all__ = ["export"]
 
 def export(
     log: str | os.PathLike[str],
+    output: str | os.PathLike[str] | None = None,
     *,
     arch: str | None = None,
     truth: bool = False,
     run: int | None = None,
     format: str = "tum",
-    output: str | os.PathLike[str] | None = None,
     force: bool = False,
 ) -> str:
     """One run's estimate (`arch`, of an estimates MCAP) or truth (`truth=True`, of a sensors
@@ -26,8 +26,11 @@ def export(
     Written to `output` only when given (atomic; an existing file only with `force`)."""
     from pathlib import Path
 
+    from .io.trajectory_text import FORMATS
     from .stages.export import export_text, run_export
 
+    if format not in FORMATS:
+        raise FusionlogError(f"format: unknown format {format!r} (known: {', '.join(FORMATS)})")
     if run is not None and (isinstance(run, bool) or not isinstance(run, int) or run < 0):
         raise FusionlogError(f"run: expected an integer >= 0, got {run!r}")
     if arch is not None and not isinstance(arch, str):

@@ -34,15 +34,26 @@ def seconds_text(ns: int) -> str:
     return f"{sign}{q}.{r:09d}"
 
 
-def first_log_time(path: Path, topic: str | None = None) -> int:
-    """The smallest log_time (ns) of a fusionlog MCAP file's messages (of `topic`, else of
-    all): its first instant's, the origin of the recording's clock (0 for a simulation)."""
+def first_log_time(path: Path) -> int:
+    """The smallest log_time (ns) of a fusionlog MCAP file's messages: its first instant's,
+    the origin of the recording's clock (0 for a simulation), from the summary's statistics
+    (the first message read where there are none). 0 where the file cannot tell (damaged: the
+    caller's own reading reports it, with the file's name)."""
     from mcap.reader import make_reader
 
-    with open(path, "rb") as f:
-        topics = None if topic is None else [topic]
-        for _schema, _channel, msg in make_reader(f).iter_messages(topics, log_time_order=True):
-            return int(msg.log_time)
+    from fusionlog.inputs import check_input
+
+    check_input(path)  # a FIFO or a device would block
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            if summary is not None and summary.statistics is not None:
+                return int(summary.statistics.message_start_time)
+            for _schema, _channel, msg in reader.iter_messages(log_time_order=False):
+                return int(msg.log_time)
+    except Exception:  # noqa: BLE001 - damaged or not MCAP: the stage's reader says so
+        return 0
     return 0
 
 
