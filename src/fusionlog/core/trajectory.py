@@ -36,6 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from .linalg import overflow_is_inf
+
 __all__ = [
     "ALIGNMENTS",
     "RPE_UNITS",
@@ -121,6 +123,10 @@ def umeyama_batch(
     dp, dg = est - mu_p[:, None], truth - mu_g[:, None]
     var_p = np.einsum("rij,rij->r", dp, dp) / n
     sigma = np.einsum("rki,rkj->rij", dg, dp) / n
+    big = np.flatnonzero(~(np.isfinite(sigma).all(axis=(1, 2)) & np.isfinite(var_p)))
+    if big.size:  # positions near the largest double: their moments overflow
+        raise AlignmentError("positions too large to fit an alignment (their moments overflow)",
+                             int(big[0]))  # fmt: skip
     u, d, vt = np.linalg.svd(sigma)
     tol = d[:, :1] * max(n, m) * np.finfo(float).eps
     rank = np.count_nonzero(d > tol, axis=1)
@@ -274,6 +280,7 @@ def _run_of(out: tuple, r: int, matched: np.ndarray, instants: int) -> RunTrajec
     return RunTrajectory(a, aligned, matched, ape[r], rpe[r], matched[j])
 
 
+@overflow_is_inf  # positions near 1e308: inf errors, reported as non-finite
 def run_trajectory(
     est: np.ndarray, truth: np.ndarray, times: np.ndarray, s: TrajectorySettings
 ) -> RunTrajectory:
@@ -379,6 +386,7 @@ class TrajectorySums:
             self.first = o.first
         return self
 
+    @overflow_is_inf
     def summary(self) -> tuple[dict[str, Any], dict[str, Any]]:
         """(ape, rpe) of summary.json (DESIGN.md "Trajectory metrics"). The alignment is that
         of the one run; over several runs each has its own: null, unless none was applied."""
@@ -408,6 +416,7 @@ class TrajectorySums:
             }
 
 
+@overflow_is_inf  # positions near 1e308: inf errors, reported as non-finite
 def block_sums(
     settings: TrajectorySettings,
     times: np.ndarray,
