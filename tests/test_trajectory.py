@@ -436,3 +436,15 @@ def test_the_api_export_writes_only_when_asked_and_names_its_arguments(tmp_path,
     ):
         with pytest.raises(fl.FusionlogError, match=msg):
             fl.export(out / "estimates.mcap", **kw)
+
+
+def test_positions_near_the_largest_double_give_inf_not_a_warning():
+    """(The suite turns numpy warnings into errors.) APE of positions ±1e308 apart is inf; a
+    fit whose moments overflow is refused as an AlignmentError naming the run."""
+    from fusionlog.core.trajectory import block_sums
+
+    x = np.array([[[1e308, 1e308], [-1e308, 2.0], [3.0, 1e308], [1.0, 2.0]]])
+    ape, _ = block_sums(TrajectorySettings((0, 1)), np.arange(4.0), x, {"A": -x})["A"].summary()
+    assert ape["max"] == math.inf
+    with pytest.raises(AlignmentError, match="^A: run 0: positions too large"):
+        block_sums(TrajectorySettings((0, 1), "rigid"), np.arange(4.0), x, {"A": -x})
