@@ -212,12 +212,14 @@ def _sweep_table(summary: Mapping[str, Any]) -> str:
     keys' values, then the columns of the run table) when there are at most SWEEP_ROWS, and
     each architecture's lowest MSE over the grid."""
     keys = [g.get("key") for g in summary.get("grid", [])]
-    header = [*map(str, keys), "architecture"] + [h for h, _ in _COLUMNS]
+    every = [e for p in summary.get("points", []) for e in p.get("architectures", {}).values()]
+    columns = _columns(dict(enumerate(every)))  # APE and RPE where a point has them
+    header = [*map(str, keys), "architecture"] + [h for h, _ in columns]
     rows = [header]
     for p in summary.get("points", []):
         values = [_value(p.get("values", {}).get(k)) for k in keys]
         for arch, entry in p.get("architectures", {}).items():
-            cells = [_fmt(_get(entry, keys_), percent=h == "in band") for h, keys_ in _COLUMNS]
+            cells = [_fmt(_get(entry, keys_), percent=h == "in band") for h, keys_ in columns]
             rows.append([*values, str(arch), *cells])
     lines = []
     if len(rows) - 1 <= SWEEP_ROWS:
