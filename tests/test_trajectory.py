@@ -474,3 +474,42 @@ def test_a_replays_exports_carry_the_recordings_clock(tmp_path):
     ok("export", out / "estimates.mcap", "--arch", "CKF", "--format", "tum", "-o", out / "e.tum")
     first = [line.split()[0] for line in (out / "e.tum").read_text().splitlines()]
     assert first == [f"{t // 10**9}.{t % 10**9:09d}" for t in sensors]
+
+
+def test_the_recording_toggles_between_aligned_and_raw_paths(tmp_path):
+    """Run 0's truth and paths, aligned and raw, as static strips, in the plane of the two
+    position states the truth spreads most along, with the aligned points = R p + t of the
+    summary's alignment (one run: its own)."""
+    from rerun.chunk import RrdReader
+
+    out, summary = _run(tmp_path, _scenario(tmp_path, 'position_states = ["x", "y", "z"]'),
+                        "--align", "rigid")  # fmt: skip
+    reader = RrdReader(str(out / "evaluation.rrd"))
+    strips, names = {}, set()
+    for ch in reader.store().stream().to_chunks():
+        batch = ch.to_record_batch()
+        if ch.is_static and "LineStrips2D:strips" in batch.schema.names:
+            strips[str(ch.entity_path)] = np.array(
+                batch.column("LineStrips2D:strips").to_pylist()[0][0]
+            )
+    for ch in reader.store(store=reader.blueprints()[0]).stream().to_chunks():
+        batch = ch.to_record_batch()
+        if "ViewBlueprint:display_name" in batch.schema.names:
+            names.add(batch.column("ViewBlueprint:display_name").to_pylist()[0][0])
+    for e in ("/aligned/truth", "/aligned/CKF", "/raw/truth", "/raw/CKF", "/aligned/SKF"):
+        assert e in strips, e
+    truth = McapFile(out / "sensors.mcap").read_all(["/truth"])["/truth"]
+    g = truth[0][:, [0, 2, 4]]
+    cols = sorted(np.argsort(-g.var(axis=0), kind="stable")[:2])
+    mean, _ = McapFile(out / "estimates.mcap").read_all(["/estimates/CKF"])["/estimates/CKF"]
+    ape = summary["architectures"]["CKF"]["ape"]
+    R, t = np.array(ape["rotation"]), np.array(ape["translation"])
+    aligned = mean[0][:, [0, 2, 4]] @ R.T + t
+    # Rerun stores 2-D points in float32
+    np.testing.assert_allclose(strips["/aligned/CKF"], aligned[:, cols], rtol=1e-6, atol=1e-5)
+    np.testing.assert_allclose(
+        strips["/raw/CKF"], mean[0][:, [0, 2, 4]][:, cols], rtol=1e-6, atol=1e-5
+    )
+    xyz = ["x", "y", "z"]
+    assert f"Trajectory: aligned ({xyz[cols[0]]}, {xyz[cols[1]]})" in names
+    assert f"Trajectory: raw ({xyz[cols[0]]}, {xyz[cols[1]]})" in names
