@@ -8,6 +8,8 @@ for test_references_linear and test_references_exact: helpers, not tests.
   d tr P / d omega (CI, two sensors) and the plain average with the covariance it really has
   (AVG, 4: P = sum_ij P_ij / N^2);
 * the hierarchical KF with feedback (36-40), the CKF and its RTS smoother;
+* without a prior, information filters started from zero information (CKF, HKF, MSC);
+* the exact bias and MSE matrix of any of them under any truth, by superposition;
 * small random systems, irregular instants, loss masks and data for them.
 
 Each loop is plain numpy over the runs (gains are shared by runs with the same pattern).
@@ -198,11 +200,106 @@ def ckf(system: System, z: np.ndarray, mask: np.ndarray, smooth: bool = False):
 
 
 def reference(system: System, arch: str, z: np.ndarray, mask: np.ndarray):
+    """The means (M, K+1, n) and covariances (K+1, n, n) of `arch` (SKF:name: the CKF of that
+    sensor alone)."""
+    if arch.startswith("SKF:"):
+        j = system.sensor_index(arch[4:])
+        rows = np.arange(system.m)[system.sensor_slices[j]]
+        return ckf(system.subset([j]), z[..., rows], mask[:, rows])
     if arch == "HKF":
         return hkf(system, z, mask)
     if arch in ("CKF", "FBS"):
         return ckf(system, z, mask, smooth=arch == "FBS")
     return fuse(arch, *local_filters(system, z, mask))
+
+
+def information_filter(system: System, z: np.ndarray, mask: np.ndarray, groups):
+    """An information filter started from Y = 0, y = 0 on runs z (M, K+1, m), updating with
+    each group of rows (a list of index arrays) as if the groups' noises were independent:
+    Y += H_g^T R_g^-1 H_g, y += H_g^T R_g^-1 z_g. Prediction in information form (defined for a
+    singular Y): M = F^-T Y F^-1, C = M (M + Q^-1)^-1, Y- = (I - C) M, y- = (I - C) F^-T y.
+    Returns Y (K+1, n, n) and y (M, K+1, n)."""
+    n, M, K1 = system.n, z.shape[0], z.shape[1]
+    Y, y = np.zeros((n, n)), np.zeros((M, n))
+    Ys, ys = np.empty((K1, n, n)), np.empty((M, K1, n))
+    eye = np.eye(n)
+    for k in range(K1):
+        if k:
+            Fi = np.linalg.inv(system.F_at(k))
+            Mk = Fi.T @ Y @ Fi
+            C = Mk @ np.linalg.inv(Mk + np.linalg.inv(system.GQG_at(k)))
+            Y = (eye - C) @ Mk
+            Y = 0.5 * (Y + Y.T)
+            y = y @ Fi @ (eye - C).T
+        for g in groups:
+            r = g[mask[k, g]]
+            if r.size:
+                Hg, Rg = system.H[r], system.R[np.ix_(r, r)]
+                Y = Y + Hg.T @ np.linalg.solve(Rg, Hg)
+                y = y + z[:, k, r] @ np.linalg.solve(Rg, Hg)
+        Ys[k], ys[:, k] = Y, y
+    return Ys, ys
+
+
+def no_prior_reference(system: System, arch: str, z: np.ndarray, mask: np.ndarray):
+    """CKF (one group: the full R), HKF (36-40 in information form: the fused information plus
+    each sensor's equivalent measurement H_j^T R_j^-1 H_j, its own R_j only) and MSC (the local
+    information filters' informations and vectors summed, 32-34). Returns the means, the
+    covariances Y^-1 (NaN where Y is singular to working precision, condition >= 1e12: no
+    estimate) and the condition numbers of Y."""
+    per_sensor = [np.arange(system.m)[sl] for sl in system.sensor_slices]
+    if arch == "CKF":
+        Y, y = information_filter(system, z, mask, [np.arange(system.m)])
+    elif arch == "HKF":
+        Y, y = information_filter(system, z, mask, per_sensor)
+    elif arch == "MSC":
+        parts = [information_filter(system, z, mask, [g]) for g in per_sensor]
+        Y, y = sum(p[0] for p in parts), sum(p[1] for p in parts)
+    else:
+        raise AssertionError(arch)
+    sv = np.linalg.svd(Y, compute_uv=False)  # descending
+    cond = np.full(len(Y), np.inf)
+    np.divide(sv[:, 0], sv[:, -1], out=cond, where=sv[:, -1] > 0)
+    P = np.full_like(Y, np.nan)
+    P[cond < 1e12] = np.linalg.inv(Y[cond < 1e12])
+    return np.einsum("mki,kij->mkj", y, P), P, cond
+
+
+def basis_runs(truth: System, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The truth (D+1, K+1, n) and measurements (D+1, K+1, m; NaN where `mask` (K+1, m) is
+    False) of `exact_by_superposition`'s runs: xi = (x0, w_1..w_K, v_0..v_K) = mean + L eta,
+    L = blockdiag(P_0, GQG_k, R_k)^(1/2) of the truth; run 0 has eta = 0, run i + 1 the i-th
+    unit vector."""
+    n, m, K1 = truth.n, truth.m, len(mask)
+    init = truth.truth_initial
+    D = n + (K1 - 1) * n + K1 * m
+    eta = np.vstack([np.zeros(D), np.eye(D)])
+    x = init.mean + eta[:, :n] @ psd_sqrt(init.cov).T
+    X, Z = np.empty((D + 1, K1, n)), np.empty((D + 1, K1, m))
+    off = n
+    for k in range(K1):
+        if k:
+            x = x @ truth.F_at(k).T + eta[:, off : off + n] @ psd_sqrt(truth.GQG_at(k)).T
+            off += n
+        X[:, k] = x
+    H = truth.linear_measurement()
+    for k in range(K1):
+        Z[:, k] = X[:, k] @ H.T + eta[:, off : off + m] @ psd_sqrt(truth.R_at(k)).T
+        off += m
+    return X, np.where(mask, Z, np.nan)
+
+
+def exact_by_superposition(filt: System, truth: System, arch: str, mask: np.ndarray, ref=None):
+    """Bias (K+1, n), E[e e^T] (K+1, n, n) and reported covariance of the reference estimator
+    `ref(filt, arch, Z, mask)` (default `reference`; its first two results the means (runs,
+    K+1, n) and covariances) built on `filt` when the data come from `truth`: the truth and
+    the measurements are affine in eta (`basis_runs`), the gains do not depend on the data,
+    so the error is c + A eta, E[e e^T] = c c^T + A A^T."""
+    X, Z = basis_runs(truth, mask)
+    mean, cov = (ref or reference)(filt, arch, Z, mask)[:2]
+    e = X - mean
+    c, A = e[0], e[1:] - e[0]
+    return c, c[:, :, None] * c[:, None, :] + np.einsum("rki,rkj->kij", A, A), cov
 
 
 # --------------------------------------------------------------------------------------------

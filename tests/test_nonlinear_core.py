@@ -200,6 +200,59 @@ def test_turn_is_the_exact_arc_and_tends_to_constant_velocity() -> None:
     assert Q[4, 4] == 2.0 and not Q[:4, 4].any()
 
 
+def _turn_values(theta: float) -> tuple[Fraction, Fraction, Fraction, Fraction]:
+    """sin(theta)/theta, (1 - cos theta)/theta, cos theta and sin theta exactly from their
+    series (20 terms: the remainder is far below a double's last bit for |theta| < 0.1)."""
+    t = Fraction(theta)
+    sin = sum(Fraction((-1) ** k, math.factorial(2 * k + 1)) * t ** (2 * k + 1) for k in range(20))
+    one_minus_cos = -sum(
+        Fraction((-1) ** k, math.factorial(2 * k)) * t ** (2 * k) for k in range(1, 20)
+    )
+    return sin / t, one_minus_cos / t, 1 - one_minus_cos, sin
+
+
+@pytest.mark.parametrize("theta", [0.09, -0.0875, 0.07])
+def test_turn_below_a_tenth_is_the_exact_turn_to_the_closed_form_s_rounding(theta: float) -> None:
+    """f and the Jacobian's omega column at omega dt a little below 0.1 (dt = 1) against the
+    exact turn: there the closed forms are used and lose only ~eps/theta^2 to the cancellation
+    in 1 - cos theta (cos rounded by half an ulp of ~1, divided by theta^2/2): 8 eps/theta^2
+    (2.2e-13 at 0.09) bounds them. A Taylor series taken up to 0.1 is off by its first omitted
+    term, theta^6/5040 of a (1e-10 at 0.09), theta^6/40320 of b, more for the slopes."""
+    ct = CoordinatedTurn((1.0, 1.0), 1.0)
+    vx, vy = 3.0, -2.0
+    x = np.array([[0.0, vx, 0.0, vy, theta]])
+    a, b, c, s = _turn_values(theta)
+    da, db = _turn_slopes(theta)
+    terms = {  # each a sum of two rounded products: its error is relative to their sizes
+        "x'": (a * vx, -b * vy),
+        "vx'": (c * vx, -s * vy),
+        "y'": (b * vx, a * vy),
+        "vy'": (s * vx, c * vy),
+        "dx'/domega": (da * vx, -db * vy),
+        "dy'/domega": (db * vx, da * vy),
+    }
+    f, J = ct.f(x, 1.0)[0], ct.jacobian(x, 1.0)[0]
+    got = dict(zip(terms, [f[0], f[1], f[2], f[3], J[0, 4], J[2, 4]], strict=True))
+    tol = 8 * EPS / theta**2
+    for name, (p, q) in terms.items():
+        err = abs(Fraction(float(got[name])) - (p + q)) / (abs(p) + abs(q))
+        assert err < tol, (theta, name, float(err), tol)
+
+
+def test_turn_process_noise_takes_each_axis_its_own_density() -> None:
+    """Q(dt) of the coordinated turn with q_x != q_y, by hand (dt = 2: the white-acceleration
+    block [[dt^3/3, dt^2/2], [dt^2/2, dt]] is [[8/3, 2], [2, 2]]): q_x's block on [x, vx],
+    q_y's on [y, vy], q_turn dt on omega, nothing between them."""
+    qx, qy, qt = 0.25, 4.0, 1e-3
+    Q = CoordinatedTurn((qx, qy), qt).Q(2.0)
+    block = np.array([[8 / 3, 2.0], [2.0, 2.0]])
+    want = np.zeros((5, 5))
+    want[0:2, 0:2] = qx * block
+    want[2:4, 2:4] = qy * block
+    want[4, 4] = qt * 2.0
+    np.testing.assert_allclose(Q, want, rtol=4 * EPS, atol=0)
+
+
 # --------------------------------------------------------------------------------------------
 # EKF and UKF against independent per-run implementations
 

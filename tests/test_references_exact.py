@@ -13,7 +13,7 @@ import dataclasses
 import numpy as np
 import pytest
 from conditioning import assert_agree, sensitivity
-from references import K, mask_of, on_irregular_instants, psd_sqrt, reference, system_of
+from references import K, exact_by_superposition, mask_of, on_irregular_instants, system_of
 
 from fusionlog.core.architectures import build_plan
 from fusionlog.core.exact import analyse
@@ -21,37 +21,6 @@ from fusionlog.core.model import Prior, System
 
 # --------------------------------------------------------------------------------------------
 # The exact analysis against the references' exact error statistics (superposition)
-
-
-def exact_by_superposition(filt: System, truth: System, arch: str, mask: np.ndarray):
-    """Bias (K+1, n) and E[e e^T] (K+1, n, n) of the reference estimator built on `filt` when
-    the data come from `truth`: the truth and the measurements are affine in
-    xi = (x0, w_1..w_K, v_0..v_K) = mean + L eta, eta ~ N(0, I); so is the error. Run 0 has
-    eta = 0, run i + 1 the i-th unit vector."""
-    n, m = truth.n, truth.m
-    init = truth.truth_initial
-    L0, Lv = psd_sqrt(init.cov), psd_sqrt(truth.R)
-    D = n + K * n + (K + 1) * m
-    eta = np.vstack([np.zeros(D), np.eye(D)])  # (D + 1, D)
-    runs = D + 1
-    x = init.mean + eta[:, :n] @ L0.T
-    X = np.empty((runs, K + 1, n))
-    Z = np.empty((runs, K + 1, m))
-    off = n
-    for k in range(K + 1):
-        if k:
-            Lw = psd_sqrt(truth.GQG_at(k))
-            x = x @ truth.F_at(k).T + eta[:, off : off + n] @ Lw.T
-            off += n
-        X[:, k] = x
-    for k in range(K + 1):
-        Z[:, k] = X[:, k] @ truth.H.T + eta[:, off : off + m] @ Lv.T
-        off += m
-    Z = np.where(mask, Z, np.nan)
-    mean, cov = reference(filt, arch, Z, mask)
-    e = X - mean
-    c, A = e[0], e[1:] - e[0]
-    return c, c[:, :, None] * c[:, None, :] + np.einsum("rki,rkj->kij", A, A), cov
 
 
 def _mismatched(filt: System, seed: int) -> System:

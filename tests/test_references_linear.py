@@ -17,11 +17,13 @@ from conditioning import assert_agree, sensitivity
 from conftest import random_system
 from references import (
     K,
+    basis_runs,
     data_of,
     estimate_ours,
+    information_filter,
     mask_of,
+    no_prior_reference,
     on_irregular_instants,
-    psd_sqrt,
     reference,
     system_of,
 )
@@ -90,52 +92,6 @@ def test_hkf_with_correlated_sensors_is_not_the_ckf() -> None:
 
 # --------------------------------------------------------------------------------------------
 # No prior: the information form
-
-
-def information_filter(system: System, z: np.ndarray, mask: np.ndarray, groups):
-    """An information filter started from Y = 0, y = 0 on runs z (M, K+1, m), updating with
-    each group of rows (a list of index arrays) as if the groups' noises were independent:
-    Y += H_g^T R_g^-1 H_g, y += H_g^T R_g^-1 z_g. Prediction in information form (defined for a
-    singular Y): M = F^-T Y F^-1, C = M (M + Q^-1)^-1, Y- = (I - C) M, y- = (I - C) F^-T y.
-    Returns Y (K+1, n, n) and y (M, K+1, n)."""
-    n, M, K1 = system.n, z.shape[0], z.shape[1]
-    Y, y = np.zeros((n, n)), np.zeros((M, n))
-    Ys, ys = np.empty((K1, n, n)), np.empty((M, K1, n))
-    eye = np.eye(n)
-    for k in range(K1):
-        if k:
-            Fi = np.linalg.inv(system.F_at(k))
-            Mk = Fi.T @ Y @ Fi
-            C = Mk @ np.linalg.inv(Mk + np.linalg.inv(system.GQG_at(k)))
-            Y = (eye - C) @ Mk
-            Y = 0.5 * (Y + Y.T)
-            y = y @ Fi @ (eye - C).T
-        for g in groups:
-            r = g[mask[k, g]]
-            if r.size:
-                Hg, Rg = system.H[r], system.R[np.ix_(r, r)]
-                Y = Y + Hg.T @ np.linalg.solve(Rg, Hg)
-                y = y + z[:, k, r] @ np.linalg.solve(Rg, Hg)
-        Ys[k], ys[:, k] = Y, y
-    return Ys, ys
-
-
-def no_prior_reference(system: System, arch: str, z: np.ndarray, mask: np.ndarray):
-    """CKF (one group: the full R), HKF (36-40 in information form: the fused information plus
-    each sensor's equivalent measurement H_j^T R_j^-1 H_j, its own R_j only) and MSC (the local
-    information filters' informations and vectors summed, 32-34)."""
-    per_sensor = [np.arange(system.m)[sl] for sl in system.sensor_slices]
-    if arch == "CKF":
-        Y, y = information_filter(system, z, mask, [np.arange(system.m)])
-    elif arch == "HKF":
-        Y, y = information_filter(system, z, mask, per_sensor)
-    elif arch == "MSC":
-        parts = [information_filter(system, z, mask, [g]) for g in per_sensor]
-        Y, y = sum(p[0] for p in parts), sum(p[1] for p in parts)
-    else:
-        raise AssertionError(arch)
-    P = np.linalg.inv(Y)
-    return np.einsum("mki,kij->mkj", y, P), P, np.linalg.cond(Y)
 
 
 @pytest.mark.parametrize("arch", ["CKF", "HKF", "MSC"])
@@ -265,28 +221,6 @@ def test_fbs_equals_the_batch_least_squares(prior: bool, irregular: bool) -> Non
     assert_equals_reference(system, "FBS", z, mean, cov)
 
 
-def _basis_runs(truth: System, mask: np.ndarray):
-    """The truth and measurements of `exact_by_superposition`'s runs: run 0 at the means, run
-    i + 1 with the i-th unit noise direction (x0, w_1..w_K, v_0..v_K)."""
-    n, m = truth.n, truth.m
-    init = truth.truth_initial
-    L0, Lv = psd_sqrt(init.cov), psd_sqrt(truth.R)
-    D = n + K * n + (K + 1) * m
-    eta = np.vstack([np.zeros(D), np.eye(D)])
-    x = init.mean + eta[:, :n] @ L0.T
-    X, Z = np.empty((D + 1, K + 1, n)), np.empty((D + 1, K + 1, m))
-    off = n
-    for k in range(K + 1):
-        if k:
-            x = x @ truth.F_at(k).T + eta[:, off : off + n] @ psd_sqrt(truth.GQG_at(k)).T
-            off += n
-        X[:, k] = x
-    for k in range(K + 1):
-        Z[:, k] = X[:, k] @ truth.H.T + eta[:, off : off + m] @ Lv.T
-        off += m
-    return X, np.where(mask, Z, np.nan)
-
-
 def gmf_of_information_vectors(system: System, z: np.ndarray, mask: np.ndarray):
     """MSC-GMF without a prior from its definition: the locals are information filters whose
     vectors are y_j = Y_j x + eps_j; the joint covariance of the eps_j (exactly, by
@@ -294,7 +228,7 @@ def gmf_of_information_vectors(system: System, z: np.ndarray, mask: np.ndarray):
     best linear unbiased combination x = sum_j W_j y_j, P = W Sigma W^T (min tr P, solved on
     the null space of the constraint). NaN where the constraint cannot be met."""
     groups = [np.arange(system.m)[sl] for sl in system.sensor_slices]
-    X, Zb = _basis_runs(system, mask)
+    X, Zb = basis_runs(system, mask)
     basis = [information_filter(system, Zb, mask, [g]) for g in groups]
     data = [information_filter(system, z, mask, [g]) for g in groups]
     n, M = system.n, z.shape[0]

@@ -37,6 +37,18 @@ def test_text_table_delimiter_found_from_content(tmp_path: Path, sep: str, name:
     np.testing.assert_array_equal(s.values, [[1.25, -2.0], [3.0, 0.4]])
 
 
+@pytest.mark.parametrize("sep", ["\t", ";"])
+def test_text_table_delimiter_found_from_every_sample_line(tmp_path: Path, sep: str) -> None:
+    """A header whose names hold commas ("x, m") splits on commas too: only the data lines
+    tell that the table is tab- or semicolon-separated (a comma splits none of them)."""
+    p = tmp_path / "t.txt"
+    rows = ["time", "x, m", "y, m"], ["0.5", "1.25", "-2"], ["1.5", "3", "0.4"]
+    p.write_text("\n".join(sep.join(r) for r in rows) + "\n")
+    s = read_series(p, topic=None, values=["y, m", "x, m"])
+    np.testing.assert_array_equal(s.times_ns, [500_000_000, 1_500_000_000])
+    np.testing.assert_array_equal(s.values, [[-2.0, 1.25], [0.4, 3.0]])
+
+
 def test_text_table_delimiter_given_and_columns_with_comments(tmp_path: Path) -> None:
     p = tmp_path / "log.txt"
     p.write_text("# exported by a logger\n\n10|1.0|2.0\n# a comment mid-file\n20|3.0|4.0\n")
@@ -70,6 +82,11 @@ def test_tum_format(tmp_path: Path) -> None:
         ("0.0000000025", "s", 2),
         ("0.0000000035", "s", 4),  # half to even: up
         ("1.5e-3", "s", 1_500_000),
+        ("2.5e-9", "s", 2),  # an exponent: the same half to even as its plain digits
+        ("25E-10", "s", 2),
+        ("3.5e-9", "s", 4),
+        ("0.5e-6", "ms", 0),
+        ("1.5e-6", "ms", 2),
         (".25", "us", 250),
     ],
 )
@@ -318,6 +335,19 @@ def test_associate_nearest_interpolate_exact_by_hand() -> None:
     np.testing.assert_allclose(inter[:, 0], [np.nan, 1.5, 2.98, 4.0, 6.04, np.nan, np.nan])
     exact = associate(instants, times, vals, "exact", 0)
     np.testing.assert_array_equal(exact[:, 0], [np.nan] * 3 + [4.0] + [np.nan] * 3)
+
+
+def test_associate_takes_samples_exactly_max_diff_away() -> None:
+    """ "Within max_diff" includes max_diff itself, in whole nanoseconds: samples at 0, 200,
+    300 and 1000 ns, max_diff 100 ns. Interpolated: 100 is 100 from both 0 and 200
+    (the mean, 2.5); 250 between 200 and 300, 50 from each (6); 101 is 101 from 0 (none).
+    Nearest: 400 is 100 from 300; 900 is 100 from 1000; 401 is 101 from both (none)."""
+    times = np.array([0, 200, 300, 1000], dtype=np.int64)
+    vals = np.array([[1.0], [4.0], [8.0], [16.0]])
+    inter = associate(np.array([100, 250, 101]), times, vals, "interpolate", 100)
+    np.testing.assert_array_equal(inter[:, 0], [2.5, 6.0, np.nan])
+    nearest = associate(np.array([400, 900, 401, 100]), times, vals, "nearest", 100)
+    np.testing.assert_array_equal(nearest[:, 0], [8.0, 16.0, np.nan, 1.0])
 
 
 # -- replay files: the one-line error of each new key --------------------------------------

@@ -5,7 +5,16 @@ __version__ = "0.1.0"
 from .errors import FusionlogError, NumericalError, ValidationError
 
 #: The Python API (`fusionlog.api`), loaded on first use: `import fusionlog.cli` stays light.
-_API = ("Estimates", "Evaluation", "Simulation", "estimate", "evaluate", "load", "simulate")
+_API = (
+    "Estimate",
+    "Estimates",
+    "Evaluation",
+    "Simulation",
+    "estimate",
+    "evaluate",
+    "load",
+    "simulate",
+)
 #: `fusionlog.export` (`fusionlog.api_export`): a recording's trajectory as TUM, KITTI or CSV
 _EXPORT = ("export",)
 

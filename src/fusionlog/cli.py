@@ -260,7 +260,7 @@ def evaluate(sensors, estimates, output, summary_path, align, force, block_runs)
 
     res = run_evaluate(sensors, estimates, output, summary_path=summary_path, force=force,
                        block=block_runs, align=align)  # fmt: skip
-    click.echo(format_table(res.summary))
+    click.echo(format_table(res.summary, res.sensors))
     click.echo(f"{res.recording}" + (f", {res.summary_path}" if res.summary_path else ""))
 
 
@@ -312,7 +312,7 @@ def run(scenario, out_dir, runs, steps, seed, archs, filter_name, align, force, 
     for note in res.notes:
         click.echo(f"note: {note}")
     click.echo(headline(sc))
-    click.echo(format_table(res.summary))
+    click.echo(format_table(res.summary, [s.name for s in sc.system.sensors]))
     stages = ", ".join(f"{k} {v:.2f} s" for k, v in res.seconds.items())
     click.echo(f"{stages} -> {d}")
 
@@ -339,7 +339,7 @@ def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, 
         filter_name=filter_name,
     )
     click.echo(headline(sc))
-    click.echo(format_table(res.summary))
+    click.echo(format_table(res.summary, [s.name for s in sc.system.sensors]))
     click.echo(f"{res.executor}: {res.seconds:.2f} s -> {d} (evaluation.rrd, summary.json)")
 
 
@@ -415,9 +415,10 @@ def summary(recording, as_json) -> None:
     """Read EVALUATION.rrd back offline and print its results table."""
     from fusionlog.io.rrd import read_recording
     from fusionlog.jsonout import dumps
-    from fusionlog.report import format_table
+    from fusionlog.report import recording_report
 
-    s = read_recording(recording, series=False)["summary"]  # the table needs no series
+    rec = read_recording(recording, series=False)  # the table needs no series
+    s = rec["summary"]
     if not isinstance(s, dict):
         kind = type(s).__name__ if s is not None else "null"
         raise FusionlogError(f"{recording}: the summary property is not a JSON object ({kind})")
@@ -425,11 +426,9 @@ def summary(recording, as_json) -> None:
         click.echo(dumps(s, indent=2))  # strict JSON, also from a recording made before it was
         return
     try:
-        table = format_table(s)
+        click.echo(recording_report(s, rec["properties"]))
     except ValueError as e:
         raise FusionlogError(f"{recording}: the summary property is not a summary ({e})") from None
-    click.echo(f"{s.get('scenario')}: M = {s.get('runs')} runs, K = {s.get('steps')}")
-    click.echo(table)
 
 
 def _tolerance(name: str, default: float, text: str):

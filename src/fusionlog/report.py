@@ -14,14 +14,37 @@ from typing import Any
 
 from fusionlog.jsonout import resolve_non_finite
 
-__all__ = ["format_table", "headline"]
+__all__ = ["format_table", "headline", "model_sensors", "recording_report"]
 
 
 def headline(sc: Any) -> str:
     """The line above a run's table: runs, instants and seed (a replay: one log, no seed)."""
-    if sc.replay is not None:
-        return f"{sc.name}: one recorded log, K = {sc.instants - 1} ({sc.instants} instants)"
-    return f"{sc.name}: M = {sc.runs} runs, K = {sc.instants - 1}, seed {sc.seed}"
+    return _headline(sc.name, sc.runs, sc.instants - 1, sc.replay is not None, sc.seed)
+
+
+def recording_report(summary: Mapping[str, Any], properties: Mapping[str, Any]) -> str:
+    """What `fusionlog summary` prints of a recording: its headline and `format_table`, told
+    by its properties (`io.rrd.read_recording`) whether it is a replay's (one recorded log:
+    its one run and seed 0 are no Monte Carlo settings) and what the filters' sensors are.
+    ValueError when `summary` is not one."""
+    from fusionlog.errors import FusionlogError
+    from fusionlog.scenario import is_replay_text
+
+    text = _get(properties, ("scenario", "text"))
+    try:
+        replay = isinstance(text, str) and is_replay_text(text, "the recorded scenario")
+    except FusionlogError:  # a recording of another version: told as a simulation's
+        replay = False
+    table = format_table(summary, model_sensors(properties.get("provenance")))
+    head = _headline(summary.get("scenario"), summary.get("runs"), summary.get("steps"), replay)
+    return f"{head}\n{table}"
+
+
+def _headline(name: Any, runs: Any, steps: Any, replay: bool, seed: Any = None) -> str:
+    if replay:
+        instants = f" ({steps + 1} instants)" if isinstance(steps, int) else ""
+        return f"{name}: one recorded log, K = {steps}{instants}"
+    return f"{name}: M = {runs} runs, K = {steps}" + (f", seed {seed}" if seed is not None else "")
 
 
 #: (header, getter) of the table columns, after the architecture name.
@@ -107,13 +130,14 @@ def _fmt(v: Any, percent: bool = False) -> str:
     return f"{v:.4e}"
 
 
-def format_table(summary: Mapping[str, Any]) -> str:
+def format_table(summary: Mapping[str, Any], sensors: Sequence[str] | None = None) -> str:
     """The Table I/II-style table: one row per architecture, columns MSE (eq. 45), its expected
     value, DM (eq. 47), expected DM, ANEES, expected ANEES, and the share of steps whose
     run-averaged NEES is inside the chi-square band. Takes the whole summary.json dict (or just
     its "architectures" mapping); missing values show as "—". An identity summary
     ("kind": "identity", architectures BAYES and DS) gets its own columns instead: see
-    `_identity_table`."""
+    `_identity_table`. `sensors`, the filters' sensor names (`model_sensors`), name the row of
+    an innovation that summary.json does not split by sensor: that of a single sensor."""
     archs = summary.get("architectures", summary)
     if not isinstance(archs, Mapping):
         raise ValueError("summary has no 'architectures' mapping")
@@ -127,7 +151,7 @@ def format_table(summary: Mapping[str, Any]) -> str:
     has_nis = any(isinstance(e, Mapping) and "nis" in e for e in archs.values())
     truth_free = has_nis and not any(isinstance(e, Mapping) and "mse" in e for e in archs.values())
     if truth_free:  # a recorded log without truth: what the innovations say
-        return _nis_table(archs)
+        return _nis_table(archs, sensors)
     columns = _columns(archs)
     header = ["architecture"] + [h for h, _ in columns]
     rows = [header]
@@ -140,7 +164,7 @@ def format_table(summary: Mapping[str, Any]) -> str:
             ["PCRB (bound)", _fmt(_get(summary, ("pcrb", "mse")))] + ["—"] * (len(columns) - 1)
         )
     table = _layout(header, rows) + alignment_lines(archs)
-    return table + "\n\n" + _nis_table(archs) if has_nis else table
+    return table + "\n\n" + _nis_table(archs, sensors) if has_nis else table
 
 
 #: Columns of the innovation table: (header, key of a `nis` entry, percent).
@@ -154,7 +178,7 @@ _NIS_COLUMNS: tuple[tuple[str, str, bool], ...] = (
 )
 
 
-def _nis_table(archs: Mapping[str, Any]) -> str:
+def _nis_table(archs: Mapping[str, Any], sensors: Sequence[str] | None = None) -> str:
     """One row per architecture and sensor: the mean NIS against its degrees of freedom, the
     share of instants whose NIS is inside the chi-square band, and the whiteness of the
     normalised innovations (largest autocorrelation over the lags, its bound, the share of lags
@@ -165,8 +189,8 @@ def _nis_table(archs: Mapping[str, Any]) -> str:
         nis = entry.get("nis") if isinstance(entry, Mapping) else None
         if not isinstance(nis, Mapping):
             continue
-        # one innovation: its sensor's (SKF:<sensor>) or all sensors' stacked
-        one = str(arch).split(":", 1)[1] if ":" in str(arch) else "all"
+        # one innovation: its sensor's (SKF:<sensor>), or the only sensor's
+        one = str(arch).split(":", 1)[1] if ":" in str(arch) else _only(sensors)
         parts = {one: nis} if "mean" in nis else nis
         for j, (sensor, e) in enumerate(parts.items()):
             rows.append(
@@ -175,6 +199,23 @@ def _nis_table(archs: Mapping[str, Any]) -> str:
                 + [_fmt(entry.get("mean_trace")) if j == 0 else ""]
             )
     return _layout(header, rows)
+
+
+def _only(sensors: Sequence[str] | None) -> str:
+    """The name of the filters' only sensor ("all" when it is not known)."""
+    return sensors[0] if sensors is not None and len(sensors) == 1 else "all"
+
+
+def model_sensors(provenance: Any) -> list[str] | None:
+    """The sensor names of the filters' model that an estimates file's provenance records
+    (its "model" JSON, `system_to_dict`); None when it records none."""
+    import json
+
+    try:
+        model = json.loads(provenance["model"])
+        return [str(s["name"]) for s in model["sensors"]]
+    except (KeyError, TypeError, ValueError):
+        return None
 
 
 def _is_identity(summary: Mapping[str, Any], archs: Mapping[str, Any]) -> bool:

@@ -56,8 +56,10 @@ class Evaluation:
     #: analysis (nonlinear models; summary.json's "pcrb")
     pcrb: np.ndarray | None = None
     innovations: dict[str, dict[str, np.ndarray]] | None = None
+    #: the filters' sensor names, in their order (the table names a single sensor's row)
+    sensors: tuple[str, ...] = ()
     #: the trajectory metrics' recording (`stages.trajectory_eval.TrajectoryPart.recording`):
-    #: position state names, APE and RPE over time, run 0's aligned positions and alignment
+    #: position state names and indices, APE and RPE over time, run 0's aligned positions
     trajectory: dict[str, Any] | None = None
 
     @property

@@ -161,6 +161,42 @@ def is_invertible(Y: np.ndarray, rtol: float = 1e-13) -> np.ndarray:
     return _is_invertible_lapack(Y, rtol)
 
 
+#: How far below zero the smallest eigenvalue of a reported covariance's correlation matrix
+#: may lie (`not_a_covariance`): rounding moves it by about n eps times the conditioning of
+#: the computation that made P; 1e-8 leaves that room and still refuses any real indefiniteness.
+SEMIDEFINITE_TOL = 1e-8
+
+
+def not_a_covariance(P: np.ndarray, semidefinite: bool = True) -> np.ndarray:
+    """(...,) which of a batch of reported covariances (..., n, n) cannot be one: a negative
+    variance, or (with `semidefinite`) a correlation matrix C = D^-1/2 P D^-1/2 (D = diag P, 1
+    where it is zero, so the test does not depend on the units: m^2 beside rad^2) whose smallest
+    eigenvalue is below -SEMIDEFINITE_TOL, i.e. P is not positive semidefinite. A matrix with a
+    NaN or an infinity passes here: what an undefined estimate may be is the caller's rule."""
+    bad = (np.diagonal(P, axis1=-2, axis2=-1) < 0).any(axis=-1)
+    if not semidefinite:
+        return bad
+    n = P.shape[-1]
+    flat, bad = P.reshape(-1, n, n), bad.reshape(-1)
+    todo = np.flatnonzero(~bad & np.isfinite(flat).all(axis=(-2, -1)))
+    if len(todo):
+        Q = flat[todo]
+        d = np.diagonal(Q, axis1=-2, axis2=-1)
+        s = np.sqrt(np.where(d > 0, d, 1.0))
+        with np.errstate(over="ignore", invalid="ignore"):  # beyond +-1 by far: refused below
+            C = Q / s[:, :, None] / s[:, None, :]
+        finite = np.isfinite(C).all(axis=(-2, -1))
+        unsure = finite.copy()
+        if kernels_for(C):  # C + tol I factors: lambda_min(C) > -tol, no eigenvalues needed
+            with np.errstate(invalid="ignore", divide="ignore"):  # the others: eigenvalues
+                _, ok = cholesky(lanes(lanes_copy(C + SEMIDEFINITE_TOL * np.eye(n))))
+            unsure &= ~ok
+        low = np.where(finite, 0.0, -np.inf)  # a correlation beyond +-1 by far: refused
+        low[unsure] = np.linalg.eigvalsh(sym(C[unsure]))[:, 0]
+        bad[todo] = low < -SEMIDEFINITE_TOL
+    return bad.reshape(P.shape[:-2])
+
+
 def _inverse_if_invertible(Y: np.ndarray, rtol: float = 1e-13) -> tuple[np.ndarray, np.ndarray]:
     """For a large batch: the Cholesky inverses (NaN where a matrix is not invertible) and
     `is_invertible`; the matrices the bound does not settle by the reference routines."""

@@ -18,11 +18,10 @@ TUM and KITTI, which have no way to say "none"; CSV writes them as ``nan``.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FORMATS", "csv_text", "first_log_time", "kitti_text", "seconds_text", "tum_text"]
+__all__ = ["FORMATS", "csv_text", "kitti_text", "seconds_text", "tum_text"]
 
 FORMATS = ("tum", "kitti", "csv")
 
@@ -32,29 +31,6 @@ def seconds_text(ns: int) -> str:
     sign = "-" if ns < 0 else ""
     q, r = divmod(abs(int(ns)), 1_000_000_000)
     return f"{sign}{q}.{r:09d}"
-
-
-def first_log_time(path: Path) -> int:
-    """The smallest log_time (ns) of a fusionlog MCAP file's messages: its first instant's,
-    the origin of the recording's clock (0 for a simulation), from the summary's statistics
-    (the first message read where there are none). 0 where the file cannot tell (damaged: the
-    caller's own reading reports it, with the file's name)."""
-    from mcap.reader import make_reader
-
-    from fusionlog.inputs import check_input
-
-    check_input(path)  # a FIFO or a device would block
-    try:
-        with open(path, "rb") as f:
-            reader = make_reader(f)
-            summary = reader.get_summary()
-            if summary is not None and summary.statistics is not None:
-                return int(summary.statistics.message_start_time)
-            for _schema, _channel, msg in reader.iter_messages(log_time_order=False):
-                return int(msg.log_time)
-    except Exception:  # noqa: BLE001 - damaged or not MCAP: the stage's reader says so
-        return 0
-    return 0
 
 
 def _num(x: float) -> str:

@@ -28,6 +28,7 @@ __all__ = [
     "Scenario",
     "check_budget",
     "check_identity_architectures",
+    "is_replay_text",
     "kind_of_text",
     "load_model",
     "load_scenario",
@@ -90,6 +91,12 @@ def scenario_from_text(text: str, source: str = "<string>") -> Scenario:
 def kind_of_text(text: str, source: str = "<string>") -> str:
     """The kind of a scenario or model file's text (``state`` unless it has [identity])."""
     return "identity" if is_identity_doc(toml.parse_toml(text, source)) else "state"
+
+
+def is_replay_text(text: str, source: str = "<string>") -> bool:
+    """Whether a scenario's TOML text (as a file's ``fusionlog.scenario`` record keeps it) is
+    a replay file (its sensors name a `source`): one recorded run, no seed."""
+    return is_replay_doc(toml.parse_toml(text, source))
 
 
 def load_model(

@@ -174,15 +174,17 @@ def check_budget(scenario: Scenario, bytes_per_run_step: int, what: str) -> None
         )
 
 
-def memory_shortfall(instants: int, bytes_per_instant: int) -> str | None:
-    """None when one run of `instants` instants, `bytes_per_instant` each, fits in half of
-    this machine's memory; else what it needs and what there is (the one memory decision,
-    made by the loader before a schedule is built and by the stages with their own costs)."""
-    need = instants * bytes_per_instant
+def memory_shortfall(instants: int, bytes_per_instant: int, runs: int = 1) -> str | None:
+    """None when `runs` runs (the stages hold one at least; the Python API holds all of them)
+    of `instants` instants, `bytes_per_instant` each, fit in half of this machine's memory;
+    else what they need and what there is (the one memory decision, made by the loader before
+    a schedule is built, by the stages with their own costs and by the API before simulating)."""
+    need = runs * instants * bytes_per_instant
     have = _memory_bytes()
     if not have or need <= have // 2:
         return None
-    return f"about {need / 2**30:.3g} GiB for a single run, this machine has {have / 2**30:.1f} GiB"
+    what = "a single run" if runs == 1 else f"{runs} runs held at once"
+    return f"about {need / 2**30:.3g} GiB for {what}, this machine has {have / 2**30:.1f} GiB"
 
 
 def _memory_bytes() -> int:
@@ -198,27 +200,30 @@ def scenario_with(
     runs: int | None = None,
     steps: int | None = None,
     seed: int | None = None,
+    flag: str = "--",
 ) -> Scenario:
-    """A copy with the given Monte Carlo settings replaced (None keeps the scenario's value)."""
+    """A copy with the given Monte Carlo settings replaced (None keeps the scenario's value).
+    Errors name an override as `flag` + its name: "--runs" for the CLI's options, "runs" for
+    the Python API's arguments (flag="")."""
     ctx = Ctx(scenario.path if scenario.path is not None else "<scenario>")
     changes: dict[str, int] = {}
     if runs is not None:
-        changes["runs"] = toml.integer(ctx, runs, "--runs", minimum=1)
+        changes["runs"] = toml.integer(ctx, runs, f"{flag}runs", minimum=1)
     if steps is not None:
-        changes["steps"] = toml.integer(ctx, steps, "--steps", minimum=0)
+        changes["steps"] = toml.integer(ctx, steps, f"{flag}steps", minimum=0)
     if seed is not None:
-        changes["seed"] = toml.integer(ctx, seed, "--seed", minimum=0)
+        changes["seed"] = toml.integer(ctx, seed, f"{flag}seed", minimum=0)
     if not changes:
         return scenario
     new = dataclasses.replace(scenario, **changes)
-    steps_key = "--steps" if steps is not None else "scenario.steps"
+    steps_key = f"{flag}steps" if steps is not None else "scenario.steps"
     _check_ranges(
         ctx,
         new.steps,
         new.runs,
         new.dt,
         steps_key,
-        "--runs" if runs is not None else "scenario.runs",
+        f"{flag}runs" if runs is not None else "scenario.runs",
     )
     if steps is not None and hasattr(new.system, "schedule"):
         from .model import check_schedule  # the state kind's sensors: timing on the new horizon

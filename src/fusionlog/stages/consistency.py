@@ -34,15 +34,14 @@ TRACK_TO_TRACK = ("MSC", "MSC-GMF", "CI", "AVG")
 
 
 def _parts(system: System, arch: str) -> list[tuple[str, np.ndarray]]:
-    """(part name, rows of z) of an architecture's innovations."""
+    """(part name, rows of z) of an architecture's innovations: one per sensor, named by it
+    (a single sensor's whole innovation too, not "all")."""
     base, sensor = parse_arch(arch, [s.name for s in system.sensors])
     rows = np.arange(system.m)
     sl = system.sensor_slices
     if base == "SKF":
         return [(sensor, rows[sl[system.sensor_index(sensor)]])]
-    if base in TRACK_TO_TRACK or len(system.sensors) > 1:
-        return [(s.name, rows[sl[j]]) for j, s in enumerate(system.sensors)]
-    return [("all", rows)]
+    return [(s.name, rows[sl[j]]) for j, s in enumerate(system.sensors)]
 
 
 class NisAccumulator:
@@ -71,7 +70,7 @@ class NisAccumulator:
                     forward = (fwd.mean, fwd.cov)
                 mean, cov = forward
             for part, rows in self.parts[a]:
-                if base == "HKF" and part == "all":
+                if base == "HKF" and len(self.system.sensors) == 1:  # its one innovation
                     R = self._blockdiag()
                 inn = innovations(system, mean, cov, z, rows, R)
                 key = (a, part)
@@ -135,11 +134,8 @@ class NisAccumulator:
                                   np.zeros((0, 1, 1)))  # fmt: skip
                 # flat numbers (a summary's metrics are numbers): whiteness_<what>
                 entries[part] |= {f"whiteness_{k}": float(v) for k, v in white.items()}
-            out[a] = (
-                entries["all"]
-                if list(entries) == ["all"]
-                else (entries[next(iter(entries))] if len(entries) == 1 else entries)
-            )
+            # one innovation (a single sensor, SKF:<s>): its entry itself (DESIGN.md)
+            out[a] = entries[next(iter(entries))] if len(entries) == 1 else entries
         return out
 
 

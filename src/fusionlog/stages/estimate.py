@@ -12,7 +12,6 @@ from fusionlog.errors import NumericalError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapFile, McapWriter
 from fusionlog.io.mcap.topics import estimates_topic
-from fusionlog.io.trajectory_text import first_log_time
 from fusionlog.scenario import Scenario, kind_of_text, toml
 
 from .common import (
@@ -81,6 +80,8 @@ def estimate_to(
     archs = kind.check_architectures(archs or model.architectures, system, where)
     K, M = mf.steps() - 1, mf.runs()
     times = mf.times()
+    # a replay's estimates keep its recording's clock: the log_time of its sensor messages
+    w.set_time_origin(mf.time_origin_ns())
     est = kind.estimator(system, K, M, archs, mf)
     B = est.block_runs(block)
     if SCENARIO_META in mf.metadata:
@@ -144,8 +145,7 @@ def run_estimate(
     out = Path(out)
     inputs = [Path(sensors_path)] + ([Path(model_path)] if model_path else [])
     with Outputs([out], force=force, inputs=inputs) as outs:
-        # a replay's estimates keep the recording's clock (DESIGN.md, "MCAP files")
-        with McapWriter(outs.open(out), time_origin_ns=first_log_time(sensors_path)) as w:
+        with McapWriter(outs.open(out)) as w:
             res = estimate_to(
                 sensors_path,
                 w,

@@ -8,11 +8,13 @@ from typing import Any
 
 import numpy as np
 
+from fusionlog.core.linalg import not_a_covariance
 from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import TRUTH
 from fusionlog.jsonout import dumps
 from fusionlog.memory import release_freed_memory
+from fusionlog.report import model_sensors
 from fusionlog.scenario import Scenario
 from fusionlog.scenario.trajectory import with_align
 
@@ -25,6 +27,8 @@ class EvaluateResult:
     recording: Path
     summary_path: Path | None
     summary: dict[str, Any]
+    #: the filters' sensor names (`report.format_table` names a single sensor's row by it)
+    sensors: list[str] | None = None
 
 
 def evaluate_into(
@@ -39,9 +43,10 @@ def evaluate_into(
     sensors_sha256: str | None = None,
     estimates_name: str | None = None,
     align: str | None = None,
-) -> dict[str, Any]:
+) -> tuple[dict[str, Any], list[str] | None]:
     """Metrics of every architecture in `estimates_path` against the truth of `sensors_path`,
-    written into the (uncommitted) outputs `out` (.rrd) and `summary_path` (JSON).
+    written into the (uncommitted) outputs `out` (.rrd) and `summary_path` (JSON); returns
+    the summary and the filters' sensor names (from the estimates' provenance).
     `estimates_name` names the estimates in errors (`run`: its output, not the temporary file);
     `align` (``--align``) overrides the scenario's ``[evaluate] align``.
 
@@ -83,13 +88,13 @@ def evaluate_into(
     kind.write_evaluation(outs.open(out), evaluation)
     if summary_path is not None:
         outs.open(summary_path).write(text.encode())
-    return summary
+    return summary, model_sensors(prov)
 
 
 def _check_variances(path: Path | str, topic: str, cov: np.ndarray) -> None:
     """A reported covariance with a negative variance is no covariance (a damaged or foreign
     estimates file): its NEES would come out negative, its DM zero. NaN (undefined) passes."""
-    negative = (np.diagonal(cov, axis1=-2, axis2=-1) < 0).any(axis=-1)  # (K+1,) or (runs, K+1)
+    negative = not_a_covariance(cov, semidefinite=False)  # (K+1,) or (runs, K+1)
     if negative.any():
         k = int(np.flatnonzero(negative.reshape(-1, negative.shape[-1]).any(axis=0))[0])
         raise FusionlogError(f"{path}: {topic}: step {k}: a covariance with a negative variance")
@@ -109,8 +114,8 @@ def run_evaluate(
     targets = [Path(out)] + ([Path(summary_path)] if summary_path else [])
     inputs = [Path(sensors_path), Path(estimates_path)]
     with Outputs(targets, force=force, inputs=inputs) as outs:
-        summary = evaluate_into(
+        summary, sensors = evaluate_into(
             sensors_path, estimates_path, outs, Path(out), summary_path, block=block, align=align
         )
         outs.commit()
-    return EvaluateResult(Path(out), summary_path, summary)
+    return EvaluateResult(Path(out), summary_path, summary, sensors)

@@ -3,9 +3,9 @@
 
 The positions are the scenario's position states (``[evaluate] position_states``, default the
 states x, y, z that exist) in order as tx, ty, tz, the missing ones 0. The clock: each instant's
-``log_time`` as the writer stamped it (the first instant's, read from the file, plus the
-instant's ``time`` in whole nanoseconds), so a replay's export carries the recording's absolute
-times and a simulation's counts from 0.
+``log_time`` as the writer stamped it (the file's time origin, `McapFile.time_origin_ns`, plus
+the instant's ``time`` in whole nanoseconds), so a replay's export carries the recording's
+absolute times and a simulation's counts from 0.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapFile
 from fusionlog.io.mcap.topics import ESTIMATES_PREFIX, TRUTH, arch_of, estimates_topic
-from fusionlog.io.trajectory_text import FORMATS, csv_text, first_log_time, kitti_text, tum_text
+from fusionlog.io.trajectory_text import FORMATS, csv_text, kitti_text, tum_text
 
 from .common import block_runs, scenario_from_file
 
@@ -76,9 +76,8 @@ def export_text(
     if not 0 <= run < runs:
         raise FusionlogError(f"{path}: no run {run} (the file has runs 0..{runs - 1})")
     values, cov = _one_run(mf, topic, run)
-    origin = first_log_time(mf.path)  # the first instant: some topic has a message there
-    times_ns = np.rint(mf.times() * 1e9).astype(np.int64)
-    stamps = [origin - int(times_ns[0]) + int(t) for t in times_ns]
+    origin = mf.time_origin_ns()  # instant 0's absolute time (0 for a simulation)
+    stamps = [origin + int(t) for t in np.rint(mf.times() * 1e9).astype(np.int64)]
     if fmt == "csv":
         std = None
         if cov is not None:

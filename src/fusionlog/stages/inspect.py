@@ -11,6 +11,7 @@ MCAP topics. `describe_damaged` reads a damaged MCAP as far as it goes.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from datetime import UTC, datetime
 from pathlib import Path
 
 from fusionlog.errors import FusionlogError
@@ -75,15 +76,18 @@ def describe(file: Path) -> Iterator[str]:
     mf = McapFile(file)
     sc = mf.metadata.get("fusionlog.scenario", {})
     prov = mf.metadata.get("fusionlog.provenance", {})
+    replay = _is_replay(sc)
     yield f"{file}"
     if sc:
-        yield f"  scenario: {sc.get('name')} (seed {sc.get('seed')})"
+        what = "a replay of recorded data: one run, no seed" if replay else f"seed {sc.get('seed')}"
+        yield f"  scenario: {sc.get('name')} ({what})"
     if prov:
         version = prov.get("fusionlog_version", "?")
         yield f"  written by: {prov.get('command', '?')} (fusionlog {version})"
     ours = [t for t in mf.topics if mf.kind_of(t) is not None]
     if ours:
-        yield f"  runs: {mf.runs()}, instants: {mf.steps()} (k = 0..{mf.steps() - 1})"
+        at = f"instants: {mf.steps()} (k = 0..{mf.steps() - 1})"
+        yield f"  one recorded run, {at}{_clock(mf)}" if replay else f"  runs: {mf.runs()}, {at}"
     else:
         yield "  no fusionlog topics (no fusionlog.Block or fusionlog.EstimateBlock streams)"
     foreign, fields = {}, {}
@@ -105,6 +109,27 @@ def describe(file: Path) -> Iterator[str]:
         elif t not in ours:
             yield from _field_lines(fields.get(t))
     yield f"  metadata: {', '.join(sorted(mf.metadata)) or 'none'}"
+
+
+def _is_replay(scenario_record: dict[str, str]) -> bool:
+    """Whether a file's ``fusionlog.scenario`` record is a replay file's (one recorded run;
+    its seed 0 and M = 1 are no Monte Carlo settings)."""
+    from fusionlog.scenario import is_replay_text
+
+    try:
+        return is_replay_text(scenario_record.get("toml", ""), "the recorded scenario")
+    except FusionlogError:  # a record this version cannot parse: shown as it says
+        return False
+
+
+def _clock(mf: McapFile) -> str:
+    """Where a replay's instants are on the recording's clock (its log_time, DESIGN.md)."""
+    ns = mf.time_origin_ns()
+    try:
+        utc = datetime.fromtimestamp(ns // 10**9, tz=UTC).strftime("%Y-%m-%d %H:%M:%S")
+    except (OverflowError, OSError, ValueError):
+        return f", log_time from {ns} ns"
+    return f", log_time from {ns} ns ({utc} UTC)"
 
 
 def describe_damaged(file: Path) -> Iterator[str]:

@@ -17,16 +17,18 @@ from fusionlog.errors import FusionlogError
 __all__ = ["PcrbPart", "scenario_bound", "simulated_readings", "step_writers", "with_filter"]
 
 
-def with_filter(system: Any, name: str | None) -> Any:
-    """The system with its local filter set by ``--filter`` (None: as recorded)."""
+def with_filter(system: Any, name: str | None, where: str = "--filter") -> Any:
+    """The system with its local filter set by ``--filter`` (None: as recorded); errors name
+    the option as `where` (the Python API's argument: "filter")."""
     if name is None:
         return system
     from fusionlog.scenario.nonlinear import FILTERS
 
     if not isinstance(system, System):
-        raise FusionlogError("--filter: only state scenarios have a local filter")
-    if name not in FILTERS:
-        raise FusionlogError(f"--filter: unknown filter {name!r} (known: {', '.join(FILTERS)})")
+        raise FusionlogError(f"{where}: only state scenarios have a local filter")
+    if not isinstance(name, str) or name not in FILTERS:
+        what = repr(name) if isinstance(name, str) else f"{name!r} ({type(name).__name__})"
+        raise FusionlogError(f"{where}: unknown filter {what} (known: {', '.join(FILTERS)})")
     return dataclasses.replace(system, filter=name)
 
 

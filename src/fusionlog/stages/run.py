@@ -11,7 +11,6 @@ from typing import Any
 from fusionlog.core.architectures import keep_block_plans
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapWriter
-from fusionlog.io.trajectory_text import first_log_time
 from fusionlog.memory import release_freed_memory
 from fusionlog.scenario import Scenario, check_budget
 
@@ -80,8 +79,7 @@ def run_pipeline(
         # digest is taken once: the estimate and evaluate steps do not read them again
         sensors = o.temp_path(outs["sensors.mcap"])
         digest = sha256_of(sensors)
-        origin = first_log_time(sensors)  # a replay's: the recording's clock (DESIGN.md)
-        with McapWriter(o.open(outs["estimates.mcap"]), time_origin_ns=origin) as w:
+        with McapWriter(o.open(outs["estimates.mcap"])) as w:
             estimate_to(
                 sensors,
                 w,
@@ -96,7 +94,7 @@ def run_pipeline(
         seconds["estimate"] = time.perf_counter() - t1
         release_freed_memory()
         t2 = time.perf_counter()
-        summary = evaluate_into(
+        summary, _ = evaluate_into(
             o.temp_path(outs["sensors.mcap"]),
             o.temp_path(outs["estimates.mcap"]),
             o,

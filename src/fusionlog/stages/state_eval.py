@@ -410,5 +410,6 @@ class StateEvaluator(Evaluator):
             ),
             properties={"scenario": self.sc.source, "provenance": provenance or self.prov},
             pcrb=None if self.pcrb is None else self.pcrb.per_state(),
+            sensors=tuple(s.name for s in self.filter_sys.sensors),
             trajectory=None if self.trajectory is None else self.trajectory.recording(),
         )

@@ -68,6 +68,7 @@ class McapFile:
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         self._structure: _Structure | None = None
+        self._origin: int | None = None  # time_origin_ns, read once
         check_input(self.path)  # a FIFO or a device would block or never end
         try:
             with open(self.path, "rb") as f:
@@ -338,6 +339,28 @@ class McapFile:
     def times(self) -> np.ndarray:
         """(K + 1,) time in seconds of each step (first message of that step in the file)."""
         return self._get_structure().times.copy()
+
+    def time_origin_ns(self) -> int:
+        """The clock of the file's messages: log_time - round(time * 1e9) of its first fusionlog
+        message, i.e. the absolute time of instant 0 (0 for a simulation, a replay's recorded
+        time of its first instant). Files written from this one take it as their writer's
+        `time_origin_ns`, so that they carry the same log_time at each instant (DESIGN.md "MCAP
+        files": the outputs of a replay keep the recording's clock). A first message whose
+        log_time precedes its `time` (a hand-written log) gives 0."""
+        if self._origin is None:
+            cids, first = set(self._formats), []
+            with open(self.path, "rb") as f:
+                if self._container.linear:
+                    first = next(iter(linear_batches(f, self.path, cids)), [])
+                else:
+                    ci = next((c for c, ids in self._container.chunks if ids is None or ids & cids),
+                              None)  # fmt: skip
+                    first = [] if ci is None else read_chunk(f, self.path, ci)
+            first = [m for m in first if m.channel_id in cids][:1]
+            tab = self._table(first, self._formats) if first else None
+            origin = 0 if tab is None else first[0].log_time - round(float(tab.time[0]) * 1e9)
+            self._origin = origin if 0 <= origin < 2**63 else 0
+        return self._origin
 
     def _info(self, topic: str) -> _TopicInfo:
         info = self._topics.get(topic)

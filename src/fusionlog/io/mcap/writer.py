@@ -127,11 +127,8 @@ class McapWriter:
         self._htime: float = math.nan
         self._head = b""
         self._t_ns = 0
-        # log_time = time_origin_ns + time in ns: an imported log keeps its recorded timestamps
-        # while its `time` fields count seconds from its first instant.
-        self._origin = operator.index(time_origin_ns)
-        if not 0 <= self._origin < 2**63:
-            raise ValueError(f"time_origin_ns must fit in 63 bits, got {self._origin}")
+        self._origin = 0
+        self.set_time_origin(time_origin_ns)
         # A context of its own per file: channels and sinks do not leak between files.
         self._ctx = foxglove.Context()
         options = MCAPWriteOptions(
@@ -148,6 +145,18 @@ class McapWriter:
         except BaseException:
             self.abort()
             raise
+
+    def set_time_origin(self, time_origin_ns: int) -> None:
+        """log_time = time_origin_ns + time in ns: an imported log keeps its recorded timestamps
+        while its `time` fields count seconds from its first instant, and files written from it
+        (a replay's estimates: `McapFile.time_origin_ns` of its sensors file) keep them too.
+        Set by the constructor, or here before the first message."""
+        origin = operator.index(time_origin_ns)
+        if not 0 <= origin < 2**63:
+            raise ValueError(f"time_origin_ns must fit in 63 bits, got {origin}")
+        if self._messages and origin != self._origin:
+            raise ValueError("the clock of a file is set before its first message")
+        self._origin = origin
 
     def __enter__(self) -> McapWriter:
         return self

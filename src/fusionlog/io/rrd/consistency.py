@@ -54,7 +54,7 @@ def write_consistency(
     for arch, parts in nis.items():
         col, width = arch_color(arch), arch_width(arch)
         for part, (mean, lower, upper) in parts.items():
-            label = arch if part == "all" else f"{arch} ({part})"
+            label = f"{arch} ({part})"
             w.line(entity_path("metrics", "nis", arch, part), mean, label, col, width)
             for side, arr in (("lower", lower), ("upper", upper)):
                 p = entity_path("metrics", "nis", arch, part, side)

@@ -171,6 +171,17 @@ def recording_stream(
             rec.disconnect()  # closes the pipe's writing end: the pump sees its end
 
 
+def _whole_ns(kind: str, values: np.ndarray) -> np.ndarray:
+    """A duration timeline's seconds as the nearest whole nanoseconds: Rerun truncates the
+    seconds it is given (4.1625 s became 4.162499999 s, a nanosecond before the instant the
+    estimates' `time` and log_time stamp). Other timelines, and seconds a 64-bit count of
+    nanoseconds cannot hold, as they are."""
+    v = np.asarray(values)
+    if kind != "duration" or v.dtype.kind != "f" or not (np.abs(v) < 9e9).all():
+        return v
+    return np.round(v * 1e9).astype(np.int64).astype("timedelta64[ns]")
+
+
 class _Pump:
     """A named pipe whose bytes a thread copies into `file` (see the module's docstring).
 
@@ -224,11 +235,12 @@ class SeriesWriter:
         self.steps = np.arange(self.times.shape[0], dtype=np.int64)
         # The timelines every series is indexed by: {name: ("sequence" | "duration", values)},
         # one value per entry of `times`; by default step (k) and time (t_k, seconds).
-        self.axes = (
-            dict(axes)
-            if axes
-            else {"step": ("sequence", self.steps), "time": ("duration", self.times)}
-        )
+        self.axes = {
+            name: (kind, _whole_ns(kind, values))
+            for name, (kind, values) in (
+                axes or {"step": ("sequence", self.steps), "time": ("duration", self.times)}
+            ).items()
+        }
         # Many entities share a style (an architecture's colour and name across states) and
         # most series are defined at every step: build those column batches once.
         self._styles: dict[tuple, Any] = {}
