@@ -140,6 +140,46 @@ def _spd_inv_scaled_lapack(A: np.ndarray, spread: float, what: str) -> np.ndarra
     return np.where(wide, scaled, spd_inv(np.where(wide, np.eye(A.shape[-1]), A), what))
 
 
+#: In `definite`: eigenvalues of the Jacobi-scaled matrix within DEF_RTOL * n * max|eig| of zero
+#: count as zero (its diagonal is 1, so this is about n * 1e-12 whatever the units).
+DEF_RTOL = 1e-12
+
+
+def definite(A: np.ndarray, *, strict: bool, rtol: float = DEF_RTOL) -> bool:
+    """Whether the symmetric matrix A is positive definite (`strict`) or semidefinite to working
+    precision: the one decision for every covariance a definition gives (R, Q, a prior's and a
+    truth's covariance, cross-covariances) and for the bound's initial covariance.
+
+    Decided on the Jacobi scaling C = D^-1/2 A D^-1/2 (D = diag A), a correlation matrix, so
+    that it does not depend on the units of the states or measurements: a radar's
+    R = diag(9e6 m^2, 1e-6 rad^2) is C = I, while its eigenvalues relative to the largest
+    (1e-13) mix m^2 with rad^2. Cholesky's success depends on C in the same way (van der
+    Sluis). A zero variance is allowed (semidefinite) only with a zero row: a nonzero
+    covariance beside it makes a 2 x 2 minor negative, in any units.
+    """
+    A = 0.5 * A + 0.5 * A.T  # not (A + A^T) / 2: entries near 1e308 would overflow
+    n = A.shape[0]
+    d = np.diagonal(A)
+    if (d < 0).any() or (strict and not (d > 0).all()):
+        return False
+    keep = d > 0
+    if not keep.all():
+        if (A[~keep] != 0).any():
+            return False
+        A, d = A[np.ix_(keep, keep)], d[keep]
+        if not d.size:  # all zero: semidefinite
+            return True
+    s = np.sqrt(d)
+    with np.errstate(over="ignore"):  # |C_ij| far above 1 (overflowing): indefinite anyway
+        C = A / s[:, None] / s[None, :]
+    if not np.isfinite(C).all():
+        return False
+    np.fill_diagonal(C, 1.0)  # d_i / s_i / s_i up to rounding
+    w = np.linalg.eigvalsh(C)
+    tol = rtol * n * float(np.max(np.abs(w)))
+    return bool(w[0] > tol) if strict else bool(w[0] >= -tol)
+
+
 def is_invertible(Y: np.ndarray, rtol: float = 1e-13) -> np.ndarray:
     """Whether each symmetric PSD matrix has full rank: its smallest eigenvalue above rtol times
     its largest, or that of its Jacobi scaling D^-1/2 Y D^-1/2 (D = diag Y) is.

@@ -240,6 +240,33 @@ class System:
         sensors = tuple(self.sensors[j] for j in indices)
         return dataclasses.replace(self, sensors=sensors, cross_R=cross, Rs=Rs)
 
+    def undetermined_states(self) -> list[int]:
+        """The states that the sensors (all of them, every instant) never determine through
+        the motion: those with a component in the unobservable subspace of (F, H), the null
+        space of O = [H; HF; ...; HF^(n-1)] (Kalman's rank test). Without a prior no filter
+        then ever has a covariance. O's columns and rows are scaled to unit size first, so the
+        rank does not depend on the states' units. Empty where O is not finite (undecided)."""
+        n = self.n
+        with np.errstate(over="ignore", invalid="ignore"):
+            rows = [self.H]
+            for _ in range(n - 1):
+                rows.append(rows[-1] @ self.F)
+            O = np.vstack(rows)
+        if not np.isfinite(O).all():
+            return []
+        # scaled by the largest magnitudes (a 2-norm could overflow on entries of 1e200)
+        keep = np.abs(O).max(axis=0) > 0  # a state no row involves is undetermined
+        O = O[:, keep] / np.abs(O[:, keep]).max(axis=0)
+        O = O[np.abs(O).max(axis=1) > 0]
+        O = O / np.abs(O).max(axis=1)[:, None]
+        cols = np.flatnonzero(keep)
+        if not len(O):
+            return list(range(n))
+        _, sv, Vt = np.linalg.svd(O)
+        rank = int((sv > max(O.shape) * np.finfo(float).eps * sv[0]).sum())
+        weak = (Vt[rank:] ** 2).sum(axis=0) > 1e-12  # a component in the null space
+        return sorted([int(i) for i in np.flatnonzero(~keep)] + [int(i) for i in cols[weak]])
+
     def sensor_index(self, name: str) -> int:
         for j, s in enumerate(self.sensors):
             if s.name == name:

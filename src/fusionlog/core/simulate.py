@@ -57,7 +57,10 @@ def _draw(
         x = np.empty((R, steps + 1, n))
         x[:, 0] = init.mean + e0 @ psd_sqrt(init.cov).T
         for k in range(steps):
-            x[:, k + 1] = system.propagate(x[:, k], k + 1) + w[:, k]
+            try:
+                x[:, k + 1] = system.propagate(x[:, k], k + 1) + w[:, k]
+            except NumericalError as e:  # a motion model's own refusal (the turn's angle)
+                raise NumericalError(f"simulation: the true state at step {k + 1}: {e}") from None
         z = system.h(x) + v
         if not system.linear:  # a bearing read with its noise is still in (-pi, pi]
             z = system.residual(z, np.zeros(z.shape[-1]))

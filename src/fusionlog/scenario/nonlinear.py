@@ -6,7 +6,8 @@ motion"): the range-bearing family's ``[[sensors]]`` tables, ``[model] kind =
                   position_states = ["x", "y"] (default), R (m^2, rad^2), timing keys
     [model]       kind = "coordinated-turn", q = [qx, qy], q_turn   (state [x, vx, y, vy, omega])
     [estimate]    filter = "EKF" | "UKF" (required when a model is nonlinear)
-    [estimate.ukf] alpha, beta, kappa (defaults 1, 2, 0; alpha^2 (n + kappa) = n + lambda > 0)
+    [estimate.ukf] alpha, beta, kappa (defaults 1, 2, 0; 0 < alpha <= 1, beta >= 0, and
+                  0 < alpha^2 (n + kappa) = n + lambda <= chi2_n^-1(1 - eps): `_ukf_ranges`)
 
 Every problem is one line naming the file, the key and the reason (`toml.Ctx.err`).
 """
@@ -14,6 +15,7 @@ Every problem is one line naming the file, the key and the reason (`toml.Ctx.err
 from __future__ import annotations
 
 import math
+import sys
 from typing import Any
 
 from fusionlog.core.model import System
@@ -174,7 +176,45 @@ def filter_section(
                 "estimate.ukf.alpha",
                 f"too large: n + lambda = alpha^2 (n + kappa) overflows (n = {n})",
             )
+        _ukf_ranges(ctx, n, ukf)
     return filt, ukf  # type: ignore[return-value]
+
+
+def _ukf_ranges(ctx: Ctx, n: int, ukf: tuple[float, float, float]) -> None:
+    """The accepted ranges of the scaled unscented transform's parameters (Julier 2002, "The
+    scaled unscented transformation"; Wan and van der Merwe 2000), each refused outside:
+
+    - alpha in (0, 1]: it scales the sigma points' spread down from the unscaled transform's;
+    - beta >= 0: beta = (kurtosis - 1) of the distribution whose fourth moment the points
+      match (2 for a Gaussian), and no distribution has a kurtosis below 1;
+    - kappa with 0 < n + lambda = alpha^2 (n + kappa) <= chi2_n^-1(1 - eps): the points lie
+      sqrt(n + lambda) standard deviations from the mean, and beyond the radius that holds all
+      but eps (2.2e-16) of the Gaussian's mass they sample a region a double cannot weigh
+      against the rest (about 83 for n = 5; kappa = 1e300 put them 1e150 deviations out: CKF
+      MSE 2207 against a bound of 23). The defaults (1, 2, 0) are inside for every n.
+    """
+    alpha, beta, kappa = ukf
+    if not alpha <= 1.0:
+        raise ctx.err("estimate.ukf.alpha", f"must be in (0, 1], got {toml.fmt(alpha)}")
+    if not beta >= 0.0:
+        raise ctx.err(
+            "estimate.ukf.beta",
+            f"must be >= 0 (beta = kurtosis - 1 of the distribution: 2 for a Gaussian), "
+            f"got {toml.fmt(beta)}",
+        )
+    from scipy.special import gammainccinv  # the chi-square quantile, only with [estimate.ukf]
+
+    top = 2.0 * float(gammainccinv(n / 2.0, sys.float_info.epsilon))
+    c = alpha * alpha * (n + kappa)
+    if c > top:
+        raise ctx.err(
+            "estimate.ukf.kappa",
+            f"must be in ({-n}, {toml.fmt(top / (alpha * alpha) - n)}] with alpha = "
+            f"{toml.fmt(alpha)} (n = {n}), got {toml.fmt(kappa)}: n + lambda = alpha^2 (n + "
+            f"kappa) = {toml.fmt(c)} puts the sigma points {math.sqrt(c):.3g} standard "
+            f"deviations out, beyond the radius holding all but 2.2e-16 of a Gaussian's mass "
+            f"(n + lambda <= {toml.fmt(top)})",
+        )
 
 
 def estimate_dict(system: System) -> dict[str, Any]:

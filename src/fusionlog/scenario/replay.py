@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from fusionlog.core.model import Sensor, System
-from fusionlog.core.timing import TIME_UNITS
+from fusionlog.core.timing import MAX_PERIOD_S, MIN_PERIOD_S, TIME_UNITS
 
 from . import toml
 from .base import Header, Scenario
@@ -43,6 +43,7 @@ from .model import model_section
 from .sensors import sensor_matrices
 from .state import (
     architectures_section,
+    check_determined,
     correlations_section,
     evaluate_section,
     prior_section,
@@ -329,6 +330,7 @@ def replay_from_doc(doc: dict[str, Any], file: str, source: str, path: str | Non
     cross_R = correlations_section(ctx, doc, tuple(sensors))
     system = System(F=F, Q=Q, G=G, sensors=tuple(sensors), prior=prior, cross_R=cross_R, dt=dt,
                     state_names=state_names, continuous=continuous)  # fmt: skip
+    check_determined(ctx, system)
     architectures = architectures_section(ctx, doc, system)
     confidence, sample_runs, plane_view = evaluate_section(ctx, doc)
     if plane_view and n != 2:
@@ -380,7 +382,14 @@ def _truth(
         if match == "exact":
             raise ctx.err("truth.max_diff", "not used with match = 'exact'")
         max_diff = toml.number(ctx, tr["max_diff"], "truth.max_diff")
-        if not (max_diff > 0 and max_diff < 1e9):
-            raise ctx.err("truth.max_diff", f"must be > 0 seconds, got {toml.fmt(max_diff)}")
+        # the range of a sensor's period (`core.timing`): whole nanoseconds, far inside the
+        # 64-bit nanosecond clock
+        if not MIN_PERIOD_S <= max_diff <= MAX_PERIOD_S:
+            raise ctx.err(
+                "truth.max_diff",
+                f"must be > 0 seconds, from {toml.fmt(MIN_PERIOD_S)} (one nanosecond, the "
+                f"resolution of a log's time) to {toml.fmt(MAX_PERIOD_S)} (about 31.7 years), "
+                f"got {toml.fmt(max_diff)}",
+            )
     max_diff_ns = round(Decimal(repr(max_diff)) * 1_000_000_000)
     return stream, tuple(state_names.index(s) for s in states), match, max_diff_ns

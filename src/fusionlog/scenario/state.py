@@ -268,7 +268,21 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
         ukf=ukf,
     )
     nonlinear.check_nonlinear(ctx, system, bool(cross_R))
+    check_determined(ctx, system)
     return system
+
+
+def check_determined(ctx: Ctx, system: System) -> None:
+    """Without a prior every state must be determined by the sensors through the model (a
+    replay with a state nothing measures gave every metric NaN, exit 0, and no word why)."""
+    if system.prior is None and system.linear and (lost := system.undetermined_states()):
+        names = ", ".join(system.state_names[i] for i in lost)
+        raise ctx.err(
+            "prior",
+            f"missing, and no sensor ever determines {names} through the model (unobservable): "
+            "without a prior no filter would ever have a covariance and every metric would be "
+            "NaN; give [prior] (mean, cov) or a sensor that measures them",
+        )
 
 
 def prior_section(ctx: Ctx, doc: dict[str, Any], F: np.ndarray) -> Prior | None:
@@ -363,24 +377,23 @@ def correlations_section(
             C = C.T
         Ra, Rb = sensors[key[0]].R, sensors[key[1]].R
         joint = np.block([[Ra, C], [C.T, Rb]])
-        lo = toml.min_eig_excess(joint, strict=True)
-        if lo is not None:
+        why = toml.not_definite(joint, strict=True)
+        if why is not None:
             raise ctx.err(
                 f"{where}.cov",
-                f"makes the joint noise covariance of {a!r} and {b!r} not positive definite "
-                f"(smallest eigenvalue {toml.fmt(lo)})",
+                f"makes the joint noise covariance of {a!r} and {b!r} not positive definite {why}",
             )
         first[key] = k
         cross[key] = toml.readonly(np.array(C))
     if len(cross) > 1:
         # Pairs are checked above; several correlations can still conflict with each other.
         probe = System(F=np.zeros((1, 1)), Q=np.zeros((1, 1)), sensors=sensors, cross_R=cross)
-        lo = toml.min_eig_excess(probe.R, strict=True)
-        if lo is not None:
+        why = toml.not_definite(probe.R, strict=True)
+        if why is not None:
             raise ctx.err(
                 "correlations",
                 "the full measurement noise covariance R of all sensors (eq. 31) is not "
-                f"positive definite (smallest eigenvalue {toml.fmt(lo)})",
+                f"positive definite {why}",
             )
     return cross
 

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from fusionlog.core.linalg import definite
 from fusionlog.errors import ValidationError
 from fusionlog.inputs import check_input
 
@@ -25,8 +26,6 @@ _NAME_RULE = "letters, digits, '_', '.', '-', not starting with '.' or '-'"
 
 #: Relative tolerance of the symmetry check: max|A - A^T| <= SYM_RTOL * max|A|.
 SYM_RTOL = 1e-12
-#: Eigenvalues within DEF_RTOL * n * max|eig| of zero count as zero in definiteness checks.
-DEF_RTOL = 1e-12
 
 
 class Ctx:
@@ -242,21 +241,22 @@ def covariance_checks(ctx: Ctx, A: np.ndarray, where: str, *, strict: bool) -> n
     if asym > SYM_RTOL * float(np.max(np.abs(A))):
         raise ctx.err(where, f"not symmetric (max |{label} - {label}^T| = {asym:.3g})")
     A = 0.5 * A + 0.5 * A.T  # not (A + A^T) / 2: entries near 1e308 would overflow
-    lo = min_eig_excess(A, strict=strict)
-    if lo is not None:
+    why = not_definite(A, strict=strict)
+    if why is not None:
         kind = "positive definite" if strict else "positive semidefinite"
-        raise ctx.err(where, f"not {kind} (smallest eigenvalue {fmt(lo)})")
+        raise ctx.err(where, f"not {kind} {why}")
     return readonly(A)
 
 
-def min_eig_excess(A: np.ndarray, *, strict: bool) -> float | None:
-    """The smallest eigenvalue if it violates definiteness, else None. Eigenvalues within
-    DEF_RTOL * n * max|eig| of zero count as zero."""
-    w = np.linalg.eigvalsh(0.5 * A + 0.5 * A.T)
-    tol = DEF_RTOL * A.shape[0] * float(np.max(np.abs(w)))
-    lo = float(w[0])
-    bad = lo <= tol if strict else lo < -tol
-    return lo if bad else None
+def not_definite(A: np.ndarray, *, strict: bool) -> str | None:
+    """None when A is positive (semi)definite to working precision (`core.linalg.definite`,
+    which does not depend on units), else why not: "(smallest eigenvalue ...)"."""
+    if definite(A, strict=strict):
+        return None
+    lo = float(np.linalg.eigvalsh(0.5 * A + 0.5 * A.T)[0])
+    if lo > 0:  # singular only on the scale of its own variances
+        return f"(smallest eigenvalue {fmt(lo)}: singular to working precision for its variances)"
+    return f"(smallest eigenvalue {fmt(lo)})"
 
 
 def unknown_msg(what: str, name: str, known: list[str] | tuple[str, ...]) -> str:

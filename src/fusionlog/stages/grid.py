@@ -83,6 +83,11 @@ class GridPoint:
     scenario: Scenario
     file_seed: int  # the seed the point's own runs derive from (the file's, or a varied one)
 
+    @property
+    def where(self) -> str:
+        """The point in a message: "<file> [point <index>: <label>]"."""
+        return f"{self.scenario.path} [point {self.index}: {self.label}]"
+
 
 def _bad(spec: str, reason: str) -> FusionlogError:
     return FusionlogError(f"--vary {spec}: {reason}")

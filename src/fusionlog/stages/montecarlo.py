@@ -66,6 +66,8 @@ class Job:
     #: also sum each run's exact statistics given its measurement pattern (runs whose patterns
     #: differ: dropouts), the expected values conditional on the drawn patterns
     conditional: bool = False
+    #: how an error names the job: a sweep's grid point (`GridPoint.where`), else the file
+    where: str | None = None
 
 
 @dataclass
@@ -108,10 +110,15 @@ def _one_blas_thread(fn: Callable[..., T]) -> Callable[..., T]:
                 return fn(*args, **kwargs)
         except NumericalError as e:  # the core names the architecture and step; the file here
             job = args[0] if args and isinstance(args[0], Job) else None
-            where = None if job is None else job.scenario.path or job.scenario.name
-            if where is None or str(e).startswith(f"{where}: "):
+            if job is None:
                 raise
-            raise NumericalError(f"{where}: {e}") from None
+            where = job.where or job.scenario.path or job.scenario.name
+            msg, file = str(e), f"{job.scenario.path}: "
+            if msg.startswith(f"{where}: "):
+                raise
+            if msg.startswith(file):  # named the file already (a simulation): name the point
+                msg = msg[len(file) :]
+            raise NumericalError(f"{where}: {msg}") from None
 
     return wrapper
 

@@ -77,7 +77,7 @@ def _archs(points: Sequence[GridPoint], archs: Sequence[str]) -> list[tuple[str,
     out = []
     for p in points:
         chosen = archs or p.scenario.architectures
-        where = "--arch" if archs else f"{p.scenario.path} [point {p.index}: {p.label}]"
+        where = "--arch" if archs else p.where
         out.append(tuple(kind.check_architectures(list(chosen), p.scenario.system, where)))
     return out
 
@@ -142,6 +142,7 @@ def run_sweep(
                 a,
                 f"{token}:{p.index}",
                 not exact_only and not exact_mask(p.scenario)[0],
+                p.where,
             )
             for p, a in zip(points, point_archs, strict=True)
         ]

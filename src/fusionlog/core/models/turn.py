@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...errors import NumericalError
 from .base import MotionModel, register_motion
 
 #: |omega dt| below which a, b and their omega-derivatives come from their Taylor series: there
@@ -24,6 +25,11 @@ from .base import MotionModel, register_motion
 #: most ~theta^6/2880 of its leading one (< 1e-15 at the threshold; da's needs its theta^5
 #: term for that: without it, 3.6e-11).
 SMALL_TURN = 1e-2
+#: |omega dt| from which the turn is refused: from 2^52 rad on, consecutive doubles are a
+#: radian or more apart, so the heading after one step (cos, sin of theta) is rounding, not
+#: the turn rate. Below it theta^2, omega^2 and the series stay far inside the float range
+#: (dt >= 1 ns), so no numpy overflow warning can arise either (omega = 1e300 gave five).
+MAX_TURN = 2.0**52
 
 
 def cv_block(dt: float) -> np.ndarray:
@@ -33,7 +39,16 @@ def cv_block(dt: float) -> np.ndarray:
 
 def _turn_terms(omega: np.ndarray, dt: float) -> tuple[np.ndarray, ...]:
     """a, b, da/domega, db/domega, cos, sin of the coordinated turn over dt, elementwise."""
-    th = omega * dt
+    with np.errstate(over="ignore"):  # an overflow to inf is refused just below
+        th = omega * dt
+    far = np.abs(th) >= MAX_TURN  # False for NaN (a run without an estimate)
+    if far.any():
+        w = float(np.asarray(omega)[far].flat[0])  # a Python float: w * dt is inf, no warning
+        raise NumericalError(
+            f"the coordinated turn overflows: turn rate omega = {w:.6g} rad/s over "
+            f"{dt:.6g} s turns by {w * dt:.6g} rad, "
+            "at or beyond 2^52 rad, where doubles are a radian apart (the heading is rounding)"
+        )
     c, s = np.cos(th), np.sin(th)
     small = np.abs(th) < SMALL_TURN
     safe = np.where(small, 1.0, omega)  # the closed forms only where omega is not tiny

@@ -15,6 +15,12 @@ which measurements each made (a lost or unscheduled one adds no information to t
 linear sensors and a shared pattern, J_k^-1 is the CKF's covariance exactly.
 
 P_0 is the covariance the true x_0 is drawn from (the prior's unless [truth] says otherwise).
+Where it is singular (a known initial state, or known components: [truth] initial_cov zero in
+them) J_0 is infinite there and the recursion starts in covariance form: J_0^-1 = (P_0^-1 +
+D_z(0))^-1 is the Kalman update of P_0 by a measurement with H = U, R = I, U^T U = D_z(0),
+and (J_{k-1} + D11)^-1 likewise while J_{k-1}^-1 stays singular; the information form resumes
+where the bound is positive definite. A linear model's bound from P_0 = 0 is then the Kalman
+filter's covariance started from P = 0.
 The accumulator takes blocks of runs, so the bound of 10^6 runs needs no more memory than one.
 """
 
@@ -22,7 +28,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..linalg import mT, spd_inv, sym
+from ..kalman import gain, joseph
+from ..linalg import definite, mT, spd_inv, sym
 from ..model import System
 from .local import transition
 
@@ -62,21 +69,46 @@ class PcrbAccumulator:
         M = self.runs
         Dz = self.info / M
         out = np.empty_like(Dz)
-        J = spd_inv(self.system.truth_initial.cov, "the initial covariance") + Dz[0]
-        out[0] = spd_inv(J, "the Fisher information")
+        P0 = self.system.truth_initial.cov
+        J: np.ndarray | None = None  # None while J^-1 is singular (J infinite somewhere)
+        if definite(P0, strict=True):
+            J = spd_inv(P0, "the initial covariance") + Dz[0]
+            out[0] = spd_inv(J, "the Fisher information")
+        else:
+            out[0] = _inverse_of_sum(P0, Dz[0])
         for k in range(1, len(Dz)):
             motion, dt = transition(self.system, k)
             Q = motion.Q(dt)
             if self.linear_motion:
                 F = motion.F(dt)
-                J = spd_inv(sym(Q + F @ out[k - 1] @ F.T), "Q + F J^-1 F'") + Dz[k]
-            else:
-                Qi = spd_inv(Q, "the process noise covariance Q")
-                D12 = -mT(self.F[k] / M) @ Qi
-                D11 = self.FtQF[k] / M
+                P = sym(Q + F @ out[k - 1] @ F.T)
+                # after a definite bound (J known) the information form as it always was, with
+                # no test; after a singular one, a test: a singular Q keeps a known state known
+                if J is not None or definite(P, strict=True):
+                    J = spd_inv(P, "Q + F J^-1 F'") + Dz[k]
+                    out[k] = spd_inv(J, "the Fisher information")
+                else:
+                    out[k] = _inverse_of_sum(P, Dz[k])
+                continue
+            Qi = spd_inv(Q, "the process noise covariance Q")
+            D12 = -mT(self.F[k] / M) @ Qi
+            D11 = self.FtQF[k] / M
+            if J is not None:
                 J = sym(Qi - mT(D12) @ np.linalg.solve(J + D11, D12)) + Dz[k]
+            else:
+                J = sym(Qi - mT(D12) @ _inverse_of_sum(out[k - 1], D11) @ D12) + Dz[k]
             out[k] = spd_inv(J, "the Fisher information")
         return out
+
+
+def _inverse_of_sum(P: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """(P^-1 + D)^-1 for a positive semidefinite P that may be singular (infinite information
+    in its null space) and D positive semidefinite: the Joseph-form Kalman update of P by a
+    measurement with H = U, R = I, where U^T U = D (U from D's eigen-decomposition)."""
+    w, V = np.linalg.eigh(sym(D))
+    U = (V * np.sqrt(np.clip(w, 0.0, None))).T
+    eye = np.eye(len(D))
+    return joseph(P, gain(P, U, eye), U, eye)
 
 
 def pcrb_summary(bound: np.ndarray) -> dict[str, object]:

@@ -74,9 +74,46 @@ def _open(source: Path, what: str | None) -> Iterator[Any]:
             recoverable=False,  # `inspect --recover` reads MCAP files only
         ) from None
     try:
+        _check_index(reader, source, prefix)
         yield reader
     finally:
         reader.close()
+
+
+def _index(source: Path) -> str:
+    """Where a bag lists its topics: a ROS 2 bag's metadata.yaml, a ROS 1 bag's own records."""
+    return "metadata.yaml" if bag_path(source).is_dir() else "the bag's connection records"
+
+
+def _check_index(reader: Any, source: Path, prefix: str) -> None:
+    """Every topic the bag lists has a name and a type (strings) and a message count (an
+    integer): a hand-edited metadata.yaml with `name: 7` or `message_count: twelve` made
+    rosbags return them as read, and fusionlog fail on them with an internal error."""
+    for i, c in enumerate(reader.connections):
+        for key, value, want in (
+            ("name", c.topic, str),
+            ("type", c.msgtype, str),
+            ("message_count", c.msgcount, int),
+        ):
+            if not isinstance(value, want) or isinstance(value, bool):
+                kind = "a string" if want is str else "an integer"
+                raise DamagedFile(
+                    f"{prefix}{_index(source)}: topic entry {i}: {key} {value!r} is not {kind}",
+                    source,
+                    recoverable=False,
+                )
+
+
+def _unread(source: Path, conns: list[Any]) -> str | None:
+    """Why a topic whose index lists messages gave none: the index does not match the storage
+    (rosbags reads a ROS 2 topic's messages by its name and type as metadata.yaml gives them)."""
+    listed = sum(c.msgcount for c in conns)
+    if not listed:
+        return None
+    return (
+        f"{_index(source)} lists {listed} messages of type {conns[0].msgtype}, and the bag's "
+        "storage has none of that name and type (does the index match the storage file?)"
+    )
 
 
 def _rate(count: int, first: int | None, last: int | None) -> float | None:
@@ -99,6 +136,32 @@ def _deserialize(reader: Any, source: Path, what: str | None, conn: Any, raw: by
         ) from None
 
 
+def _messages(
+    reader: Any, source: Path, what: str | None, topic: str, conns: list[Any]
+) -> Iterator[tuple[Any, int, bytes]]:
+    """The topic's (connection, record time, raw bytes), with whatever a damaged bag makes
+    rosbags raise while reading them (a chunk that does not decompress: "Invalid data stream";
+    a record header that does not parse) one line naming the bag, the topic and how far it
+    read."""
+    messages = reader.messages(connections=conns)
+    k = 0
+    while True:
+        try:
+            item = next(messages)
+        except StopIteration:
+            return
+        except Exception as e:  # rosbags' errors, and those of its decompressors
+            prefix = f"{what}: " if what else ""
+            raise DamagedFile(
+                f"{source}: {prefix}topic {topic}: damaged ROS bag: cannot read past message {k} "
+                f"of the topic ({type(e).__name__}: {one_line(e)})",
+                source,
+                recoverable=False,
+            ) from None
+        k += 1
+        yield item
+
+
 def read_bag(source: Path, *, topic: str, fields: StreamFields, what: str) -> Series:
     ex = Extractor(source, what, fields)
     with _open(source, what) as reader:
@@ -108,12 +171,15 @@ def read_bag(source: Path, *, topic: str, fields: StreamFields, what: str) -> Se
             raise fail(source, what, f"no topic {topic} in the bag (topics: {have})")
         col = ex.collector()
         k = 0
-        for conn, stamp, raw in reader.messages(connections=conns):
+        for conn, stamp, raw in _messages(reader, source, what, topic, conns):
             k += 1
             decoded = _deserialize(reader, source, what, conn, raw, k)
             ex.add(col, k, decoded, int(stamp), topic, conn.msgtype)
     if k == 0:
-        raise fail(source, what, f"topic {topic} has no messages")
+        why = _unread(source, conns)
+        raise fail(
+            source, what, f"topic {topic}: {why}" if why else f"topic {topic} has no messages"
+        )
     return col.finish()
 
 
@@ -132,7 +198,7 @@ def bag_topics(source: Path) -> list[dict[str, Any]]:
             count = sum(c.msgcount for c in conns)
             info: dict[str, Any] = {"topic": topic, "type": conns[0].msgtype, "count": count}
             first = last = None
-            for conn, stamp, raw in reader.messages(connections=conns):
+            for conn, stamp, raw in _messages(reader, source, None, topic, conns):
                 if first is None:
                     try:
                         info["fields"] = leaf_fields(
@@ -142,6 +208,8 @@ def bag_topics(source: Path) -> list[dict[str, Any]]:
                         info["error"] = str(e).split(": ", 1)[-1]
                     first = stamp
                 last = stamp
+            if first is None and (why := _unread(source, conns)):
+                info["error"] = why
             info["rate"] = _rate(count, first, last)
             out.append(info)
     return out

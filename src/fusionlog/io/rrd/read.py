@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from fusionlog.errors import DamagedFile, FusionlogError
+from fusionlog.inputs import check_input
 
 __all__ = ["read_recording"]
 
@@ -38,6 +39,9 @@ def read_recording(path: str | os.PathLike[str], *, series: bool = True) -> dict
     recording holds ~0.5 GB of them, decoded several times over).
     """
     path = Path(path)
+    check_input(path)  # a FIFO or a device: say what it is (it is no missing file)
+    if path.is_dir():
+        raise FusionlogError(f"{path}: is a directory, not a recording")
     if not path.is_file():
         raise FusionlogError(f"{path}: no such file")
     try:
