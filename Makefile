@@ -24,9 +24,16 @@ NUMERIC := tests/test_exact.py tests/test_exact_per_run.py tests/test_per_run.py
 	tests/test_exact_replay.py tests/test_exact_nodes.py \
 	tests/test_references_linear.py tests/test_references_exact.py tests/test_references_nonlinear.py
 
+# The goldens and the exactness tests once more with every fast path sent to its plain
+# reference path (core/reference.py; benchmarks/README.md "Fast paths").
+REFERENCE := tests/test_golden.py tests/test_exact.py tests/test_exact_per_run.py \
+	tests/test_exact_nodes.py tests/test_exact_replay.py tests/test_replay_fast.py \
+	tests/test_references_exact.py tests/test_replay.py tests/test_mcap_read.py tests/test_mcap_wire.py
+
 test: $(STAMP)
 	$(BIN)/pytest
 	$(BIN)/python tests/other_kernels.py $(NUMERIC)
+	FUSIONLOG_REFERENCE_PATHS=1 $(BIN)/pytest -p no:cacheprovider $(REFERENCE)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py

@@ -24,9 +24,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner, Result
+from cli_helpers import cli, listing, ok, one_line_error
 
-from fusionlog.cli import main
 from fusionlog.compare import compare_summaries
 from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap import McapFile
@@ -52,31 +51,6 @@ needs_rerun = pytest.mark.skipif(RERUN is None, reason="rerun CLI missing")
 # ------------------------------------------------------------------------------------------
 
 
-def cli(*args: str | os.PathLike[str]) -> Result:
-    """Run `fusionlog ARGS` in-process; stdout and stderr are kept apart."""
-    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=True)
-
-
-def ok(*args: str | os.PathLike[str]) -> Result:
-    res = cli(*args)
-    assert res.exit_code == 0, (res.output, res.exception)
-    return res
-
-
-def assert_one_line_error(res: Result, *fragments: str, code: int = 2) -> str:
-    """Exit code 2, exactly one line on stderr naming the problem, nothing else, no traceback."""
-    assert isinstance(res.exception, SystemExit), f"unexpected exception {res.exception!r}"
-    assert res.exit_code == code, (res.exit_code, res.output)
-    lines = res.stderr.splitlines()
-    assert len(lines) == 1, f"expected one line on stderr, got {res.stderr!r}"
-    line = lines[0]
-    assert line.startswith("fusionlog: error: "), line
-    assert "Traceback" not in res.output
-    for f in fragments:
-        assert f in line, f"{f!r} not in {line!r}"
-    return line
-
-
 def run_proc(*args: str | os.PathLike[str], cwd: Path | None = None, **kw):
     """Run the real console script (or the rerun CLI if args[0] is RERUN)."""
     cmd = [str(a) for a in args]
@@ -85,11 +59,6 @@ def run_proc(*args: str | os.PathLike[str], cwd: Path | None = None, **kw):
     return subprocess.run(
         cmd, capture_output=True, text=True, env=ENV, cwd=cwd, timeout=120, check=False, **kw
     )
-
-
-def listing(folder: Path) -> list[str]:
-    """Every entry of a folder, hidden temp files included."""
-    return sorted(p.name for p in folder.iterdir()) if folder.exists() else []
 
 
 def snapshot(paths) -> dict[str, tuple[int, bytes]]:
@@ -163,7 +132,7 @@ def test_run_refuses_to_overwrite_then_force(ajgl_run: Path, tmp_path: Path) -> 
     shutil.copytree(ajgl_run, d)  # copy2 keeps the old mtimes
     before = snapshot(d / n for n in OUTPUTS)
     res = cli("run", AJGL, "--out-dir", d, *SMALL)
-    assert_one_line_error(res, str(d / "sensors.mcap"), "exists", "--force")
+    one_line_error(res, str(d / "sensors.mcap"), "exists", "--force")
     assert snapshot(d / n for n in OUTPUTS) == before
     assert listing(d) == sorted(OUTPUTS)
 
@@ -193,7 +162,7 @@ def test_run_force_that_fails_leaves_the_old_outputs(ajgl_run: Path, tmp_path: P
 
     monkeypatch.setattr(run_stage, "evaluate_into", fail)
     res = cli("run", AJGL, "--out-dir", d, "--runs", "30", "--steps", "4", "--force")
-    assert_one_line_error(res, "disk trouble")
+    one_line_error(res, "disk trouble")
     assert snapshot(d / n for n in OUTPUTS) == before
     assert {n: (d / n).read_bytes() for n in OUTPUTS} == before_bytes
     assert listing(d) == sorted(OUTPUTS)
@@ -204,7 +173,7 @@ def test_run_refuses_when_only_a_later_output_exists(tmp_path: Path) -> None:
     d.mkdir()
     (d / "summary.json").write_text("{}")
     res = cli("run", AJGL, "--out-dir", d, *SMALL)
-    assert_one_line_error(res, str(d / "summary.json"), "exists")
+    one_line_error(res, str(d / "summary.json"), "exists")
     assert listing(d) == ["summary.json"]  # nothing simulated before refusing
     assert (d / "summary.json").read_text() == "{}"
 
@@ -282,9 +251,9 @@ def test_unknown_architecture_is_one_line(ajgl_run: Path, tmp_path: Path, arch: 
     out = tmp_path / "out"
     out.mkdir()
     res = cli("estimate", ajgl_run / "sensors.mcap", "-o", out / "e.mcap", "--arch", arch)
-    assert_one_line_error(res, "--arch", repr(arch))
+    one_line_error(res, "--arch", repr(arch))
     res = cli("run", AJGL, "--out-dir", out, *SMALL, "--arch", "CKF", "--arch", arch)
-    assert_one_line_error(res, "--arch", repr(arch))
+    one_line_error(res, "--arch", repr(arch))
     assert listing(out) == []
 
 
@@ -630,7 +599,7 @@ def test_hand_written_log_without_model_says_pass_model(tmp_path: Path) -> None:
     out = tmp_path / "out"
     out.mkdir()
     res = cli("estimate", log, "-o", out / "e.mcap")
-    assert_one_line_error(res, str(log), "--model")
+    one_line_error(res, str(log), "--model")
     assert listing(out) == []
 
 
@@ -639,7 +608,7 @@ def test_model_sensor_missing_from_log(tmp_path: Path) -> None:
     write_hand_log(log)
     model = write_toml(tmp_path / "m.toml", HAND_MODEL.replace('name = "b"', 'name = "c"'))
     res = cli("estimate", log, "-o", tmp_path / "e.mcap", "--model", model)
-    assert_one_line_error(res, str(log), "/sensors/c")
+    one_line_error(res, str(log), "/sensors/c")
     assert not (tmp_path / "e.mcap").exists()
 
 
@@ -729,7 +698,7 @@ def test_invalid_scenario(tmp_path: Path, old: str, new: str, fragments: list[st
     out.mkdir()
     for cmd in (["simulate", sc, "-o", out / "s.mcap"], ["run", sc, "--out-dir", out]):
         res = cli(*cmd)
-        assert_one_line_error(res, str(sc), *fragments)
+        one_line_error(res, str(sc), *fragments)
         assert listing(out) == []
 
 
@@ -738,7 +707,7 @@ def test_invalid_model_file_for_estimate(ajgl_run: Path, tmp_path: Path) -> None
     out = tmp_path / "out"
     out.mkdir()
     res = cli("estimate", ajgl_run / "sensors.mcap", "-o", out / "e.mcap", "--model", model)
-    assert_one_line_error(res, str(model), "sensors[0].R", "positive definite")
+    one_line_error(res, str(model), "sensors[0].R", "positive definite")
     assert listing(out) == []
 
 
@@ -749,7 +718,7 @@ def test_a_replay_file_is_not_a_filter_model(ajgl_run: Path, tmp_path: Path) -> 
     out = tmp_path / "out"
     out.mkdir()
     res = cli("estimate", ajgl_run / "sensors.mcap", "-o", out / "e.mcap", "--model", replay)
-    assert_one_line_error(res, str(replay), "a replay file, not a filter model")
+    one_line_error(res, str(replay), "a replay file, not a filter model")
     assert listing(out) == []
 
 
@@ -765,12 +734,10 @@ def test_recorded_architecture_the_model_cannot_run(tmp_path: Path) -> None:
     log = tmp_path / "s.mcap"
     ok("simulate", sc, "-o", log, "--runs", "20", "--steps", "3")
     res = cli("estimate", log, "-o", tmp_path / "e.mcap", "--model", model)
-    line = assert_one_line_error(
-        res, str(log), "recorded architectures", "SKF:s3", "no sensor 's3'"
-    )
+    line = one_line_error(res, str(log), "recorded architectures", "SKF:s3", "no sensor 's3'")
     assert "--arch" not in line and not (tmp_path / "e.mcap").exists()
     res = cli("estimate", log, "-o", tmp_path / "e.mcap", "--model", model, "--arch", "SKF:s3")
-    assert_one_line_error(res, "--arch", "no sensor 's3'")
+    one_line_error(res, "--arch", "no sensor 's3'")
     ok("estimate", log, "-o", tmp_path / "e.mcap", "--model", model, "--arch", "SKF:s2")
 
 
@@ -793,7 +760,7 @@ def test_a_model_file_without_scenario_takes_the_recorded_dt(
 
 def test_invalid_override(tmp_path: Path) -> None:
     res = cli("simulate", AJGL, "-o", tmp_path / "s.mcap", "--runs", "0")
-    assert_one_line_error(res, "--runs")
+    one_line_error(res, "--runs")
     assert listing(tmp_path) == []
 
 
@@ -813,12 +780,12 @@ def test_truncated_mcap_is_one_line(truncated: Path, tmp_path: Path) -> None:
     out = tmp_path / "out"
     out.mkdir()
     res = cli("estimate", truncated, "-o", out / "e.mcap")
-    line = assert_one_line_error(res, str(truncated), "truncated")
+    line = one_line_error(res, str(truncated), "truncated")
     assert f"fusionlog inspect --recover {truncated}" in line
     res = cli("evaluate", truncated, truncated, "-o", out / "ev.rrd")
-    assert_one_line_error(res, str(truncated), "truncated")
+    one_line_error(res, str(truncated), "truncated")
     res = cli("inspect", truncated)
-    assert_one_line_error(res, str(truncated), "truncated", "--recover")
+    one_line_error(res, str(truncated), "truncated", "--recover")
     assert listing(out) == []
 
 
@@ -875,11 +842,11 @@ def test_mcap_without_fusionlog_topics(tmp_path: Path) -> None:
     out = tmp_path / "out"
     out.mkdir()
     res = cli("estimate", foo, "-o", out / "e.mcap")
-    assert_one_line_error(res, str(foo), "--model")
+    one_line_error(res, str(foo), "--model")
     res = cli("estimate", foo, "-o", out / "e.mcap", "--model", model)
-    assert_one_line_error(res, str(foo), "no topic /sensors/a", "/foo")
+    one_line_error(res, str(foo), "no topic /sensors/a", "/foo")
     res = cli("evaluate", foo, foo, "-o", out / "e.rrd")
-    assert_one_line_error(res, str(foo), "/truth")
+    one_line_error(res, str(foo), "/truth")
     res = ok("inspect", "--recover", foo)
     assert "/foo" in res.stdout and "intact" in res.stdout
     assert listing(out) == []
@@ -899,7 +866,7 @@ def test_not_mcap(tmp_path: Path, content: bytes) -> None:
     out = tmp_path / "out"
     out.mkdir()
     res = cli("estimate", bad, "-o", out / "e.mcap")
-    assert_one_line_error(res, str(bad))
+    one_line_error(res, str(bad))
     assert listing(out) == []
 
 
@@ -909,10 +876,10 @@ def test_evaluate_mismatched_files(ajgl_run: Path, tmp_path: Path) -> None:
     out = tmp_path / "out"
     out.mkdir()
     res = cli("evaluate", s, ajgl_run / "estimates.mcap", "-o", out / "ev.rrd")
-    assert_one_line_error(res, "another sensors file")
+    one_line_error(res, "another sensors file")
     # estimates given where the sensors should be
     res = cli("evaluate", ajgl_run / "estimates.mcap", ajgl_run / "estimates.mcap", "-o", out / "x")
-    assert_one_line_error(res, "/truth")
+    one_line_error(res, "/truth")
     assert listing(out) == []
 
 
@@ -933,7 +900,7 @@ def test_outputs_exist_without_force(ajgl_run: Path, tmp_path: Path) -> None:
     ]
     for args, existing in cases:
         res = cli(*args)
-        assert_one_line_error(res, str(existing), "exists", "--force")
+        one_line_error(res, str(existing), "exists", "--force")
     assert snapshot(targets.values()) == before
     assert listing(tmp_path) == sorted(targets)  # not even new.rrd was written
     # --force replaces them
@@ -963,7 +930,7 @@ def test_missing_input_files(ajgl_run: Path, tmp_path: Path) -> None:
     for args in cases:
         missing = next(a for a in args if isinstance(a, Path) and a.stem == "nope")
         res = cli(*args)
-        assert_one_line_error(res, str(missing))
+        one_line_error(res, str(missing))
     assert listing(out) == []
 
 
@@ -976,7 +943,7 @@ def test_debug_flag_in_process(tmp_path: Path, monkeypatch) -> None:
     res = cli("--debug", "simulate", nope, "-o", tmp_path / "s.mcap")
     assert isinstance(res.exception, ValidationError) and str(nope) in str(res.exception)
     monkeypatch.setattr(sys, "argv", ["host", "--debug"])
-    assert_one_line_error(cli("simulate", nope, "-o", tmp_path / "s.mcap"), str(nope))
+    one_line_error(cli("simulate", nope, "-o", tmp_path / "s.mcap"), str(nope))
 
 
 def test_input_is_a_directory(tmp_path: Path) -> None:
@@ -988,7 +955,7 @@ def test_input_is_a_directory(tmp_path: Path) -> None:
 
 def test_summary_of_a_non_recording(ajgl_run: Path) -> None:
     res = cli("summary", ajgl_run / "summary.json")
-    assert_one_line_error(res, str(ajgl_run / "summary.json"))
+    one_line_error(res, str(ajgl_run / "summary.json"))
 
 
 def test_a_damaged_recording_or_bag_is_not_sent_to_inspect_recover(
@@ -998,12 +965,12 @@ def test_a_damaged_recording_or_bag_is_not_sent_to_inspect_recover(
     given for a truncated .rrd and a damaged ROS 1 bag, where it then failed (not MCAP)."""
     rrd = tmp_path / "cut.rrd"
     rrd.write_bytes((ajgl_run / "evaluation.rrd").read_bytes()[:3000])
-    line = assert_one_line_error(cli("summary", rrd), str(rrd), "Rerun recording")
+    line = one_line_error(cli("summary", rrd), str(rrd), "Rerun recording")
     assert "--recover" not in line
     bag = tmp_path / "cut.bag"
     data = (ROOT / "pipeline" / "data" / "gps_ros1.bag").read_bytes()
     bag.write_bytes(data[: len(data) // 2])
-    line = assert_one_line_error(cli("inspect", bag), str(bag), "damaged")
+    line = one_line_error(cli("inspect", bag), str(bag), "damaged")
     assert "--recover" not in line
 
 
@@ -1187,15 +1154,15 @@ def test_compare_invalid_json(ajgl_run: Path, tmp_path: Path) -> None:
     bad = tmp_path / "bad.json"
     bad.write_text('{"scenario": ')
     res = cli("compare", bad, ajgl_run / "summary.json")
-    assert_one_line_error(res, str(bad), "not valid JSON")
+    one_line_error(res, str(bad), "not valid JSON")
     res = cli("compare", ajgl_run / "summary.json", bad)
-    assert_one_line_error(res, str(bad), "not valid JSON")
+    one_line_error(res, str(bad), "not valid JSON")
 
 
 def test_compare_json_that_is_not_a_summary(ajgl_run: Path, tmp_path: Path) -> None:
     bad = tmp_path / "list.json"
     bad.write_text("[]")
-    assert_one_line_error(cli("compare", bad, ajgl_run / "summary.json"), str(bad))
+    one_line_error(cli("compare", bad, ajgl_run / "summary.json"), str(bad))
 
 
 def test_evaluate_refuses_estimates_of_another_sensors_file(ajgl_run: Path, tmp_path: Path) -> None:
@@ -1203,7 +1170,7 @@ def test_evaluate_refuses_estimates_of_another_sensors_file(ajgl_run: Path, tmp_
     other = tmp_path / "other.mcap"
     ok("simulate", AJGL, "-o", other, *SMALL, "--seed", "1")
     res = cli("evaluate", other, ajgl_run / "estimates.mcap", "-o", tmp_path / "x.rrd")
-    assert_one_line_error(res, str(ajgl_run / "estimates.mcap"), "another sensors file")
+    one_line_error(res, str(ajgl_run / "estimates.mcap"), "another sensors file")
     assert not (tmp_path / "x.rrd").exists()
 
 

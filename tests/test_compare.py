@@ -20,43 +20,19 @@ from __future__ import annotations
 import copy
 import json
 import math
-import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
-from click.testing import CliRunner, Result
+from cli_helpers import cli, ok, one_line_error
 
-from fusionlog.cli import main
 from fusionlog.io.rrd import read_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 AJGL = ROOT / "pipeline" / "ajgl2009.toml"
 AIRCRAFT = ROOT / "pipeline" / "aircraft_identity.toml"
 DROPOUT = ROOT / "pipeline" / "ajgl2009_dropout.toml"
-
-
-def cli(*args: str | os.PathLike[str]) -> Result:
-    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=True)
-
-
-def ok(*args: str | os.PathLike[str]) -> Result:
-    res = cli(*args)
-    assert res.exit_code == 0, (res.output, res.exception)
-    return res
-
-
-def one_line_error(res: Result, *fragments: str) -> str:
-    """Exit 2, one line on stderr (no traceback) containing every fragment."""
-    assert isinstance(res.exception, SystemExit), f"unexpected exception {res.exception!r}"
-    assert res.exit_code == 2, (res.exit_code, res.output)
-    lines = res.stderr.splitlines()
-    assert len(lines) == 1, res.stderr
-    assert lines[0].startswith("fusionlog: error: "), lines[0]
-    for f in fragments:
-        assert f in lines[0], (f, lines[0])
-    return lines[0]
 
 
 def refuse_constant(name: str) -> None:

@@ -19,9 +19,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner, Result
+from cli_helpers import cli, listing, ok, one_line_error
 
-from fusionlog.cli import main
 from fusionlog.compare import check_summary, compare_summaries
 from fusionlog.identity import belief, dempster_combine, plausibility
 from fusionlog.io.atomic import Outputs
@@ -37,32 +36,6 @@ RERUN = str(BIN / "rerun") if (BIN / "rerun").exists() else shutil.which("rerun"
 SMALL = ["--runs", "300", "--steps", "20"]
 OUTPUTS = ("sensors.mcap", "estimates.mcap", "evaluation.rrd", "summary.json")
 CLASSES = ["Learjet", "Falcon", "Caravan"]
-
-
-def cli(*args: str | os.PathLike[str]) -> Result:
-    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=True)
-
-
-def ok(*args: str | os.PathLike[str]) -> Result:
-    res = cli(*args)
-    assert res.exit_code == 0, (res.output, res.exception)
-    return res
-
-
-def assert_one_line_error(res: Result, *fragments: str) -> str:
-    assert isinstance(res.exception, SystemExit), f"unexpected exception {res.exception!r}"
-    assert res.exit_code == 2, (res.exit_code, res.output)
-    lines = res.stderr.splitlines()
-    assert len(lines) == 1, f"expected one line on stderr, got {res.stderr!r}"
-    assert lines[0].startswith("fusionlog: error: "), lines[0]
-    assert "Traceback" not in res.output
-    for f in fragments:
-        assert f in lines[0], f"{f!r} not in {lines[0]!r}"
-    return lines[0]
-
-
-def listing(folder: Path) -> list[str]:
-    return sorted(p.name for p in folder.iterdir()) if folder.exists() else []
 
 
 def write_toml(path: Path, text: str) -> Path:
@@ -431,13 +404,13 @@ def test_stages_separately_force_and_arch(tmp_path: Path) -> None:
         (["evaluate", s, e, "-o", ev], ev),
     ):
         before = target.read_bytes()
-        assert_one_line_error(cli(*args), str(target), "exists", "--force")
+        one_line_error(cli(*args), str(target), "exists", "--force")
         assert target.read_bytes() == before
     ok("estimate", s, "-o", e, "--force")
     assert sorted(McapFile(e).topics) == ["/estimates/BAYES", "/estimates/DS"]
     out = tmp_path / "out"
-    assert_one_line_error(cli("run", AIRCRAFT, "--out-dir", out, "--arch", "CKF"), "CKF", "BAYES")
-    assert_one_line_error(cli("estimate", s, "-o", out / "x.mcap", "--arch", "MSC"), "MSC")
+    one_line_error(cli("run", AIRCRAFT, "--out-dir", out, "--arch", "CKF"), "CKF", "BAYES")
+    one_line_error(cli("estimate", s, "-o", out / "x.mcap", "--arch", "MSC"), "MSC")
     assert listing(out) == []
 
 
@@ -461,7 +434,7 @@ def test_estimate_with_a_mismatched_model(tmp_path: Path) -> None:
         tmp_path / "bad.toml",
         text.replace('["Learjet", "Falcon", "Caravan"]', '["Falcon", "Learjet", "Caravan"]', 1),
     )
-    assert_one_line_error(
+    one_line_error(
         cli("estimate", s, "-o", tmp_path / "x.mcap", "--model", bad), str(bad), "classes"
     )
     # a model under which some report is impossible for every class: no posterior exists
@@ -473,13 +446,13 @@ def test_estimate_with_a_mismatched_model(tmp_path: Path) -> None:
     ):
         never = never.replace(row, new_row)
     never_path = write_toml(tmp_path / "never.toml", never)
-    assert_one_line_error(
+    one_line_error(
         cli("estimate", s, "-o", tmp_path / "x.mcap", "--model", never_path, "--arch", "BAYES"),
         str(s),
         "zero likelihood for every class",
     )
     state_model = ROOT / "pipeline" / "ajgl2009.toml"
-    assert_one_line_error(
+    one_line_error(
         cli("estimate", s, "-o", tmp_path / "x.mcap", "--model", state_model),
         str(state_model),
         "[identity]",
@@ -649,13 +622,11 @@ def test_invalid_identity_scenario(tmp_path: Path, old: str, new: str, fragments
     out = tmp_path / "out"
     out.mkdir()
     for cmd in (["simulate", sc, "-o", out / "s.mcap"], ["run", sc, "--out-dir", out]):
-        assert_one_line_error(cli(*cmd), str(sc), *fragments)
+        one_line_error(cli(*cmd), str(sc), *fragments)
         assert listing(out) == []
 
 
 def test_invalid_override(tmp_path: Path) -> None:
     sc = write_toml(tmp_path / "ok.toml", BASE)
-    assert_one_line_error(
-        cli("simulate", sc, "-o", tmp_path / "s.mcap", "--runs", "0"), "--runs", ">= 1"
-    )
+    one_line_error(cli("simulate", sc, "-o", tmp_path / "s.mcap", "--runs", "0"), "--runs", ">= 1")
     assert not (tmp_path / "s.mcap").exists()

@@ -39,6 +39,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from cli_helpers import cli, listing, ok, one_line_error
 from test_cli import (
     AJGL,
     ENV,
@@ -46,12 +47,8 @@ from test_cli import (
     OUTPUTS,
     ROOT,
     all_arrays,
-    assert_one_line_error,
     assert_same_arrays,
-    cli,
-    listing,
     needs_fusionlog,
-    ok,
     run_proc,
     snapshot,
 )
@@ -248,7 +245,7 @@ def test_special_target_is_refused_even_with_force(
     reader = os.open(special, os.O_RDONLY | os.O_NONBLOCK) if kind == "fifo" else None
     try:
         res = cli(*args, "--force")
-        line = assert_one_line_error(res)
+        line = one_line_error(res)
         assert line == f"fusionlog: error: {special}: is {what}; outputs are regular files"
         if reader is not None:
             assert os.read(reader, 1) == b""  # no writer ever, no data
@@ -269,7 +266,7 @@ def test_special_out_dir_of_run(tmp_path: Path, kind: str) -> None:
     make_special(out, kind, tmp_path)
     was = identity(out)
     res = cli("run", AJGL, "--out-dir", out, *TINY, "--force")
-    line = assert_one_line_error(res, str(out))
+    line = one_line_error(res, str(out))
     assert "Not a directory" in line
     assert identity(out) == was
     assert listing(tmp_path) == ["out"]
@@ -335,7 +332,7 @@ def test_input_as_output_is_refused_even_with_force(
     files = [p for k, p in inputs.items() if k != "dir"]
     before, names = snapshot(files), listing(tmp_path)
     res = cli(*make_args(inputs, target), "--force")
-    line = assert_one_line_error(res)
+    line = one_line_error(res)
     assert line == f"fusionlog: error: {target}: is an input of this command, not an output"
     assert snapshot(files) == before  # byte-identical, not even touched
     assert listing(tmp_path) == names  # no temporary file, not even new.rrd
@@ -355,7 +352,7 @@ def test_run_output_that_is_its_scenario_is_refused(tmp_path: Path, which: str, 
         os.symlink(scn, target)
     before, names = snapshot([scn]), listing(out)
     res = cli("run", scn, "--out-dir", out, *TINY, "--force")
-    line = assert_one_line_error(res)
+    line = one_line_error(res)
     assert line == f"fusionlog: error: {target}: is an input of this command, not an output"
     assert snapshot([scn]) == before
     assert listing(out) == names
@@ -373,7 +370,7 @@ def test_one_file_as_both_outputs_of_evaluate(
     before, names = snapshot([x]) if x.exists() else {}, listing(tmp_path)
     s, e = base / "sensors.mcap", base / "estimates.mcap"
     res = cli("evaluate", s, e, "-o", x, "--summary", y, "--force")
-    line = assert_one_line_error(res)
+    line = one_line_error(res)
     assert line == f"fusionlog: error: {y}: given twice as an output (also {x})"
     assert (snapshot([x]) if x.exists() else {}) == before
     assert listing(tmp_path) == names
@@ -627,7 +624,7 @@ def limit_of(at: str, size: int) -> int:
 
 
 def assert_failed_cleanly(res, line: str, out: Path, before: dict, targets: list[Path]) -> None:
-    got = assert_one_line_error(res)
+    got = one_line_error(res)
     assert got == line
     assert res.stdout == ""
     assert snapshot(targets) == before  # every previous output byte-identical: all or none
@@ -669,7 +666,7 @@ def test_erofs_on_the_last_output(
     if force:
         assert_failed_cleanly(res, line, out, before, targets)
     else:
-        assert assert_one_line_error(res) == line
+        assert one_line_error(res) == line
         assert listing(out) == []
 
 
@@ -684,7 +681,7 @@ def test_a_failed_command_leaves_no_folder_it_made(
     inj = Injector(len(targets) - 1, 0, errno.EROFS)
     monkeypatch.setattr(atomic, "open", inj.open, raising=False)
     res = cli(*args)
-    assert assert_one_line_error(res) == (
+    assert one_line_error(res) == (
         f"fusionlog: error: {targets[-1]}: cannot write: Read-only file system"
     )
     assert listing(tmp_path) == []
@@ -695,10 +692,10 @@ def test_bad_usage_after_the_outputs_were_claimed_leaves_no_folder(
 ) -> None:
     new = tmp_path / "new"
     res = cli("estimate", base / "sensors.mcap", "-o", new / "e.mcap", "--arch", "BOGUS")
-    assert_one_line_error(res, "BOGUS")
+    one_line_error(res, "BOGUS")
     res = cli("run", ROOT / "pipeline" / "aircraft_identity.toml", "--out-dir", new / "a" / "b",
               "--filter", "UKF")  # fmt: skip
-    assert_one_line_error(res, "--filter")
+    one_line_error(res, "--filter")
     assert listing(tmp_path) == []
 
 
@@ -761,7 +758,7 @@ def test_commit_failure_of_the_last_output_rolls_back_the_others(
     if force:
         assert_failed_cleanly(res, line, out, before, targets)
     else:
-        assert assert_one_line_error(res) == line
+        assert one_line_error(res) == line
         assert listing(out) == []  # the outputs committed before it were removed again
 
 

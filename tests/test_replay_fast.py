@@ -25,6 +25,7 @@ from fusionlog.core.architectures import (
     run_plan,
 )
 from fusionlog.core.architectures.replay import applies, replay_estimates
+from fusionlog.core.reference import reference_paths
 from fusionlog.io.mcap import McapFile
 
 #: The first instants of the log (every sensor measures in them, the localiser a few times):
@@ -105,6 +106,7 @@ def test_the_ckf_of_the_whole_log_equals_an_independent_kalman_filter(robot) -> 
     np.testing.assert_allclose(got.cov, cov, rtol=1e-9, atol=1e-9 * np.abs(cov).max())
 
 
+@pytest.mark.skipif(reference_paths(), reason="FUSIONLOG_REFERENCE_PATHS forces the plans")
 def test_the_estimate_command_takes_it_for_one_run(robot, tmp_path, monkeypatch) -> None:
     """`fusionlog estimate` on a one-run log builds no plan, and writes the estimates of
     `replay_estimates` (the command reads the same system and run back)."""
@@ -124,6 +126,34 @@ def test_the_estimate_command_takes_it_for_one_run(robot, tmp_path, monkeypatch)
         np.testing.assert_array_equal(mean, fast[a].mean, err_msg=a)
         np.testing.assert_array_equal(np.broadcast_to(cov, fast[a].cov.shape), fast[a].cov)
     assert ef.metadata["fusionlog.provenance"]["measurement_pattern"] != "per-run"
+
+
+def test_the_reference_switch_sends_one_run_to_the_plans(robot, tmp_path, monkeypatch) -> None:
+    """FUSIONLOG_REFERENCE_PATHS=1: `fusionlog estimate` of a one-run log builds its plans, and
+    its estimates are those of the plans (`build_plan` + `run_plan`, bit for bit: the same
+    path) and within rounding of the path without plans."""
+    path, system, z = robot
+    built = []
+
+    def counted(*args, build_plan=block.build_plan, **kwargs):
+        built.append(args[1])
+        return build_plan(*args, **kwargs)
+
+    monkeypatch.setattr(block, "build_plan", counted)
+    monkeypatch.setenv("FUSIONLOG_REFERENCE_PATHS", "1")
+    out = tmp_path / "e.mcap"
+    ok("estimate", path, "-o", out, "--arch", "CKF", "--arch", "MSC")
+    assert {"CKF", "MSC"} <= set(built)
+    fast = replay_estimates(system, ["CKF", "MSC"], z)
+    K = z.shape[1] - 1
+    pattern = ~np.isnan(z[0])
+    ef = McapFile(out)
+    for a in ("CKF", "MSC"):
+        mean, _ = ef.read_all([f"/estimates/{a}"])[f"/estimates/{a}"]
+        plan = run_plan(block.build_plan(system, a, K, None if pattern.all() else pattern), z)
+        np.testing.assert_array_equal(mean, plan.mean, err_msg=a)
+        scale = np.abs(fast[a].mean).max()
+        np.testing.assert_allclose(mean, fast[a].mean, rtol=1e-9, atol=1e-9 * scale, err_msg=a)
 
 
 def test_what_it_does_not_cover_goes_to_the_plans(robot) -> None:

@@ -1,4 +1,4 @@
-"""A replay's recording opens on what one log needs (io/rrd/replay.py): the trajectory in the
+"""A replay's recording opens on what one log needs (io/rrd/log_recording.py): the trajectory in the
 plane (each sensor's readings, the estimates, the truth), each state over time with ±2σ, NIS
 per sensor with its χ² band, the normalised innovations; ranges not flattened by the start."""
 
@@ -11,7 +11,7 @@ import pytest
 from cli_helpers import ok
 
 from fusionlog.io.rrd import read_recording
-from fusionlog.io.rrd.replay import plane_states, replay_blueprint, view_range
+from fusionlog.io.rrd.log_recording import plane_states, replay_blueprint, view_range
 
 REPLAY = """
 [scenario]

@@ -19,7 +19,7 @@ and values of arrays) naming the argument (`runs`, `filter`, `architectures`,
 `sim.measurements['s1']`, `estimates['CKF'].cov`) and the problem (`fusionlog.arguments`),
 never numpy's error from deep inside; `simulate`
 refuses runs that cannot all be held in memory before allocating them
-(`scenario.base.memory_shortfall`, the CLI's memory decision).
+(`scenario.scenario_base.memory_shortfall`, the CLI's memory decision).
 """
 
 from __future__ import annotations
@@ -46,12 +46,12 @@ from .core.names import check_architectures
 from .errors import FusionlogError, ValidationError
 from .io.mcap import estimates_topic, sensor_topic
 from .scenario import Scenario, load_scenario, scenario_with
-from .scenario.base import memory_shortfall
+from .scenario.scenario_base import memory_shortfall
 from .stages.common import block_runs
+from .stages.evaluator import SensorLog, StateEvaluator
 from .stages.kinds import kind_of
 from .stages.noise import with_covariances
-from .stages.state import check_discretisable
-from .stages.state_eval import SensorLog, StateEvaluator
+from .stages.state_kind import check_discretisable
 
 __all__ = list(_API)  # the names `fusionlog` itself offers
 
@@ -262,7 +262,7 @@ def _state_scenario(scenario: Scenario | str | os.PathLike[str]) -> Scenario:
 
 def _recorded(scenario: Scenario) -> Simulation:
     """A replay's readings on their instants (what `fusionlog import` writes), as one run."""
-    from .stages.replay import read_replay  # the decoders: only replays need them
+    from .stages.import_data import read_replay  # the decoders: only replays need them
 
     data = read_replay(scenario)
     sc = data.scenario
@@ -310,7 +310,7 @@ def estimate(
     _check_sim(sim)
     system = scenario.system
     if filter is not None:
-        from .stages.nonlinear import with_filter
+        from .stages.state_kind import with_filter
 
         system = with_filter(system, filter, "filter")
     names = check_architecture_names(architectures)

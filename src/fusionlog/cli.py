@@ -211,7 +211,7 @@ def simulate(scenario, output, runs, steps, seed, force, block_runs) -> None:
 @_force
 def import_(replay, output, force) -> None:
     """Import a replay file's recorded data (MCAP of any encoding, CSV) as a sensors file."""
-    from fusionlog.stages.replay import run_import
+    from fusionlog.stages.import_data import run_import
 
     res = run_import(_scenario(replay, None, None, None), output, force=force,
                      command=_command_line())  # fmt: skip

@@ -36,7 +36,7 @@ class Evaluation:
     [sensor]` (K+1,) the first sample run's direct readings; `properties`: the recording's
     (scenario text, provenance); `pcrb` (K+1, n) the PCRB on each state's MSE.
     `innovations[arch][sensor]` (K+1, r): a replayed log's normalised innovations, None for a
-    scenario; with them the recording takes the layout of one log (`io.rrd.replay`).
+    scenario; with them the recording takes the layout of one log (`io.rrd.log_recording`).
     """
 
     summary: dict[str, Any]

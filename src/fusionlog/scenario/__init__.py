@@ -1,9 +1,10 @@
 """Scenario definitions (pipeline/*.toml, DESIGN.md "Scenario TOML"): loading and validation.
 
-The kind of a scenario (``state`` or ``identity``, see :mod:`.base`) is decided here, once,
-from the file (:func:`load_scenario`) or from the sensors file's metadata
-(:func:`scenario_from_metadata`); the parsers of the two kinds sit side by side in
-:mod:`.state` and :mod:`.identity`, on the shared helpers of :mod:`.toml`.
+A parsed document is sniffed once (:func:`doc_kind`: ``identity``, ``replay`` or ``state``)
+and handed to its kind's parser; each kind is a class of its own (:mod:`.scenario_base`:
+``StateScenario``, ``NonlinearScenario``, ``ReplayScenario``, ``IdentityScenario``) that owns
+its checks. The parsers sit side by side in :mod:`.state_file`, :mod:`.replay_file` and
+:mod:`.identity_file`, on the shared helpers of :mod:`.toml`.
 """
 
 from __future__ import annotations
@@ -12,22 +13,40 @@ import os
 from collections.abc import Mapping
 from typing import Any
 
-from fusionlog.errors import FusionlogError, ValidationError
+from fusionlog.errors import FusionlogError
 
 from . import toml
-from .base import KINDS, Scenario, check_budget, scenario_with
-from .identity import check_identity_architectures, identity_from_doc, is_identity_doc
-from .replay import Replay, Stream, is_replay_doc, replay_from_doc
-from .state import MODEL_KINDS, model_from_doc, state_from_doc, system_from_dict, system_to_dict
+from .identity_file import (
+    IdentityScenario,
+    check_identity_architectures,
+    identity_from_doc,
+    is_identity_doc,
+)
+from .replay_file import Replay, ReplayScenario, Stream, is_replay_doc, replay_from_doc
+from .scenario_base import KINDS, Scenario, check_budget, scenario_with
+from .state_file import (
+    MODEL_KINDS,
+    NonlinearScenario,
+    StateScenario,
+    model_from_doc,
+    state_from_doc,
+    system_from_dict,
+    system_to_dict,
+)
 
 __all__ = [
     "KINDS",
+    "IdentityScenario",
+    "NonlinearScenario",
     "Replay",
+    "ReplayScenario",
     "Stream",
     "MODEL_KINDS",
     "Scenario",
+    "StateScenario",
     "check_budget",
     "check_identity_architectures",
+    "doc_kind",
     "is_replay_text",
     "kind_of_text",
     "load_model",
@@ -42,6 +61,24 @@ __all__ = [
 ]
 
 
+#: A document's kind to its parser (doc, file, text, path) -> Scenario.
+_PARSERS = {"identity": identity_from_doc, "replay": replay_from_doc, "state": state_from_doc}
+
+
+def doc_kind(doc: Mapping[str, Any]) -> str:
+    """What a parsed scenario or model document is: ``identity`` (it has [identity] or
+    [[identity_sensors]]), ``replay`` (a sensor names a recorded `source`) or ``state``: the one
+    place a document is sniffed."""
+    if is_identity_doc(doc):
+        return "identity"
+    return "replay" if is_replay_doc(doc) else "state"
+
+
+def _recorded_kind(kind: str) -> str:
+    """The kind the files record of a document kind (a replay is a state scenario)."""
+    return "identity" if kind == "identity" else "state"
+
+
 def _from_text(text: str, file: str, path: str | None) -> Scenario:
     return scenario_from_doc(toml.parse_toml(text, file), file, text, path)
 
@@ -52,11 +89,7 @@ def scenario_from_doc(
     """Validate a scenario of either kind from a parsed TOML document: the one validation path
     of files, texts and documents edited after parsing (a sweep's grid points). `file` names
     it in errors, `text` is the TOML as written (recorded in outputs), `path` its file."""
-    if is_identity_doc(doc):
-        return identity_from_doc(doc, file, text, path)
-    if is_replay_doc(doc):
-        return replay_from_doc(doc, file, text, path)
-    return state_from_doc(doc, file, text, path)
+    return _PARSERS[doc_kind(doc)](doc, file, text, path)
 
 
 def load_scenario(
@@ -71,15 +104,10 @@ def load_scenario(
     is refused rather than silently ignored."""
     file = os.fspath(path)
     scenario = _from_text(toml.read_text(file), file, file)
-    if scenario.replay is not None:  # as scenario.runs/steps/seed in the file: never ignored
-        given = [
-            f for f, v in (("--runs", runs), ("--steps", steps), ("--seed", seed)) if v is not None
-        ]
-        if given:
-            raise ValidationError(
-                f"{file}: {', '.join(given)}: not used with a replay file (one recorded run; "
-                "the instants are the measurement times)"
-            )
+    given = [
+        f for f, v in (("--runs", runs), ("--steps", steps), ("--seed", seed)) if v is not None
+    ]
+    scenario.check_overrides(file, given)  # a replay's: refused, never ignored
     return scenario_with(scenario, runs=runs, steps=steps, seed=seed)
 
 
@@ -90,13 +118,13 @@ def scenario_from_text(text: str, source: str = "<string>") -> Scenario:
 
 def kind_of_text(text: str, source: str = "<string>") -> str:
     """The kind of a scenario or model file's text (``state`` unless it has [identity])."""
-    return "identity" if is_identity_doc(toml.parse_toml(text, source)) else "state"
+    return _recorded_kind(doc_kind(toml.parse_toml(text, source)))
 
 
 def is_replay_text(text: str, source: str = "<string>") -> bool:
     """Whether a scenario's TOML text (as a file's ``fusionlog.scenario`` record keeps it) is
     a replay file (its sensors name a `source`): one recorded run, no seed."""
-    return is_replay_doc(toml.parse_toml(text, source))
+    return doc_kind(toml.parse_toml(text, source)) == "replay"
 
 
 def load_model(
@@ -118,7 +146,8 @@ def model_from_text(
 ) -> Any:
     """Validate a model given as TOML text (see :func:`load_model`)."""
     doc = toml.parse_toml(text, source)
-    if is_replay_doc(doc):  # its sensors' R may come from the recorded messages alone
+    own = doc_kind(doc)
+    if own == "replay":  # its sensors' R may come from the recorded messages alone
         raise FusionlogError(
             f"{source}: a replay file, not a filter model (give --model a scenario or model "
             "file; `fusionlog run` replays the recorded data with this file's model)"
@@ -127,7 +156,6 @@ def model_from_text(
     if dt is not None and isinstance(head, dict) and "dt" not in head:
         # a model file need not repeat [scenario] (README): n0 * dt is the recorded dt's
         doc = {**doc, "scenario": {**head, "dt": dt}}
-    own = "identity" if is_identity_doc(doc) else "state"
     if kind is not None and own != kind:
         what = "no [identity] section" if own == "state" else "it has [identity]"
         raise FusionlogError(
@@ -144,16 +172,14 @@ def scenario_from_metadata(meta: Mapping[str, str], source: str) -> Scenario:
     field existed are state files unless their TOML has [identity])."""
     try:
         text = meta["toml"]
-        kind = meta.get("kind") or kind_of_text(text, source)
+        doc = toml.parse_toml(text, source)
+        own = doc_kind(doc)
+        kind = meta.get("kind") or _recorded_kind(own)
         if kind not in KINDS:
             raise ValueError(f"unknown kind {kind!r}")
-        doc = toml.parse_toml(text, source)
-        if kind == "identity":
-            sc = identity_from_doc(doc, source, text, None)
-        elif is_replay_doc(doc):
-            sc = _with_recorded_R(replay_from_doc(doc, source, text, None), meta, source)
-        else:
-            sc = state_from_doc(doc, source, text, None)
+        sc = _PARSERS[own](doc, source, text, None)
+        if own == "replay":
+            sc = _with_recorded_R(sc, meta, source)
         if sc.kind != kind:
             raise ValueError(f"kind {kind!r} but the TOML is a {sc.kind} scenario")
         return scenario_with(

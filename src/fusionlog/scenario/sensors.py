@@ -19,8 +19,8 @@ import numpy as np
 from fusionlog.core.models import SENSOR_KINDS, LinearSensor, SensorModel
 
 from . import toml
-from .model import TIMING_KEYS, sensor_timing
-from .nonlinear import polar_dict, polar_sensor
+from .model_section import TIMING_KEYS, sensor_timing
+from .nonlinear_syntax import polar_dict, polar_sensor
 from .toml import Ctx
 
 __all__ = [

@@ -337,9 +337,10 @@ def executor(
     """The executor the options ask for: ``scheduler`` a running cluster; ``workers`` 0 this
     process, N a LocalCluster of N processes; neither: a LocalCluster of one process per CPU,
     or this process when `local_default` (work too small to be worth starting a cluster). A
-    LocalCluster of forked workers starts at once (in a few tenths of a second: Dask's
-    import, its scheduler); one of spawned workers starts in the background while this
-    process works (`warm_start`)."""
+    LocalCluster starts in the foreground: forked workers (Linux) are up a few tenths of a second
+    after Dask's import; spawned workers (elsewhere) take a second or two, during which nothing
+    is computed (a warm start that computed here meanwhile was deleted: benchmarks/README.md
+    "Fast paths", no gain measured)."""
     if workers is not None and scheduler is not None:
         raise FusionlogError("--workers and --scheduler: give one of them, not both")
     if workers is not None and workers < 0:
@@ -352,11 +353,4 @@ def executor(
         return DaskExecutor(scheduler=check_address(scheduler), timeout=timeout)
     if workers == 0 or (workers is None and local_default):
         return LocalExecutor()
-    if FORK:
-        # Computing here while Dask is imported in a thread would not shorten that: both hold
-        # the GIL. Measured on the paper's sweep with 2 workers: 4.67-4.88 s started at once,
-        # 4.98-5.10 s with the warm start; with 1 worker the same (benchmarks/README.md).
-        return DaskExecutor(workers=workers)
-    from .warm_start import WarmStartExecutor  # (it builds on this module)
-
-    return WarmStartExecutor(DaskExecutor(workers=workers))
+    return DaskExecutor(workers=workers)

@@ -36,6 +36,7 @@ from fusionlog.scenario import Scenario
 
 from .common import provenance
 from .distributed import CONNECT_TIMEOUT, executor
+from .evaluator import StateEvaluator
 from .kinds import kind_of
 from .montecarlo import (
     Job,
@@ -44,15 +45,15 @@ from .montecarlo import (
     blocks,
     exact_mask,
     fold,
+    simulated_readings,
 )
-from .nonlinear import simulated_readings, with_filter
-from .state_eval import StateEvaluator
+from .state_kind import with_filter
 
 __all__ = ["DISTRIBUTED_OUTPUTS", "DistributedRun", "run_distributed"]
 
 #: What a distributed run writes in its folder (no MCAP logs: see the module docstring).
 DISTRIBUTED_OUTPUTS = ("evaluation.rrd", "summary.json")
-#: Runs computed here for the recording's state-plane view (stages.state.PLANE_POINTS).
+#: Runs computed here for the recording's state-plane view (`evaluator.views_part.PLANE_POINTS`).
 PLANE_RUNS = 300
 
 

@@ -69,7 +69,7 @@ def estimate_to(
     if filter_name is not None:
         from fusionlog.scenario import system_to_dict
 
-        from .nonlinear import with_filter
+        from .state_kind import with_filter
 
         system = with_filter(model.system, filter_name)
         model = model._replace(system=system, json=json.dumps(system_to_dict(system)))

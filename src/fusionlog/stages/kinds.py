@@ -6,7 +6,7 @@ from functools import cache
 
 from fusionlog.errors import FusionlogError
 
-from .kind import Kind
+from .hooks import Kind
 
 
 @cache
@@ -14,11 +14,11 @@ def kind_of(name: str) -> Kind:
     """The hooks of the kind `name` ("state" or "identity"); each is imported on first use, so
     a command pays only for the kind it runs."""
     if name == "state":
-        from .state import StateKind
+        from .state_kind import StateKind
 
         return StateKind()
     if name == "identity":
-        from .identity import IdentityKind
+        from .identity_kind import IdentityKind
 
         return IdentityKind()
     raise FusionlogError(f"unknown kind of scenario {name!r} (known: state, identity)")

@@ -30,7 +30,7 @@ import numpy as np
 from fusionlog.core.architectures import Estimate, PlanCache, estimate_block
 from fusionlog.errors import NumericalError
 from fusionlog.memory import keep_freed_memory
-from fusionlog.scenario import Scenario
+from fusionlog.scenario import NonlinearScenario, Scenario
 
 from .common import block_runs
 from .kinds import kind_of
@@ -281,3 +281,30 @@ def point_expected(job: Job) -> dict[str, dict[str, float | None] | None]:
         return dict.fromkeys(job.archs)
     c = _plans(job)
     return {a: expected_overall(analyse(c.plan(a, mask), c.system)) for a in job.archs}
+
+
+def simulated_readings(
+    scenario: Any, run_offset: int, runs: int
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Truth and each sensor's readings {topic: (runs, K+1, dim)} of runs [run_offset, +runs),
+    simulated: what the PCRB needs of runs whose estimates live elsewhere (Dask workers)."""
+    from fusionlog.io.mcap import sensor_topic
+
+    x, zs = kind_of(scenario.kind).simulate(scenario, run_offset, runs)
+    names = [s.name for s in scenario.system.sensors]
+    return x, {sensor_topic(n): z for n, z in zip(names, zs, strict=True)}
+
+
+def scenario_bound(scenario: Any) -> dict[str, Any] | None:
+    """summary.json's "pcrb" of a scenario with a nonlinear model, from all its runs simulated
+    block by block (the bound needs their truth and which measurements they made, no
+    estimate: a sweep's point, computed where the points are summarised); None when the
+    model is linear (its exact analysis stands instead)."""
+    if not isinstance(scenario, NonlinearScenario):
+        return None
+    from .evaluator.pcrb_part import PcrbPart
+
+    part = PcrbPart(scenario.system, scenario.times)
+    for off, n in blocks(scenario):
+        part.add_readings(*simulated_readings(scenario, off, n))
+    return part.summary()

@@ -49,7 +49,7 @@ def run_pipeline(
     outs = {k: Path(out_dir) / k for k in RUN_OUTPUTS}
     inputs = list(inputs or [])
     if sc.replay is not None:
-        from .replay import replay_inputs
+        from .import_data import replay_inputs
 
         inputs += replay_inputs(sc)
     else:  # before the output folder is made: a run that cannot fit leaves nothing behind
@@ -60,7 +60,7 @@ def run_pipeline(
     with Outputs(list(outs.values()), force=force, inputs=inputs) as o, keep_block_plans():
         t0 = time.perf_counter()
         if sc.replay is not None:
-            from .replay import import_to, read_replay  # the decoders: only replays need them
+            from .import_data import import_to, read_replay  # the decoders: only replays need them
 
             data = read_replay(sc)
             sc, notes = data.scenario, data.notes

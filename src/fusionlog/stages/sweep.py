@@ -11,9 +11,9 @@
    table is the same for any number of workers or scheduler.
 3. The outputs, committed together through :class:`fusionlog.io.atomic.Outputs`:
    ``sweep.parquet`` (DESIGN.md: one row per grid point and architecture), ``sweep.rrd`` (the
-   metrics against the swept parameter, :mod:`fusionlog.io.rrd.sweep`) and ``summary.json``
-   (the same numbers, per point as ``fusionlog run`` reports them, and the lowest MSE of each
-   architecture over the grid).
+   metrics against the swept parameter, :mod:`fusionlog.io.rrd.sweep_recording`) and
+   ``summary.json`` (the same numbers, per point as ``fusionlog run`` reports them, and the
+   lowest MSE of each architecture over the grid).
 
 No sensor or estimate log is written: workers send back metric sums, never estimates.
 """
@@ -246,7 +246,7 @@ def _import_writers() -> None:
     import pyarrow.parquet  # noqa: F401
     import scipy.special  # noqa: F401  (the NEES bounds of the summary: core.metrics)
 
-    import fusionlog.io.rrd.sweep  # noqa: F401
+    import fusionlog.io.rrd.sweep_recording  # noqa: F401
 
 
 def _write(
@@ -260,7 +260,7 @@ def _write(
     """The three outputs into their (uncommitted) temporary files; the recording last, after
     the two that can fail on the data (strict JSON, the parquet schema)."""
     from fusionlog.io.rrd.stream import write_all
-    from fusionlog.io.rrd.sweep import write_sweep_recording
+    from fusionlog.io.rrd.sweep_recording import write_sweep_recording
 
     parquet_path, rrd_path, json_path = targets
     text = dumps(summary, indent=2) + "\n"

@@ -55,8 +55,8 @@ def _point_summary(
 
 
 def _bound(scenario: Any) -> dict[str, Any]:
-    """A nonlinear point's PCRB ({"pcrb": ...}, `nonlinear.scenario_bound`), else nothing."""
-    from .nonlinear import scenario_bound
+    """A nonlinear point's PCRB ({"pcrb": ...}, `montecarlo.scenario_bound`), else nothing."""
+    from .montecarlo import scenario_bound
 
     bound = scenario_bound(scenario)
     return {} if bound is None else {"pcrb": bound}

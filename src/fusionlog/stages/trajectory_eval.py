@@ -8,7 +8,6 @@ with sums made elsewhere: a Dask worker's), then `summary` per architecture and 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -16,7 +15,7 @@ import numpy as np
 from fusionlog.core.trajectory import AlignmentError, TrajectorySums, block_sums
 from fusionlog.errors import FusionlogError
 
-__all__ = ["TrajectoryPart", "trajectory_block"]
+__all__ = ["trajectory_block"]
 
 
 def trajectory_block(
@@ -35,62 +34,3 @@ def trajectory_block(
         return block_sums(sc.trajectory, times, truth, means, run_offset, sc.runs > 1)
     except AlignmentError as e:
         raise FusionlogError(f"{source}: {e}") from None
-
-
-class TrajectoryPart:
-    """APE/RPE sums per architecture over the blocks of an evaluation."""
-
-    def __init__(self, sc: Any, archs: Sequence[str], times: np.ndarray, source: str) -> None:
-        self.sc, self.times, self.source = sc, np.asarray(times, dtype=float), source
-        self.archs = list(archs)
-        self.sums: dict[str, TrajectorySums] = {}
-        self.spread: np.ndarray | None = None  # run 0's truth: variance of each position
-
-    @classmethod
-    def of(
-        cls, sc: Any, archs: Sequence[str], times: np.ndarray, has_truth: bool, source: str
-    ) -> TrajectoryPart | None:
-        """The part, or None when there is nothing to measure (no position states, no truth)."""
-        if sc.trajectory is None or not has_truth:
-            return None
-        return cls(sc, archs, times, source)
-
-    def add(self, off: int, truth: np.ndarray, means: dict[str, np.ndarray]) -> None:
-        sums = trajectory_block(self.sc, self.times, truth, means, off, self.source)
-        self.merge(sums or {})
-        if off == 0 and truth.shape[0]:
-            g = truth[0][:, list(self.sc.trajectory.positions)]
-            g = g[np.isfinite(g).all(axis=1)]
-            self.spread = g.var(axis=0) if len(g) else None
-
-    def merge(self, sums: dict[str, TrajectorySums]) -> None:
-        for a, s in sums.items():
-            self.sums[a] = self.sums[a].merge(s) if a in self.sums else s
-
-    def summary(self, arch: str) -> dict[str, Any]:
-        """{"ape": ..., "rpe": ...} of summary.json (empty where no run was measured)."""
-        s = self.sums.get(arch)
-        if s is None:
-            return {}
-        ape, rpe = s.summary()
-        return {"ape": ape, "rpe": rpe}
-
-    def recording(self) -> dict[str, Any] | None:
-        """What the recording draws (`io.rrd.trajectory`): the position states' names and
-        indices, each architecture's APE and RPE over time and run 0's aligned positions
-        (K+1, m)."""
-        if not self.sums:
-            return None
-        pos = list(self.sc.trajectory.positions)
-        names = [self.sc.state_names[i] for i in pos]
-        out: dict[str, Any] = {"states": names, "positions": pos, "series": {}, "aligned": {}}
-        if self.spread is not None:  # run 0's truth: the recording's plane of the paths
-            out["spread"] = self.spread
-        for a in self.archs:
-            s = self.sums.get(a)
-            if s is None:
-                continue
-            out["series"][a] = s.series()
-            if s.first is not None:
-                out["aligned"][a] = s.first.aligned
-        return out

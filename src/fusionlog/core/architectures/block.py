@@ -247,8 +247,10 @@ def estimate_block(
 
         cache.patterns.append(None)  # the estimates' provenance: per run
         return nonlinear_block(cache, archs, z, truth, workspace, keep, run_offset)
+    from ..reference import reference_paths
+
     fast = None
-    if cache.one_run and expected_of is None:
+    if cache.one_run and expected_of is None and not reference_paths():
         from .replay import replay_estimates
 
         fast = replay_estimates(cache.system, archs, z, cache.criterion)

@@ -29,6 +29,8 @@ from typing import Any
 
 import numpy as np
 
+from fusionlog.core.reference import reference_paths
+
 from .schema import (
     ESTIMATE,
     ESTIMATE_SCHEMA,
@@ -461,7 +463,8 @@ def _format_of_fields(fields: dict[str, tuple[int, int, int]]) -> MessageFormat 
         keys[_key(f[0], _LEN)] = action  # packed
         keys[_key(f[0], _FIXED64)] = action  # unpacked, one double per key
     numbers = {n: fields[n][0] for n in ("step", "time", *_INT_FIELDS[1:], *payload)}
-    fast = _fast_pattern(numbers, payload)
+    # the reference switch (`core.reference`): every message decoded field by field
+    fast = None if reference_paths() else _fast_pattern(numbers, payload)
     payload_keys = [_key(numbers[p], _LEN) for p in payload] + [-1]
     return MessageFormat(kind, keys, fast, payload_keys[0], payload_keys[1])
 

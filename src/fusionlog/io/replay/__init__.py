@@ -8,10 +8,10 @@ which). ``list_topics`` and ``bag_topics`` describe a log's topics for ``inspect
 ``to_enu`` turns geodetic fixes into local metres.
 
 Modules: :mod:`.fields` (field paths into decoded messages, times), :mod:`.extract` (values,
-time, covariance of one message), :mod:`.decoders` (the MCAP decoder factories), :mod:`.topics`
-(opening an MCAP, its topics and rates), :mod:`.mcap_source`, :mod:`.bag_source`,
-:mod:`.text_source`, :mod:`.geodetic`, :mod:`.series` (the Series and the checks every source
-shares).
+time, covariance of one message), :mod:`.decoders` (the MCAP decoder factories),
+:mod:`.topic_listing` (opening an MCAP, its topics and rates), :mod:`.mcap_source`,
+:mod:`.bag_source`, :mod:`.text_source`, :mod:`.geodetic`, :mod:`.series` (the Series and the
+checks every source shares).
 
 Every problem is a one-line :class:`fusionlog.errors.FusionlogError` (``ValidationError`` for
 the content, ``DamagedFile`` for a damaged MCAP) starting ``<source>: <what>: ``, or a counted
@@ -32,7 +32,7 @@ from .geodetic import to_enu
 from .mcap_source import first_fields, read_mcap
 from .series import Series, fail
 from .text_source import TUM_COLUMNS, read_text
-from .topics import list_topics
+from .topic_listing import list_topics
 
 __all__ = [
     "Series",

@@ -22,7 +22,7 @@ from .extract import Extractor, StreamFields
 from .fields import leaf_fields
 from .series import Series, fail
 from .source import MAX_MCAP_BYTES, open_source
-from .topics import one_line
+from .topic_listing import one_line
 
 __all__ = ["bag_files", "bag_path", "bag_topics", "is_bag", "read_bag"]
 

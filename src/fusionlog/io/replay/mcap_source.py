@@ -20,7 +20,7 @@ from .decoders import SUPPORTED, decoder_factories
 from .extract import Extractor, StreamFields
 from .fields import leaf_fields
 from .series import Series, fail
-from .topics import TopicInfo, catalog, damaged, one_line, open_mcap
+from .topic_listing import TopicInfo, catalog, damaged, one_line, open_mcap
 
 __all__ = ["first_fields", "read_mcap"]
 

@@ -5,9 +5,9 @@ reading them back.
   properties, default blueprint in the same file, the series writer) and how its bytes reach
   the disk: encoded in memory and written with Python file I/O into a file object, never
   through Rerun's file sink.
-- :mod:`.state`: the state-estimation recording (Figs. 4-6, consistency, sample runs), with
-  :mod:`.plane` for the state-plane view of a 2-D state.
-- :mod:`.identity`: the identity-fusion recording (BAYES, DS).
+- :mod:`.state_recording`: the state-estimation recording (Figs. 4-6, consistency, sample
+  runs), with :mod:`.plane` for the state-plane view of a 2-D state.
+- :mod:`.identity_recording`: the identity-fusion recording (BAYES, DS).
 - :mod:`.read`: :func:`read_recording`.
 - :mod:`.style`, :mod:`.views`: colours and blueprint pieces.
 
@@ -19,9 +19,9 @@ Writers take a binary file object (a :class:`fusionlog.io.atomic.CheckedFile` fr
         outs.commit()
 """
 
-from .identity import write_identity_recording
+from .identity_recording import write_identity_recording
 from .read import read_recording
-from .state import write_evaluation, write_recording
+from .state_recording import write_evaluation, write_recording
 from .stream import APPLICATION_ID, entity_path, recording_id_for
 from .style import arch_color, class_color
 

@@ -2,8 +2,8 @@
 
 The drivers (:mod:`.simulate`, :mod:`.estimate`, :mod:`.evaluate`) own what every kind shares:
 the block loop over runs, progress, provenance, the MCAP layout and atomic outputs. A kind
-(``state``: :mod:`.state`; ``identity``: :mod:`.identity`) subclasses :class:`Kind` and says
-how to simulate a block, how to estimate one (an :class:`Estimator`), how to accumulate
+(``state``: :mod:`.state_kind`; ``identity``: :mod:`.identity_kind`) subclasses :class:`Kind` and
+says how to simulate a block, how to estimate one (an :class:`Estimator`), how to accumulate
 metrics (an :class:`Evaluator`, which returns a value) and how to write that value -- as Stone
 Soup's categorical state is just another state type whose updater subclasses the same base.
 """

@@ -36,12 +36,14 @@ import numpy as np
 
 from fusionlog.core.model import Sensor, System
 from fusionlog.core.timing import MAX_PERIOD_S, MIN_PERIOD_S, TIME_UNITS
+from fusionlog.errors import ValidationError
 
 from . import toml
-from .base import Header, Scenario
-from .model import model_section
+from .model_section import model_section
+from .scenario_base import Header
 from .sensors import sensor_matrices
-from .state import (
+from .state_file import (
+    StateScenario,
     architectures_section,
     check_determined,
     correlations_section,
@@ -51,7 +53,7 @@ from .state import (
 from .toml import Ctx
 from .trajectory import trajectory_section
 
-__all__ = ["Replay", "Stream", "is_replay_doc", "replay_from_doc"]
+__all__ = ["Replay", "ReplayScenario", "Stream", "is_replay_doc", "replay_from_doc"]
 
 _TOP_KEYS = ("scenario", "model", "prior", "truth", "sensors", "correlations", "estimate",
              "evaluate")  # fmt: skip
@@ -99,6 +101,22 @@ class Replay:
     truth_states: tuple[int, ...] = ()
     match: str = "nearest"  # how truth samples are associated with the instants
     max_diff_ns: int = 10_000_000  # the largest time difference of an associated sample
+
+
+@dataclass(frozen=True, eq=False)
+class ReplayScenario(StateScenario):
+    """A state scenario whose sensors' readings are recorded (`replay`: where they are and how
+    they are read): one run on the measurement times."""
+
+    replay: Replay = None  # type: ignore[assignment] - always given (replay_from_doc)
+
+    def check_overrides(self, file: str, given: list[str]) -> None:
+        """As scenario.runs/steps/seed in the file: refused, never ignored."""
+        if given:
+            raise ValidationError(
+                f"{file}: {', '.join(given)}: not used with a replay file (one recorded run; "
+                "the instants are the measurement times)"
+            )
 
 
 def is_replay_doc(doc: dict[str, Any]) -> bool:
@@ -268,7 +286,9 @@ def _covariance(ctx: Ctx, t: dict[str, Any], where: str, m: int) -> tuple[str | 
     return field, tuple(idx)
 
 
-def replay_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None) -> Scenario:
+def replay_from_doc(
+    doc: dict[str, Any], file: str, source: str, path: str | None
+) -> ReplayScenario:
     """A replay scenario from a parsed TOML document (`file` names it in errors; sources are
     relative to the folder of `path`, or of `file` when there is no path)."""
     ctx = Ctx(file)
@@ -336,8 +356,7 @@ def replay_from_doc(doc: dict[str, Any], file: str, source: str, path: str | Non
     if plane_view and n != 2:
         raise ctx.err("evaluate.plane_view", f"needs a 2-D state, this one has {n}")
     h = Header(name, description, 0, 1, 0, dt)
-    return Scenario.of(
-        "state",
+    return ReplayScenario.of(
         h,
         system,
         dt=dt,

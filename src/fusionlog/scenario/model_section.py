@@ -26,7 +26,7 @@ from fusionlog.core.timing import (
 )
 
 from . import toml
-from .base import MAX_INDEX, memory_shortfall
+from .scenario_base import MAX_INDEX, memory_shortfall
 from .toml import Ctx
 
 __all__ = [
@@ -207,7 +207,7 @@ def _in_range(ctx: Ctx, value: float, key: str) -> None:
 
 def bytes_per_instant(system: System, architectures: int) -> int:
     """Memory one run holds per instant (truth and measurements in float64, and the plans'
-    per-step maps of the estimate stage): the budget of `scenario.base.memory_shortfall`."""
+    per-step maps of the estimate stage): the budget of `scenario_base.memory_shortfall`."""
     s = system
     return 8 * (s.n + s.m) * 4 + 8 * s.n * (s.n + s.m) * architectures
 

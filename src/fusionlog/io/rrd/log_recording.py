@@ -14,7 +14,7 @@ A replay's recording therefore opens on (tabs, in order):
   the ±2 band;
 - **Errors** (with truth): the NEES of the truthed states with its χ² band, and the trace of P.
 
-Entities added here (the others are those of :mod:`.state` and :mod:`.consistency`):
+Entities added here (the others are those of :mod:`.state_recording` and :mod:`.consistency_views`):
 
 =============================================  ============================================
 ``trajectory/measured/<sensor>``               the sensor's readings of the two plane states

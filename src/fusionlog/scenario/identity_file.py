@@ -24,6 +24,7 @@ system. Every problem is a ValidationError ``<file>: <key path>: <reason>`` on o
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -39,16 +40,30 @@ from fusionlog.core.identity.model import (
 from fusionlog.errors import FusionlogError
 
 from . import toml
-from .base import DEFAULT_SAMPLE_RUNS, Scenario, header
+from .scenario_base import DEFAULT_SAMPLE_RUNS, Scenario, header
 from .toml import Ctx
 
-__all__ = ["check_identity_architectures", "identity_from_doc", "is_identity_doc"]
+__all__ = [
+    "IdentityScenario",
+    "check_identity_architectures",
+    "identity_from_doc",
+    "is_identity_doc",
+]
 
 _TOP_KEYS = ("scenario", "identity", "identity_sensors", "estimate", "evaluate")
 _SCENARIO_KEYS = ("name", "description", "steps", "runs", "seed", "dt")
 _IDENTITY_KEYS = ("classes", "prior", "sets")
 _SENSOR_KEYS = ("name", "reports", "confusion", "reliability")
 _EVALUATE_KEYS = ("sample_runs",)
+
+
+@dataclass(frozen=True, eq=False)
+class IdentityScenario(Scenario):
+    """An identity scenario: classes, prior and sensors reporting a class or a named set
+    (`core.identity.IdentitySystem`), fused by Bayes' and Dempster's rules (seed 004)."""
+
+    kind = "identity"
+    system: IdentitySystem
 
 
 def is_identity_doc(doc: Mapping[str, Any] | None) -> bool:
@@ -59,7 +74,7 @@ def is_identity_doc(doc: Mapping[str, Any] | None) -> bool:
 
 def identity_from_doc(
     doc: dict[str, Any], file: str, source: str, path: str | None, *, model: bool = False
-) -> Scenario:
+) -> IdentityScenario:
     """An identity scenario from a parsed TOML document; with ``model`` (``estimate --model``)
     [scenario] and its keys are optional: classes, prior, sets and sensors are what is used."""
     ctx = Ctx(file)
@@ -83,8 +98,7 @@ def identity_from_doc(
     sample_runs = DEFAULT_SAMPLE_RUNS
     if "sample_runs" in ev:
         sample_runs = toml.integer(ctx, ev["sample_runs"], "evaluate.sample_runs", minimum=0)
-    return Scenario.of(
-        "identity",
+    return IdentityScenario.of(
         h,
         IdentitySystem(classes=classes, prior=prior, sets=sets, sensors=sensors),
         dt=1.0 if h.dt is None else h.dt,

@@ -23,7 +23,7 @@ entity-path parts, see :func:`~fusionlog.io.rrd.stream.entity_path`: ``SKF:s2`` 
 ``runs/<m>/<state>/<ARCH>/upper``, ``/lower``   mean +- 2 sigma, sigma = sqrt(P_ii)
 ``plane/...``                                   the state plane (:mod:`.plane`)
 ``metrics/nis/...``, ``sensors/...``           truth-free consistency and sensor availability
-                                                (:mod:`.consistency`)
+                                                (:mod:`.consistency_views`)
 =============================================  ============================================
 
 When the instants are not whole seconds apart (multi-rate sensors, irregular instants) the
@@ -46,11 +46,11 @@ import rerun.blueprint as rrb
 from fusionlog.core.evaluation import Evaluation
 from fusionlog.core.linalg import overflow_is_inf
 
-from .consistency import NisSeries, check_consistency, consistency_views, write_consistency
+from .consistency_views import NisSeries, check_consistency, consistency_views, write_consistency
 from .decimation import decimation
 from .legend import legend_box, place_legend
+from .log_recording import opening_range, plane_states, replay_blueprint, write_replay
 from .plane import check_plane, write_plane
-from .replay import opening_range, plane_states, replay_blueprint, write_replay
 from .stream import SeriesWriter, check_axes, entity_path, recording_error, recording_stream
 from .style import BOUND_COLOR, CKF, TRUTH_COLOR, arch_color, arch_width, class_color
 from .trajectory import trajectory_tabs, write_trajectory
@@ -109,7 +109,7 @@ def write_recording(
     plane: for a 2-D state, the state-plane view (see :func:`.plane.write_plane`).
     availability: {sensor: (K+1,) share of runs measured, NaN where the sensor does not
     measure}, drawn in a "Sensors" tab.
-    nis: {ARCH: {part: (run-averaged NIS, band lower, band upper)}} (`.consistency`).
+    nis: {ARCH: {part: (run-averaged NIS, band lower, band upper)}} (`.consistency_views`).
     Without truth (a replay of a recorded log), `series` may be empty and `traces` ({ARCH:
     (K+1,) trace of P}) gives Fig. 6's curves. measured: {state index: {sensor: (K+1,)}},
     the first sample run's readings of sensors that measure a state directly (dots
@@ -158,7 +158,7 @@ def write_evaluation(
     timeline = "step" if np.array_equal(times, np.arange(len(times))) else "time"
     traces = {a: np.asarray(t, dtype=float) for a, t in (traces or {}).items()}
     replay = ev.innovations is not None
-    if replay:  # one recorded log: its own layout (io/rrd/replay.py)
+    if replay:  # one recorded log: its own layout (io/rrd/log_recording.py)
         ij = plane_states(state_names, measured or {})
         all_traces = traces or {a: np.asarray(d["trace"], dtype=float) for a, d in series.items()}
         nees = {a: np.asarray(d["nees"], dtype=float) for a, d in series.items()}
@@ -303,7 +303,7 @@ def _blueprint(
 ) -> rrb.Blueprint:
     """Tabs: [state plane], Overview (Figs. 4, 5, 6, NEES, DM), [sample runs]. Figs. 4-6
     open on the values after the start where its transient would flatten them (multirate.toml:
-    `.replay.opening_range`), else on all of them.
+    `.log_recording.opening_range`), else on all of them.
 
     Colours are the same in every view, so each group of views (Fig. 4, Fig. 5, the sample
     runs) shows one legend, one entry per architecture (its line, dots and band share the

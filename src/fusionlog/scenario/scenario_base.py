@@ -8,7 +8,12 @@ and recorded in the sensors file's ``fusionlog.scenario`` metadata for the later
 * ``identity`` — a classification problem (:class:`fusionlog.core.identity.IdentitySystem`:
   classes, prior, sensors with confusion matrices) fused by Bayes' and Dempster's rules.
 
-``Scenario.system`` is the kind's system; everything else is common.
+Each kind is a class of its own (a subclass of :class:`Scenario`, defined beside its file's
+parser): ``StateScenario`` and, for a nonlinear model, ``NonlinearScenario``
+(:mod:`.state_file`), ``ReplayScenario`` (:mod:`.replay_file`: a state scenario whose sensors
+are recorded), ``IdentityScenario`` (:mod:`.identity_file`). ``Scenario.system`` is the
+kind's system; everything else is common, and a kind's own checks are its methods
+(`check_overrides`, `check_horizon`).
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ import dataclasses
 import os
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -51,9 +56,10 @@ MAX_TIME_S = 1.8e10
 
 @dataclass(frozen=True, eq=False)
 class Scenario:
-    """A validated scenario of either kind: the system, the Monte Carlo budget, the defaults."""
+    """A validated scenario of any kind: the system, the Monte Carlo budget, the defaults."""
 
-    kind: str  # "state" | "identity"
+    #: the kind recorded in the files ("state" | "identity"), a class's own
+    kind: ClassVar[str] = ""
     name: str
     description: str
     steps: int  # K: instants k = 0..K
@@ -68,17 +74,15 @@ class Scenario:
     plane_view: bool = False  # a 2-D view of the state plane (n = 2): estimates and ellipses
     source: str = ""  # the TOML text as loaded (overrides are not written back into it)
     path: str | None = None
-    replay: Any = None  # a replay's recorded data (scenario.replay.Replay); None: simulated
+    #: a replay's recorded data (`replay_file.Replay`, a ReplayScenario's); None: simulated
+    replay: Any = None
     #: the trajectory metrics' settings (core.trajectory.TrajectorySettings); None: none
     trajectory: Any = None
 
     @cached_property
     def schedule(self) -> Schedule:
-        """The instants of the horizon [0, steps dt] and which sensor measures when: t_k = k dt
-        unless the state kind's sensor timing makes them irregular (`core.timing`)."""
-        own = getattr(self.system, "schedule", None)
-        if own is not None:
-            return own(self.steps)
+        """The instants of the horizon [0, steps dt], t_k = k dt (a kind whose sensors have
+        their own timing says otherwise), and which sensor measures when (`core.timing`)."""
         k = np.arange(self.steps + 1)
         return Schedule(k * self.dt, np.ones((self.steps + 1, 0), dtype=bool), True)
 
@@ -89,17 +93,22 @@ class Scenario:
 
     @property
     def instants(self) -> int:
-        """K + 1, the number of instants (steps + 1 on the regular grid; counted without
-        building anything for a kind without sensor timing)."""
-        if getattr(self.system, "schedule", None) is None:
-            return self.steps + 1
-        return len(self.schedule.times)
+        """K + 1, the number of instants (steps + 1 on the regular grid, counted without
+        building anything)."""
+        return self.steps + 1
+
+    def check_overrides(self, file: str, given: list[str]) -> None:
+        """Refuse the Monte Carlo overrides `given` (``--runs`` ...) a kind does not take
+        (ValidationError naming `file`); every kind so far but the replay takes them."""
+
+    def check_horizon(self, ctx: Ctx, steps_key: str) -> None:
+        """The kind's checks of a horizon other than its file's (`scenario_with`'s steps),
+        ValidationError naming `steps_key`; none for a kind without sensor timing."""
 
     @classmethod
-    def of(cls, kind: str, h: Header, system: Any, **fields: Any) -> Scenario:
-        """A scenario of `kind` from its ``[scenario]`` header, system and remaining fields."""
+    def of(cls, h: Header, system: Any, **fields: Any) -> Scenario:
+        """A scenario of this kind from its ``[scenario]`` header, system and other fields."""
         return cls(
-            kind=kind,
             name=h.name,
             description=h.description,
             steps=h.steps,
@@ -225,8 +234,6 @@ def scenario_with(
         steps_key,
         f"{flag}runs" if runs is not None else "scenario.runs",
     )
-    if steps is not None and hasattr(new.system, "schedule"):
-        from .model import check_schedule  # the state kind's sensors: timing on the new horizon
-
-        check_schedule(ctx, new.system, new.steps, steps_key, len(new.architectures))
+    if steps is not None:
+        new.check_horizon(ctx, steps_key)
     return new

@@ -38,7 +38,18 @@ from fusionlog.io.mcap.topics import TRUTH, estimates_topic, sensor_topic
 from fusionlog.scenario import Scenario, check_identity_architectures, load_model
 
 from .common import block_runs
-from .kind import Array, Estimator, Evaluator, Kind, Model, Prov, Readings, Sens, StepWriter, Topics
+from .hooks import (
+    Array,
+    Estimator,
+    Evaluator,
+    Kind,
+    Model,
+    Prov,
+    Readings,
+    Sens,
+    StepWriter,
+    Topics,
+)
 
 #: Default bound on masses held at once by DS (runs x 2^N), as RUN_STEPS_PER_BLOCK for steps.
 DS_MASSES_PER_BLOCK = 1 << 21

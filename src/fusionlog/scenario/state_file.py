@@ -31,6 +31,8 @@ covariances, and read-only.
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -38,19 +40,22 @@ import numpy as np
 from fusionlog.core.model import Prior, System
 from fusionlog.core.models import SensorModel
 from fusionlog.core.names import STATE_ARCHITECTURES, parse_arch
-from fusionlog.core.timing import SensorTiming
+from fusionlog.core.timing import Schedule, SensorTiming
 
-from . import nonlinear, toml, trajectory
+from . import nonlinear_syntax as nonlinear
 from . import sensors as sensor_tables
-from .base import DEFAULT_CONFIDENCE, DEFAULT_SAMPLE_RUNS, Scenario, header
-from .model import (
+from . import toml, trajectory
+from .model_section import (
     MODEL_KINDS,
     check_schedule,
     model_section,
 )
+from .scenario_base import DEFAULT_CONFIDENCE, DEFAULT_SAMPLE_RUNS, Scenario, header
 from .toml import Ctx
 
 __all__ = [
+    "NonlinearScenario",
+    "StateScenario",
     "architectures_section",
     "correlations_section",
     "evaluate_section",
@@ -61,6 +66,43 @@ __all__ = [
     "system_from_dict",
     "system_to_dict",
 ]
+
+
+@dataclass(frozen=True, eq=False)
+class StateScenario(Scenario):
+    """A state scenario: a linear Gaussian system (`core.model.System`) and the fusion
+    architectures of the Ajgl-Simandl-Dunik paper; its sensors' timing decides the instants."""
+
+    kind = "state"
+    system: System
+
+    @cached_property
+    def schedule(self) -> Schedule:
+        """The instants of the horizon and which sensor measures when (`core.timing`): t_k =
+        k dt unless the sensors' periods and offsets make them irregular."""
+        return self.system.schedule(self.steps)
+
+    @property
+    def instants(self) -> int:
+        return len(self.schedule.times)
+
+    def check_horizon(self, ctx: Ctx, steps_key: str) -> None:
+        """The sensors' timing on the new horizon: the instants' count and memory."""
+        check_schedule(ctx, self.system, self.steps, steps_key, len(self.architectures))
+
+
+@dataclass(frozen=True, eq=False)
+class NonlinearScenario(StateScenario):
+    """A state scenario with a nonlinear sensor or motion model (DESIGN.md, "Nonlinear sensors
+    and motion"): EKF or UKF local filters, no exact analysis, the PCRB beside the Monte Carlo
+    values."""
+
+
+def state_scenario(h: Any, system: System, **fields: Any) -> StateScenario:
+    """The state scenario of `system`: a NonlinearScenario when its model is nonlinear."""
+    cls = StateScenario if system.linear else NonlinearScenario
+    return cls.of(h, system, **fields)
+
 
 _TOP_KEYS = (
     "scenario",
@@ -149,7 +191,7 @@ def system_from_dict(d: dict[str, Any], source: str = "<system dict>") -> System
 # Documents
 
 
-def state_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None) -> Scenario:
+def state_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None) -> StateScenario:
     """A state scenario from a parsed TOML document; `file` names it in errors, `source` is the
     text as written (recorded in the sensors file)."""
     ctx = Ctx(file)
@@ -164,8 +206,7 @@ def state_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None
     confidence, sample_runs, plane_view = evaluate_section(ctx, doc)
     if plane_view and system.n != 2:
         raise ctx.err("evaluate.plane_view", f"needs a 2-D state, this one has {system.n}")
-    return Scenario.of(
-        "state",
+    return state_scenario(
         h,
         system,
         dt=system.dt,

@@ -3,12 +3,13 @@
 The hooks are adapters: simulation is :func:`fusionlog.core.simulate.simulate`, estimation of a
 block read from MCAP is :func:`fusionlog.core.architectures.estimate_block` (with one
 `PlanCache` per command: a plan per architecture and measurement pattern), and evaluation is
-:class:`.state_eval.StateEvaluator`, which accumulates arrays and returns an `Evaluation` that
+:class:`.evaluator.StateEvaluator`, which accumulates arrays and returns an `Evaluation` that
 :func:`fusionlog.io.rrd.write_evaluation` writes.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,13 +25,12 @@ from fusionlog.errors import FusionlogError, NumericalError
 from fusionlog.io.mcap import TRUTH, McapFile, McapWriter, arch_of, sensor_topic
 from fusionlog.io.mcap.topics import ESTIMATES_PREFIX
 from fusionlog.scenario import Scenario, load_model, system_from_dict, system_to_dict
-from fusionlog.scenario.model import bytes_per_instant
+from fusionlog.scenario.model_section import bytes_per_instant
 
 from .common import block_runs
-from .kind import Estimator, Kind, Model, Prov, Sens, StepWriter
+from .evaluator import SensorLog, StateEvaluator
+from .hooks import Estimator, Kind, Model, Prov, Sens, StepWriter
 from .noise import with_message_covariances
-from .nonlinear import step_writers
-from .state_eval import SensorLog, StateEvaluator
 
 
 def check_discretisable(system: System, truth: Scenario, model: str, where: str) -> None:
@@ -44,6 +44,44 @@ def check_discretisable(system: System, truth: Scenario, model: str, where: str)
                 "are irregular: give kind = 'constant-velocity' (n0, axes) or kind = "
                 "'continuous' (A, Qc)"
             )
+
+
+def with_filter(system: Any, name: str | None, where: str = "--filter") -> Any:
+    """The system with its local filter set by ``--filter`` (None: as recorded); errors name
+    the option as `where` (the Python API's argument: "filter")."""
+    if name is None:
+        return system
+    from fusionlog.scenario.nonlinear_syntax import FILTERS
+
+    if not isinstance(system, System):
+        raise FusionlogError(f"{where}: only state scenarios have a local filter")
+    if not isinstance(name, str) or name not in FILTERS:
+        what = repr(name) if isinstance(name, str) else f"{name!r} ({type(name).__name__})"
+        raise FusionlogError(f"{where}: unknown filter {what} (known: {', '.join(FILTERS)})")
+    return dataclasses.replace(system, filter=name)
+
+
+def step_writers(
+    plans: PlanCache, archs: list[str], z: np.ndarray, run_offset: int
+) -> dict[str, Any]:
+    """The estimate stage's writers of a block (`plans`: the system and instants): each
+    architecture's filter advances one instant when its message for that instant is written
+    (the estimator's writers are called for k = 0..K in order), so only one instant of per-run
+    covariances is held, not all of them (`core.nonlinear.estimate_steps`)."""
+    from fusionlog.core.nonlinear import estimate_steps
+
+    system, times = plans.system, plans.times  # the system is on the log's instants
+
+    def writer(arch: str) -> Any:
+        steps = estimate_steps(system, arch, z, times, run_offset)
+
+        def write(w: Any, topic: str, k: int, t: float, off: int) -> None:
+            mean, cov = next(steps)
+            w.write_estimate(topic, k, t, off, mean, cov)
+
+        return write
+
+    return {a: writer(a) for a in archs}
 
 
 class StateKind(Kind):

@@ -1,0 +1,202 @@
+"""The state kind's evaluator: its parts (`.parts.Part`) fed block by block, then an
+`Evaluation`.
+
+Which parts an evaluation has follows from what it evaluates: the Monte Carlo metrics and the
+sample runs always; the exact analysis where the model is linear and the truth has the
+filter's sensors (`exact_setup`); NIS and availability where the sensors log says when each
+sensor measured; the PCRB for a nonlinear truth; the plane view when the scenario asks for it.
+Nothing here reads or writes a file: the stages hand it arrays (`add`) or other processes' sums
+(`merge`), and write what `evaluation` returns (`io.rrd.write_evaluation`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from fusionlog.core.architectures import PlanCache
+from fusionlog.core.evaluation import Evaluation
+from fusionlog.core.model import System
+from fusionlog.core.names import known_arch
+from fusionlog.errors import FusionlogError
+from fusionlog.io.mcap.topics import estimates_topic, sensor_topic
+from fusionlog.scenario import Scenario
+
+from ..common import block_runs
+from ..hooks import Array, Evaluator, Readings, Topics
+from .exact_part import ExactPart, exact_setup
+from .metrics_part import MetricsPart
+from .nis_part import NisPart
+from .parts import Block, Elsewhere, Finished, Part
+from .pcrb_part import PcrbPart
+from .trajectory_part import TrajectoryPart
+from .views_part import PlanePart, SamplesPart
+
+__all__ = ["SensorLog", "StateEvaluator"]
+
+
+@dataclass(frozen=True)
+class SensorLog:
+    """What an evaluation knows of the sensors log besides its arrays: whether it has the
+    truth, and each sensor's scheduled instants (K+1,) bool where it has them (availability)."""
+
+    has_truth: bool = True
+    scheduled: dict[str, np.ndarray] | None = None
+    #: a replay's truth: {"states": [names], "matched": N, "unmatched": N} (instants with and
+    #: without a truth sample); its states may be some of the state's (partial truth)
+    truth: dict[str, Any] | None = None
+
+
+class StateEvaluator(Evaluator):
+    """MSE, NEES, DM per architecture with exact expected values; NIS; PCRB; sample runs;
+    state plane.
+
+    `filter_sys` and `truth_sys` are on the log's instants (with any per-instant R); `runs`
+    M and the instants `times` (K+1,) s are the log's; `source` names it in errors.
+    """
+
+    def __init__(
+        self,
+        sc: Scenario,
+        archs: Sequence[str],
+        filter_sys: System,
+        truth_sys: System,
+        runs: int,
+        times: np.ndarray,
+        prov: dict[str, str],
+        log: SensorLog | None = None,
+        source: str = "",
+    ) -> None:
+        if filter_sys.n != truth_sys.n:
+            raise FusionlogError(
+                f"{source}: estimates of {filter_sys.n} states, the truth has {truth_sys.n}"
+            )
+        self.archs = list(archs)
+        self.topics = [estimates_topic(a) for a in self.archs]
+        self.sc, self.prov, self.source = sc, prov, source
+        self.n = truth_sys.n
+        self.sensors = tuple(s.name for s in filter_sys.sensors)  # the filters' (NIS rows)
+        self.times = np.asarray(times, dtype=float)
+        self.K, self.M = len(self.times) - 1, runs
+        log = log or SensorLog()
+        self.has_truth = log.has_truth
+        recorded = sc.replay is not None
+        plans = PlanCache(filter_sys, self.K)
+        known = [a for a in self.archs if known_arch(a, filter_sys)]
+        names = list(sc.state_names)
+        truthed = (
+            [names.index(x) for x in log.truth["states"]] if log.truth else list(range(self.n))
+        )
+        self.metrics = MetricsPart(
+            self.archs, self.n, self.K + 1, runs, truthed, log.has_truth, recorded,
+            sc.confidence, log.truth,
+        )  # fmt: skip
+        parts: list[Part] = [self.metrics]
+        # the readings the parts read: the filter's sensors (the truth's for a PCRB: the same
+        # sensors, by the truth's names)
+        pcrb = None if truth_sys.linear else PcrbPart(truth_sys, self.times)
+        sensor_topics = pcrb.topics if pcrb else [sensor_topic(s.name) for s in filter_sys.sensors]
+        setup = exact_setup(prov, filter_sys, truth_sys)
+        if setup is not None:
+            parts.append(ExactPart(plans, known, setup, runs, recorded, sensor_topics))
+        if pcrb is not None:  # nonlinear: the posterior Cramer-Rao bound
+            parts.append(pcrb)
+        if log.scheduled:  # the readings say when each sensor measured (and, replayed, NIS)
+            parts.append(
+                NisPart(filter_sys, known, self.K + 1, runs, log.scheduled, recorded,
+                        sensor_topics, sc.confidence)
+            )  # fmt: skip
+        parts.append(SamplesPart(self.archs, min(sc.sample_runs, runs)))
+        traj = TrajectoryPart.of(sc, self.archs, self.times, log.has_truth, source)
+        if traj is not None:  # APE/RPE after the alignment (DESIGN.md "Trajectory metrics")
+            parts.append(traj)
+        if sc.plane_view:
+            parts.append(PlanePart(self.archs, plans, sc.confidence))
+        self.parts = parts
+        #: the sensor topics some part needs the readings of
+        self.sensor_topics = sensor_topics if any(p.topics for p in parts) else []
+
+    def block_runs(self, requested: int | None) -> int:
+        return block_runs(self.K, self.M, requested)
+
+    def add(self, off: int, truth: Array, estimates: Topics, sensors: Readings = None) -> None:
+        n = self.n
+        runs = next(iter(estimates.values()))[0].shape[0]
+        # no truth: NaN everywhere, one value broadcast (a long log's would be 32 MB per 10^6
+        # instants, kept by the first run's sample until the recording is written)
+        x = truth if truth is not None else np.broadcast_to(np.nan, (runs, self.K + 1, n))
+        if x.shape[-1] != n:
+            raise FusionlogError(f"/truth has {x.shape[-1]} values per run, not {n}")
+        by_arch = {}
+        for a, t in zip(self.archs, self.topics, strict=True):
+            mean, cov = estimates[t]
+            if mean.shape[-1] != n:
+                raise FusionlogError(
+                    f"{t}: estimates of {mean.shape[-1]} states, the truth has {n}"
+                )
+            by_arch[a] = (mean, cov)
+        block = Block(off, x, truth is not None, by_arch, sensors)
+        for part in self.parts:
+            part.add(block)
+
+    def merge(
+        self,
+        sums: dict[str, Any],
+        expected: dict[str, Any] | None = None,
+        trajectory: dict[str, Any] | None = None,
+    ) -> None:
+        """Add metric sums accumulated elsewhere (`estimate_block`'s, of runs not `add`ed
+        here) and, for per-run patterns, those runs' conditional exact sums (and their
+        trajectory sums)."""
+        self._merge(Elsewhere(sums=sums, expected=expected or {}, trajectory=trajectory or {}))
+
+    def add_bound(self, truth: np.ndarray, sensors: dict[str, np.ndarray]) -> None:
+        """Runs whose metric sums were merged (`merge`): their truth and sensor readings, for
+        what needs no estimate, the PCRB of a nonlinear model (nothing otherwise)."""
+        self._merge(Elsewhere(readings=(truth, sensors)))
+
+    def _merge(self, other: Elsewhere) -> None:
+        for part in self.parts:
+            part.merge(other)
+
+    def summary(self) -> dict[str, Any]:
+        """The summary.json dict (also `evaluation().summary`)."""
+        return self._finish().summary
+
+    def _finish(self) -> Finished:
+        archs: dict[str, dict[str, Any]] = {}
+        sc = self.sc
+        summary = {
+            "scenario": sc.name,
+            "seed": sc.seed,
+            "runs": self.M,
+            "steps": self.K,
+            "state_names": list(sc.state_names),
+            "confidence": sc.confidence,
+            "architectures": archs,
+        }
+        into = Finished(summary, archs, metric_runs=self.metrics.runs_of())
+        into.fields.update(
+            plane=None, availability={}, measured={}, nis=None, innovations=None, pcrb=None
+        )
+        # the exact values first: the metrics' summary puts them beside the Monte Carlo ones
+        for part in sorted(self.parts, key=lambda p: not isinstance(p, ExactPart)):
+            part.summarise(into)
+        return into
+
+    def evaluation(self, provenance: dict[str, Any] | None = None) -> Evaluation:
+        """Everything accumulated, finished into an `Evaluation` (the recording's properties
+        carry the scenario text and `provenance`)."""
+        into = self._finish()
+        return Evaluation(
+            summary=into.summary,
+            times=self.times,
+            state_names=tuple(self.sc.state_names),
+            confidence=self.sc.confidence,
+            properties={"scenario": self.sc.source, "provenance": provenance or self.prov},
+            sensors=self.sensors,
+            **into.fields,
+        )
