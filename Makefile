@@ -1,15 +1,16 @@
 # Two commands do all set-up on a fresh machine: `make run` and `make test`.
+# `make test` builds the documentation too (tests/test_docs.py: mkdocs build --strict, examples).
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench bench-quick lint golden clean
+.PHONY: run test bench bench-quick lint golden docs clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[test,bench]'
+	$(BIN)/pip install -q -e '.[test,bench,docs]'
 	touch $(STAMP)
 
 run: $(STAMP)
@@ -47,6 +48,9 @@ lint: $(STAMP)
 
 golden: $(STAMP)
 	FUSIONLOG_UPDATE_GOLDEN=1 $(BIN)/pytest tests/test_golden.py
+
+docs: $(STAMP)
+	$(BIN)/mkdocs build --strict
 
 clean:
 	rm -rf $(VENV)

@@ -239,7 +239,7 @@ def per_run_dropout(
 
     def alone(arch: str):
         """One architecture as if it were the only one: the runs grouped by history anew (an
-        estimate of several architectures groups them once, see registry.group_by_history)."""
+        estimate of several architectures groups them once: driver.PlanCache.block_plans)."""
         getattr(registry, "forget_grouping", lambda: None)()  # (a tree without the cache)
         return estimate(system, zd, arch)
 

@@ -1,6 +1,6 @@
 """Issue 12, "Faults lose data", through the real command line, for every command that writes
-(simulate, estimate, evaluate with and without --summary, run): README, "Outputs never lose
-data".
+(simulate, estimate, evaluate with and without --summary, run): docs/reference/outputs.md,
+"Outputs never lose data".
 
 1. special targets (a character device and a FIFO made under tmp_path, a directory, a symlink
    to a device) are refused even with --force: exit 2, one line, the special file untouched;

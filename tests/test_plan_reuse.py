@@ -1,6 +1,7 @@
 """`fusionlog run` hands the estimate stage's per-run plans of a block to the evaluation's exact
-analysis (`keep_block_plans`): the same plan for the same model and masks, never another
-block's, and the run's summary is that of the stages run one by one."""
+analysis (a `driver.KeptPlans` both stages' caches are given): the same plan for the same
+model and masks, never another block's, and the run's summary is that of the stages run one
+by one."""
 
 from __future__ import annotations
 
@@ -11,9 +12,9 @@ from pathlib import Path
 import numpy as np
 from cli_helpers import ok
 
-from fusionlog.core.architectures import PlanCache, keep_block_plans
 from fusionlog.core.model import ajgl2009
 from fusionlog.core.simulate import simulate
+from fusionlog.driver import KeptPlans, PlanCache
 
 ROOT = Path(__file__).resolve().parents[1]
 DROPOUT = ROOT / "pipeline" / "ajgl2009_dropout.toml"
@@ -28,18 +29,18 @@ def dropped(seed: int) -> np.ndarray:
 def test_a_block_gets_its_own_plans_back_and_no_other():
     archs = ["CKF", "MSC-GMF"]
     z1, z2 = dropped(1), dropped(2)
-    with keep_block_plans():
-        first, _ = PlanCache(ajgl2009(), 8).block_plans(archs, z1)
-        again, _ = PlanCache(ajgl2009(), 8).block_plans(archs, z1)  # a later stage's cache
-        other, _ = PlanCache(ajgl2009(), 8).block_plans(archs, z2)
-        other_model, _ = PlanCache(dataclasses.replace(ajgl2009(), dt=2.0), 8).block_plans(
-            archs, z1
-        )
+    kept = KeptPlans()
+    first, _ = PlanCache(ajgl2009(), 8, kept=kept).block_plans(archs, z1)
+    again, _ = PlanCache(ajgl2009(), 8, kept=kept).block_plans(archs, z1)  # a later stage's
+    other, _ = PlanCache(ajgl2009(), 8, kept=kept).block_plans(archs, z2)
+    other_model, _ = PlanCache(dataclasses.replace(ajgl2009(), dt=2.0), 8, kept=kept).block_plans(
+        archs, z1
+    )
     after, _ = PlanCache(ajgl2009(), 8).block_plans(archs, z1)
     for a in archs:
         assert again[a] is first[a]
         assert other[a] is not first[a] and other_model[a] is not first[a]
-        assert after[a] is not first[a]  # nothing is kept outside the context
+        assert after[a] is not first[a]  # nothing is kept for a cache not given it
         # each block's plan is that of its own masks: its reported covariances
         np.testing.assert_array_equal(other[a].reported_cov, after_plan(a, z2).reported_cov)
 

@@ -18,7 +18,6 @@ from conditioning import assert_agree, sensitivity
 from replay_helpers import gappy, head, robot_log, state_archs
 
 from fusionlog.core.architectures import (
-    block,
     build_plan,
     estimate,
     replay,
@@ -26,6 +25,7 @@ from fusionlog.core.architectures import (
 )
 from fusionlog.core.architectures.replay import applies, replay_estimates
 from fusionlog.core.reference import reference_paths
+from fusionlog.driver import plans
 from fusionlog.io.mcap import McapFile
 
 #: The first instants of the log (every sensor measures in them, the localiser a few times):
@@ -115,7 +115,7 @@ def test_the_estimate_command_takes_it_for_one_run(robot, tmp_path, monkeypatch)
     def no_plans(*args, **kwargs):
         raise AssertionError("a plan was built for a one-run log")
 
-    monkeypatch.setattr(block, "build_plan", no_plans)
+    monkeypatch.setattr(plans, "build_plan", no_plans)  # the driver's plan cache
     archs = ["CKF", "HKF", "MSC-GMF", "MSC", "SKF:mocap", "CI", "FBS", "AVG"]
     out = tmp_path / "e.mcap"
     ok("estimate", path, "-o", out, *[x for a in archs for x in ("--arch", a)])
@@ -135,11 +135,11 @@ def test_the_reference_switch_sends_one_run_to_the_plans(robot, tmp_path, monkey
     path, system, z = robot
     built = []
 
-    def counted(*args, build_plan=block.build_plan, **kwargs):
+    def counted(*args, build_plan=plans.build_plan, **kwargs):
         built.append(args[1])
         return build_plan(*args, **kwargs)
 
-    monkeypatch.setattr(block, "build_plan", counted)
+    monkeypatch.setattr(plans, "build_plan", counted)
     monkeypatch.setenv("FUSIONLOG_REFERENCE_PATHS", "1")
     out = tmp_path / "e.mcap"
     ok("estimate", path, "-o", out, "--arch", "CKF", "--arch", "MSC")
@@ -150,7 +150,7 @@ def test_the_reference_switch_sends_one_run_to_the_plans(robot, tmp_path, monkey
     ef = McapFile(out)
     for a in ("CKF", "MSC"):
         mean, _ = ef.read_all([f"/estimates/{a}"])[f"/estimates/{a}"]
-        plan = run_plan(block.build_plan(system, a, K, None if pattern.all() else pattern), z)
+        plan = run_plan(plans.build_plan(system, a, K, None if pattern.all() else pattern), z)
         np.testing.assert_array_equal(mean, plan.mean, err_msg=a)
         scale = np.abs(fast[a].mean).max()
         np.testing.assert_allclose(mean, fast[a].mean, rtol=1e-9, atol=1e-9 * scale, err_msg=a)

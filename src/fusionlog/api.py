@@ -10,7 +10,7 @@
 
 The CLI is an adapter over the same functions: `simulate` is the simulate stage's hook (the
 random streams belong to chunks of runs, so the runs are those `fusionlog simulate` writes),
-`estimate` is `core.architectures.estimate_block` in the estimate stage's blocks of runs with
+`estimate` is `driver.estimate_block` in the estimate stage's blocks of runs with
 one plan cache, and `evaluate` is the state evaluator fed the same blocks: the same scenario,
 runs and seed give the CLI's numbers.
 
@@ -40,9 +40,9 @@ from .arguments import (
 )
 from .core import evaluation
 from .core.architectures import Estimate as BlockEstimate
-from .core.architectures import PlanCache, estimate_block
 from .core.model import System
 from .core.names import check_architectures
+from .driver import PlanCache, estimate_block
 from .errors import FusionlogError, ValidationError
 from .io.mcap import estimates_topic, sensor_topic
 from .scenario import Scenario, load_scenario, scenario_with
@@ -131,7 +131,7 @@ class Estimate:
     `cov` (M, K+1, n, n), for linear and nonlinear scenarios alike.
 
     Where every run has the same covariance (a linear model without per-run dropouts: the
-    gains are computed once for all runs, DESIGN.md "Vectorise over runs") `cov` is a
+    gains are computed once for all runs: docs/internals.md) `cov` is a
     read-only view of one (K+1, n, n) array broadcast over the runs, so it costs no memory
     per run: `shared_cov` is then True and `cov[0]` is that array. Otherwise `cov` holds each
     run's own. NaN in both mean and cov marks an instant without an estimate (no prior yet).
@@ -199,7 +199,7 @@ class Evaluation(evaluation.Evaluation):
 
 
 def load(path: str | os.PathLike[str]) -> Scenario:
-    """The validated scenario of a TOML file (DESIGN.md "Scenario TOML"); FusionlogError with
+    """The validated scenario of a TOML file (docs/reference/scenario.md); FusionlogError with
     the file, key and reason when it is not valid."""
     return load_scenario(path)
 

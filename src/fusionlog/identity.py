@@ -1,4 +1,4 @@
-"""Public API for identity fusion (Challa & Koks, seed 004): Bayes and Dempster-Shafer.
+"""Public API for identity fusion (Challa & Koks, Sadhana 2004): Bayes and Dempster-Shafer.
 
 A thin re-export of the evidence modules of :mod:`fusionlog.core.identity` (``bayes``,
 ``dempster``, ``masses``); see there for the equations.

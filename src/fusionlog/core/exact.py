@@ -30,6 +30,7 @@ import numpy as np
 
 from ..errors import NumericalError
 from .architectures import BlockDiagonal, Plan, StepMap
+from .expected import Expected, not_definite
 from .linalg import mT, numerical_errors, sym, wide_diagonal
 from .model import System
 from .moments import congruences, forward_moments, hcat, mv, rmul
@@ -55,28 +56,6 @@ __all__ = [
 #: Runs analysed together in a per-run plan: the moments of a chunk, (runs, d, d) per step,
 #: stay a few megabytes whatever the number of runs.
 CHUNK_RUNS = 2048
-
-
-@dataclass
-class Expected:
-    """Exact expected error statistics per step k = 0..K (per run, with a leading run axis
-    (M, ...), for a per-run plan)."""
-
-    mse: np.ndarray  # (..., K+1, n, n): E[e e^T]
-    bias: np.ndarray  # (..., K+1, n): E[e]
-    P: np.ndarray  # (..., K+1, n, n): the covariance the architecture reports
-    nees: np.ndarray  # (..., K+1): E[e^T P^-1 e] = tr(P^-1 E[e e^T])
-    dm: np.ndarray  # (..., K+1): E[sqrt(e^T P^-1 e)], eq. (46)
-
-    @property
-    def mse_per_state(self) -> np.ndarray:
-        """(..., K+1, n) expected MSE of each state component, the exact counterpart of eq. (44)."""
-        return np.diagonal(self.mse, axis1=-2, axis2=-1).copy()
-
-    @property
-    def defined(self) -> np.ndarray:
-        """(..., K+1) where the architecture reports a covariance, i.e. has an estimate."""
-        return np.isfinite(self.P).all(axis=(-2, -1))
 
 
 def analyse(plan: Plan, truth: System, *, chunk_runs: int = CHUNK_RUNS) -> Expected:
@@ -182,14 +161,6 @@ def plan_of_runs(plan: Plan, runs: slice | int) -> Plan:
 #: filters settle to a few (the fixed 1601-node grid costs nothing there), a recorded log's
 #: instants are all distinct (replay_robot, 7 architectures: 1.8 s fixed, ~0.1 s fitted).
 FIXED_GRID_ITEMS = 256
-
-
-def not_definite(where: str) -> NumericalError:
-    """The error of a reported covariance without NEES or DM at `where` (a step, a run)."""
-    return NumericalError(
-        f"{where}: the reported covariance is not positive definite to working precision "
-        "(no NEES or DM)"
-    )
 
 
 def shared_nees_and_dm(

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import NumericalError
 from .architectures import BlockDiagonal, Plan, StepMap
-from .exact import Expected, not_definite
+from .expected import Expected, not_definite
 from .linalg import sym
 from .model import System
 from .moments import congruences, hcat, initial_moments, mv, step_moments

@@ -1,7 +1,7 @@
 """Architecture names used on the CLI, in MCAP topics and in summaries (DESIGN.md contract).
 
 The names are those of the architecture registry (`core.architectures.registry`): one list,
-so that a name parses exactly when there is a builder for it.
+so that a name parses exactly when a definition is registered for it.
 """
 
 from __future__ import annotations

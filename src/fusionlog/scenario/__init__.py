@@ -154,7 +154,8 @@ def model_from_text(
         )
     head = doc.get("scenario", {})
     if dt is not None and isinstance(head, dict) and "dt" not in head:
-        # a model file need not repeat [scenario] (README): n0 * dt is the recorded dt's
+        # a model file need not repeat [scenario] (docs/reference/scenario.md): n0 * dt is
+        # the recorded dt's
         doc = {**doc, "scenario": {**head, "dt": dt}}
     if kind is not None and own != kind:
         what = "no [identity] section" if own == "state" else "it has [identity]"

@@ -2,17 +2,19 @@
 blocks of runs, its chi-square band, and the whiteness of its normalised innovations; and when
 each sensor measured (the share of runs whose measurement arrived).
 
-Which innovations (DESIGN.md, summary.json `nis`):
+Which innovations (DESIGN.md, summary.json `nis`) follows from what an architecture's
+definition says its filters are (`core.architectures.definition`):
 
-* CKF, HKF: each sensor's part of the centralised innovation against the architecture's
-  prediction (z_s - H_s x^-, S_s = H_s P^- H_s' + R_s), so that a sensor whose R is wrong
-  shows by name; with a single sensor, the whole innovation (HKF with the block-diagonal R it
-  believes); FBS: that of its forward filter, the CKF;
-* SKF:<s>: its sensor's innovation;
-* MSC, MSC-GMF, CI, AVG: each sensor's innovation against the *fused* prediction. The local
-  filters' own innovations are the same for all four (the same locals, no feedback), so they
-  could not tell the fusion rules apart; against the fused prediction an over-confident rule
-  (MSC) shows NIS above the band.
+* centralised and hierarchical (CKF, HKF): each sensor's part of the centralised innovation
+  against the architecture's prediction (z_s - H_s x^-, S_s = H_s P^- H_s' + R_s), so that a
+  sensor whose R is wrong shows by name; with a single sensor, the whole innovation (HKF with
+  the block-diagonal R it believes); the smoother (FBS): that of its forward filter, the
+  centralised KF;
+* single (SKF:<s>): its sensor's innovation;
+* per-sensor (MSC, MSC-GMF, CI, AVG, ...): each sensor's innovation against the *fused*
+  prediction. The local filters' own innovations are the same for all of them (the same
+  locals, no feedback), so they could not tell the fusion rules apart; against the fused
+  prediction an over-confident rule (MSC) shows NIS above the band.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from fusionlog.core.architectures import estimate, parse_arch
+from fusionlog.core.architectures import REGISTRY, definition, estimate, parse_arch
 from fusionlog.core.metrics import chi2_quantile
 from fusionlog.core.model import System
 from fusionlog.core.nis import innovations, whiteness
@@ -30,18 +32,23 @@ __all__ = ["NisAccumulator", "availability"]
 
 #: Runs whose normalised innovations are kept for the whiteness check.
 WHITENESS_RUNS = 200
-TRACK_TO_TRACK = ("MSC", "MSC-GMF", "CI", "AVG")
 
 
 def _parts(system: System, arch: str) -> list[tuple[str, np.ndarray]]:
     """(part name, rows of z) of an architecture's innovations: one per sensor, named by it
     (a single sensor's whole innovation too, not "all")."""
-    base, sensor = parse_arch(arch, [s.name for s in system.sensors])
+    _, sensor = parse_arch(arch, [s.name for s in system.sensors])
+    kind = definition(arch).locals
     rows = np.arange(system.m)
     sl = system.sensor_slices
-    if base == "SKF":
+    if kind == "single":
         return [(sensor, rows[sl[system.sensor_index(sensor)]])]
     return [(s.name, rows[sl[j]]) for j, s in enumerate(system.sensors)]
+
+
+def _centralised() -> str:
+    """The registered centralised KF (a smoother's forward filter)."""
+    return next(a.name for a in REGISTRY.values() if a.locals == "centralised")
 
 
 class NisAccumulator:
@@ -61,16 +68,16 @@ class NisAccumulator:
         keep = max(0, WHITENESS_RUNS - self.kept)
         forward = None
         for a in self.archs:
-            base = parse_arch(a, [s.name for s in self.system.sensors])[0]
+            kind = definition(a).locals
             mean, cov = estimates[a]
             system, R = self.system, None
-            if base == "FBS":  # its forward filter: the CKF on the same data
+            if kind == "smoother":  # its forward filter: the centralised KF on the same data
                 if forward is None:
-                    fwd = estimate(self.system, z, "CKF")
+                    fwd = estimate(self.system, z, _centralised())
                     forward = (fwd.mean, fwd.cov)
                 mean, cov = forward
             for part, rows in self.parts[a]:
-                if base == "HKF" and len(self.system.sensors) == 1:  # its one innovation
+                if kind == "hierarchical" and len(self.system.sensors) == 1:  # its one
                     R = self._blockdiag()
                 inn = innovations(system, mean, cov, z, rows, R)
                 key = (a, part)

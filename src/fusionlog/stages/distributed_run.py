@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from fusionlog.core.architectures.block import pattern_record
+from fusionlog.driver import pattern_record
 from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import estimates_topic, sensor_topic

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fusionlog.driver import KeptPlans
 from fusionlog.errors import NumericalError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapFile, McapWriter
@@ -54,12 +55,13 @@ def estimate_to(
     sensors_name: str | None = None,
     recorded: Scenario | None = None,
     sensors_sha256: str | None = None,
+    kept: KeptPlans | None = None,
 ) -> EstimateResult:
     """Estimate every run of `sensors_path` with each architecture into an open writer:
     /estimates/<ARCH>, one message per step per block of runs. `recorded` is the scenario
     recorded in the sensors file and `sensors_sha256` its digest, when the caller (`run`, which
     wrote it) has them: each is then not read again. `filter_name` (--filter) sets the local
-    filter of a state model."""
+    filter of a state model. `kept` (`run`): per-run plans the evaluation takes next."""
     digest = None if sensors_sha256 else Digest(Path(sensors_path))
     mf = McapFile(sensors_path)
     if recorded is None:
@@ -82,7 +84,7 @@ def estimate_to(
     times = mf.times()
     # a replay's estimates keep its recording's clock: the log_time of its sensor messages
     w.set_time_origin(mf.time_origin_ns())
-    est = kind.estimator(system, K, M, archs, mf)
+    est = kind.estimator(system, K, M, archs, mf, kept)
     B = est.block_runs(block)
     if SCENARIO_META in mf.metadata:
         w.add_metadata(SCENARIO_META, mf.metadata[SCENARIO_META])

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from fusionlog.core.linalg import not_a_covariance
+from fusionlog.driver import KeptPlans
 from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import TRUTH
@@ -42,12 +43,14 @@ def evaluate_into(
     scenario: Scenario | None = None,
     sensors_sha256: str | None = None,
     estimates_name: str | None = None,
+    kept: KeptPlans | None = None,
     align: str | None = None,
 ) -> tuple[dict[str, Any], list[str] | None]:
     """Metrics of every architecture in `estimates_path` against the truth of `sensors_path`,
     written into the (uncommitted) outputs `out` (.rrd) and `summary_path` (JSON); returns
     the summary and the filters' sensor names (from the estimates' provenance).
     `estimates_name` names the estimates in errors (`run`: its output, not the temporary file);
+    `kept` (`run`): the estimate stage's per-run plans, which the exact analysis takes;
     `align` (``--align``) overrides the scenario's ``[evaluate] align``.
 
     Metrics are sums over blocks of runs, so memory does not grow with M; what they are and
@@ -58,7 +61,7 @@ def evaluate_into(
     )
     sc = with_align(sc, align)
     kind = kind_of(sc.kind)
-    ev = kind.evaluator(sc, est, prov, sens)
+    ev = kind.evaluator(sc, est, prov, sens, kept)
     M = sens.runs()
     B = ev.block_runs(block)
     truth = [TRUTH] if TRUTH in sens.topics else []  # a recorded log may have none

@@ -153,15 +153,25 @@ class Kind(ABC):
 
     @abstractmethod
     def estimator(
-        self, system: Any, steps: int, runs: int, archs: list[str], sensors: McapFile
+        self,
+        system: Any,
+        steps: int,
+        runs: int,
+        archs: list[str],
+        sensors: McapFile,
+        kept: Any = None,
     ) -> Estimator:
-        """An estimator of every run with `archs`."""
+        """An estimator of every run with `archs` (`kept`: a `driver.KeptPlans` that a later
+        stage of the same command shares, or None)."""
 
     @abstractmethod
     def write_evaluation(self, file: BinaryIO, evaluation: Any) -> None:
         """Serialise an `Evaluator.evaluation` as the kind's Rerun recording into ``file``."""
 
     @abstractmethod
-    def evaluator(self, sc: Scenario, est: McapFile, prov: Prov, sens: Sens = None) -> Evaluator:
+    def evaluator(
+        self, sc: Scenario, est: McapFile, prov: Prov, sens: Sens = None, kept: Any = None
+    ) -> Evaluator:
         """An evaluator of the estimates against the scenario's truth (`sensors`: the sensors
-        file, when the evaluation has it: its structure and per-message covariances)."""
+        file, when the evaluation has it: its structure and per-message covariances; `kept`:
+        the estimate stage's `driver.KeptPlans` of the same command, or None)."""

@@ -120,7 +120,13 @@ class IdentityKind(Kind):
         return [(s.name, 1) for s in system.sensors]  # a report index
 
     def estimator(
-        self, system: IdentitySystem, steps: int, runs: int, archs: list[str], sensors: McapFile
+        self,
+        system: IdentitySystem,
+        steps: int,
+        runs: int,
+        archs: list[str],
+        sensors: McapFile,
+        kept: Any = None,
     ) -> Estimator:
         return _IdentityEstimator(system, steps, runs, archs, sensors.path)
 
@@ -129,7 +135,9 @@ class IdentityKind(Kind):
 
         write_identity_recording(file, **evaluation.recording)
 
-    def evaluator(self, sc: Scenario, est: McapFile, prov: Prov, sens: Sens = None) -> Evaluator:
+    def evaluator(
+        self, sc: Scenario, est: McapFile, prov: Prov, sens: Sens = None, kept: Any = None
+    ) -> Evaluator:
         return _IdentityEvaluator(sc, est)
 
 

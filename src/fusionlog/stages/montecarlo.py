@@ -27,7 +27,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from fusionlog.core.architectures import Estimate, PlanCache, estimate_block
+from fusionlog.core.architectures import Estimate
+from fusionlog.driver import PlanCache, estimate_block
 from fusionlog.errors import NumericalError
 from fusionlog.memory import keep_freed_memory
 from fusionlog.scenario import NonlinearScenario, Scenario

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fusionlog.core.architectures import keep_block_plans
+from fusionlog.driver import KeptPlans
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapWriter
 from fusionlog.memory import release_freed_memory
@@ -57,7 +57,8 @@ def run_pipeline(
     seconds: dict[str, float] = {}
     notes: list[str] = []
     # the evaluation's exact analysis takes the estimate's per-run plans of the same block
-    with Outputs(list(outs.values()), force=force, inputs=inputs) as o, keep_block_plans():
+    kept = KeptPlans()
+    with Outputs(list(outs.values()), force=force, inputs=inputs) as o:
         t0 = time.perf_counter()
         if sc.replay is not None:
             from .import_data import import_to, read_replay  # the decoders: only replays need them
@@ -90,6 +91,7 @@ def run_pipeline(
                 sensors_name="sensors.mcap",
                 recorded=sc,
                 sensors_sha256=digest,
+                kept=kept,
             )
         seconds["estimate"] = time.perf_counter() - t1
         release_freed_memory()
@@ -104,6 +106,7 @@ def run_pipeline(
             scenario=sc,
             sensors_sha256=digest,
             estimates_name="estimates.mcap",
+            kept=kept,
         )
         o.commit()
         seconds["evaluate"] = time.perf_counter() - t2

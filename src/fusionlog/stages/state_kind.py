@@ -1,7 +1,7 @@
 """The state kind's stage hooks: linear Gaussian systems and the paper's fusion architectures.
 
 The hooks are adapters: simulation is :func:`fusionlog.core.simulate.simulate`, estimation of a
-block read from MCAP is :func:`fusionlog.core.architectures.estimate_block` (with one
+block read from MCAP is :func:`fusionlog.driver.estimate_block` (with one
 `PlanCache` per command: a plan per architecture and measurement pattern), and evaluation is
 :class:`.evaluator.StateEvaluator`, which accumulates arrays and returns an `Evaluation` that
 :func:`fusionlog.io.rrd.write_evaluation` writes.
@@ -17,10 +17,10 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from fusionlog.core.architectures import PlanCache, estimate_block
 from fusionlog.core.model import System
 from fusionlog.core.names import check_architectures
 from fusionlog.core.simulate import simulate
+from fusionlog.driver import KeptPlans, PlanCache, estimate_block
 from fusionlog.errors import FusionlogError, NumericalError
 from fusionlog.io.mcap import TRUTH, McapFile, McapWriter, arch_of, sensor_topic
 from fusionlog.io.mcap.topics import ESTIMATES_PREFIX
@@ -132,15 +132,26 @@ class StateKind(Kind):
         return [(s.name, s.dim) for s in system.sensors]
 
     def estimator(
-        self, system: System, steps: int, runs: int, archs: list[str], sensors: McapFile
+        self,
+        system: System,
+        steps: int,
+        runs: int,
+        archs: list[str],
+        sensors: McapFile,
+        kept: KeptPlans | None = None,
     ) -> Estimator:
         topics = [sensor_topic(s.name) for s in system.sensors]
         system = with_message_covariances(system.on_times(sensors.times()), sensors)
-        plans = PlanCache(system, steps, times=sensors.times(), one_run=runs == 1)
+        plans = PlanCache(system, steps, times=sensors.times(), one_run=runs == 1, kept=kept)
         return _StateEstimator(plans, runs, archs, topics)
 
     def evaluator(
-        self, sc: Scenario, est: McapFile, prov: Prov, sens: Sens = None
+        self,
+        sc: Scenario,
+        est: McapFile,
+        prov: Prov,
+        sens: Sens = None,
+        kept: KeptPlans | None = None,
     ) -> StateEvaluator:
         """The evaluator of an estimates file: its architectures, the filters' model (recorded
         in its provenance, else the scenario's) and the truth's, on its instants, with the
@@ -162,7 +173,7 @@ class StateKind(Kind):
             truth_sys = with_message_covariances(truth_sys, sens)
             log = _sensor_log(sc, filter_sys, sens)
         return StateEvaluator(
-            sc, archs, filter_sys, truth_sys, est.runs(), times, prov, log, str(est.path)
+            sc, archs, filter_sys, truth_sys, est.runs(), times, prov, log, str(est.path), kept
         )
 
     def write_evaluation(self, file: BinaryIO, evaluation: Any) -> None:

@@ -1,4 +1,4 @@
-"""What a sweep writes (DESIGN.md, "sweep.parquet"; README, "Parameter sweeps"): its
+"""What a sweep writes (DESIGN.md, "sweep.parquet"; docs/tutorials/sweeps.md): its
 summary.json (the grid, every point as ``fusionlog run`` would summarise it, each
 architecture's lowest MSE), the rows of sweep.parquet and their bytes. Pure functions of the
 points' results; :mod:`.sweep` runs the tasks and commits the files."""
@@ -99,7 +99,7 @@ def sweep_summary(
     exact_only: bool,
     trajectory: Sequence[dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
-    """summary.json of a sweep (README, "Parameter sweeps"): the grid, every point as
+    """summary.json of a sweep (docs/reference/summary-json.md, "Sweeps"): the grid, every point as
     ``fusionlog run`` would summarise it, and each architecture's lowest MSE."""
     first = points[0].scenario
     per_point = [

@@ -15,24 +15,20 @@ the maps are explicit, `core.exact` propagates the true error covariance through
 The internal state s is the mean of each filter, or, while a filter started without a prior has not
 yet gathered enough information for a covariance to exist, its information vector y = P^-1 x.
 
-Modules: `plan` (the plan types), `registry` (names -> builders, `build_plan`), `executor`
-(`run_plan`), `block` (`estimate_block`: a block of runs with the plan cache, the one way every
-caller estimates), the builders by family: `filters` (the Kalman-filter machinery), `single`
-(CKF, SKF), `hkf`, `track_to_track` with `readouts` (MSC, MSC-GMF, CI, AVG), `fbs`; and
+Modules: `plan` (the plan types), `definition` (what an architecture is: its local filters
+and fusion rule), `registry` (the registered definitions, `register`, `build_plan`), `rules`
+(the paper's fusion rules as functions of the locals' covariances), `executor` (`run_plan`),
+`estimates` (`estimate`: one architecture on some runs, no cache; a block of runs with the
+plan cache is the driver's, `fusionlog.driver.estimate_block`), the builders by family:
+`filters` (the Kalman-filter machinery), `single` (CKF, SKF), `hkf`, `track_to_track` with
+`readouts` (MSC, MSC-GMF, CI, AVG, and `build_rule` for any registered rule), `fbs`; and
 `replay` with `replay_filters`: one run of a recorded log estimated without plans (the same
-numbers to rounding, no maps for the exact analysis), which `estimate_block` takes for a
-cache of one run (`PlanCache.one_run`).
+numbers to rounding, no maps for the exact analysis), which `estimate` and the driver take
+for one run.
 """
 
-from .block import (
-    Block,
-    PlanCache,
-    conditional_sums,
-    estimate,
-    estimate_block,
-    keep_block_plans,
-    shared_pattern,
-)
+from .definition import LOCALS, Architecture, Rule
+from .estimates import estimate, shared_pattern
 from .executor import DENSE_MAX_STEPS, STEADY_BLOCK, run_plan
 from .plan import (
     BlockDiagonal,
@@ -47,9 +43,11 @@ from .plan import (
 from .registry import (
     REGISTRY,
     STATE_ARCHITECTURES,
-    Architecture,
     build_plan,
+    definition,
     parse_arch,
+    register,
+    unregister,
 )
 
 __all__ = [
@@ -58,8 +56,8 @@ __all__ = [
     "STATE_ARCHITECTURES",
     "STEADY_BLOCK",
     "Architecture",
-    "Block",
-    "PlanCache",
+    "LOCALS",
+    "Rule",
     "BlockDiagonal",
     "BuildRequest",
     "DenseMap",
@@ -69,11 +67,11 @@ __all__ = [
     "SmootherMaps",
     "StepMap",
     "build_plan",
-    "conditional_sums",
+    "definition",
     "estimate",
-    "estimate_block",
-    "keep_block_plans",
     "parse_arch",
+    "register",
     "run_plan",
     "shared_pattern",
+    "unregister",
 ]

@@ -1,58 +1,137 @@
-"""The architectures by name (the DESIGN.md contract: CLI, MCAP topics, summaries) and the one
-place that compiles a name into a plan.
+"""The registry of architectures (DESIGN.md "Architectures": names used on the CLI, in topics
+and in summaries) and the one place that compiles a name into a plan.
 
-`REGISTRY` is the list of architecture names: `core.names` takes `STATE_ARCHITECTURES` and
-`parse_arch` from here, so a name is known exactly when there is a builder for it.
+Every backend asks `definition(name)` for an architecture (`definition.Architecture`: its
+local filters and fusion rule) and refuses a name no definition has: the plans and their exact
+analysis (`build_plan`), the one-run replay path (`replay`, `core.exact_replay`), the EKF/UKF
+lanes (`core.nonlinear`), the consistency checks and the recording's colours. `register` adds
+one (a new fusion rule: one definition, e.g. `ici.ICI`).
 """
 
 from __future__ import annotations
-
-from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 
 from ...errors import NumericalError
 from ..linalg import all_finite, numerical_errors
 from ..model import System
+from . import rules
+from .definition import Architecture
 from .fbs import build_fbs
 from .hkf import build_hkf
+from .ici import ICI
 from .plan import BuildRequest, HistoryNodes, Plan
 from .single import build_ckf, build_skf
-from .track_to_track import build_avg, build_ci, build_msc, build_msc_gmf
+from .track_to_track import build_avg, build_ci, build_msc, build_msc_gmf, build_rule
+
+#: Registered definitions by name, in the order of the default `[estimate] architectures`
+#: list: the paper's Table I, then covariance intersection, the smoother and the plain
+#: average (Gustafsson-Hendeby's "LS"); then those not run by default.
+REGISTRY: dict[str, Architecture] = {}
 
 
-@dataclass(frozen=True)
-class Architecture:
-    """A registered architecture: its name, its builder, and whether it takes a sensor suffix
-    (`SKF:<sensor>`, the first sensor without one)."""
-
-    name: str
-    build: Callable[[BuildRequest], Plan]
-    summary: str
-    takes_sensor: bool = False
+def register(arch: Architecture, *, replace: bool = False) -> Architecture:
+    """Add an architecture to the registry (every backend takes it from there); a name that is
+    registered already is refused unless `replace`. Returns `arch`."""
+    if arch.name in REGISTRY and not replace:
+        raise ValueError(f"architecture {arch.name!r} is registered already")
+    REGISTRY[arch.name] = arch
+    return arch
 
 
-#: In the order of the default `[estimate] architectures` list: the paper's Table I, then
-#: covariance intersection, the smoother and the plain average (Gustafsson-Hendeby's "LS").
-REGISTRY: dict[str, Architecture] = {
-    a.name: a
-    for a in (
-        Architecture("CKF", build_ckf, "centralised KF on all sensors, eqs. (29)-(31)"),
-        Architecture("HKF", build_hkf, "hierarchical KF with feedback, eqs. (36)-(40)"),
-        Architecture(
-            "MSC-GMF", build_msc_gmf, "local KFs, generalised Millman formula, eqs. (6)-(7), (35)"
-        ),
-        Architecture("MSC", build_msc, "local KFs, Millman's formula, eqs. (32)-(34)"),
-        Architecture("SKF", build_skf, "KF on one sensor", takes_sensor=True),
-        Architecture("CI", build_ci, "local KFs, covariance intersection"),
-        Architecture("FBS", build_fbs, "fixed-interval smoother, eqs. (25)-(28)"),
-        Architecture("AVG", build_avg, "local KFs, plain average with its true covariance"),
-    )
-}
+def unregister(name: str) -> None:
+    """Remove a registered architecture (a test's own rule, when it is done)."""
+    REGISTRY.pop(name, None)
 
-#: The names, in registry order.
-STATE_ARCHITECTURES: tuple[str, ...] = tuple(REGISTRY)
+
+def definition(name: str) -> Architecture:
+    """The definition of architecture `name` (a base name, or ``SKF:<sensor>``); ValueError
+    naming the known ones for a name no definition has."""
+    base = name.partition(":")[0]
+    arch = REGISTRY.get(base)
+    if arch is None:
+        known = ", ".join(REGISTRY)
+        raise ValueError(f"unknown architecture {name!r} (known: {known}, SKF:<sensor>)")
+    return arch
+
+
+for _a in (
+    Architecture(
+        "CKF",
+        "centralised KF on all sensors, eqs. (29)-(31)",
+        "centralised",
+        build=build_ckf,
+        default=True,
+        color=(31, 119, 180),
+    ),
+    Architecture(
+        "HKF",
+        "hierarchical KF with feedback, eqs. (36)-(40)",
+        "hierarchical",
+        build=build_hkf,
+        default=True,
+        color=(255, 127, 14),
+    ),
+    Architecture(
+        "MSC-GMF",
+        "local KFs, generalised Millman formula, eqs. (6)-(7), (35)",
+        "per-sensor",
+        rule=rules.msc_gmf,
+        joint=True,
+        build=build_msc_gmf,
+        default=True,
+        color=(44, 160, 44),
+    ),
+    Architecture(
+        "MSC",
+        "local KFs, Millman's formula, eqs. (32)-(34)",
+        "per-sensor",
+        rule=rules.msc,
+        build=build_msc,
+        default=True,
+        color=(214, 39, 40),
+    ),
+    Architecture(
+        "SKF",
+        "KF on one sensor",
+        "single",
+        build=build_skf,
+        takes_sensor=True,
+        default=True,
+        color=(148, 103, 189),
+    ),
+    Architecture(
+        "CI",
+        "local KFs, covariance intersection",
+        "per-sensor",
+        rule=rules.ci,
+        build=build_ci,
+        default=True,
+        color=(140, 86, 75),
+    ),
+    Architecture(
+        "FBS",
+        "fixed-interval smoother, eqs. (25)-(28)",
+        "smoother",
+        build=build_fbs,
+        default=True,
+        color=(227, 119, 194),
+    ),
+    Architecture(
+        "AVG",
+        "local KFs, plain average with its true covariance",
+        "per-sensor",
+        rule=rules.avg,
+        joint=True,
+        build=build_avg,
+        default=True,
+    ),
+    ICI,
+):
+    register(_a)
+
+#: The architectures a scenario runs by default, in registry order.
+STATE_ARCHITECTURES: tuple[str, ...] = tuple(a.name for a in REGISTRY.values() if a.default)
 
 
 def parse_arch(name: str, sensor_names: list[str] | tuple[str, ...]) -> tuple[str, str | None]:
@@ -61,10 +140,13 @@ def parse_arch(name: str, sensor_names: list[str] | tuple[str, ...]) -> tuple[st
     Raises ValueError with a readable reason for an unknown name or sensor.
     """
     base, _, sensor = name.partition(":")
-    if base not in REGISTRY:
-        known = ", ".join(STATE_ARCHITECTURES)
-        raise ValueError(f"unknown architecture {name!r} (known: {known}, SKF:<sensor>)")
-    if not REGISTRY[base].takes_sensor:
+    arch = definition(base)
+    if len(sensor_names) < arch.min_sensors:
+        raise ValueError(
+            f"architecture {base} fuses at least {arch.min_sensors} local filters, one per "
+            f"sensor: the model has {len(sensor_names)} sensor(s)"
+        )
+    if not arch.takes_sensor:
         if sensor:
             takers = ", ".join(a.name for a in REGISTRY.values() if a.takes_sensor)
             raise ValueError(f"architecture {name!r}: only {takers} takes a sensor suffix")
@@ -88,6 +170,7 @@ def build_plan(
     criterion: str = "trace",
     *,
     history_nodes: bool = False,
+    groups: HistoryNodes | None | str = "group",
 ) -> Plan:
     """Compile architecture `arch` for instants k = 0..steps.
 
@@ -98,17 +181,19 @@ def build_plan(
 
     Per run, the maps are computed once per measurement history (`HistoryNodes`) and, unless
     `history_nodes`, gathered into per-run maps (a leading run axis, what the exact analysis
-    cuts by runs); `run_plan` takes either (`estimate` keeps the nodes: less memory).
+    cuts by runs); `run_plan` takes either (`estimate` keeps the nodes: less memory). `groups`
+    is `group_by_history(present)` where the caller has it already ("group": grouped here).
     """
     base, sensor = parse_arch(arch, [s.name for s in system.sensors])
     if present is None:
         present = np.ones((steps + 1, system.m), dtype=bool)
     request = BuildRequest(system, arch, present, sensor, criterion, step=None)
     if present.ndim == 3:
-        request.nodes = group_by_history(present)
+        request.nodes = group_by_history(present) if isinstance(groups, str) else groups
     with numerical_errors(lambda: _where(request)):
         check_model(system)
-        plan = REGISTRY[base].build(request)
+        arch = REGISTRY[base]
+        plan = arch.build(request) if arch.build is not None else build_rule(request, arch)
     plan.system = system
     plan.complete = bool(present.all())
     return plan if history_nodes else plan.per_run_maps()
@@ -123,33 +208,13 @@ NODES_AT_MOST = 0.8
 def group_by_history(present: np.ndarray) -> HistoryNodes | None:
     """The runs of the per-run mask `present` (M, K+1, m) grouped by history, or None when
     that would not pay (`NODES_AT_MOST`; over 16 components the grouping itself is slow).
-
-    The architectures of one estimate (and the exact analysis after them) are built on the
-    same mask one after the other: the last mask's grouping is kept and reused when the next
-    mask is the same, byte for byte (comparing 10^4 runs' masks costs ~1 % of grouping them,
-    23 ms at 20 % dropouts). The nodes are only read by the builders and the executor."""
-    global _LAST_GROUPING
+    The architectures of one block are built on the same mask one after the other: the
+    driver groups once and hands the grouping to each `build_plan` (`groups`)."""
     M, K1, m = present.shape
     if m > 16:
         return None
-    key = (NODES_AT_MOST, present.shape, np.packbits(present).tobytes())
-    last = _LAST_GROUPING
-    if last is not None and last[0] == key:
-        return last[1]
     nodes = HistoryNodes.of(present)
-    grouping = nodes if nodes.count <= NODES_AT_MOST * M * K1 else None
-    _LAST_GROUPING = (key, grouping)  # one assignment: safe beside other threads
-    return grouping
-
-
-_LAST_GROUPING: tuple[tuple[float, tuple[int, ...], bytes], HistoryNodes | None] | None = None
-
-
-def forget_grouping() -> None:
-    """Drop the kept grouping (a benchmark timing one architecture at a time calls this, so
-    that every timed build groups its runs as a lone architecture would)."""
-    global _LAST_GROUPING
-    _LAST_GROUPING = None
+    return nodes if nodes.count <= NODES_AT_MOST * M * K1 else None
 
 
 def check_model(system: System) -> None:

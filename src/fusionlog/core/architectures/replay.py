@@ -9,14 +9,13 @@ step by step costs ~30 numpy calls per filter and step. Here:
 
 1. the sequential recursions run once for all architectures, with a fixed number of numpy
    calls per instant (`replay_filters.run_bank`): the centralised KF (CKF, and FBS's forward
-   filter), one local KF per sensor (shared by MSC, MSC-GMF, CI, AVG and SKF, which run the
-   same filters), HKF's fused filter with its local updates; then the joint error covariance
-   of eq. (35) (MSC-GMF, AVG) and FBS's backward information filter;
+   filter), one local KF per sensor (shared by SKF and every per-sensor architecture, which
+   run the same filters), HKF's fused filter with its local updates; then the joint error
+   covariance of eq. (35) (for a rule that reads it) and FBS's backward information filter;
 2. everything that does not feed back into a recursion is computed for all instants at once,
-   with the instants as the batch of the batched kernels: the mean recursions' maps, the
-   fusion rules (`readouts.msc_fusion`, `readouts.ci_fusion`, the generalised Millman formula
-   of eqs. (5)-(7) in closed form where J is positive definite, else `gmf_weight_matrix` as
-   the shared plans solve it), the smoother's fusion, eqs. (26)-(28);
+   with the instants as the batch of the batched kernels: the mean recursions' maps, each
+   per-sensor architecture's fusion rule as its definition writes it (`definition.Rule`,
+   `rules`), the smoother's fusion, eqs. (26)-(28);
 3. the means follow x_k = A_k x_{k-1} + b_k, all filters as one stack (two numpy calls per
    instant).
 
@@ -36,13 +35,12 @@ from collections.abc import Sequence
 import numpy as np
 
 from ...errors import NumericalError
-from ..fusion import gmf_weight_matrix
-from ..linalg import NUMERICAL_FAILURES, all_finite, solve, solve_spd_or_flag, spd_inv
+from ..linalg import NUMERICAL_FAILURES, all_finite, solve
 from ..model import System
+from .definition import Architecture
 from .filters import wide_range
 from .plan import Estimate
-from .readouts import ci_fusion, msc_fusion
-from .registry import parse_arch
+from .registry import definition, parse_arch
 from .replay_filters import (
     Slots,
     affine_recursion,
@@ -52,16 +50,15 @@ from .replay_filters import (
     masked_rows,
     run_bank,
 )
-from .track_to_track import GMF_MAX_GROWTH, GMF_ONE_BY_ONE, GMF_PIVOT_RTOL
 
 #: Each slot's masked H and R at every instant are kept at most this large (bytes): many
 #: sensors (their slots and rows both grow) on a long log go to the plans, which mask one
 #: instant at a time.
 MASKED_BYTES_AT_MOST = 1 << 28
 
-#: The architectures done here (every registered one) and those that read the local filters.
-_RULES = {"CKF", "SKF", "HKF", "MSC", "MSC-GMF", "CI", "AVG", "FBS"}
-_LOCALS = {"MSC", "MSC-GMF", "CI", "AVG", "SKF"}
+#: The filters each kind of architecture (`definition.LOCALS`) reads here.
+_CENTRAL = {"centralised", "smoother"}
+_LOCALS = {"per-sensor", "single"}
 
 
 def applies(system: System, z: np.ndarray) -> bool:
@@ -84,7 +81,7 @@ def replay_estimates(
     if not applies(system, z):
         return None
     bases = _bases(system, archs)
-    if bases is None or any(b not in _RULES or b == "HKF" and wide_range(system) for b, _ in bases):
+    if bases is None or any(_hkf_wide(system, b) for b, _ in bases):
         return None
     out = _computed(system, z[0], bases, criterion, lambda r: r.estimates(archs, bases))
     if out is None or not all(all_finite(e.mean) and all_finite(e.cov) for e in out.values()):
@@ -92,21 +89,27 @@ def replay_estimates(
     return out
 
 
-def _bases(system: System, archs: Sequence[str]) -> list[tuple[str, str | None]] | None:
-    """Each architecture's (rule, sensor) (`parse_arch`); None for a name it does not know."""
+def _bases(system: System, archs: Sequence[str]) -> list[tuple[Architecture, str | None]] | None:
+    """Each architecture's (definition, sensor) (`parse_arch`); None for a name no definition
+    has (the plans refuse it)."""
     names = [s.name for s in system.sensors]
     try:
-        return [parse_arch(a, names) for a in archs]
+        return [(definition(a), parse_arch(a, names)[1]) for a in archs]
     except ValueError:
         return None
+
+
+def _hkf_wide(system: System, arch: Architecture) -> bool:
+    """HKF on noise levels spanning more than 1e8: the plans' scaled inverses do it."""
+    return arch.locals == "hierarchical" and wide_range(system)
 
 
 def _computed(system: System, z: np.ndarray, bases, criterion: str, what):
     """what(_Replay(...)) for the run z (K+1, m) and the architectures `bases`; None where
     their slots' masked H and R would pass `MASKED_BYTES_AT_MOST` or a number fails."""
-    need = {b for b, _ in bases}
+    need = {b.locals for b, _ in bases}
     S, m, n = len(system.sensors), system.m, system.n
-    slots = bool(need & {"CKF", "FBS"}) + S * bool(need & _LOCALS) + (S + 1) * ("HKF" in need)
+    slots = bool(need & _CENTRAL) + S * bool(need & _LOCALS) + (S + 1) * ("hierarchical" in need)
     if z.shape[0] * slots * m * (m + n) * 8 > MASKED_BYTES_AT_MOST:
         return None
     try:
@@ -138,7 +141,7 @@ def replay_error_covariances(
     bases = _bases(system, archs)
     if bases is None:
         return None
-    keep = [b[0] in _RULES and not (b[0] == "HKF" and wide_range(system)) for b in bases]
+    keep = [not _hkf_wide(system, b[0]) for b in bases]
     archs = [a for a, k in zip(archs, keep, strict=True) if k]
     bases = [b for b, k in zip(bases, keep, strict=True) if k]
     out = _computed(system, z[0], bases, criterion, lambda r: r.error_covariances(archs, bases))
@@ -167,7 +170,7 @@ class _Replay:
             rows[j, sl] = True
         use, src, carried = [], [], 0
         self.ckf = self.loc = self.hkf = None
-        if need & {"CKF", "FBS"}:
+        if need & _CENTRAL:
             self.ckf = len(use)
             use.append(np.ones(m, dtype=bool))
             src.append(carried)
@@ -177,7 +180,7 @@ class _Replay:
             use.extend(rows)
             src.extend(range(carried, carried + S))
             carried += S
-        if "HKF" in need:
+        if "hierarchical" in need:
             self.hkf = len(use)
             use.extend([np.zeros(m, dtype=bool), *rows])  # the fused prediction, then locals
             src.extend([carried] * (S + 1))
@@ -240,86 +243,49 @@ class _Replay:
     # -- the architectures --------------------------------------------------------------------
 
     def estimates(self, archs: Sequence[str], bases) -> dict[str, Estimate]:
-        """Each architecture's estimate (`bases`: its (base name, sensor) from `parse_arch`)."""
-        rules = {
-            "CKF": self._ckf,
-            "SKF": self._skf,
-            "HKF": self._hkf,
-            "MSC": self._msc,
-            "MSC-GMF": self._msc_gmf,
-            "CI": self._ci,
-            "AVG": self._avg,
-            "FBS": self._fbs,
-        }
+        """Each architecture's estimate (`bases`: its (definition, sensor) from `_bases`)."""
         out = {}
-        for a, (base, sensor) in zip(archs, bases, strict=True):
-            mean, cov = rules[base](sensor)
+        for a, (arch, sensor) in zip(archs, bases, strict=True):
+            mean, cov = self._KINDS[arch.locals](self, arch, sensor)
             out[a] = Estimate(mean[None], cov)
         return out
 
     def error_covariances(self, archs: Sequence[str], bases) -> dict[str, tuple]:
         """Each architecture's (E[e e^T], P) under the model (`replay_error_covariances`)."""
         out = {}
-        for a, (base, sensor) in zip(archs, bases, strict=True):
-            if base == "HKF":
+        for a, (arch, sensor) in zip(archs, bases, strict=True):
+            if arch.locals == "hierarchical":
                 out[a] = (self._hkf_error(), self.bank.P_hkf)
                 continue
-            if base in ("CKF", "SKF", "FBS"):  # a filter's or the smoother's own P
-                P = {"CKF": self._ckf, "SKF": self._skf, "FBS": self._fbs}[base](sensor)[1]
+            if not arch.fuses_locals:  # a filter's or the smoother's own P
+                P = self._KINDS[arch.locals](self, arch, sensor)[1]
                 out[a] = (P, P)
                 continue
-            if base == "AVG":  # its P is O J O^T already
-                P = self._avg(sensor)[1]
-                out[a] = (P, P)
-                continue
+            O, P = self._weights(arch)
             J = self._joint()
-            if base == "MSC":
-                O, P = msc_fusion(np.zeros((self.K1, self.S), dtype=bool), self._local_P)
-            elif base == "CI":
-                forms = np.zeros((self.K1, self.S), dtype=bool)
-                O, P, _ = ci_fusion(forms, self._local_P, self.criterion)
-            else:  # MSC-GMF
-                O, P = self._gmf(J)
             out[a] = (_sym(O @ J @ O.swapaxes(-1, -2)), P)
         return out
 
-    def _ckf(self, sensor):
+    def _ckf(self, arch, sensor):
         return self.means["ckf"], self.bank.P[:, self.ckf]
 
-    def _skf(self, sensor):
+    def _skf(self, arch, sensor):
         j = self.system.sensor_index(sensor)
         return self.means["loc"][:, j], self.bank.P[:, self.loc + j]
 
-    def _hkf(self, sensor):
+    def _hkf(self, arch, sensor):
         return self.means["hkf"], self.bank.P_hkf
 
-    @property
-    def _local_P(self) -> np.ndarray:
-        return self.bank.P[:, self.loc : self.loc + self.S]
+    def _weights(self, arch: Architecture) -> tuple[np.ndarray, np.ndarray]:
+        """The rule's weights C (K+1, n, S n) and covariance at every instant at once."""
+        P = self.bank.P[:, self.loc : self.loc + self.S]
+        return arch.rule(P, self._joint() if arch.joint else None, self.criterion)
 
-    def _fused(self, O: np.ndarray, P: np.ndarray):
-        """x = O [x_1; ...; x_S] at every instant."""
+    def _fused(self, arch, sensor):
+        """x = C [x_1; ...; x_S] at every instant, C of the architecture's rule."""
+        C, P = self._weights(arch)
         X = self.means["loc"].reshape(self.K1, -1)
-        return np.einsum("kij,kj->ki", O, X), P
-
-    def _msc(self, sensor):
-        forms = np.zeros((self.K1, self.S), dtype=bool)
-        return self._fused(*msc_fusion(forms, self._local_P))
-
-    def _ci(self, sensor):
-        forms = np.zeros((self.K1, self.S), dtype=bool)
-        O, P, _ = ci_fusion(forms, self._local_P, self.criterion)
-        return self._fused(O, P)
-
-    def _avg(self, sensor):
-        J = self._joint()
-        n, S = self.n, self.S
-        O = np.tile(np.eye(n), (1, S)) / S
-        P = O @ J @ O.T
-        return self.means["loc"].sum(axis=1) / S if S > 1 else self.means["loc"][:, 0], _sym(P)
-
-    def _msc_gmf(self, sensor):
-        return self._fused(*self._gmf(self._joint()))
+        return np.einsum("kij,kj->ki", C, X), P
 
     def _joint(self) -> np.ndarray:
         """J of eq. (35) at every instant (computed once): J_k = Psi_k (Phi_k J_{k-1} Phi_k' +
@@ -351,31 +317,7 @@ class _Replay:
         pf = self.present.astype(float)
         return self.R * (pf[:, :, None] * pf[:, None, :]) + np.eye(pf.shape[1]) * (1 - pf)[:, None]
 
-    def _gmf(self, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Eqs. (5)-(7) at every instant: where J is safely positive definite the closed form
-        C = (E' J^-1 E)^-1 E' J^-1 (E = [I; ...; I]), one batched Cholesky over the instants;
-        elsewhere (J singular or nearly: locals that share an error, e.g. the prior's before
-        their first measurements) `gmf_weight_matrix` on each J alone, as the plans do."""
-        n, S = self.n, self.S
-        E = np.tile(np.eye(n), (S, 1))
-        X, ok = solve_spd_or_flag(J, np.broadcast_to(E, J.shape[:1] + E.shape), GMF_PIVOT_RTOL)
-        ok &= np.abs(X).max(axis=(-2, -1)) * np.abs(J).max(axis=(-2, -1)) < GMF_MAX_GROWTH
-        X = np.where(ok[:, None, None], X, E)  # placeholders where not ok, replaced below
-        W = X[:, :n]
-        for i in range(1, S):
-            W = W + X[:, i * n : (i + 1) * n]
-        C = spd_inv(W) @ X.swapaxes(-1, -2)
-        P = _sym(C @ J @ C.swapaxes(-1, -2))
-        ok &= np.isfinite(P).all(axis=(-2, -1))
-        bad = np.flatnonzero(~ok)
-        if len(bad) > GMF_ONE_BY_ONE:
-            C[bad], P[bad] = gmf_weight_matrix(J[bad], n)
-        else:
-            for k in bad:
-                C[k], P[k] = gmf_weight_matrix(J[k], n)
-        return C, P
-
-    def _fbs(self, sensor):
+    def _fbs(self, arch, sensor):
         """FBS, eqs. (25)-(28): the CKF forward, the backward information filter, and their
         fusion K_s = P S (I + P S)^-1, P_s = (I - K_s) P, x_s = (I - K_s) x + P_s y_b."""
         c = self.ckf
@@ -392,6 +334,15 @@ class _Replay:
         x = self.means["ckf"]
         mean = np.einsum("kij,kj->ki", eye - Ks, x) + np.einsum("kij,kj->ki", Ps, yb)
         return mean, Ps
+
+    #: Each kind of architecture (`definition.LOCALS`) from the recursions above.
+    _KINDS = {
+        "centralised": _ckf,
+        "single": _skf,
+        "hierarchical": _hkf,
+        "smoother": _fbs,
+        "per-sensor": _fused,
+    }
 
 
 def _sym(A: np.ndarray) -> np.ndarray:

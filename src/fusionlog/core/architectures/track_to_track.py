@@ -45,6 +45,7 @@ from ..linalg import (
     take_runs,
     unlanes,
 )
+from .definition import Architecture
 from .filters import KalmanStack, Rows, Steady, fill
 from .plan import BlockDiagonal, BuildRequest, Plan, StepMap
 from .readouts import (
@@ -53,6 +54,8 @@ from .readouts import (
     gmf_readouts,
     local_infos,
     msc_readouts,
+    require_fused,
+    set_readouts,
     signs,
 )
 
@@ -255,6 +258,41 @@ def build_ci(request: BuildRequest) -> Plan:
         return _plan(request, hist, _ci_nodes(request, hist))
     omega = ci_readouts(hist.steps, hist.forms, hist.mats, request.batch, request.criterion)
     return _plan(request, hist, omega)
+
+
+def build_rule(request: BuildRequest, arch: Architecture) -> Plan:
+    """A registered rule (`definition.Rule`) on the local filters, as the plan's readouts: at
+    every step where every local has a mean, O = C and P of rule(P_j, J, criterion); NaN
+    where a local is still in information form (no prior, too few measurements yet). Per run,
+    the rule is applied at every step as the locals advance, to the runs' (or history nodes')
+    batch."""
+    rule, criterion, n = arch.rule, request.criterion, request.system.n
+    assert rule is not None
+    what = f"the fusion rule of {arch.name}"
+    if request.batch:
+
+        def readout(step: StepMap, form, mats, J, local_O) -> None:
+            S = form.shape[0]
+            if form.any():
+                step.O = np.full(mats.shape[:-3] + (n, S * n), np.nan)
+                step.P = np.full(mats.shape[:-3] + (n, n), np.nan)
+                return
+            step.O, step.P = rule(np.asarray(mats), J, criterion)
+            _require_fused(form, step.P, what)
+
+        return _plan(request, local_filters(request, joint=arch.joint, readout=readout))
+    hist = local_filters(request, joint=arch.joint)
+    if arch.joint:
+        _checked_joints(hist)
+    mats, (L, S) = hist.mats, hist.forms.shape
+    O, P = np.full((L, n, S * n), np.nan), np.full((L, n, n), np.nan)
+    ok = ~hist.forms.any(axis=1)
+    if ok.any():
+        J = np.stack(hist.joints)[ok] if arch.joint else None
+        O[ok], P[ok] = rule(mats[ok], J, criterion)
+    require_fused(hist.forms, P, what)
+    set_readouts(hist.computed, O, P)
+    return _plan(request, hist)
 
 
 def _ci_nodes(request: BuildRequest, hist: LocalHistory) -> np.ndarray:

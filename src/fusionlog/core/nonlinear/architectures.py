@@ -7,13 +7,12 @@ on (M, n) means and (M, n, n) covariances, never a loop over runs.
 * SKF      one filter on one sensor (`SKF:<sensor>`, the first by default);
 * HKF      eqs. (36)-(40): each local filter updates the fused prediction with its own sensor,
            the centre adds their equivalent measurements Y_j x_j - Y_pred x_pred;
-* MSC      local filters, one per sensor, fused by Millman's formula assuming independence;
-* MSC-GMF  the same locals fused by the generalised Millman formula (`core.fusion`) with their
-           joint error covariance carried as in eq. (35) through the *linearised* gains:
-           J_ij <- F_i J_ij F_j^T + Q, J_ij <- (I - K_i H_i) J_ij (I - K_j H_j)^T (i != j; the
-           sensors' noises are independent), each diagonal block the local's own covariance;
-* CI       the locals fused by covariance intersection (`core.ci`);
-* AVG      the plain average of the locals' means, with the covariance eq. (4) gives it;
+* per-sensor architectures (MSC, MSC-GMF, CI, AVG, any registered rule): local filters, one
+           per sensor, fused by the architecture's rule (`architectures.definition.Rule`); a
+           rule that reads the joint error covariance gets it carried as in eq. (35) through
+           the *linearised* gains: J_ij <- F_i J_ij F_j^T + Q, J_ij <- (I - K_i H_i) J_ij
+           (I - K_j H_j)^T (i != j; the sensors' noises are independent), each diagonal block
+           the local's own covariance;
 * FBS      the extended / unscented Rauch-Tung-Striebel smoother on the CKF (for linear models
            the forward-backward Millman fusion of eqs. 25-28 computes the same estimate):
            G_k = C_{k+1} P-_{k+1}^-1, x_s = x_k + G (x_s' - x-_{k+1}),
@@ -29,13 +28,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import FusionlogError, NumericalError
-from ..ci import ci_omegas
-from ..fusion import gmf_weight_matrix
+from ..architectures.definition import Architecture
+from ..architectures.registry import definition, parse_arch
 from ..kernels import lanes
 from ..linalg import NUMERICAL_FAILURES, mT, spd_inv, sym
 from ..model import System
 from ..models.polar import PolarSensor
-from ..names import parse_arch
 from .local import Stacked, predict, transition, ukf_params, update
 
 
@@ -148,22 +146,23 @@ def estimate_steps(
     each computed when asked for (the filters keep one instant in memory, not all; FBS, a
     smoother, all of them)."""
     names = [s.name for s in system.sensors]
-    base, sensor = parse_arch(arch, names)
+    base, sensor = parse_arch(arch, names)  # a name no definition has: ValueError
+    kind = definition(base)
     if system.filter is None and not system.linear:
         raise FusionlogError(
             'the model is nonlinear and has no local filter: give [estimate] filter = "EKF" or '
             '"UKF", or --filter'
         )
     st = _Steps(system, z, times, run_offset)
-    if base == "CKF":
+    if kind.locals == "centralised":
         return _named(_filter(st, list(range(len(names)))), arch)
-    if base == "SKF":
+    if kind.locals == "single":
         return _named(_filter(st, [names.index(sensor)]), arch)
-    if base == "FBS":
-        return _named(_smoother(st), arch)
-    if base == "HKF":
+    if kind.locals == "smoother":
+        return _named(_smoother(st, arch), arch)
+    if kind.locals == "hierarchical":
         return _named(_hkf(st), arch)
-    return _named(_track_to_track(st, base), arch)
+    return _named(_track_to_track(st, kind), arch)
 
 
 def _named(steps: Steps, arch: str) -> Steps:
@@ -206,12 +205,12 @@ def _filter(st: _Steps, which: list[int], keep: list | None = None) -> Steps:
         yield x, P
 
 
-def _smoother(st: _Steps) -> Steps:
+def _smoother(st: _Steps, arch: str) -> Steps:
     """The extended / unscented RTS smoother on the CKF (module docstring)."""
     keep: list = []
     M, K1 = st.z.shape[:2]
     out = _Out(M, K1, st.system.n)
-    forward = _named(_filter(st, list(range(len(st.system.sensors))), keep), "FBS")
+    forward = _named(_filter(st, list(range(len(st.system.sensors))), keep), arch)
     for k, (x, P) in enumerate(forward):
         out.put(k, x, P)
     tr = out.track()
@@ -246,11 +245,11 @@ def _hkf(st: _Steps) -> Steps:
         yield x, P
 
 
-def _track_to_track(st: _Steps, base: str) -> Steps:
-    """MSC, MSC-GMF, CI, AVG: one local filter per sensor, fused at every instant."""
+def _track_to_track(st: _Steps, arch: Architecture) -> Steps:
+    """One local filter per sensor, fused at every instant by the architecture's rule."""
     M, K1 = st.z.shape[:2]
     n, S = st.system.n, len(st.system.sensors)
-    joint = base in ("MSC-GMF", "AVG")
+    joint = arch.joint
     x0, P0 = st.start()
     xs, Ps = [x0] * S, [P0] * S
     J = np.broadcast_to(P0[:, None, None], (M, S, S, n, n)).copy() if joint else None
@@ -274,7 +273,7 @@ def _track_to_track(st: _Steps, base: str) -> Steps:
             J = _congruence(A, J)
             for i in range(S):
                 J[:, i, i] = Ps[i]  # the local's own covariance (equal for the EKF)
-        yield _fuse(base, np.stack(xs, 1), np.stack(Ps, 1), J)
+        yield _fuse(arch, np.stack(xs, 1), np.stack(Ps, 1), J)
 
 
 def _congruence(T: np.ndarray, J: np.ndarray) -> np.ndarray:
@@ -285,20 +284,12 @@ def _congruence(T: np.ndarray, J: np.ndarray) -> np.ndarray:
 
 
 def _fuse(
-    base: str, xs: np.ndarray, Ps: np.ndarray, J: np.ndarray | None
+    arch: Architecture, xs: np.ndarray, Ps: np.ndarray, J: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The fusion rule of `base` on the locals' means xs (M, S, n), covariances Ps (M, S, n, n)
-    and joint error covariance J (M, S, S, n, n)."""
+    """The rule of `arch` (`definition.Rule`) on the locals' means xs (M, S, n), covariances
+    Ps (M, S, n, n) and joint error covariance J (M, S, S, n, n) (None: the rule reads none):
+    x = C [x_1; ...; x_S]."""
     M, S, n = xs.shape
-    if base == "AVG":
-        return xs.mean(axis=1), sym(J.sum(axis=(1, 2)) / S**2)
-    if base == "MSC-GMF":
-        joint = J.transpose(0, 1, 3, 2, 4).reshape(M, S * n, S * n)
-        C, P = gmf_weight_matrix(sym(joint), n)
-        return np.einsum("mij,mj->mi", C, xs.reshape(M, S * n)), P
-    Ys = spd_inv(Ps, "a local covariance")
-    w = ci_omegas(Ys) if base == "CI" else np.ones((M, S))
-    Yw = Ys * w[..., None, None]
-    P = spd_inv(Yw.sum(axis=1), "the fused information")
-    x = np.einsum("mij,mj->mi", P, np.einsum("msij,msj->mi", Yw, xs))
-    return x, P
+    joint = None if J is None else sym(J.transpose(0, 1, 3, 2, 4).reshape(M, S * n, S * n))
+    C, P = arch.rule(Ps, joint, "trace")
+    return np.einsum("mij,mj->mi", C, xs.reshape(M, S * n)), P

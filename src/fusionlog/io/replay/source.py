@@ -60,7 +60,7 @@ def open_source(path: Path, what: str | None, limit: int, kind: str) -> BinaryIO
         if st.st_size > limit:
             raise FusionlogError(
                 f"{path}: {prefix}{_size(st.st_size)}, more than the {_size(limit)} {kind} "
-                'source may be (README, "Replay files")'
+                'source may be (docs/reference/replay.md, "Limits")'
             )
         os.set_blocking(fd, True)
         return os.fdopen(fd, "rb")

@@ -7,6 +7,8 @@ from __future__ import annotations
 import zlib
 from collections.abc import Sequence
 
+from fusionlog.core.architectures.registry import REGISTRY
+
 __all__ = [
     "BOUND_COLOR",
     "CKF",
@@ -18,15 +20,9 @@ __all__ = [
     "lighter",
 ]
 
-#: Stable colours (Tableau 10) per architecture; unknown names get one from a hash of the name.
-_PALETTE: dict[str, tuple[int, int, int]] = {
-    "CKF": (31, 119, 180),
-    "HKF": (255, 127, 14),
-    "MSC-GMF": (44, 160, 44),
-    "MSC": (214, 39, 40),
-    "SKF": (148, 103, 189),
-    "CI": (140, 86, 75),
-    "FBS": (227, 119, 194),
+#: Stable colours (Tableau 10) of the identity architectures; a state architecture's is its
+#: definition's (`core.architectures.definition`), or, without one, a hash of its name.
+_IDENTITY: dict[str, tuple[int, int, int]] = {
     "BAYES": (188, 189, 34),
     "DS": (23, 190, 207),
 }
@@ -64,8 +60,13 @@ CKF = "CKF"
 
 def arch_color(arch: str) -> tuple[int, int, int]:
     """The fixed colour of an architecture in every plot (deterministic across runs)."""
-    if arch in _PALETTE:
-        return _PALETTE[arch]
+    if arch in _IDENTITY:
+        return _IDENTITY[arch]
+    arch_def = REGISTRY.get(arch.partition(":")[0])
+    if arch_def is not None and arch_def.color is not None:
+        return arch_def.color
+    # no colour of its own, or estimates of a name no definition has (another tool's file:
+    # evaluated without an exact analysis, drawn all the same)
     return _EXTRA[zlib.crc32(arch.encode()) % len(_EXTRA)]
 
 

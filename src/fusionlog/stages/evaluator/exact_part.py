@@ -12,9 +12,9 @@ from typing import Any
 
 import numpy as np
 
-from fusionlog.core.architectures import PlanCache, conditional_sums
 from fusionlog.core.model import System
 from fusionlog.core.routes import exact_route, shared_expected
+from fusionlog.driver import PlanCache, conditional_sums
 
 from .parts import Block, Elsewhere, Finished, Part
 

@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from fusionlog.core.architectures import PlanCache
 from fusionlog.core.evaluation import Evaluation
 from fusionlog.core.model import System
 from fusionlog.core.names import known_arch
+from fusionlog.driver import KeptPlans, PlanCache
 from fusionlog.errors import FusionlogError
 from fusionlog.io.mcap.topics import estimates_topic, sensor_topic
 from fusionlog.scenario import Scenario
@@ -69,6 +69,7 @@ class StateEvaluator(Evaluator):
         prov: dict[str, str],
         log: SensorLog | None = None,
         source: str = "",
+        kept: KeptPlans | None = None,
     ) -> None:
         if filter_sys.n != truth_sys.n:
             raise FusionlogError(
@@ -84,7 +85,7 @@ class StateEvaluator(Evaluator):
         log = log or SensorLog()
         self.has_truth = log.has_truth
         recorded = sc.replay is not None
-        plans = PlanCache(filter_sys, self.K)
+        plans = PlanCache(filter_sys, self.K, kept=kept)
         known = [a for a in self.archs if known_arch(a, filter_sys)]
         names = list(sc.state_names)
         truthed = (

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from fusionlog.core.architectures import PlanCache
+from fusionlog.driver import PlanCache
 
 from .parts import Block, Finished, Part
 

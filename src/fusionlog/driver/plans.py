@@ -1,0 +1,166 @@
+"""The plans of one model over one horizon, kept across the blocks of runs of a command.
+
+Plans depend on the model and on which measurements are present, never on their values. A
+`PlanCache` keeps them per (architecture, pattern shared by a block's runs), so the blocks of a
+log with one pattern (usually: everything present) compile each architecture once; blocks
+whose runs differ (dropouts) get per-run plans built from their own masks, which a `KeptPlans`
+handed to the caches of two stages of one command lets the second take from the first. The
+cache also records the blocks' patterns, which the estimates' provenance states.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import pickle
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fusionlog.core.architectures import HistoryNodes, Plan, build_plan, shared_pattern
+from fusionlog.core.architectures import registry as _registry
+from fusionlog.core.architectures.registry import group_by_history
+from fusionlog.core.model import System
+
+__all__ = ["KeptPlans", "PlanCache", "pattern_record"]
+
+
+@dataclass
+class KeptPlans:
+    """The per-run plans of the last block of runs, for a later stage of the same command on
+    the same block: `fusionlog run` estimates, then the evaluation's exact analysis takes the
+    same plans (the same model, horizon and masks) instead of building them again. The caller
+    makes one and hands it to both stages' caches (`PlanCache.kept`). One block's plans at most
+    are kept (a log of several blocks: the last one's, which the evaluation's first block does
+    not match)."""
+
+    key: bytes = b""
+    plans: dict[str, Plan] = field(default_factory=dict)
+
+    def of_block(self, key: bytes) -> dict[str, Plan]:
+        """The plans kept for the block `key`, emptied first when they are another block's."""
+        if key != self.key:
+            self.key, self.plans = key, {}
+        return self.plans
+
+
+def _block_key(cache: PlanCache, present: np.ndarray) -> bytes:
+    """What a block's per-run plans are made of: the model, horizon, criterion and masks."""
+    at_most = _registry.NODES_AT_MOST  # the grouping's setting: a benchmark may change it
+    h = hashlib.sha256(pickle.dumps((cache.system, cache.steps, cache.criterion, at_most)))
+    h.update(repr(present.shape).encode())
+    h.update(np.packbits(present).tobytes())
+    return h.digest()
+
+
+@dataclass
+class PlanCache:
+    """The plans of one system over one horizon, per (architecture, shared pattern).
+
+    `system` is the filters' model on the log's instants, with its per-instant R where the
+    noise varies (`of`); `steps` is K (instants k = 0..K).
+    """
+
+    system: System
+    steps: int
+    criterion: str = "trace"
+    plans: dict[tuple[str, bytes], Plan] = field(default_factory=dict, repr=False)
+    #: the instants (K+1,) in seconds, where they are not k dt (a nonlinear model's filters
+    #: take each interval from them; the plans have them in `system` already)
+    times: np.ndarray | None = field(default=None, repr=False)
+    #: each block's shared pattern (`np.packbits` of the mask; None: the block's runs differed)
+    patterns: list[bytes | None] = field(default_factory=list, repr=False)
+    #: the cache serves a log of one run (a replay): its block is estimated without plans
+    #: where that applies (`core.architectures.replay`), the same estimates to rounding
+    one_run: bool = False
+    #: per-run plans shared with another stage of the same command (`KeptPlans`)
+    kept: KeptPlans | None = field(default=None, repr=False)
+
+    @classmethod
+    def of(
+        cls,
+        system: System,
+        times: np.ndarray | None = None,
+        R: np.ndarray | None = None,
+        steps: int | None = None,
+    ) -> PlanCache:
+        """A cache for `system` on the instants `times` (K+1,) in seconds (default k dt; see
+        `System.on_times`) with the stacked noise covariance R (K+1, m, m) of each instant
+        (default the system's, `System.R_at`)."""
+        if times is not None:
+            system = system.on_times(times)
+            steps = len(times) - 1
+        if R is not None:
+            system = dataclasses.replace(system, Rs=np.asarray(R, dtype=float))
+        if steps is None:
+            raise ValueError("give the instants (times) or the number of steps")
+        return cls(system, steps, times=None if times is None else np.asarray(times, float))
+
+    def plan(self, arch: str, pattern: np.ndarray | None = None) -> Plan:
+        """The plan of `arch` for a mask (K+1, m) shared by all runs (None: all present),
+        compiled once."""
+        K1 = self.steps + 1
+        if pattern is None:
+            pattern = np.ones((K1, self.system.m), dtype=bool)
+        key = (arch, np.packbits(pattern).tobytes())
+        plan = self.plans.get(key)
+        if plan is None:
+            mask = None if pattern.all() else pattern
+            plan = self.plans[key] = build_plan(self.system, arch, self.steps, mask, self.criterion)
+        return plan
+
+    def block_plans(
+        self, archs: Sequence[str], z: np.ndarray
+    ) -> tuple[dict[str, Plan], np.ndarray | None]:
+        """Each architecture's plan for the block z (runs, K+1, m) and its shared pattern (None
+        when the runs differ: plans built per run, on history nodes, which the estimates and
+        the exact analysis both take); the pattern is recorded for `provenance`."""
+        pattern = shared_pattern(z)
+        self.patterns.append(None if pattern is None else np.packbits(pattern).tobytes())
+        if pattern is not None:
+            return {a: self.plan(a, pattern) for a in archs}, pattern
+        present = ~np.isnan(z)
+        kept = None if self.kept is None else self.kept.of_block(_block_key(self, present))
+        plans: dict[str, Plan] = {}
+        groups: HistoryNodes | None | str = "group"  # the runs grouped once for all archs
+        for a in archs:
+            plan = None if kept is None else kept.get(a)
+            if plan is None:
+                if isinstance(groups, str):
+                    groups = group_by_history(present)
+                plan = build_plan(
+                    self.system,
+                    a,
+                    self.steps,
+                    present,
+                    self.criterion,
+                    history_nodes=True,
+                    groups=groups,
+                )
+                if kept is not None:
+                    kept[a] = plan
+            plans[a] = plan
+        return plans, None
+
+    def provenance(self) -> dict[str, str]:
+        """The estimates' ``measurement_pattern`` (DESIGN.md "MCAP files"): "complete", the
+        mask shared by every run of every block as JSON, or "per-run" (a block's runs differed,
+        two blocks differed, or there was no block)."""
+        return pattern_record(self.patterns, (self.steps + 1, self.system.m))
+
+
+def pattern_record(patterns: Sequence[bytes | None], shape: tuple[int, int]) -> dict[str, str]:
+    """``measurement_pattern`` from blocks' shared patterns (`np.packbits` of each (K+1, m)
+    mask of `shape`, None where a block's runs differed): "per-run" when any block's runs
+    differed, two blocks differed or there was none; else "complete" or the mask as JSON."""
+    if not patterns or any(p is None for p in patterns) or len(set(patterns)) > 1:
+        return {"measurement_pattern": "per-run"}
+    first = patterns[0]
+    assert first is not None
+    mask = np.unpackbits(np.frombuffer(first, dtype=np.uint8))[: shape[0] * shape[1]]
+    mask = mask.reshape(shape).astype(bool)
+    if mask.all():
+        return {"measurement_pattern": "complete"}
+    return {"measurement_pattern": json.dumps(mask.astype(int).tolist())}
