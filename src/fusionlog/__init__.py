@@ -15,10 +15,12 @@ _API = (
     "load",
     "simulate",
 )
+#: `fusionlog.export` (`fusionlog.api_export`): a recording's trajectory as TUM, KITTI or CSV
+_EXPORT = ("export",)
 
 #: what the API raises on bad input: FusionlogError (ValidationError for a scenario, and
 #: NumericalError for numbers that cannot be computed with, are FusionlogErrors)
-__all__ = [*_API, "identify", "FusionlogError", "NumericalError", "ValidationError"]
+__all__ = [*_API, *_EXPORT, "identify", "FusionlogError", "NumericalError", "ValidationError"]
 
 
 def __getattr__(name: str):
@@ -30,4 +32,8 @@ def __getattr__(name: str):
         from . import api
 
         return getattr(api, name)
+    if name in _EXPORT:
+        from . import api_export
+
+        return getattr(api_export, name)
     raise AttributeError(f"module 'fusionlog' has no attribute {name!r}")

@@ -16,6 +16,7 @@ from typing import Any
 import click
 
 from fusionlog import __version__, cli_identify
+from fusionlog.cli_export import align_option, export
 from fusionlog.errors import DamagedFile, FusionlogError, OutputExists
 from fusionlog.memory import keep_freed_memory, leave_objects_at_exit, one_blas_thread
 
@@ -119,11 +120,13 @@ def main(debug: bool) -> None:
     architectures, and evaluate the estimates into Rerun recordings."""
 
 
-def _scenario(path: Path, runs: int | None, steps: int | None, seed: int | None):
-    """The scenario, of whichever kind the file is (decided once, by the loader)."""
+def _scenario(path: Path, runs: int | None, steps: int | None, seed: int | None, align=None):
+    """The scenario, of whichever kind the file is (decided once, by the loader); `align`:
+    ``--align`` (overrides ``[evaluate] align``)."""
     from fusionlog.scenario import load_scenario
+    from fusionlog.scenario.trajectory import with_align
 
-    return load_scenario(path, runs=runs, steps=steps, seed=seed)
+    return with_align(load_scenario(path, runs=runs, steps=steps, seed=seed), align)
 
 
 def _warn_stale(targets: list[Path]) -> None:
@@ -249,16 +252,16 @@ def estimate(sensors, output, archs, model, filter_name, force, block_runs) -> N
 @click.argument("estimates", type=PATH)
 @click.option("-o", "--output", type=OUTPUT, required=True, help="Rerun recording (.rrd).")
 @click.option("--summary", "summary_path", type=OUTPUT, help="Also write summary.json here.")
+@align_option
 @_force
 @_block
-def evaluate(sensors, estimates, output, summary_path, force, block_runs) -> None:
+def evaluate(sensors, estimates, output, summary_path, align, force, block_runs) -> None:
     """Evaluate ESTIMATES.mcap against the truth in SENSORS.mcap into a Rerun recording."""
     from fusionlog.report import format_table
     from fusionlog.stages.evaluate import run_evaluate
 
-    res = run_evaluate(
-        sensors, estimates, output, summary_path=summary_path, force=force, block=block_runs
-    )
+    res = run_evaluate(sensors, estimates, output, summary_path=summary_path, force=force,
+                       block=block_runs, align=align)  # fmt: skip
     click.echo(format_table(res.summary, res.sensors))
     click.echo(f"{res.recording}" + (f", {res.summary_path}" if res.summary_path else ""))
 
@@ -271,13 +274,14 @@ def evaluate(sensors, estimates, output, summary_path, force, block_runs) -> Non
 @_seed
 @_arch
 @_filter
+@align_option
 @_force
 @_block
 @_workers
 @_scheduler
 @_scheduler_timeout
-def run(scenario, out_dir, runs, steps, seed, archs, filter_name, force, block_runs, workers,
-        scheduler, scheduler_timeout) -> None:  # fmt: skip
+def run(scenario, out_dir, runs, steps, seed, archs, filter_name, align, force, block_runs,
+        workers, scheduler, scheduler_timeout) -> None:  # fmt: skip
     """Simulate, estimate and evaluate SCENARIO.toml; print the results table.
 
     With --workers or --scheduler the runs are computed on Dask in blocks whose metric sums
@@ -286,13 +290,13 @@ def run(scenario, out_dir, runs, steps, seed, archs, filter_name, force, block_r
     _one_executor(workers, scheduler)
     if workers is not None or scheduler is not None:
         _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block_runs,
-                         workers, scheduler, scheduler_timeout, filter_name)  # fmt: skip
+                         workers, scheduler, scheduler_timeout, filter_name, align)  # fmt: skip
         return
     from fusionlog.report import format_table, headline
     from fusionlog.stages.kinds import kind_of
     from fusionlog.stages.run import RUN_OUTPUTS, run_pipeline
 
-    sc = _scenario(scenario, runs, steps, seed)
+    sc = _scenario(scenario, runs, steps, seed, align)
     archs = kind_of(sc.kind).check_architectures(list(archs), sc.system, "--arch")
     d = out_dir if out_dir is not None else Path("recordings") / sc.name
     _warn_stale([d / k for k in RUN_OUTPUTS])
@@ -316,12 +320,12 @@ def run(scenario, out_dir, runs, steps, seed, archs, filter_name, force, block_r
 
 
 def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, workers,
-                     scheduler, timeout, filter_name):  # fmt: skip
+                     scheduler, timeout, filter_name, align):  # fmt: skip
     """`run --workers/--scheduler`: evaluation.rrd and summary.json from metric sums."""
     from fusionlog.report import format_table, headline
     from fusionlog.stages.distributed_run import DISTRIBUTED_OUTPUTS, run_distributed
 
-    sc = _scenario(scenario, runs, steps, seed)
+    sc = _scenario(scenario, runs, steps, seed, align)
     d = out_dir if out_dir is not None else Path("recordings") / sc.name
     _warn_stale([d / name for name in DISTRIBUTED_OUTPUTS])
     res = run_distributed(
@@ -489,6 +493,7 @@ def inspect(file, recover) -> None:
 
 
 main.add_command(cli_identify.identify)
+main.add_command(export)
 
 if __name__ == "__main__":
     main()

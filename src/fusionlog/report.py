@@ -71,6 +71,44 @@ _IDENTITY_COLUMNS: tuple[tuple[str, tuple[str, ...], bool], ...] = (
 )
 
 
+#: The trajectory metrics' columns, after MSE where an architecture has them (RMSE, metres).
+_TRAJECTORY_COLUMNS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("APE", ("ape", "rmse")),
+    ("RPE", ("rpe", "rmse")),
+)
+
+
+def _columns(archs: Mapping[str, Any]) -> tuple[tuple[str, tuple[str, ...]], ...]:
+    if not any(isinstance(e, Mapping) and "ape" in e for e in archs.values()):
+        return _COLUMNS
+    return _COLUMNS[:1] + _TRAJECTORY_COLUMNS + _COLUMNS[1:]
+
+
+def alignment_lines(archs: Mapping[str, Any]) -> str:
+    """The alignment of each architecture's positions onto the truth (rotation angle, and
+    axis in 3-D; translation; scale), below the table; empty without one (align "none", or
+    several runs, each with its own)."""
+    import numpy as np
+
+    from fusionlog.core.trajectory import rotation_angles
+
+    out = []
+    for arch, entry in archs.items():
+        ape = entry.get("ape") if isinstance(entry, Mapping) else None
+        if not isinstance(ape, Mapping) or ape.get("align") in (None, "none"):
+            continue
+        if ape.get("rotation") is None:
+            continue
+        angle, axis = rotation_angles(np.asarray(ape["rotation"], dtype=float))
+        about = "" if axis is None else " about [" + ", ".join(f"{v:.4f}" for v in axis) + "]"
+        t = ", ".join(f"{v:.6g}" for v in ape.get("translation") or [])
+        out.append(
+            f"{arch}: {ape['align']} alignment: rotation {angle:.4f}°{about}, "
+            f"translation [{t}], scale {ape.get('scale'):.9g}"
+        )
+    return "\n" + "\n".join(out) if out else ""
+
+
 def _get(d: Any, keys: Sequence[str]) -> Any:
     for k in keys:
         if not isinstance(d, Mapping) or k not in d:
@@ -114,15 +152,18 @@ def format_table(summary: Mapping[str, Any], sensors: Sequence[str] | None = Non
     truth_free = has_nis and not any(isinstance(e, Mapping) and "mse" in e for e in archs.values())
     if truth_free:  # a recorded log without truth: what the innovations say
         return _nis_table(archs, sensors)
-    header = ["architecture"] + [h for h, _ in _COLUMNS]
+    columns = _columns(archs)
+    header = ["architecture"] + [h for h, _ in columns]
     rows = [header]
     for arch, entry in archs.items():
         rows.append(
-            [str(arch)] + [_fmt(_get(entry, keys), percent=h == "in band") for h, keys in _COLUMNS]
+            [str(arch)] + [_fmt(_get(entry, keys), percent=h == "in band") for h, keys in columns]
         )
     if isinstance(summary.get("pcrb"), Mapping):  # nonlinear models: the bound on the MSE
-        rows.append(["PCRB (bound)", _fmt(_get(summary, ("pcrb", "mse")))] + ["—"] * 6)
-    table = _layout(header, rows)
+        rows.append(
+            ["PCRB (bound)", _fmt(_get(summary, ("pcrb", "mse")))] + ["—"] * (len(columns) - 1)
+        )
+    table = _layout(header, rows) + alignment_lines(archs)
     return table + "\n\n" + _nis_table(archs, sensors) if has_nis else table
 
 
@@ -212,12 +253,14 @@ def _sweep_table(summary: Mapping[str, Any]) -> str:
     keys' values, then the columns of the run table) when there are at most SWEEP_ROWS, and
     each architecture's lowest MSE over the grid."""
     keys = [g.get("key") for g in summary.get("grid", [])]
-    header = [*map(str, keys), "architecture"] + [h for h, _ in _COLUMNS]
+    every = [e for p in summary.get("points", []) for e in p.get("architectures", {}).values()]
+    columns = _columns(dict(enumerate(every)))  # APE and RPE where a point has them
+    header = [*map(str, keys), "architecture"] + [h for h, _ in columns]
     rows = [header]
     for p in summary.get("points", []):
         values = [_value(p.get("values", {}).get(k)) for k in keys]
         for arch, entry in p.get("architectures", {}).items():
-            cells = [_fmt(_get(entry, keys_), percent=h == "in band") for h, keys_ in _COLUMNS]
+            cells = [_fmt(_get(entry, keys_), percent=h == "in band") for h, keys_ in columns]
             rows.append([*values, str(arch), *cells])
     lines = []
     if len(rows) - 1 <= SWEEP_ROWS:

@@ -58,6 +58,9 @@ class Evaluation:
     innovations: dict[str, dict[str, np.ndarray]] | None = None
     #: the filters' sensor names, in their order (the table names a single sensor's row)
     sensors: tuple[str, ...] = ()
+    #: the trajectory metrics' recording (`stages.trajectory_eval.TrajectoryPart.recording`):
+    #: position state names and indices, APE and RPE over time, run 0's aligned positions
+    trajectory: dict[str, Any] | None = None
 
     @property
     def architectures(self) -> list[str]:

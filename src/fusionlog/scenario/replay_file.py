@@ -51,6 +51,7 @@ from .state_file import (
     prior_section,
 )
 from .toml import Ctx
+from .trajectory import trajectory_section
 
 __all__ = ["Replay", "ReplayScenario", "Stream", "is_replay_doc", "replay_from_doc"]
 
@@ -367,6 +368,9 @@ def replay_from_doc(
         source=source,
         path=path,
         replay=Replay(tuple(streams), truth, truth_states, match, max_diff_ns),
+        trajectory=trajectory_section(
+            ctx, doc, state_names, [state_names[i] for i in truth_states] if truth else None
+        ),
     )
 
 

@@ -76,6 +76,8 @@ class Scenario:
     path: str | None = None
     #: a replay's recorded data (`replay_file.Replay`, a ReplayScenario's); None: simulated
     replay: Any = None
+    #: the trajectory metrics' settings (core.trajectory.TrajectorySettings); None: none
+    trajectory: Any = None
 
     @cached_property
     def schedule(self) -> Schedule:

@@ -44,7 +44,7 @@ from fusionlog.core.timing import Schedule, SensorTiming
 
 from . import nonlinear_syntax as nonlinear
 from . import sensors as sensor_tables
-from . import toml
+from . import toml, trajectory
 from .model_section import (
     MODEL_KINDS,
     check_schedule,
@@ -118,7 +118,7 @@ _SCENARIO_KEYS = ("name", "description", "steps", "runs", "seed", "dt", "state_n
 _PRIOR_KEYS = ("mean", "cov")
 _TRUTH_KEYS = ("initial_mean", "initial_cov")
 _CORRELATION_KEYS = ("sensors", "cov")
-_EVALUATE_KEYS = ("confidence", "sample_runs", "plane_view")
+_EVALUATE_KEYS = ("confidence", "sample_runs", "plane_view", *trajectory.KEYS)
 
 
 def system_to_dict(system: System) -> dict[str, Any]:
@@ -217,6 +217,7 @@ def state_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None
         plane_view=plane_view,
         source=source,
         path=path,
+        trajectory=trajectory.trajectory_section(ctx, doc, system.state_names),
     )
 
 

@@ -119,6 +119,7 @@ def run_distributed(
     with Outputs(targets, force=force, inputs=inputs) as outs, ex:
         totals: dict[str, Any] = {}  # arch -> the workers' sums, merged in block order
         conditional: dict[str, Any] = {}  # arch -> their conditional expected sums
+        trajectory: dict[str, Any] = {}  # arch -> their APE/RPE sums
         patterns: set[bytes | None] = set()  # the blocks' shared patterns (two: per-run)
         with contextlib.closing(
             ex.map([(block_sums, (job, off, n)) for off, n in remote], "run")
@@ -127,7 +128,7 @@ def run_distributed(
             x, z, est, pattern = block_estimates(job, 0, local)
             patterns.add(None if pattern is None else np.packbits(pattern).tobytes())
             for s in results:
-                fold(totals, s, conditional)
+                fold(totals, s, conditional, trajectory)
                 if len(patterns) < 2:
                     patterns.add(s.pattern)
         ex.release()  # the cluster closes while the summary and the recording are made
@@ -146,7 +147,7 @@ def run_distributed(
         ev.add(0, x, {estimates_topic(a): (e.mean, e.cov) for a, e in est.items()}, readings)
         # the workers' sums of the other runs (and, for per-run patterns, their runs' exact
         # sums: the evaluator's own are the sample runs')
-        ev.merge(totals, conditional)
+        ev.merge(totals, conditional, trajectory)
         if not system.linear:  # the PCRB of the workers' runs: their truth, simulated here
             for off, n in remote:
                 ev.add_bound(*simulated_readings(sc, off, n))

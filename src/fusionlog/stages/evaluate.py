@@ -17,6 +17,7 @@ from fusionlog.jsonout import dumps
 from fusionlog.memory import release_freed_memory
 from fusionlog.report import model_sensors
 from fusionlog.scenario import Scenario
+from fusionlog.scenario.trajectory import with_align
 
 from .common import open_evaluation_inputs, progress
 from .kinds import kind_of
@@ -43,12 +44,14 @@ def evaluate_into(
     sensors_sha256: str | None = None,
     estimates_name: str | None = None,
     kept: KeptPlans | None = None,
+    align: str | None = None,
 ) -> tuple[dict[str, Any], list[str] | None]:
     """Metrics of every architecture in `estimates_path` against the truth of `sensors_path`,
     written into the (uncommitted) outputs `out` (.rrd) and `summary_path` (JSON); returns
     the summary and the filters' sensor names (from the estimates' provenance).
     `estimates_name` names the estimates in errors (`run`: its output, not the temporary file);
-    `kept` (`run`): the estimate stage's per-run plans, which the exact analysis takes.
+    `kept` (`run`): the estimate stage's per-run plans, which the exact analysis takes;
+    `align` (``--align``) overrides the scenario's ``[evaluate] align``.
 
     Metrics are sums over blocks of runs, so memory does not grow with M; what they are and
     which exact expected values stand beside them is the kind's business (its Evaluator).
@@ -56,6 +59,7 @@ def evaluate_into(
     sens, est, prov, sc = open_evaluation_inputs(
         sensors_path, estimates_path, scenario, sensors_sha256
     )
+    sc = with_align(sc, align)
     kind = kind_of(sc.kind)
     ev = kind.evaluator(sc, est, prov, sens, kept)
     M = sens.runs()
@@ -107,13 +111,14 @@ def run_evaluate(
     summary_path: Path | None = None,
     force: bool = False,
     block: int | None = None,
+    align: str | None = None,
 ) -> EvaluateResult:
     """Evaluate into `out` (and `summary_path`): both committed together or neither."""
     targets = [Path(out)] + ([Path(summary_path)] if summary_path else [])
     inputs = [Path(sensors_path), Path(estimates_path)]
     with Outputs(targets, force=force, inputs=inputs) as outs:
         summary, sensors = evaluate_into(
-            sensors_path, estimates_path, outs, Path(out), summary_path, block=block
+            sensors_path, estimates_path, outs, Path(out), summary_path, block=block, align=align
         )
         outs.commit()
     return EvaluateResult(Path(out), summary_path, summary, sensors)

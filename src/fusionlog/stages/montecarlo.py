@@ -35,6 +35,7 @@ from fusionlog.scenario import NonlinearScenario, Scenario
 
 from .common import block_runs
 from .kinds import kind_of
+from .trajectory_eval import trajectory_block
 
 __all__ = [
     "BlockSums",
@@ -83,6 +84,8 @@ class BlockSums:
     seconds: float = 0.0
     #: arch -> core.exact.ConditionalExpected of the block's runs (conditional jobs only)
     expected: dict[str, Any] | None = None
+    #: arch -> core.trajectory.TrajectorySums (scenarios with position states)
+    trajectory: dict[str, Any] | None = None
 
 
 _CACHE: OrderedDict[str, PlanCache] = OrderedDict()
@@ -202,19 +205,33 @@ def block_sums(job: Job, run_offset: int, runs: int) -> BlockSums:
 
         ws = _LOCAL.workspace = MetricsWorkspace()
     expected_of = c.system if job.conditional else None
+    sc = job.scenario
+    keep = sc.trajectory is not None  # the APE/RPE need the means, reduced here
     block = estimate_block(
-        c.system, job.archs, z, truth=x, expected_of=expected_of, cache=c, workspace=ws, keep=False
+        c.system, job.archs, z, truth=x, expected_of=expected_of, cache=c, workspace=ws, keep=keep
     )
     key = None if block.pattern is None else np.packbits(block.pattern).tobytes()
     assert block.sums is not None
-    return BlockSums(run_offset, runs, block.sums, key, time.perf_counter() - t0, block.expected)
+    traj = None
+    if keep:
+        means = {a: e.mean for a, e in block.estimates.items()}
+        traj = trajectory_block(sc, sc.times, x, means, run_offset, sc.path or sc.name)
+    seconds = time.perf_counter() - t0
+    return BlockSums(run_offset, runs, block.sums, key, seconds, block.expected, traj)
 
 
-def fold(totals: dict[str, Any], block: BlockSums, expected: dict[str, Any] | None = None) -> None:
+def fold(
+    totals: dict[str, Any],
+    block: BlockSums,
+    expected: dict[str, Any] | None = None,
+    trajectory: dict[str, Any] | None = None,
+) -> None:
     """Add a block's sums to running totals by architecture (the first block's become the
-    totals), and its conditional expected sums to `expected` when given. Callers fold blocks
-    in block order: the same additions for any cluster."""
-    for into, parts in ((totals, block.sums), (expected, block.expected)):
+    totals), and its conditional expected sums to `expected` and trajectory sums to
+    `trajectory` when given. Callers fold blocks in block order: the same additions for any
+    cluster."""
+    parts_of = ((totals, block.sums), (expected, block.expected), (trajectory, block.trajectory))
+    for into, parts in parts_of:
         if into is None or parts is None:
             continue
         for a, acc in parts.items():

@@ -158,6 +158,7 @@ def run_sweep(
         expected: list[dict[str, Any]] = [{} for _ in points]
         sums: list[dict[str, Any]] = [{} for _ in points]
         conditional: list[dict[str, Any]] = [{} for _ in points]
+        trajectory: list[dict[str, Any]] = [{} for _ in points]  # APE/RPE sums
         # the writers' imports (rerun, pyarrow, scipy.special: a second or more) while the
         # workers compute (forked ones are up by now: `worker_signals.FORK`)
         importer = threading.Thread(target=_import_writers, daemon=True)
@@ -168,7 +169,7 @@ def run_sweep(
         with contextlib.closing(ex.map(tasks, "sweep")) as results:
             for i, result in zip(owner, results, strict=True):
                 if isinstance(result, BlockSums):
-                    fold(sums[i], result, conditional[i])
+                    fold(sums[i], result, conditional[i], trajectory[i])
                     busy += result.seconds
                 else:
                     expected[i] = result
@@ -177,7 +178,7 @@ def run_sweep(
         for i, job in enumerate(jobs):
             if job.conditional:
                 expected[i] = _conditional_expected(job, sums[i], conditional[i])
-        summary = sweep_summary(varies, points, jobs, expected, sums, exact_only)
+        summary = sweep_summary(varies, points, jobs, expected, sums, exact_only, trajectory)
         rows = sweep_table(summary)
         _write(outs, targets, summary, rows, varies, ex.description)
         outs.commit()

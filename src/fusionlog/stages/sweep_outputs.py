@@ -24,8 +24,17 @@ METRIC_COLUMNS = (
 )
 
 
+#: More columns where a point has them: the trajectory metrics' RMSE (DESIGN.md "Trajectory
+#: metrics", scenarios with position states).
+TRAJECTORY_COLUMNS = ("ape_rmse", "rpe_rmse")
+
+
 def _point_summary(
-    job: Job, expected: dict[str, Any], sums: dict[str, Any], exact_only: bool
+    job: Job,
+    expected: dict[str, Any],
+    sums: dict[str, Any],
+    exact_only: bool,
+    trajectory: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """A point's architectures as ``fusionlog run``'s summary.json has them (Monte Carlo
     metrics from the merged sums, `expected` from the exact analysis, which has DM too)."""
@@ -38,6 +47,9 @@ def _point_summary(
             continue
         entry = sums[a].finalize(job.scenario.confidence).summary()
         entry["expected"] = exp
+        if trajectory and a in trajectory:
+            ape, rpe = trajectory[a].summary()
+            entry |= {"ape": ape, "rpe": rpe}
         out[a] = entry
     return out
 
@@ -85,6 +97,7 @@ def sweep_summary(
     expected: Sequence[dict[str, Any]],
     sums: Sequence[dict[str, Any]],
     exact_only: bool,
+    trajectory: Sequence[dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """summary.json of a sweep (docs/reference/summary-json.md, "Sweeps"): the grid, every point as
     ``fusionlog run`` would summarise it, and each architecture's lowest MSE."""
@@ -96,10 +109,12 @@ def sweep_summary(
             "seed": p.scenario.seed,
             "runs": 0 if exact_only else p.scenario.runs,
             "steps": p.scenario.instants - 1,
-            "architectures": _point_summary(job, e, s, exact_only),
+            "architectures": _point_summary(job, e, s, exact_only, tr),
         }
         | _bound(p.scenario)
-        for p, job, e, s in zip(points, jobs, expected, sums, strict=True)
+        for p, job, e, s, tr in zip(
+            points, jobs, expected, sums, trajectory or [None] * len(points), strict=True
+        )
     ]
     return {
         "kind": "sweep",
@@ -133,6 +148,8 @@ def sweep_table(summary: dict[str, Any]) -> list[dict[str, Any]]:
                 row[m] = e.get(m)
             row["expected_mse"] = e["expected"]["mse"]
             row["expected_anees"] = e["expected"]["anees"]
+            if "ape" in e:
+                row["ape_rmse"], row["rpe_rmse"] = e["ape"]["rmse"], e["rpe"]["rmse"]
             rows.append(row)
     return rows
 
@@ -161,9 +178,10 @@ def parquet_bytes(
             columns[v.key] = pa.array([text[repr(x)] for x in vals], pa.string())
     columns["architecture"] = pa.array([r["architecture"] for r in rows], pa.string())
     columns["runs"] = pa.array([r["runs"] for r in rows], pa.int64())
-    for m in METRIC_COLUMNS:
+    more = [m for m in TRAJECTORY_COLUMNS if any(m in r for r in rows)]
+    for m in (*METRIC_COLUMNS, *more):
         # NaN (no defined step) and None (not computed) are both null: no value
-        vals = [r[m] if r[m] is not None and r[m] == r[m] else None for r in rows]
+        vals = [r.get(m) if r.get(m) is not None and r[m] == r[m] else None for r in rows]
         columns[m] = pa.array(vals, pa.float64())
     table = pa.table(columns).replace_schema_metadata(meta)
     sink = pa.BufferOutputStream()

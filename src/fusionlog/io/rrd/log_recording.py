@@ -180,8 +180,10 @@ def replay_blueprint(
     nees_bounds: tuple[np.ndarray, np.ndarray] | None,
     traces: Mapping[str, np.ndarray],
     timeline: str,
+    more: Sequence[Any] = (),
 ) -> rrb.Blueprint:
-    """Trajectory, States, NIS, Innovations[, Errors] (see the module's docstring)."""
+    """Trajectory, States, NIS, Innovations[, Errors] (see the module's docstring), then the
+    tabs `more` (the trajectory metrics': `.trajectory`)."""
     tabs: list = [
         rrb.Spatial2DView(
             origin="/trajectory",
@@ -227,4 +229,4 @@ def replay_blueprint(
                           view_range(list(traces.values()), 0.0)))  # fmt: skip
     if errors:
         tabs.append(rrb.Vertical(*errors, name="Errors" if nees else "Trace of P"))
-    return tabbed_blueprint(tabs, timeline)
+    return tabbed_blueprint(tabs + list(more), timeline)

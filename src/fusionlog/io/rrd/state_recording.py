@@ -53,6 +53,7 @@ from .log_recording import opening_range, plane_states, replay_blueprint, write_
 from .plane import check_plane, write_plane
 from .stream import SeriesWriter, check_axes, entity_path, recording_error, recording_stream
 from .style import BOUND_COLOR, CKF, TRUTH_COLOR, arch_color, arch_width, class_color
+from .trajectory import trajectory_tabs, write_trajectory
 from .views import query, tabbed_blueprint, time_series_view
 
 __all__ = ["write_evaluation", "write_recording"]
@@ -162,9 +163,10 @@ def write_evaluation(
         all_traces = traces or {a: np.asarray(d["trace"], dtype=float) for a, d in series.items()}
         nees = {a: np.asarray(d["nees"], dtype=float) for a, d in series.items()}
         blueprint = replay_blueprint(state_names, ij, samples, nis, ev.innovations, nees,
-                                     nees_bounds, all_traces, timeline)  # fmt: skip
+                                     nees_bounds, all_traces, timeline,
+                                     trajectory_tabs(ev.trajectory))  # fmt: skip
     else:
-        extra = consistency_views(nis, avail, bool(traces))
+        extra = consistency_views(nis, avail, bool(traces)) + trajectory_tabs(ev.trajectory)
         blueprint = _blueprint(
             state_names, series, samples, plane is not None, extra, timeline, pcrb is not None
         )
@@ -199,6 +201,8 @@ def write_evaluation(
             write_plane(w, plane)
         if replay:
             write_replay(w, ij, samples, measured or {}, ev.innovations, sensor_color)
+        if ev.trajectory:
+            write_trajectory(w, ev.trajectory, samples, ev.trajectory["positions"])
 
 
 def _check(

@@ -47,6 +47,8 @@ class Elsewhere:
     sums: dict[str, Any] = field(default_factory=dict)
     expected: dict[str, Any] = field(default_factory=dict)
     readings: tuple[np.ndarray, dict[str, np.ndarray]] | None = None
+    #: each architecture's trajectory sums (`core.trajectory.TrajectorySums`)
+    trajectory: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass

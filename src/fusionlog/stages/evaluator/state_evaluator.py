@@ -32,6 +32,7 @@ from .metrics_part import MetricsPart
 from .nis_part import NisPart
 from .parts import Block, Elsewhere, Finished, Part
 from .pcrb_part import PcrbPart
+from .trajectory_part import TrajectoryPart
 from .views_part import PlanePart, SamplesPart
 
 __all__ = ["SensorLog", "StateEvaluator"]
@@ -110,6 +111,9 @@ class StateEvaluator(Evaluator):
                         sensor_topics, sc.confidence)
             )  # fmt: skip
         parts.append(SamplesPart(self.archs, min(sc.sample_runs, runs)))
+        traj = TrajectoryPart.of(sc, self.archs, self.times, log.has_truth, source)
+        if traj is not None:  # APE/RPE after the alignment (DESIGN.md "Trajectory metrics")
+            parts.append(traj)
         if sc.plane_view:
             parts.append(PlanePart(self.archs, plans, sc.confidence))
         self.parts = parts
@@ -139,10 +143,16 @@ class StateEvaluator(Evaluator):
         for part in self.parts:
             part.add(block)
 
-    def merge(self, sums: dict[str, Any], expected: dict[str, Any] | None = None) -> None:
+    def merge(
+        self,
+        sums: dict[str, Any],
+        expected: dict[str, Any] | None = None,
+        trajectory: dict[str, Any] | None = None,
+    ) -> None:
         """Add metric sums accumulated elsewhere (`estimate_block`'s, of runs not `add`ed
-        here) and, for per-run patterns, those runs' conditional exact sums."""
-        self._merge(Elsewhere(sums=sums, expected=expected or {}))
+        here) and, for per-run patterns, those runs' conditional exact sums (and their
+        trajectory sums)."""
+        self._merge(Elsewhere(sums=sums, expected=expected or {}, trajectory=trajectory or {}))
 
     def add_bound(self, truth: np.ndarray, sensors: dict[str, np.ndarray]) -> None:
         """Runs whose metric sums were merged (`merge`): their truth and sensor readings, for
