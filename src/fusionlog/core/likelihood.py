@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .architectures.block import shared_pattern
+from .architectures.estimates import shared_pattern
 from .linalg import mT, sym
 from .model import System
 
