@@ -17,8 +17,6 @@ import numpy as np
 
 from fusionlog.core.names import check_architectures
 from fusionlog.driver import PlanCache, conditional_sums
-from fusionlog.driver.block import conditional_sums
-from fusionlog.driver.plans import PlanCache
 from fusionlog.scenario import Scenario
 
 from .montecarlo import expected_overall
