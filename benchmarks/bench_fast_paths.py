@@ -90,8 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", default="1,2,3", help="which fast paths (numbers, comma-separated)")
     args = ap.parse_args(argv)
 
-    from fusionlog.driver import PlanCache, estimate_block
     from fusionlog.core.routes import shared_expected
+    from fusionlog.driver import PlanCache, estimate_block
     from fusionlog.io.mcap import McapFile
 
     rows = []
