@@ -261,7 +261,20 @@ def _cholesky(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     try:
         L = np.linalg.cholesky(S)
     except np.linalg.LinAlgError:
-        ok &= np.linalg.eigvalsh(S)[..., 0] > 0
+        # which matrices the factorisation itself refuses: a smallest eigenvalue of a few ulps
+        # above 0 still fails Cholesky under some BLAS kernels (OPENBLAS_CORETYPE=Prescott)
+        ok &= _factorable(S.reshape(-1, *S.shape[-2:])).reshape(ok.shape)
         L = np.linalg.cholesky(np.where(ok[..., None, None], S, np.eye(S.shape[-1])))
     failed = ~ok.reshape(ok.shape[0], -1).all(axis=1)
     return L, failed
+
+
+def _factorable(S: np.ndarray) -> np.ndarray:
+    """Whether each matrix of S (N, r, r) has a Cholesky factor (rare path: one call each)."""
+    good = np.ones(S.shape[0], dtype=bool)
+    for i, s in enumerate(S):
+        try:
+            np.linalg.cholesky(s)
+        except np.linalg.LinAlgError:
+            good[i] = False
+    return good
