@@ -444,7 +444,8 @@ def test_a_replay_identifies_from_its_recordings_and_the_tuned_file_reads_them(t
     ok("run", out, "--out-dir", tmp_path / "run")
 
 
-EVO_BAG = Path("/work/shared/data/logs/evo_ROS_example.bag")
+# the shared real logs beside the checkout (tests/test_replay_real_logs.py reads them there too)
+EVO_BAG = Path(__file__).resolve().parents[2] / "shared" / "data" / "logs" / "evo_ROS_example.bag"
 
 
 @pytest.mark.skipif(not EVO_BAG.exists(), reason="evo's ROS_example.bag is not available")
