@@ -1228,3 +1228,21 @@ def test_commands_leave_their_objects_to_the_exit() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV)
     assert out.stdout.splitlines() == ["running 0", "at exit True"], out.stderr
+
+
+def test_a_command_run_in_process_gives_the_caller_its_signal_handlers_back(tmp_path) -> None:
+    """The CLI turns SIGTERM/SIGHUP into a clean unwind while its command runs, and only then:
+    a program (or a test runner) that calls it in process keeps its own handlers afterwards,
+    after a success and after a failure alike."""
+
+    def mine(signum, frame):  # pragma: no cover - never delivered
+        raise AssertionError(signum)
+
+    saved = {s: signal.signal(s, mine) for s in (signal.SIGTERM, signal.SIGHUP)}
+    try:
+        ok("--version")
+        one_line_error(cli("inspect", tmp_path / "absent.mcap"), "absent.mcap")
+        assert all(signal.getsignal(s) is mine for s in saved)
+    finally:
+        for s, handler in saved.items():
+            signal.signal(s, handler)

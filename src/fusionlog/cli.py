@@ -17,6 +17,7 @@ import click
 
 from fusionlog import __version__, cli_identify
 from fusionlog.cli_export import align_option, export
+from fusionlog.cli_signals import Terminated, unwinding_on_signals
 from fusionlog.errors import DamagedFile, FusionlogError, OutputExists
 from fusionlog.memory import keep_freed_memory, leave_objects_at_exit, one_blas_thread
 
@@ -34,18 +35,6 @@ EXIT_BAD_INPUT = 2
 EXIT_INTERNAL = 3
 
 
-class Terminated(BaseException):
-    """SIGTERM or SIGHUP: unwinds like Ctrl-C so every temporary file is removed."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signum)
-        self.signum = signum
-
-
-def _on_signal(signum: int, _frame: Any) -> None:
-    raise Terminated(signum)
-
-
 def _hint(e: FusionlogError) -> str:
     """How to fix it, where that depends on the command line rather than on the library."""
     if isinstance(e, OutputExists):
@@ -56,17 +45,17 @@ def _hint(e: FusionlogError) -> str:
 
 
 class _Group(click.Group):
-    """One line and an exit code for every failure; SIGTERM/SIGHUP clean up like Ctrl-C."""
+    """One line and an exit code for every failure; SIGTERM/SIGHUP clean up like Ctrl-C (for
+    this command only: a caller running it in process gets its own handlers back after)."""
 
     def invoke(self, ctx: click.Context) -> Any:
         debug = bool(ctx.params.get("debug"))
         keep_freed_memory()  # this process is fusionlog's: see fusionlog.memory
         one_blas_thread()
         leave_objects_at_exit()
-        for sig in (signal.SIGTERM, signal.SIGHUP):
-            signal.signal(sig, _on_signal)
         try:
-            return super().invoke(ctx)
+            with unwinding_on_signals():
+                return super().invoke(ctx)
         except (KeyboardInterrupt, Terminated, Exception) as e:
             passed_on = (click.exceptions.Exit, click.ClickException, click.Abort)
             if debug or (isinstance(e, passed_on) and not isinstance(e, click.UsageError)):
