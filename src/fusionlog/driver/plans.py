@@ -14,6 +14,8 @@ import dataclasses
 import hashlib
 import json
 import pickle
+import threading
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -24,7 +26,7 @@ from fusionlog.core.architectures import registry as _registry
 from fusionlog.core.architectures.registry import group_by_history
 from fusionlog.core.model import System
 
-__all__ = ["KeptPlans", "PlanCache", "pattern_record"]
+__all__ = ["JobPlans", "KeptPlans", "PlanCache", "pattern_record"]
 
 
 @dataclass
@@ -149,6 +151,34 @@ class PlanCache:
         mask shared by every run of every block as JSON, or "per-run" (a block's runs differed,
         two blocks differed, or there was no block)."""
         return pattern_record(self.patterns, (self.steps + 1, self.system.m))
+
+
+class JobPlans:
+    """The plan caches of the jobs whose blocks one process computes (a sweep's points, a
+    distributed run), by job token, the least recently used dropped beyond `size`: a job's
+    blocks after the first do not compile again. Whoever runs the blocks owns one and passes
+    it to each (`stages.distributed`'s executors: one in this process, one on each Dask
+    worker). Thread-safe: a Dask worker may run tasks in threads."""
+
+    def __init__(self, size: int = 8) -> None:
+        self.size = size
+        self._caches: OrderedDict[str, PlanCache] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def of(self, token: str, system: System, times: np.ndarray | None = None) -> PlanCache:
+        """The plan cache of job `token` (its `system` on the instants `times`), made on first
+        use."""
+        with self._lock:
+            c = self._caches.get(token)
+            if c is not None:
+                self._caches.move_to_end(token)
+                return c
+        c = PlanCache.of(system, times)
+        with self._lock:
+            c = self._caches.setdefault(token, c)
+            while len(self._caches) > self.size:
+                self._caches.popitem(last=False)
+        return c
 
 
 def pattern_record(patterns: Sequence[bytes | None], shape: tuple[int, int]) -> dict[str, str]:

@@ -125,7 +125,7 @@ def run_distributed(
             ex.map([(block_sums, (job, off, n)) for off, n in remote], "run")
         ) as results:
             # the sample runs here while the workers start on the rest
-            x, z, est, pattern = block_estimates(job, 0, local)
+            x, z, est, pattern = block_estimates(job, 0, local, plans=ex.plans)
             patterns.add(None if pattern is None else np.packbits(pattern).tobytes())
             for s in results:
                 fold(totals, s, conditional, trajectory)
