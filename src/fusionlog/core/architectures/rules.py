@@ -73,10 +73,10 @@ def local_infos(P: np.ndarray, forms: np.ndarray | None) -> tuple[np.ndarray, np
         require_finite(Y, "the local information P_j^-1")
         return Y, Y
     mean = ~np.asarray(forms)
-    Y = P.copy()
+    Y = P.copy(order="K")  # the per-run path's lanes layout kept (also below)
     Y[..., mean, :, :] = spd_inv_scaled(P[..., mean, :, :], what=what)
     require_finite(Y, "the local information P_j^-1")
-    W = Y.copy()
+    W = Y.copy(order="K")
     W[..., ~mean, :, :] = np.eye(P.shape[-1])
     return Y, W
 
@@ -154,7 +154,8 @@ def avg(
         C = np.tile(np.eye(n), (1, S)) / S
         return np.broadcast_to(C, P.shape[:-3] + C.shape), sym(mm(mm(C, J), mT(C)))
     info = np.asarray(forms)
-    O = np.broadcast_to(np.eye(n), P.shape).copy()
+    O = np.empty_like(P)
+    O[...] = np.eye(n)
     O[..., info, :, :] = inv_or_nan(P[..., info, :, :])
     C = stack_cols(O) / S
     Msig = mm(C, signs(tuple(info.tolist()), n))
@@ -179,8 +180,8 @@ def msc_gmf(
     if _informed(forms):
         info = np.asarray(forms)
         sign = signs(tuple(info.tolist()), n)
-        D = np.broadcast_to(np.eye(n), P.shape).copy()
-        D[..., info, :, :] = P[..., info, :, :]
+        D = P.copy(order="K")
+        D[..., ~info, :, :] = np.eye(n)
         return _each_once(partial(_kkt, n), mm(mm(sign, J), sign), stack_rows(D))
     S = J.shape[-1] // n
     E = np.tile(np.eye(n), (S, 1))
