@@ -218,6 +218,8 @@ def check_schedule(
     """The sensors' timing on a horizon of `steps` dt: the instants fit in memory and a log's
     uint32 step index (counted before anything is built), every sensor measures at least
     once, and irregular instants have a model that can be discretised for any interval."""
+    if ctx.recorded:  # a record's schedule was checked when it ran (`Ctx`)
+        return
     timings = tuple(s.timing for s in system.sensors)
     counts = instant_counts(system.dt, steps, timings)
     horizon = toml.fmt(steps * system.dt)

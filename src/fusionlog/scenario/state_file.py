@@ -169,15 +169,16 @@ def _timing_dict(t: SensorTiming) -> dict[str, float]:
 
 
 def system_from_dict(d: dict[str, Any], source: str = "<system dict>") -> System:
-    """Rebuild (and re-validate) a System from `system_to_dict` output."""
+    """Rebuild a System from `system_to_dict` output, a record (`Ctx`: its structure checked,
+    not the values it was validated for when written)."""
     if not isinstance(d, dict):
         raise Ctx(source).err("(top level)", f"expected a table, got {toml.tname(d)}")
     d = dict(d)
     cont = d.pop("continuous", None)
-    system = model_from_doc(d, source)
+    system = model_from_doc(d, source, recorded=True)
     if cont is None:
         return system
-    ctx = Ctx(source)
+    ctx = Ctx(source, recorded=True)
     if not isinstance(cont, dict) or set(cont) != {"A", "Qc"}:
         raise ctx.err("continuous", "expected a table with A and Qc")
     A = toml.matrix(ctx, cont["A"], "continuous.A", scalar=True)
@@ -191,10 +192,12 @@ def system_from_dict(d: dict[str, Any], source: str = "<system dict>") -> System
 # Documents
 
 
-def state_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None) -> StateScenario:
+def state_from_doc(
+    doc: dict[str, Any], file: str, source: str, path: str | None, *, recorded: bool = False
+) -> StateScenario:
     """A state scenario from a parsed TOML document; `file` names it in errors, `source` is the
-    text as written (recorded in the sensors file)."""
-    ctx = Ctx(file)
+    text as written (recorded in the sensors file); `recorded`: that record (`Ctx`)."""
+    ctx = Ctx(file, recorded)
     toml.check_keys(ctx, doc, "(top level)", _TOP_KEYS, what="section")
     sc = toml.table(ctx, doc, "scenario", required=True)
     toml.check_keys(ctx, sc, "scenario", _SCENARIO_KEYS)
@@ -221,10 +224,11 @@ def state_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None
     )
 
 
-def model_from_doc(doc: dict[str, Any], file: str) -> System:
+def model_from_doc(doc: dict[str, Any], file: str, *, recorded: bool = False) -> System:
     """The filter model of a model file (``estimate --model``): a scenario file in which
-    [scenario] and its keys are optional; only the system is used."""
-    ctx = Ctx(file)
+    [scenario] and its keys are optional; only the system is used. `recorded`: a record
+    (`system_from_dict`, `Ctx`)."""
+    ctx = Ctx(file, recorded)
     toml.check_keys(ctx, doc, "(top level)", _TOP_KEYS, what="section")
     sc = toml.table(ctx, doc, "scenario", required=False) or {}
     toml.check_keys(ctx, sc, "scenario", _SCENARIO_KEYS)
@@ -418,7 +422,7 @@ def correlations_section(
             C = C.T
         Ra, Rb = sensors[key[0]].R, sensors[key[1]].R
         joint = np.block([[Ra, C], [C.T, Rb]])
-        why = toml.not_definite(joint, strict=True)
+        why = None if ctx.recorded else toml.not_definite(joint, strict=True)
         if why is not None:
             raise ctx.err(
                 f"{where}.cov",
@@ -426,7 +430,7 @@ def correlations_section(
             )
         first[key] = k
         cross[key] = toml.readonly(np.array(C))
-    if len(cross) > 1:
+    if len(cross) > 1 and not ctx.recorded:
         # Pairs are checked above; several correlations can still conflict with each other.
         probe = System(F=np.zeros((1, 1)), Q=np.zeros((1, 1)), sensors=sensors, cross_R=cross)
         why = toml.not_definite(probe.R, strict=True)
