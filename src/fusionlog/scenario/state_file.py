@@ -169,16 +169,15 @@ def _timing_dict(t: SensorTiming) -> dict[str, float]:
 
 
 def system_from_dict(d: dict[str, Any], source: str = "<system dict>") -> System:
-    """Rebuild a System from `system_to_dict` output, a record (`Ctx`: its structure checked,
-    not the values it was validated for when written)."""
+    """Rebuild (and re-validate) a System from `system_to_dict` output."""
     if not isinstance(d, dict):
         raise Ctx(source).err("(top level)", f"expected a table, got {toml.tname(d)}")
     d = dict(d)
     cont = d.pop("continuous", None)
-    system = model_from_doc(d, source, recorded=True)
+    system = model_from_doc(d, source)
     if cont is None:
         return system
-    ctx = Ctx(source, recorded=True)
+    ctx = Ctx(source)
     if not isinstance(cont, dict) or set(cont) != {"A", "Qc"}:
         raise ctx.err("continuous", "expected a table with A and Qc")
     A = toml.matrix(ctx, cont["A"], "continuous.A", scalar=True)
@@ -224,11 +223,10 @@ def state_from_doc(
     )
 
 
-def model_from_doc(doc: dict[str, Any], file: str, *, recorded: bool = False) -> System:
+def model_from_doc(doc: dict[str, Any], file: str) -> System:
     """The filter model of a model file (``estimate --model``): a scenario file in which
-    [scenario] and its keys are optional; only the system is used. `recorded`: a record
-    (`system_from_dict`, `Ctx`)."""
-    ctx = Ctx(file, recorded)
+    [scenario] and its keys are optional; only the system is used."""
+    ctx = Ctx(file)
     toml.check_keys(ctx, doc, "(top level)", _TOP_KEYS, what="section")
     sc = toml.table(ctx, doc, "scenario", required=False) or {}
     toml.check_keys(ctx, sc, "scenario", _SCENARIO_KEYS)

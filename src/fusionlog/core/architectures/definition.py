@@ -43,7 +43,7 @@ from .plan import BuildRequest, Plan
 LOCALS = ("centralised", "single", "hierarchical", "smoother", "per-sensor")
 
 #: A fusion rule: (P (..., S, n, n), J (..., S n, S n) or None, criterion) -> (C, P_fused);
-#: with `Architecture.information` also (..., forms=F (S,)).
+#: with `Architecture.information` also (..., forms=F (S,), found=D).
 Rule = Callable[..., tuple[np.ndarray, np.ndarray]]
 
 
@@ -54,8 +54,8 @@ class Architecture:
     `name` is what the CLI, topics and summaries use; `locals` one of `LOCALS`; `rule` and
     `joint` (whether the rule reads J) for ``per-sensor``; `information` whether the rule also
     fuses locals still in information form (module docstring); `build` a plan builder of its
-    own (required for the other kinds); `takes_sensor` for ``SKF:<sensor>``; `min_sensors` the
-    fewest sensors it fuses; `default` whether a
+    own for the other kinds (a rule's plan is `track_to_track.build_rule`'s); `takes_sensor`
+    for ``SKF:<sensor>``; `min_sensors` the fewest sensors it fuses; `default` whether a
     scenario without an `[estimate] architectures` list runs it; `color` its colour in every
     recording (None: one from a hash of the name)."""
 

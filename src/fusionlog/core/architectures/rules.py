@@ -53,6 +53,12 @@ GMF_MAX_GROWTH = 1e6
 GMF_ONE_BY_ONE = 256
 
 
+#: The locals' forms (S,) (True: information form), None: all in mean form.
+Forms = np.ndarray | None
+#: Where a rule puts what else it found (`definition.Rule`).
+Found = dict[str, np.ndarray] | None
+
+
 @lru_cache(maxsize=64)
 def signs(info: tuple[bool, ...], n: int) -> np.ndarray:
     """diag(+I for a local in information form, -I in mean form): sigma = sign g, with
@@ -82,11 +88,7 @@ def local_infos(P: np.ndarray, forms: np.ndarray | None) -> tuple[np.ndarray, np
 
 
 def msc(
-    P: np.ndarray,
-    J: np.ndarray | None,
-    criterion: str,
-    forms: np.ndarray | None = None,
-    found: dict[str, np.ndarray] | None = None,
+    P: np.ndarray, J: np.ndarray | None, criterion: str, forms: Forms = None, found: Found = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Millman's formula (33)-(34) in information form: P_f^-1 = sum_j Y_j, C_j = P_f W_j (the
     information vector itself for a local still in information form)."""
@@ -109,11 +111,7 @@ def _small_mm(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 
 def ci(
-    P: np.ndarray,
-    J: np.ndarray | None,
-    criterion: str,
-    forms: np.ndarray | None = None,
-    found: dict[str, np.ndarray] | None = None,
+    P: np.ndarray, J: np.ndarray | None, criterion: str, forms: Forms = None, found: Found = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Covariance intersection: P_f^-1 = sum_j w_j Y_j, C_j = w_j P_f W_j, the weights w on the
     simplex minimising `criterion` (`core.ci.ci_omegas`, every problem solved on its own;
@@ -140,11 +138,7 @@ def ci(
 
 
 def avg(
-    P: np.ndarray,
-    J: np.ndarray,
-    criterion: str,
-    forms: np.ndarray | None = None,
-    found: dict[str, np.ndarray] | None = None,
+    P: np.ndarray, J: np.ndarray, criterion: str, forms: Forms = None, found: Found = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Equal weights on the local means, c_j = I/S (eq. 2), and the covariance they really give,
     C J C^T (eq. 4); a local in information form gives its mean P_j y_j where its information
@@ -163,11 +157,7 @@ def avg(
 
 
 def msc_gmf(
-    P: np.ndarray,
-    J: np.ndarray,
-    criterion: str,
-    forms: np.ndarray | None = None,
-    found: dict[str, np.ndarray] | None = None,
+    P: np.ndarray, J: np.ndarray, criterion: str, forms: Forms = None, found: Found = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Eqs. (5)-(7): C minimising C Sigma C^T subject to sum_j c_j D_j = I, Sigma the covariance
     of the stacked states' errors. With every local in mean form (D_j = I, Sigma = J) and J
