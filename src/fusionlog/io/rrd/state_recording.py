@@ -276,7 +276,9 @@ def _write_metrics(
             w.line(entity_path("metrics", "bound", arch), d["bound"], arch, col, width)
     if any("bound" in d for d in series.values()):
         one = np.ones(len(next(iter(series.values()))["trace"]))
-        w.line(entity_path("metrics", "bound", "limit"), one, "1: P bounds the error", BOUND_COLOR, 1.5)
+        w.line(
+            entity_path("metrics", "bound", "limit"), one, "1: P bounds the error", BOUND_COLOR, 1.5
+        )
     if nees_bounds is not None:
         label = f"χ² {confidence:.0%}" if confidence is not None else "χ²"
         for side, arr in zip(("lower", "upper"), nees_bounds, strict=True):
