@@ -34,8 +34,10 @@ from ..linalg import mT, sym
 from .definition import Architecture
 
 #: Sijs and Lazar's zeta (eq. 16c), in the coordinates where P_a = I (dimensionless): eta = zeta
-#: where some d_i is within 10 zeta of 1.
-ZETA = 1e-10
+#: where some d_i is within 10 zeta of 1. There the split of the mutual mean is decided by
+#: (1/d_i - 1/max(d_i, 1) + zeta) against (1 - 1/max(d_i, 1) + zeta), so rounding e in d_i moves
+#: it by about e/zeta: far above the rounding of d (1e-15 for well-conditioned P), far below 1.
+ZETA = 1e-8
 
 
 def ei_pair(
