@@ -53,7 +53,8 @@ def bound_summary(
     ratio: np.ndarray, stderr: np.ndarray | None = None, confidence: float = 0.95
 ) -> dict[str, Any] | None:
     """summary.json's ``bound`` of a ratio per instant (K+1,) (NaN: no estimate there):
-    {"holds", "worst", "worst_step"}; None when no instant has one.
+    {"holds", "worst", "worst_step"} (the first instant within BOUND_TOL of the worst); None
+    when no instant has one.
 
     Exact (`stderr` None): holds = worst <= 1 + BOUND_TOL. A Monte Carlo estimate (`stderr`
     per instant) adds ``"monte_carlo": true`` and the worst instant's ``stderr``, and holds
@@ -66,8 +67,10 @@ def bound_summary(
         ok &= np.isfinite(stderr)
     if not ok.any():
         return None
-    k = int(np.flatnonzero(ok)[np.argmax(r[ok])])
-    worst = float(r[k])
+    worst = float(r[ok].max())
+    # the first instant within rounding of the worst: where the ratio is flat (a consistent
+    # filter's 1 at every instant) rounding would otherwise pick the instant
+    k = int(np.flatnonzero(ok & (r >= worst - BOUND_TOL * max(abs(worst), 1.0)))[0])
     if stderr is None:
         return {"holds": bool(worst <= 1.0 + BOUND_TOL), "worst": worst, "worst_step": k}
     from scipy.special import ndtri  # an evaluation's only
