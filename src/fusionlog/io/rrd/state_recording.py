@@ -385,9 +385,9 @@ def _blueprint(
     if any("bound" in d for d in series.values()):  # DESIGN.md "the bound check"
         consistency.append(
             time_series_view(
-                "bound check: λmax(P⁻¹ E[e eᵀ]) (grey: 1, at most 1 where P bounds the error)",
+                "bound check: λmax of P^-1 E[e e^T] (grey: 1; above it P does not bound the error)",
                 [query("metrics", "bound") + "/**"],
-                legend=False,
+                legend=False,  # the colours of Fig. 4's legend, as the NEES and DM views
             )
         )
     columns: list[rrb.Container] = [rrb.Vertical(*fig4, name="Fig. 4")]
