@@ -166,9 +166,10 @@ def write_evaluation(
         ij = plane_states(state_names, measured or {})
         all_traces = traces or {a: np.asarray(d["trace"], dtype=float) for a, d in series.items()}
         nees = {a: np.asarray(d["nees"], dtype=float) for a, d in series.items()}
+        bound = {a: np.asarray(d["bound"], float) for a, d in series.items() if "bound" in d}
         blueprint = replay_blueprint(state_names, ij, samples, nis, ev.innovations, nees,
                                      nees_bounds, all_traces, timeline,
-                                     trajectory_tabs(ev.trajectory))  # fmt: skip
+                                     trajectory_tabs(ev.trajectory), bound)  # fmt: skip
     else:
         extra = consistency_views(nis, avail, bool(traces)) + trajectory_tabs(ev.trajectory)
         blueprint = _blueprint(
