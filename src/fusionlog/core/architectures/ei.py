@@ -32,6 +32,7 @@ import numpy as np
 
 from ..linalg import mT, sym
 from .definition import Architecture
+from .ici import in_sensor_order
 
 #: Sijs and Lazar's zeta (eq. 16c), in the coordinates where P_a = I (dimensionless): eta = zeta
 #: where some d_i is within 10 zeta of 1. There the split of the mutual mean is decided by
@@ -68,18 +69,10 @@ def ei_pair(
 
 
 def ei(P: np.ndarray, J: np.ndarray | None, criterion: str) -> tuple[np.ndarray, np.ndarray]:
-    """The rule (`definition.Rule`): the locals (..., S, n, n) fused pairwise in sensor order;
-    C (..., n, S n) composes each pair's weights (the running fusion's A, the next local's B).
-    EI has no cost to minimise: `criterion` (covariance intersection's) does not apply."""
-    S, n = P.shape[-3], P.shape[-1]
-    C = np.zeros(P.shape[:-3] + (n, S * n))
-    C[..., :, :n] = np.eye(n)
-    Pf = P[..., 0, :, :]
-    for j in range(1, S):
-        A, B, Pf, _ = ei_pair(Pf, P[..., j, :, :])
-        C = A @ C
-        C[..., :, j * n : (j + 1) * n] = B
-    return C, Pf
+    """The rule (`definition.Rule`): the locals (..., S, n, n) fused pairwise in sensor order
+    (`ici.in_sensor_order`). EI has no cost to minimise: `criterion` (covariance
+    intersection's) does not apply."""
+    return in_sensor_order(P, ei_pair)
 
 
 EI = Architecture(
