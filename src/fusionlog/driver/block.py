@@ -89,7 +89,7 @@ def estimate_block(
             ((a, Estimate(t.mean, t.cov)) for a, t in lanes), None, truth, workspace, keep
         )
     fast = None
-    if cache.one_run and expected_of is None and not reference_paths():
+    if cache.one_run and expected_of is None and cache.late is None and not reference_paths():
         from fusionlog.core.architectures.replay import replay_estimates  # a replay's path
 
         fast = replay_estimates(cache.system, archs, z, cache.criterion)

@@ -22,6 +22,7 @@ import numpy as np
 from fusionlog.core.architectures import HistoryNodes, Plan, build_plan, shared_pattern
 from fusionlog.core.architectures import registry as _registry
 from fusionlog.core.architectures.registry import group_by_history
+from fusionlog.core.latency import LateModel
 from fusionlog.core.model import System
 
 __all__ = ["KeptPlans", "PlanCache", "pattern_record"]
@@ -77,6 +78,24 @@ class PlanCache:
     one_run: bool = False
     #: per-run plans shared with another stage of the same command (`KeptPlans`)
     kept: KeptPlans | None = field(default=None, repr=False)
+    #: the instants (K+1,) in seconds on which late measurements arrive (None: `times`, else
+    #: k dt; `core.latency`)
+    clock: np.ndarray | None = field(default=None, repr=False)
+    _late: LateModel | None | str = field(default="unset", repr=False)
+
+    @property
+    def late(self) -> LateModel | None:
+        """The late sensors' arrivals and stacked model (None: every sensor on time)."""
+        if isinstance(self._late, str):
+            clock = self.clock if self.clock is not None else self.times
+            self._late = LateModel.of(self.system, self.steps, clock)
+        return self._late
+
+    def _build(self, arch: str, present: np.ndarray | None, **kw) -> Plan:
+        """`build_plan` of `arch` for the mask `present`, through the late model if any."""
+        if self.late is not None:
+            return self.late.build(build_plan, arch, present, criterion=self.criterion, **kw)
+        return build_plan(self.system, arch, self.steps, present, self.criterion, **kw)
 
     @classmethod
     def of(
@@ -108,7 +127,7 @@ class PlanCache:
         plan = self.plans.get(key)
         if plan is None:
             mask = None if pattern.all() else pattern
-            plan = self.plans[key] = build_plan(self.system, arch, self.steps, mask, self.criterion)
+            plan = self.plans[key] = self._build(arch, mask)
         return plan
 
     def block_plans(
@@ -128,17 +147,9 @@ class PlanCache:
         for a in archs:
             plan = None if kept is None else kept.get(a)
             if plan is None:
-                if isinstance(groups, str):
+                if isinstance(groups, str) and self.late is None:
                     groups = group_by_history(present)
-                plan = build_plan(
-                    self.system,
-                    a,
-                    self.steps,
-                    present,
-                    self.criterion,
-                    history_nodes=True,
-                    groups=groups,
-                )
+                plan = self._build(a, present, history_nodes=True, groups=groups)
                 if kept is not None:
                     kept[a] = plan
             plans[a] = plan

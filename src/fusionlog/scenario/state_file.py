@@ -39,12 +39,14 @@ import numpy as np
 
 from fusionlog.core.model import Prior, System
 from fusionlog.core.models import SensorModel
-from fusionlog.core.names import STATE_ARCHITECTURES, parse_arch
+from fusionlog.core.names import STATE_ARCHITECTURES, known_arch, parse_arch_of
+from fusionlog.core.latency import system_refusal
 from fusionlog.core.timing import Schedule, SensorTiming
 
 from . import nonlinear_syntax as nonlinear
 from . import sensors as sensor_tables
 from . import toml, trajectory
+from .latency import LATE_POLICIES, late_section, latency_dict
 from .model_section import (
     MODEL_KINDS,
     check_schedule,
@@ -158,13 +160,15 @@ def system_to_dict(system: System) -> dict[str, Any]:
     ]
     if system.filter is not None:
         d["estimate"] = nonlinear.estimate_dict(system)
+    if system.late != LATE_POLICIES[0]:
+        d.setdefault("estimate", {})["late"] = system.late
     return d
 
 
 def _timing_dict(t: SensorTiming) -> dict[str, float]:
     """The timing keys that differ from their defaults."""
     d = {"offset": t.offset, "dropout": t.dropout}
-    d = {k: float(v) for k, v in d.items() if v != 0.0}
+    d = {k: float(v) for k, v in d.items() if v != 0.0} | latency_dict(t.latency)
     return d if t.period is None else {"period": float(t.period)} | d
 
 
@@ -307,8 +311,11 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
         motion_model=motion,
         filter=filt,
         ukf=ukf,
+        late=late_section(ctx, doc),
     )
     nonlinear.check_nonlinear(ctx, system, bool(cross_R))
+    if (why := system_refusal(system)) is not None:
+        raise ctx.err(*why)
     check_determined(ctx, system)
     return system
 
@@ -441,9 +448,12 @@ def correlations_section(
 
 def architectures_section(ctx: Ctx, doc: dict[str, Any], system: System) -> tuple[str, ...]:
     names = tuple(s.name for s in system.sensors)
-    return toml.architectures(
-        ctx, doc, STATE_ARCHITECTURES, lambda a: parse_arch(a, names), ("filter", "ukf")
-    )
+    def check(a: str) -> tuple[str, str | None]:
+        return parse_arch_of(a, system)
+
+    # late sensors: by default the architectures that take them
+    default = tuple(a for a in STATE_ARCHITECTURES if known_arch(a, system))
+    return toml.architectures(ctx, doc, default, check, ("filter", "ukf", "late"))
 
 
 def evaluate_section(ctx: Ctx, doc: dict[str, Any]) -> tuple[float, int, bool]:

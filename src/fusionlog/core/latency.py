@@ -1,0 +1,338 @@
+"""Late measurements: each policy as an ordinary plan on the measurements as they were taken.
+
+A measurement of sensor j taken at instant i arrives at t_i + latency_j; the estimate at the
+output instant t_k may use only what has arrived by then (DESIGN.md "Late measurements"). Let
+a(j, i) be the first instant k with t_k >= t_i + latency_j and l = a - i its lag (in instants).
+
+*Reprocess* (the filter rewinds to a late measurement's time and refilters everything that
+has arrived, in measurement-time order) gives at k the Kalman estimate of x_k from exactly the
+arrived set {(j, i): a(j, i) <= k}. That estimate is a Kalman filter on the *stacked state*
+X_k = [x_k; x_{k-1}; ...; x_{k-W}] (W the largest lag; X_k = F~ X_{k-1} + [w; 0; ...]) whose
+measurement at k is what arrives at k: the reading of sensor j taken l instants ago is
+H_j x_{k-l} + v, a row of H~ on the l-th block of X_k (the fixed-lag augmentation of
+Anderson and Moore, "Optimal Filtering", 1979, ch. 7; Bar-Shalom, Chen, Mallick 2004, sec. 2,
+note that reprocessing is optimal). Each reading arrives once, so the stacked model's noise is
+white, and its filter is exactly the rewind-and-refilter estimate, with a bounded history: W
+instants of state.
+
+*Neglect* drops a measurement older than the filter's last update (the newest measurement
+time processed): processing the rest in arrival order is processing them in time order, so
+neglect is reprocessing of the accepted measurements.
+
+Both are filters on the stacked model fed with the readings as they arrive, i.e. linear maps
+of the measurements as taken once the plan keeps the W last readings in its internal state:
+
+    s_k = [s~_k; z_k; z_{k-1}; ...; z_{k-W+1}],    s~_k = T~ s~_{k-1} + U~ z~_k,
+
+z~_k (what arrives at k) being a selection of z_k and the kept readings. So the executor, the
+per-run and history-node paths and the exact analysis (`core.exact`: the joint moments of the
+true state and s_k) take it as any other plan, the truth being the scenario's own model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .architectures import BlockDiagonal, Plan, StepMap
+from .model import Prior, System
+from .models import LinearSensor
+
+__all__ = [
+    "LATE_POLICIES",
+    "LateModel",
+    "arrival_steps",
+    "late_refusal",
+    "stacked_system",
+    "system_refusal",
+]
+
+#: [estimate] late: the first is the default.
+LATE_POLICIES = ("reprocess", "retrodict", "neglect")
+
+#: Policies whose plans exist (retrodiction is Bar-Shalom's Algorithm A / Al1, not built yet).
+BUILT_POLICIES = ("reprocess", "neglect")
+
+
+def is_late(system: System) -> bool:
+    """Whether some sensor's measurements arrive after they are taken."""
+    return any(s.timing.late for s in system.sensors)
+
+
+def system_refusal(system: System) -> tuple[str, str] | None:
+    """(key, reason) why a system's late sensors cannot be estimated, or None."""
+    if not is_late(system):
+        return None
+    lat = [s.timing.latency for s in system.sensors]
+    late = [j for j, (lo, hi) in enumerate(lat) if hi > 0]
+    if system.late not in BUILT_POLICIES:
+        return ("estimate.late", f"{system.late!r} with late sensors is not available yet")
+    if not system.linear:
+        return (
+            f"sensors[{late[0]}].latency",
+            "late measurements need linear sensors and motion (the EKF/UKF lanes do not "
+            "rewind yet)",
+        )
+    if system.prior is None:
+        return (
+            "prior",
+            "missing: reprocessing late measurements runs the filter on the state stacked "
+            "over the latency window, which starts from [prior] (mean, cov)",
+        )
+    for j in late:
+        lo, hi = lat[j]
+        if lo != hi:
+            return (
+                f"sensors[{j}].latency",
+                "random delays ({min, max}) are not estimated yet: give a fixed latency",
+            )
+    for i, j in system.cross_R:
+        if lat[i] != lat[j]:
+            return (
+                "correlations",
+                f"sensors {system.sensors[i].name!r} and {system.sensors[j].name!r} are "
+                "correlated but arrive with different latencies: their readings of one "
+                "instant would be fused apart, as if independent",
+            )
+    return None
+
+
+def late_refusal(system: System, locals_kind: str, arch: str) -> str | None:
+    """Why architecture `arch` (its `Architecture.locals`) has no meaning or no plan with the
+    system's late sensors, or None."""
+    if not is_late(system):
+        return None
+    if locals_kind == "smoother":
+        return (
+            f"architecture {arch}: a fixed-interval smoother uses every measurement of the run "
+            "whenever it arrives: a latency has no meaning there"
+        )
+    if locals_kind == "per-sensor":
+        return (
+            f"architecture {arch}: late measurements in the local filters of a "
+            "track-to-track architecture are not built yet (CKF, HKF and SKF take them)"
+        )
+    return None
+
+
+def arrival_steps(times: np.ndarray, arrival: np.ndarray) -> np.ndarray:
+    """The first instant index k with t_k >= arrival (seconds; compared in whole nanoseconds,
+    the resolution of a log's time); len(times) where a measurement never arrives within the
+    horizon (or NaN: none taken)."""
+    tk = np.round(np.asarray(times, float) * 1e9)
+    a = np.round(np.asarray(arrival, float) * 1e9)
+    out = np.searchsorted(tk, np.where(np.isnan(a), np.inf, a), side="left")
+    return out.astype(np.intp)
+
+
+def stacked_system(system: System, lags: list[np.ndarray]) -> System:
+    """The model on the state stacked over the last W instants, X_k = [x_k; ...; x_{k-W}]
+    (W the largest lag), whose sensor j measures H_j x_{k-l} for each of its lags l (its
+    readings arriving l instants late): one block of rows per lag, the noises of one instant
+    correlated as before, of different instants independent.
+
+    The blocks of the instants before 0 are never measured: the prior makes them independent
+    copies of x_0's distribution, which keeps the stacked covariance invertible (HKF fuses in
+    information form) and changes no estimate of a real instant."""
+    n, W = system.n, max(int(l.max()) for l in lags)
+    N = (W + 1) * n
+
+    def stacked_F(F: np.ndarray) -> np.ndarray:
+        out = np.zeros((N, N))
+        out[:n, :n] = F
+        out[n:, :-n] = np.eye(W * n)
+        return out
+
+    def stacked_Q(Q: np.ndarray) -> np.ndarray:
+        out = np.zeros((N, N))
+        out[:n, :n] = Q
+        return out
+
+    sensors = []
+    for sen, lj in zip(system.sensors, lags, strict=True):
+        H = np.zeros((len(lj) * sen.dim, N))
+        for q, lag in enumerate(lj):
+            H[q * sen.dim : (q + 1) * sen.dim, lag * n : (lag + 1) * n] = sen.H
+        sensors.append(LinearSensor(sen.name, H, np.kron(np.eye(len(lj)), sen.R)))
+    cross = {}
+    for (i, j), Rij in system.cross_R.items():
+        C = np.zeros((len(lags[i]) * Rij.shape[0], len(lags[j]) * Rij.shape[1]))
+        for qi, li in enumerate(lags[i]):
+            for qj, lj_ in enumerate(lags[j]):
+                if li == lj_:  # readings of one instant
+                    a, b = Rij.shape
+                    C[qi * a : (qi + 1) * a, qj * b : (qj + 1) * b] = Rij
+        cross[(i, j)] = C
+
+    def stacked_prior(p: Prior | None) -> Prior | None:
+        if p is None:
+            return None
+        return Prior(np.tile(p.mean, W + 1), np.kron(np.eye(W + 1), p.cov))
+
+    names = tuple(f"{s}[k-{b}]" if b else s for b in range(W + 1) for s in system.state_names)
+    return dataclasses.replace(
+        system,
+        F=stacked_F(system.F),
+        Q=stacked_Q(system.GQG),
+        G=None,
+        sensors=tuple(sensors),
+        cross_R=cross,
+        prior=stacked_prior(system.prior),
+        initial=stacked_prior(system.initial),
+        state_names=names,
+        continuous=None,
+        Fs=None if system.Fs is None else np.stack([stacked_F(F) for F in system.Fs]),
+        Qs=None if system.Qs is None else np.stack([stacked_Q(Q) for Q in system.Qs]),
+        Rs=None,
+        late="reprocess",
+    )
+
+
+@dataclass
+class LateModel:
+    """The late sensors of one model on one horizon: when each measurement arrives, and the
+    plans of the stacked model wrapped as plans on the measurements as taken.
+
+    `arrive` (K+1, S): the instant index at which the measurement sensor j takes at instant
+    i arrives (K+1: never, within the horizon); `lags[j]`: the lags its readings arrive with.
+    """
+
+    system: System
+    steps: int
+    arrive: np.ndarray
+    lags: list[np.ndarray]
+    stacked: System = field(init=False, repr=False)
+    #: (m~, 3): for each component of the stacked measurement, its sensor, lag and component
+    #: of z (eq. 30)
+    slots: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.stacked = stacked_system(self.system, self.lags)
+        rows = []
+        for j, (sl, lj) in enumerate(zip(self.system.sensor_slices, self.lags, strict=True)):
+            for lag in lj:
+                rows += [(j, int(lag), o) for o in range(sl.start, sl.stop)]
+        self.slots = np.array(rows, dtype=np.intp).reshape(-1, 3)
+
+    @classmethod
+    def of(cls, system: System, steps: int, times: np.ndarray | None) -> LateModel | None:
+        """The late model of `system` on the instants `times` (default k dt), or None when no
+        sensor is late (the plans are then the plain ones, bit for bit)."""
+        if not is_late(system):
+            return None
+        times = np.arange(steps + 1) * system.dt if times is None else np.asarray(times, float)
+        lat = np.array([s.timing.latency[0] for s in system.sensors])
+        arrive = arrival_steps(times, times[:, None] + lat[None, :])
+        K1 = steps + 1
+        lags = []
+        for j in range(len(system.sensors)):
+            got = arrive[:, j] < K1
+            lj = np.unique(arrive[got, j] - np.arange(K1)[got])
+            lags.append(lj if len(lj) else np.zeros(1, dtype=np.intp))
+        return cls(system, steps, arrive, lags)
+
+    @property
+    def window(self) -> int:
+        """W: the instants of state the filter keeps beside the current one (its history)."""
+        return max(int(lj.max()) for lj in self.lags)
+
+    def stacked_mask(self, present: np.ndarray) -> np.ndarray:
+        """The presence mask of the stacked measurement, batch + (K+1, m~): the reading of
+        slot (j, l) is there at k when sensor j measured that component at k - l, it arrives
+        at k and (neglect) it is not older than the filter's last update when it arrives."""
+        K1 = present.shape[-2]
+        took = np.stack(
+            [present[..., sl].any(-1) for sl in self.system.sensor_slices], axis=-1
+        )  # batch + (K+1, S): the sensor measured at i
+        arrive = np.broadcast_to(self.arrive, took.shape)
+        if self.system.late == "neglect":
+            took = took & accepted(took, arrive, self.window)
+        j, lag, o = self.slots.T
+        out = np.zeros(present.shape[:-2] + (K1, len(self.slots)), dtype=bool)
+        for k in range(K1):
+            i = k - lag
+            ok = i >= 0
+            ii = np.where(ok, i, 0)
+            here = present[..., ii, o] & took[..., ii, j] & (arrive[..., ii, j] == k)
+            out[..., k, :] = here & ok
+        return out
+
+    def build(self, build, arch: str, present: np.ndarray | None, **kw) -> Plan:
+        """`arch`'s plan on the measurements as taken: `build(system, arch, steps, mask,
+        **kw)` (`architectures.build_plan`) compiles it on the stacked model, then its maps
+        are wrapped to keep the last W readings (`wrap`)."""
+        K1 = self.steps + 1
+        if present is None:
+            present = np.ones((K1, self.system.m), dtype=bool)
+        kw.pop("groups", None)  # the stacked mask groups the runs by its own histories
+        inner = build(self.stacked, arch, self.steps, self.stacked_mask(present), **kw)
+        return wrap(inner, self.slots, self.system.m, self.window, self.system.n)
+
+
+def accepted(took: np.ndarray, arrive: np.ndarray, W: int) -> np.ndarray:
+    """Neglect's rule: which measurements (batch + (K+1, S)) the filter takes, in arrival
+    order (measurement-time order within an arrival instant): those not older than the
+    newest measurement time it has taken before."""
+    K1 = took.shape[-2]
+    out = np.zeros_like(took)
+    newest = np.full(took.shape[:-2], -1, dtype=np.intp)
+    for k in range(K1):
+        lo = max(0, k - W)
+        i = np.arange(lo, k + 1)
+        ok = took[..., lo : k + 1, :] & (arrive[..., lo : k + 1, :] == k)
+        ok &= (i[:, None] >= newest[..., None, None])
+        out[..., lo : k + 1, :] |= ok
+        newest = np.maximum(newest, np.where(ok.any(-1), i, -1).max(-1))
+    return out
+
+
+def _dense(A):
+    return A.dense() if isinstance(A, BlockDiagonal) else A
+
+
+def wrap(inner: Plan, slots: np.ndarray, m: int, W: int, n: int) -> Plan:
+    """The plan `inner` of the stacked model as a plan on z as taken (see the module's
+    docstring): s_k = [s~_k; b_k], b_k = [z_k; ...; z_{k-W+1}], the reading of slot (j, l, o)
+    taken from z_k (l = 0) or from block l - 1 of b_{k-1}; x_hat = the first block of
+    the stacked estimate, P its covariance."""
+    B = W * m
+    # Sel (m~, m + W m): slot c's column among [z_k, b_{k-1}]
+    col = np.where(slots[:, 1] == 0, slots[:, 2], m + (slots[:, 1] - 1) * m + slots[:, 2])
+    Sel = np.zeros((len(slots), m + B))
+    Sel[np.arange(len(slots)), col] = 1.0
+    shift = np.eye(B - m) if B > m else np.zeros((0, 0))
+    done: dict[int, StepMap] = {}
+
+    def step(st: StepMap) -> StepMap:
+        if id(st) in done:
+            return done[id(st)]
+        T, U = _dense(st.T), st.U
+        G = U @ Sel  # (..., d, m + B)
+        batch = np.broadcast_shapes(T.shape[:-2], G.shape[:-2])
+        d, dp = T.shape[-2:]
+        Tw = np.zeros(batch + (d + B, dp + B))
+        Tw[..., :d, :dp] = T
+        Tw[..., :d, dp:] = G[..., m:]
+        Tw[..., d + m :, dp : dp + B - m] = shift
+        Uw = np.zeros(batch + (d + B, m))
+        Uw[..., :d, :] = G[..., :m]
+        Uw[..., d : d + m, :] = np.eye(m)
+        O = st.O[..., :n, :]
+        Ow = np.concatenate([O, np.zeros(O.shape[:-1] + (B,))], axis=-1)
+        P = np.ascontiguousarray(st.P[..., :n, :n])
+        out = done[id(st)] = StepMap(Tw, Uw, Ow, P, np.zeros(batch + (d + B, n)))
+        return out
+
+    steps = [step(st) for st in inner.steps]
+    d0 = len(inner.s0)
+    return dataclasses.replace(
+        inner,
+        s0=np.concatenate([inner.s0, np.zeros(B)]),
+        steps=steps,
+        D0=np.zeros((d0 + B, n)),
+        complete=False,
+        dense=None,
+        omega=None,
+    )
