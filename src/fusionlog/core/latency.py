@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .architectures import BlockDiagonal, Plan, StepMap
+from .architectures import BlockDiagonal, Plan, StepMap, definition, parse_arch
 from .model import Prior, System
 from .models import LinearSensor
 
@@ -44,6 +44,7 @@ __all__ = [
     "LATE_POLICIES",
     "LateModel",
     "arrival_steps",
+    "is_late",
     "late_refusal",
     "stacked_system",
     "system_refusal",
@@ -238,17 +239,21 @@ class LateModel:
         """W: the instants of state the filter keeps beside the current one (its history)."""
         return max(int(lj.max()) for lj in self.lags)
 
-    def stacked_mask(self, present: np.ndarray) -> np.ndarray:
+    def stacked_mask(self, present: np.ndarray, filters: list[list[int]]) -> np.ndarray:
         """The presence mask of the stacked measurement, batch + (K+1, m~): the reading of
         slot (j, l) is there at k when sensor j measured that component at k - l, it arrives
-        at k and (neglect) it is not older than the filter's last update when it arrives."""
+        at k and (neglect) it is not older than the last update of the filter that fuses it
+        (`filters`: the sensors each filter fuses)."""
         K1 = present.shape[-2]
         took = np.stack(
             [present[..., sl].any(-1) for sl in self.system.sensor_slices], axis=-1
         )  # batch + (K+1, S): the sensor measured at i
         arrive = np.broadcast_to(self.arrive, took.shape)
         if self.system.late == "neglect":
-            took = took & accepted(took, arrive, self.window)
+            ok = np.zeros_like(took)
+            for g in filters:
+                ok[..., g] = accepted(took[..., g], arrive[..., g], self.window)
+            took = took & ok
         j, lag, o = self.slots.T
         out = np.zeros(present.shape[:-2] + (K1, len(self.slots)), dtype=bool)
         for k in range(K1):
@@ -267,7 +272,18 @@ class LateModel:
         if present is None:
             present = np.ones((K1, self.system.m), dtype=bool)
         kw.pop("groups", None)  # the stacked mask groups the runs by its own histories
-        inner = build(self.stacked, arch, self.steps, self.stacked_mask(present), **kw)
+        names = [s.name for s in self.system.sensors]
+        base, sensor = parse_arch(arch, names)
+        S = len(names)
+        locals_kind = definition(base).locals
+        if sensor is not None:  # one filter on one sensor
+            filters = [[names.index(sensor)]]
+        elif locals_kind == "per-sensor":  # a local filter per sensor
+            filters = [[j] for j in range(S)]
+        else:  # one filter (or a centre) fusing every sensor
+            filters = [list(range(S))]
+        mask = self.stacked_mask(present, filters)
+        inner = build(self.stacked, arch, self.steps, mask, **kw)
         return wrap(inner, self.slots, self.system.m, self.window, self.system.n)
 
 

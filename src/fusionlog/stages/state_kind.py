@@ -61,6 +61,31 @@ def with_filter(system: Any, name: str | None, where: str = "--filter") -> Any:
     return dataclasses.replace(system, filter=name)
 
 
+def with_late(system: Any, late: str | None, where: str = "--late") -> Any:
+    """The system with its policy for late measurements set by ``--late`` (None: as
+    recorded), refused in one line where its late sensors cannot take it."""
+    if late is None:
+        return system
+    from fusionlog.core.latency import LATE_POLICIES, system_refusal
+
+    if not isinstance(system, System):
+        raise FusionlogError(f"{where}: only state scenarios have late measurements")
+    if late not in LATE_POLICIES:
+        raise FusionlogError(
+            f"{where}: unknown policy {late!r} (known: {', '.join(LATE_POLICIES)})"
+        )
+    system = dataclasses.replace(system, late=late)
+    why = system_refusal(system)
+    if why is not None:
+        raise FusionlogError(f"{where}: {why[1]}")
+    return system
+
+
+def scenario_with_late(sc: Scenario, late: str | None) -> Scenario:
+    """The scenario with ``--late`` applied to its system (`with_late`)."""
+    return sc if late is None else dataclasses.replace(sc, system=with_late(sc.system, late))
+
+
 def step_writers(
     plans: PlanCache, archs: list[str], z: np.ndarray, run_offset: int
 ) -> dict[str, Any]:

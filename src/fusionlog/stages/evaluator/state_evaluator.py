@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from fusionlog.core.latency import is_late
 from fusionlog.core.evaluation import Evaluation
 from fusionlog.core.model import System
 from fusionlog.core.names import known_arch
@@ -85,7 +86,9 @@ class StateEvaluator(Evaluator):
         log = log or SensorLog()
         self.has_truth = log.has_truth
         recorded = sc.replay is not None
-        plans = PlanCache(filter_sys, self.K, kept=kept)
+        plans = PlanCache(filter_sys, self.K, kept=kept, clock=self.times)
+        #: the policy for late measurements where some sensor is late (summary.json "late")
+        self.late = filter_sys.late if is_late(filter_sys) else None
         known = [a for a in self.archs if known_arch(a, filter_sys)]
         names = list(sc.state_names)
         truthed = (
@@ -179,6 +182,8 @@ class StateEvaluator(Evaluator):
             "confidence": sc.confidence,
             "architectures": archs,
         }
+        if self.late is not None:
+            summary["late"] = self.late
         into = Finished(summary, archs, metric_runs=self.metrics.runs_of())
         into.fields.update(
             plane=None, availability={}, measured={}, nis=None, innovations=None, pcrb=None
