@@ -116,7 +116,6 @@ def _scenario(
     ``--align`` (overrides ``[evaluate] align``), `late`: ``--late`` ([estimate] late)."""
     from fusionlog.scenario import load_scenario
     from fusionlog.scenario.trajectory import with_align
-
     from fusionlog.stages.state_kind import scenario_with_late
 
     sc = with_align(load_scenario(path, runs=runs, steps=steps, seed=seed), align)
@@ -288,8 +287,8 @@ def run(scenario, out_dir, runs, steps, seed, archs, filter_name, late, align, f
     carry every estimate back); the sample runs are computed here."""
     _one_executor(workers, scheduler)
     if workers is not None or scheduler is not None:
-        _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block_runs,
-                         workers, scheduler, scheduler_timeout, filter_name, align, late)  # fmt: skip
+        _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers,
+                         scheduler, scheduler_timeout, filter_name, align, late)  # fmt: skip
         return
     from fusionlog.report import format_table, headline
     from fusionlog.stages.kinds import kind_of

@@ -298,7 +298,7 @@ def accepted(took: np.ndarray, arrive: np.ndarray, W: int) -> np.ndarray:
         lo = max(0, k - W)
         i = np.arange(lo, k + 1)
         ok = took[..., lo : k + 1, :] & (arrive[..., lo : k + 1, :] == k)
-        ok &= (i[:, None] >= newest[..., None, None])
+        ok &= i[:, None] >= newest[..., None, None]
         out[..., lo : k + 1, :] |= ok
         newest = np.maximum(newest, np.where(ok.any(-1), i, -1).max(-1))
     return out

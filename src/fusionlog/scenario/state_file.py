@@ -37,10 +37,10 @@ from typing import Any
 
 import numpy as np
 
+from fusionlog.core.latency import system_refusal
 from fusionlog.core.model import Prior, System
 from fusionlog.core.models import SensorModel
 from fusionlog.core.names import STATE_ARCHITECTURES, known_arch, parse_arch_of
-from fusionlog.core.latency import system_refusal
 from fusionlog.core.timing import Schedule, SensorTiming
 
 from . import nonlinear_syntax as nonlinear
@@ -447,7 +447,6 @@ def correlations_section(
 
 
 def architectures_section(ctx: Ctx, doc: dict[str, Any], system: System) -> tuple[str, ...]:
-    names = tuple(s.name for s in system.sensors)
     def check(a: str) -> tuple[str, str | None]:
         return parse_arch_of(a, system)
 
