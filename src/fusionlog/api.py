@@ -299,13 +299,15 @@ def estimate(
     architectures: Sequence[str] | str | None = None,
     *,
     filter: str | None = None,
+    late: str | None = None,
 ) -> Estimates:
     """Each architecture's estimates of the runs (default: the scenario's `[estimate]
     architectures`; one name may be given as a string; an empty list is refused), as
     `fusionlog estimate` computes them: {name: `Estimate`} with `.mean` (M, K+1, n) and `.cov`
     (M, K+1, n, n). `scenario` is the filters' model: the one simulated, or another
     (`fusionlog estimate --model`), whose sensors are taken from `sim` by name; `filter`
-    ("EKF" or "UKF") overrides its local filter as `--filter` does."""
+    ("EKF" or "UKF") overrides its local filter as `--filter` does, `late` its policy for late
+    measurements as `--late` does."""
     scenario = _state_scenario(scenario)
     _check_sim(sim)
     system = scenario.system
@@ -313,6 +315,10 @@ def estimate(
         from .stages.state_kind import with_filter
 
         system = with_filter(system, filter, "filter")
+    if late is not None:
+        from .stages.state_kind import with_late
+
+        system = with_late(system, late, "late")
     names = check_architecture_names(architectures)
     archs = check_architectures(names or list(scenario.architectures), system, "architectures")
     check_discretisable(
@@ -322,7 +328,9 @@ def estimate(
         f"the simulation of {sim.scenario.name}",
     )
     z = sim.stacked(system)
-    cache = PlanCache(sim.on_instants(system), len(sim.times) - 1, one_run=z.shape[0] == 1)
+    cache = PlanCache(
+        sim.on_instants(system), len(sim.times) - 1, one_run=z.shape[0] == 1, clock=sim.times
+    )
     parts: dict[str, list[BlockEstimate]] = {a: [] for a in archs}
     for off, n in _blocks(sim):
         block = estimate_block(cache.system, archs, z[off : off + n], cache=cache)

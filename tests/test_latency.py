@@ -1,0 +1,253 @@
+"""Issue 30, late measurements (DESIGN.md "Late measurements"): `[[sensors]] latency`,
+`[estimate] late`, `--late`.
+
+References written here from the definitions, not from `core.latency`'s stacked model:
+reprocess = a Kalman filter rerun at every output instant on exactly the measurements that
+have arrived by then; neglect = an event-driven filter that takes the arrivals in order and
+drops one older than its last update, predicting to each output instant.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from cli_helpers import cli, ok, one_line_error
+
+import fusionlog as fl
+
+F = np.array([[1.0, 1.0], [0.0, 1.0]])
+Q = 0.16 * np.array([[1 / 3, 1 / 2], [1 / 2, 1.0]])
+H = np.array([[1.0, 0.0]])
+
+
+def scenario(tmp_path, *, latencies, late="reprocess", archs=("CKF", "HKF", "SKF:s3"),
+             runs=200, steps=12, seed=5, extra="", R=(1.0, 1.0, 0.5), name="late"):  # fmt: skip
+    """A constant-velocity target, position sensors s1.. with the given latencies (s)."""
+    sensors = ""
+    for j, (lat, r) in enumerate(zip(latencies, R, strict=True)):
+        key = "" if lat is None else f"latency = {lat}\n"
+        sensors += f'[[sensors]]\nname = "s{j + 1}"\nH = [[1.0, 0.0]]\nR = {r}\n{key}'
+        sensors += extra if j == 0 else ""
+    text = f"""
+[scenario]
+name = "{name}"
+description = "late sensors"
+steps = {steps}
+runs = {runs}
+seed = {seed}
+dt = 1.0
+state_names = ["position", "velocity"]
+
+[model]
+kind = "constant-velocity"
+n0 = 0.16
+
+[prior]
+mean = [100.0, -1.0]
+cov = [[1.0, 0.0], [0.0, 1.0]]
+
+{sensors}
+[estimate]
+architectures = {json.dumps(list(archs))}
+late = "{late}"
+"""
+    path = tmp_path / f"{name}.toml"
+    path.write_text(text)
+    return path
+
+
+def lag_of(latency: float, dt: float = 1.0) -> int:
+    """Instants until a reading taken at t_i has arrived (t_i + latency <= t_k), on t_k = k dt."""
+    return math.ceil(latency / dt - 1e-12)
+
+
+def kf_update(x, P, zs, Rs):
+    """Update with independent position readings, one after the other (Joseph form)."""
+    for z, r in zip(zs, Rs, strict=True):
+        S = (H @ P @ H.T)[0, 0] + r
+        K = P @ H.T / S
+        x = x + (K * (z - (H @ x)[0]))[:, 0]
+        IKH = np.eye(2) - K @ H
+        P = IKH @ P @ IKH.T + r * K @ K.T
+    return x, P
+
+
+def kf_on(z, used, k, R):
+    """A KF from the prior over instants 0..k using the readings `used[i][j]`; (x_k, P_k)."""
+    x, P = np.array([100.0, -1.0]), np.eye(2)
+    for i in range(k + 1):
+        if i:
+            x, P = F @ x, F @ P @ F.T + Q
+        js = [j for j in range(len(R)) if used(i, j)]
+        x, P = kf_update(x, P, [z[j][i] for j in js], [R[j] for j in js])
+    return x, P
+
+
+LATENCIES = [(1.0, None, 2.5), (0.4, 2.0, None), (3.0, 1.0, 2.0)]
+
+
+@pytest.mark.parametrize("lats", LATENCIES)
+def test_reprocess_is_a_kf_on_exactly_the_arrived_measurements(tmp_path, lats):
+    R = (1.0, 1.0, 0.5)
+    path = scenario(tmp_path, latencies=lats, runs=3)
+    sim = fl.simulate(path)
+    est = fl.estimate(path, sim, ["CKF", "HKF", "SKF:s3"])
+    lags = [0 if lat is None else lag_of(lat) for lat in lats]
+    K = len(sim.times) - 1
+    for run in range(3):
+        z = [sim.measurements[f"s{j + 1}"][run, :, 0] for j in range(3)]
+        for k in range(K + 1):
+            for arch, sensors in (("CKF", (0, 1, 2)), ("HKF", (0, 1, 2)), ("SKF:s3", (2,))):
+                x, P = kf_on(z, lambda i, j: j in sensors and i + lags[j] <= k, k, R)
+                e = est[arch]
+                np.testing.assert_allclose(e.mean[run, k], x, rtol=1e-9, atol=1e-9)
+                np.testing.assert_allclose(e.cov[run, k], P, rtol=1e-9, atol=1e-12)
+
+
+def neglect_filter(z, lags, sensors, K, R):
+    """Event-driven: arrivals in (arrival, time, sensor) order; a reading older than the newest
+    time taken is dropped; the estimate at each output instant is the filter predicted there."""
+    events = sorted((i + lags[j], i, j) for j in sensors for i in range(K + 1))
+    x, P, t = np.array([100.0, -1.0]), np.eye(2), 0
+    out = []
+    e = 0
+    for k in range(K + 1):
+        while e < len(events) and events[e][0] == k:
+            _, i, j = events[e]
+            e += 1
+            if i < t:
+                continue  # older than the last update: neglected
+            for _ in range(i - t):
+                x, P = F @ x, F @ P @ F.T + Q
+            t = i
+            x, P = kf_update(x, P, [z[j][i]], [R[j]])
+        xo, Po = x, P
+        for _ in range(k - t):
+            xo, Po = F @ xo, F @ Po @ F.T + Q
+        out.append((xo, Po))
+    return out
+
+
+@pytest.mark.parametrize("lats", LATENCIES)
+def test_neglect_is_the_kf_on_what_arrives_in_time_order(tmp_path, lats):
+    R = (1.0, 1.0, 0.5)
+    path = scenario(tmp_path, latencies=lats, runs=3, late="neglect")
+    sim = fl.simulate(path)
+    est = fl.estimate(path, sim, ["CKF", "HKF", "SKF:s3"])
+    lags = [0 if lat is None else lag_of(lat) for lat in lats]
+    K = len(sim.times) - 1
+    for run in range(3):
+        z = [sim.measurements[f"s{j + 1}"][run, :, 0] for j in range(3)]
+        for arch, sensors in (("CKF", (0, 1, 2)), ("HKF", (0, 1, 2)), ("SKF:s3", (2,))):
+            ref = neglect_filter(z, lags, sensors, K, R)
+            for k, (x, P) in enumerate(ref):
+                np.testing.assert_allclose(est[arch].mean[run, k], x, rtol=1e-9, atol=1e-9)
+                np.testing.assert_allclose(est[arch].cov[run, k], P, rtol=1e-9, atol=1e-12)
+
+
+def test_neglect_drops_what_reprocess_keeps(tmp_path):
+    """s3 two instants behind s1 (on time): neglect never takes it after the start, so its
+    CKF is the on-time sensors' alone -- worse than reprocessing."""
+    lats = (None, None, 2.0)
+    runs = {}
+    for late in ("reprocess", "neglect"):
+        path = scenario(tmp_path, latencies=lats, late=late, runs=2, archs=("CKF",), name=late)
+        sim = fl.simulate(path)
+        runs[late] = fl.estimate(path, sim, ["CKF"])["CKF"].cov
+    no_s3 = scenario(tmp_path, latencies=(None, None), R=(1.0, 1.0), runs=2, archs=("CKF",),
+                     name="two")  # fmt: skip
+    cov2 = fl.estimate(no_s3, fl.simulate(no_s3), ["CKF"])["CKF"].cov
+    np.testing.assert_allclose(runs["neglect"][0, 3:], cov2[0, 3:], rtol=1e-12)
+    assert (runs["reprocess"][0, 3:, 0, 0] < cov2[0, 3:, 0, 0] * 0.99).all()
+
+
+@pytest.mark.parametrize("late", ["reprocess", "neglect"])
+@pytest.mark.parametrize("dropout", [0.0, 0.25])
+def test_exact_equals_monte_carlo_within_4_standard_errors(tmp_path, late, dropout):
+    extra = f"dropout = {dropout}\n" if dropout else ""
+    path = scenario(tmp_path, latencies=(1.0, None, 2.5), late=late, runs=2000, steps=10,
+                    extra=extra)  # fmt: skip
+    sim = fl.simulate(path)
+    est = fl.estimate(path, sim)
+    summary = fl.evaluate(path, sim, est).summary
+    assert summary["late"] == late
+    for a, s in summary["architectures"].items():
+        for key in ("mse", "anees"):
+            gap = abs(s[key] - s["expected"][key])
+            assert gap <= 4 * s["stderr"][key], (a, key, s[key], s["expected"][key])
+
+
+def test_zero_latency_changes_no_number(tmp_path):
+    """latency = 0 is on time: the same estimates and summary as without the key, bit for bit,
+    and no "late" in the summary."""
+    a = scenario(tmp_path, latencies=(0.0, 0, None), archs=("CKF", "MSC", "FBS"), name="a")
+    b = scenario(tmp_path, latencies=(None, None, None), archs=("CKF", "MSC", "FBS"), name="b")
+    out = {}
+    for p in (a, b):
+        ok("run", p, "--out-dir", tmp_path / p.stem)
+        out[p.stem] = json.loads((tmp_path / p.stem / "summary.json").read_text())
+    out["a"]["scenario"] = "b"
+    assert out["a"] == out["b"]
+    assert "late" not in out["a"]
+
+
+def test_run_with_late_on_the_command_line(tmp_path):
+    path = scenario(tmp_path, latencies=(1.0, None, 2.0), runs=50)
+    ok("run", path, "--out-dir", tmp_path / "o", "--late", "neglect")
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["late"] == "neglect"
+    ok("estimate", tmp_path / "o" / "sensors.mcap", "-o", tmp_path / "e.mcap", "--late",
+       "reprocess")  # fmt: skip
+    ok("evaluate", tmp_path / "o" / "sensors.mcap", tmp_path / "e.mcap", "-o",
+       tmp_path / "e.rrd", "--summary", tmp_path / "e.json")  # fmt: skip
+    assert json.loads((tmp_path / "e.json").read_text())["late"] == "reprocess"
+
+
+@pytest.mark.parametrize(
+    ("latency", "fragments"),
+    [
+        ("-1.0", ("sensors[0].latency", "must be >= 0")),
+        ("nan", ("sensors[0].latency", "not finite")),
+        ("inf", ("sensors[0].latency", "not finite")),
+        ("{ min = 2.0, max = 1.0 }", ("sensors[0].latency", "min (2 s) > max (1 s)")),
+        ("{ min = 1.0 }", ("sensors[0].latency", "max")),
+        ('"1 s"', ("sensors[0].latency", "expected a number")),
+    ],
+)
+def test_bad_latency_is_one_line(tmp_path, latency, fragments):
+    path = scenario(tmp_path, latencies=(latency, None, None))
+    one_line_error(cli("run", path, "--out-dir", tmp_path / "o"), str(path), *fragments)
+    assert not (tmp_path / "o").exists()
+
+
+def test_unknown_policy_is_one_line(tmp_path):
+    path = scenario(tmp_path, latencies=(1.0, None, None), late="later")
+    one_line_error(cli("run", path, "--out-dir", tmp_path / "o"), "estimate.late", "'later'")
+    good = scenario(tmp_path, latencies=(1.0, None, None), name="good")
+    res = cli("run", good, "--out-dir", tmp_path / "o", "--late", "later")
+    assert res.exit_code == 2 and "--late" in res.output + res.stderr
+
+
+@pytest.mark.parametrize(
+    ("arch", "fragment"),
+    [("FBS", "smoother uses every measurement"), ("MSC", "track-to-track")],
+)
+def test_architectures_without_a_meaning_or_a_plan_for_late_sensors(tmp_path, arch, fragment):
+    path = scenario(tmp_path, latencies=(1.0, None, None), archs=(arch,))
+    one_line_error(cli("run", path, "--out-dir", tmp_path / "o"), str(path), arch, fragment)
+    on_time = scenario(tmp_path, latencies=(1.0, None, None), name="ckf", runs=5)
+    ok("run", on_time, "--out-dir", tmp_path / "c")
+    res = cli("estimate", tmp_path / "c" / "sensors.mcap", "-o", tmp_path / "e.mcap",
+              "--arch", arch)  # fmt: skip
+    one_line_error(res, "--arch", fragment)
+
+
+def test_late_sensors_without_a_prior_are_one_line(tmp_path):
+    path = scenario(tmp_path, latencies=(1.0, None, None))
+    text = path.read_text().replace("[prior]\nmean", "[truth]\ninitial_mean")
+    text = text.replace("\ncov = [[1.0, 0.0]", "\ninitial_cov = [[1.0, 0.0]")
+    path.write_text(text)
+    one_line_error(cli("run", path, "--out-dir", tmp_path / "o"), "prior", "latency window")
