@@ -76,12 +76,12 @@ def kf_update(x, P, zs, Rs):
 
 
 def kf_on(z, used, k, R):
-    """A KF from the prior over instants 0..k using the readings `used[i][j]`; (x_k, P_k)."""
+    """A KF from the prior over instants 0..k using the readings (i, j) in `used`; (x_k, P_k)."""
     x, P = np.array([100.0, -1.0]), np.eye(2)
     for i in range(k + 1):
         if i:
             x, P = F @ x, F @ P @ F.T + Q
-        js = [j for j in range(len(R)) if used(i, j)]
+        js = [j for j in range(len(R)) if (i, j) in used]
         x, P = kf_update(x, P, [z[j][i] for j in js], [R[j] for j in js])
     return x, P
 
@@ -101,7 +101,8 @@ def test_reprocess_is_a_kf_on_exactly_the_arrived_measurements(tmp_path, lats):
         z = [sim.measurements[f"s{j + 1}"][run, :, 0] for j in range(3)]
         for k in range(K + 1):
             for arch, sensors in (("CKF", (0, 1, 2)), ("HKF", (0, 1, 2)), ("SKF:s3", (2,))):
-                x, P = kf_on(z, lambda i, j: j in sensors and i + lags[j] <= k, k, R)
+                arrived = {(i, j) for j in sensors for i in range(k + 1) if i + lags[j] <= k}
+                x, P = kf_on(z, arrived, k, R)
                 e = est[arch]
                 np.testing.assert_allclose(e.mean[run, k], x, rtol=1e-9, atol=1e-9)
                 np.testing.assert_allclose(e.cov[run, k], P, rtol=1e-9, atol=1e-12)
