@@ -44,6 +44,7 @@ __all__ = [
     "LATE_POLICIES",
     "LateModel",
     "arrival_steps",
+    "draw_arrivals",
     "is_late",
     "late_refusal",
     "stacked_system",
@@ -82,13 +83,6 @@ def system_refusal(system: System) -> tuple[str, str] | None:
             "missing: reprocessing late measurements runs the filter on the state stacked "
             "over the latency window, which starts from [prior] (mean, cov)",
         )
-    for j in late:
-        lo, hi = lat[j]
-        if lo != hi:
-            return (
-                f"sensors[{j}].latency",
-                "random delays ({min, max}) are not estimated yet: give a fixed latency",
-            )
     for i, j in system.cross_R:
         if lat[i] != lat[j]:
             return (
@@ -116,6 +110,34 @@ def late_refusal(system: System, locals_kind: str, arch: str) -> str | None:
             "track-to-track architecture are not built yet (CKF, HKF and SKF take them)"
         )
     return None
+
+
+#: The delays' random stream (`core.simulate.chunked`): apart from the truth and readings'.
+DELAY_STREAM = (30,)
+
+
+def draw_arrivals(
+    system: System, times: np.ndarray, seed: int, run_offset: int, runs: int
+) -> np.ndarray | None:
+    """When each measurement of runs [run_offset, +runs) arrives, (runs, K+1, S) seconds: t_i
+    + latency, a delay uniform in [min, max] drawn from the seed where the sensor's latency
+    is a range (runs independent of the caller's blocks); None when every sensor is on time."""
+    if not is_late(system):
+        return None
+    from .simulate import chunked
+
+    lat = np.array([s.timing.latency for s in system.sensors])  # (S, 2)
+    K1 = len(times)
+    out = np.repeat((times[:, None] + lat[None, :, 0])[None], runs, axis=0)
+    rand = lat[:, 1] > lat[:, 0]
+    if rand.any():
+
+        def draw(rng: np.random.Generator, size: int) -> tuple[np.ndarray]:
+            return (rng.random((size, K1, int(rand.sum()))),)
+
+        (u,) = chunked(draw, K1 - 1, seed, run_offset, runs, stream=DELAY_STREAM)
+        out[..., rand] += u * (lat[rand, 1] - lat[rand, 0])
+    return out
 
 
 def arrival_steps(times: np.ndarray, arrival: np.ndarray) -> np.ndarray:
@@ -197,13 +219,17 @@ class LateModel:
     plans of the stacked model wrapped as plans on the measurements as taken.
 
     `arrive` (K+1, S): the instant index at which the measurement sensor j takes at instant
-    i arrives (K+1: never, within the horizon); `lags[j]`: the lags its readings arrive with.
+    i arrives (K+1: never, within the horizon) with fixed latencies; `lags[j]`: the lags its
+    readings may arrive with; `times` the instants (s); `per_run`: the delays differ from run
+    to run (a latency range), so the arrivals come with each block's data (`build`).
     """
 
     system: System
     steps: int
     arrive: np.ndarray
     lags: list[np.ndarray]
+    times: np.ndarray
+    per_run: bool = False
     stacked: System = field(init=False, repr=False)
     #: (m~, 3): for each component of the stacked measurement, its sensor, lag and component
     #: of z (eq. 30)
@@ -224,31 +250,42 @@ class LateModel:
         if not is_late(system):
             return None
         times = np.arange(steps + 1) * system.dt if times is None else np.asarray(times, float)
-        lat = np.array([s.timing.latency[0] for s in system.sensors])
-        arrive = arrival_steps(times, times[:, None] + lat[None, :])
+        lat = np.array([s.timing.latency for s in system.sensors])  # (S, 2)
+        arrive = arrival_steps(times, times[:, None] + lat[None, :, 0])
+        last = arrival_steps(times, times[:, None] + lat[None, :, 1])  # the latest arrival
         K1 = steps + 1
         lags = []
         for j in range(len(system.sensors)):
             got = arrive[:, j] < K1
-            lj = np.unique(arrive[got, j] - np.arange(K1)[got])
-            lags.append(lj if len(lj) else np.zeros(1, dtype=np.intp))
-        return cls(system, steps, arrive, lags)
+            i = np.arange(K1)[got]
+            # every lag between the earliest and the latest arrival (within the horizon)
+            lo, hi = arrive[got, j] - i, np.minimum(last[got, j], K1 - 1) - i
+            lj = np.unique(np.concatenate([np.arange(a, b + 1) for a, b in zip(lo, hi)] or [[0]]))
+            lags.append(lj.astype(np.intp))
+        per_run = bool((lat[:, 0] != lat[:, 1]).any())
+        return cls(system, steps, arrive, lags, times, per_run)
 
     @property
     def window(self) -> int:
         """W: the instants of state the filter keeps beside the current one (its history)."""
         return max(int(lj.max()) for lj in self.lags)
 
-    def stacked_mask(self, present: np.ndarray, filters: list[list[int]]) -> np.ndarray:
+    def stacked_mask(
+        self, present: np.ndarray, filters: list[list[int]], arrive: np.ndarray | None = None
+    ) -> np.ndarray:
         """The presence mask of the stacked measurement, batch + (K+1, m~): the reading of
         slot (j, l) is there at k when sensor j measured that component at k - l, it arrives
-        at k and (neglect) it is not older than the last update of the filter that fuses it
-        (`filters`: the sensors each filter fuses)."""
+        at k (`arrive`, batch + (K+1, S), default the fixed latencies') and (neglect) it is not
+        older than the last update of the filter that fuses it (`filters`: the sensors each
+        filter fuses)."""
         K1 = present.shape[-2]
+        arrive = self.arrive if arrive is None else arrive
+        batch = np.broadcast_shapes(present.shape[:-2], arrive.shape[:-2])
+        present = np.broadcast_to(present, batch + present.shape[-2:])
         took = np.stack(
             [present[..., sl].any(-1) for sl in self.system.sensor_slices], axis=-1
         )  # batch + (K+1, S): the sensor measured at i
-        arrive = np.broadcast_to(self.arrive, took.shape)
+        arrive = np.broadcast_to(arrive, took.shape)
         if self.system.late == "neglect":
             ok = np.zeros_like(took)
             for g in filters:
@@ -264,10 +301,16 @@ class LateModel:
             out[..., k, :] = here & ok
         return out
 
-    def build(self, build, arch: str, present: np.ndarray | None, **kw) -> Plan:
+    def build(
+        self, build, arch: str, present: np.ndarray | None, arrival: np.ndarray | None = None, **kw
+    ) -> Plan:
         """`arch`'s plan on the measurements as taken: `build(system, arch, steps, mask,
         **kw)` (`architectures.build_plan`) compiles it on the stacked model, then its maps
-        are wrapped to keep the last W readings (`wrap`)."""
+        are wrapped to keep the last W readings (`wrap`). `arrival` (runs, K+1, S): when each
+        reading of the block's runs arrived (s), for delays that differ per run: the plan
+        is then per run."""
+        if self.per_run and arrival is None:
+            raise ValueError("random delays: give the arrival times of the block's readings")
         K1 = self.steps + 1
         if present is None:
             present = np.ones((K1, self.system.m), dtype=bool)
@@ -282,7 +325,16 @@ class LateModel:
             filters = [[j] for j in range(S)]
         else:  # one filter (or a centre) fusing every sensor
             filters = [list(range(S))]
-        mask = self.stacked_mask(present, filters)
+        arrive = None if arrival is None else arrival_steps(self.times, arrival)
+        if arrive is not None:  # the readings' own lags must be among the model's
+            for j, lj in enumerate(self.lags):
+                a = arrive[..., j]
+                lag = (a - np.arange(K1))[a < K1]
+                if not np.isin(lag, lj).all():
+                    raise ValueError(
+                        f"sensor {names[j]}: a reading arrives outside its latency range"
+                    )
+        mask = self.stacked_mask(present, filters, arrive)
         inner = build(self.stacked, arch, self.steps, mask, **kw)
         return wrap(inner, self.slots, self.system.m, self.window, self.system.n)
 

@@ -98,7 +98,7 @@ def estimate_block(
         cache.patterns.append(np.packbits(pattern).tobytes())
         results = fast
     else:
-        plans, pattern = cache.block_plans(archs, z)
+        plans, pattern = cache.block_plans(archs, z, run_offset)
         results = {a: run_plan(plan, z) for a, plan in plans.items()}
     block = _reduced(results.items(), pattern, truth, workspace, keep)
     if expected_of is not None:

@@ -82,6 +82,9 @@ class PlanCache:
     #: k dt; `core.latency`)
     clock: np.ndarray | None = field(default=None, repr=False)
     _late: LateModel | None | str = field(default="unset", repr=False)
+    #: when each reading arrived, (runs, K+1, S) s, for delays that differ per run (a
+    #: latency range): the log's runs from run 0 (`block_plans` cuts a block's)
+    arrivals: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def late(self) -> LateModel | None:
@@ -131,11 +134,22 @@ class PlanCache:
         return plan
 
     def block_plans(
-        self, archs: Sequence[str], z: np.ndarray
+        self, archs: Sequence[str], z: np.ndarray, run_offset: int = 0
     ) -> tuple[dict[str, Plan], np.ndarray | None]:
-        """Each architecture's plan for the block z (runs, K+1, m) and its shared pattern (None
-        when the runs differ: plans built per run, on history nodes, which the estimates and
-        the exact analysis both take); the pattern is recorded for `provenance`."""
+        """Each architecture's plan for the block z (runs, K+1, m) of the runs from
+        `run_offset` and its shared pattern (None when the runs differ: plans built per run,
+        on history nodes, which the estimates and the exact analysis both take); the pattern
+        is recorded for `provenance`."""
+        late = self.late
+        if late is not None and late.per_run:  # random delays: each run its own arrivals
+            self.patterns.append(None)
+            if self.arrivals is None:
+                raise ValueError("random delays: the plan cache has no arrival times")
+            arr = self.arrivals[run_offset : run_offset + z.shape[0]]
+            present = ~np.isnan(z)
+            return {
+                a: self._build(a, present, arrival=arr, history_nodes=True) for a in archs
+            }, None
         pattern = shared_pattern(z)
         self.patterns.append(None if pattern is None else np.packbits(pattern).tobytes())
         if pattern is not None:

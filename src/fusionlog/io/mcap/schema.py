@@ -4,7 +4,7 @@ Both live in the proto3 package ``fusionlog`` of the file ``fusionlog/blocks.pro
 
     message Block         { uint32 step = 1; double time = 2; uint32 run_offset = 3;
                             uint32 runs = 4; uint32 dim = 5; repeated double values = 6;
-                            repeated double covariance = 7; }
+                            repeated double covariance = 7; repeated double arrival = 8; }
     message EstimateBlock { uint32 step = 1; double time = 2; uint32 run_offset = 3;
                             uint32 runs = 4; uint32 dim = 5; repeated double mean = 6;
                             repeated double covariance = 7; }
@@ -13,7 +13,8 @@ Both live in the proto3 package ``fusionlog`` of the file ``fusionlog/blocks.pro
 is the same for every run of the message and (runs, n, n) otherwise. A Block's ``covariance``
 is optional: the measurement noise covariance (dim, dim) of a reading whose R varies from
 message to message (a recorded log that carries its own covariances); absent, the sensor's R
-applies. Files written before the field existed decode the same. The field numbers are
+applies. Its optional ``arrival`` is when the readings reached the filters (seconds, one value,
+or one per run when the delays differ: DESIGN.md "Late measurements"); absent, on time. Files written before the field existed decode the same. The field numbers are
 defined here once; the wire codec (:mod:`.wire`) derives its tags from them. The schema is
 embedded in every file as a FileDescriptorSet built at run time (no protoc), so any MCAP +
 protobuf reader decodes the files without fusionlog. Its bytes are encoded here directly (a
@@ -63,11 +64,14 @@ HEADER_FIELDS: tuple[tuple[str, int, int], ...] = (
 
 #: Per kind: (name, field number) of its packed ``repeated double`` payloads, in order.
 PAYLOAD_FIELDS: dict[str, tuple[tuple[str, int], ...]] = {
-    VALUES: (("values", 6), ("covariance", 7)),
+    VALUES: (("values", 6), ("covariance", 7), ("arrival", 8)),
     ESTIMATE: (("mean", 6), ("covariance", 7)),
 }
-#: The payloads a schema of the kind may lack (older Blocks have no covariance).
-OPTIONAL_PAYLOADS: dict[str, tuple[str, ...]] = {VALUES: ("covariance",), ESTIMATE: ()}
+#: The payloads a schema of the kind may lack (older Blocks have no covariance or arrival).
+OPTIONAL_PAYLOADS: dict[str, tuple[str, ...]] = {
+    VALUES: ("covariance", "arrival"),
+    ESTIMATE: (),
+}
 
 _MESSAGES = ((SENSOR_SCHEMA, VALUES), (ESTIMATE_SCHEMA, ESTIMATE))
 

@@ -29,6 +29,7 @@ from mcap.reader import SeekingReader
 
 from fusionlog.errors import OutputError
 
+from .arrival import arrival_field
 from .bookkeeping import FirstTimes, StepSet
 from .chunks import one_line
 from .layout import LAYOUT_META, Layout
@@ -356,6 +357,7 @@ class McapWriter:
         dim: int,
         p1: bytes | memoryview,
         p2: bytes | memoryview,
+        p3: bytes = b"",
     ) -> None:
         # The hot path: a few dict/set operations and one bytes join per message; everything
         # that only changes per step, per topic or per block is cached.
@@ -379,7 +381,7 @@ class McapWriter:
             first.add(step)
         if st.mid_key != (run_offset, runs, len(p2)):
             st.set_mid(run_offset, runs, len(p2))
-        st.log(b"".join((self._head, st.mid, p1, st.mid2, p2)), self._t_ns)
+        st.log(b"".join((self._head, st.mid, p1, st.mid2, p2, p3)), self._t_ns)
         self._messages += 1
         if self._sink.alert:  # a write failed or a signal came during this message
             self._fail()
@@ -392,9 +394,11 @@ class McapWriter:
         run_offset: int,
         values: np.ndarray,
         covariance: np.ndarray | None = None,
+        arrival: np.ndarray | float | None = None,
     ) -> None:
         """Write one ``fusionlog.Block``: ``values`` (runs, dim) at ``step`` for a block of runs,
-        with the optional per-message measurement ``covariance`` (runs, dim, dim)."""
+        with the optional per-message measurement ``covariance`` (runs, dim, dim) and the
+        optional ``arrival`` time of the readings (s; one value, or (runs,))."""
         if type(values) is not np.ndarray or values.dtype != _F8:
             values = np.asarray(values, dtype=_F8)
         shape = values.shape
@@ -406,8 +410,15 @@ class McapWriter:
             if c.shape != (shape[0], shape[1], shape[1]):
                 raise ValueError(f"covariance must have shape {(shape[0], shape[1], shape[1])}")
             p2 = c.tobytes()
+        p3 = b""
+        if arrival is not None:
+            if np.size(arrival) not in (1, shape[0]):
+                raise ValueError(f"arrival must have one value or {shape[0]}")
+            p3 = arrival_field(arrival)
         # tobytes() is C order whatever the strides, so no ascontiguousarray copy is needed.
-        self._write(topic, VALUES, step, time, run_offset, shape[0], shape[1], values.tobytes(), p2)
+        self._write(
+            topic, VALUES, step, time, run_offset, shape[0], shape[1], values.tobytes(), p2, p3
+        )
 
     def write_estimate(
         self,

@@ -49,6 +49,8 @@ class SensorLog:
     #: a replay's truth: {"states": [names], "matched": N, "unmatched": N} (instants with and
     #: without a truth sample); its states may be some of the state's (partial truth)
     truth: dict[str, Any] | None = None
+    #: when each reading arrived, (runs, K+1, S) s, where the delays differ per run
+    arrivals: np.ndarray | None = None
 
 
 class StateEvaluator(Evaluator):
@@ -87,6 +89,7 @@ class StateEvaluator(Evaluator):
         self.has_truth = log.has_truth
         recorded = sc.replay is not None
         plans = PlanCache(filter_sys, self.K, kept=kept, clock=self.times)
+        plans.arrivals = log.arrivals
         #: the policy for late measurements where some sensor is late (summary.json "late")
         self.late = filter_sys.late if is_late(filter_sys) else None
         known = [a for a in self.archs if known_arch(a, filter_sys)]
