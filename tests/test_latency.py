@@ -108,10 +108,11 @@ def test_reprocess_is_a_kf_on_exactly_the_arrived_measurements(tmp_path, lats):
                 np.testing.assert_allclose(e.cov[run, k], P, rtol=1e-9, atol=1e-12)
 
 
-def neglect_filter(z, lags, sensors, K, R):
-    """Event-driven: arrivals in (arrival, time, sensor) order; a reading older than the newest
-    time taken is dropped; the estimate at each output instant is the filter predicted there."""
-    events = sorted((i + lags[j], i, j) for j in sensors for i in range(K + 1))
+def neglect_filter(z, arrive, sensors, K, R):
+    """Event-driven: arrivals in (arrival, time, sensor) order (`arrive[i, j]`: the instant
+    the reading of sensor j taken at i arrives by); a reading older than the newest time taken
+    is dropped; the estimate at each output instant is the filter predicted there."""
+    events = sorted((arrive[i, j], i, j) for j in sensors for i in range(K + 1))
     x, P, t = np.array([100.0, -1.0]), np.eye(2), 0
     out = []
     e = 0
@@ -142,8 +143,9 @@ def test_neglect_is_the_kf_on_what_arrives_in_time_order(tmp_path, lats):
     K = len(sim.times) - 1
     for run in range(3):
         z = [sim.measurements[f"s{j + 1}"][run, :, 0] for j in range(3)]
+        arrive = {(i, j): i + lags[j] for i in range(K + 1) for j in range(3)}
         for arch, sensors in (("CKF", (0, 1, 2)), ("HKF", (0, 1, 2)), ("SKF:s3", (2,))):
-            ref = neglect_filter(z, lags, sensors, K, R)
+            ref = neglect_filter(z, arrive, sensors, K, R)
             for k, (x, P) in enumerate(ref):
                 np.testing.assert_allclose(est[arch].mean[run, k], x, rtol=1e-9, atol=1e-9)
                 np.testing.assert_allclose(est[arch].cov[run, k], P, rtol=1e-9, atol=1e-12)
@@ -252,3 +254,128 @@ def test_late_sensors_without_a_prior_are_one_line(tmp_path):
     text = text.replace("\ncov = [[1.0, 0.0]", "\ninitial_cov = [[1.0, 0.0]")
     path.write_text(text)
     one_line_error(cli("run", path, "--out-dir", tmp_path / "o"), "prior", "latency window")
+
+
+# ---- random delays: drawn per reading, written as the sensors' arrival field ----------------
+
+
+def decoded(path, topic):
+    """(step, values, arrival) of a topic's messages, read with the plain mcap reader and the
+    protobuf decoder of mcap-protobuf-support (no fusionlog code)."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    out = []
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _, _, _, msg in reader.iter_decoded_messages(topics=[topic]):
+            out.append((msg.step, msg.time, msg.run_offset, list(msg.values), list(msg.arrival)))
+    return out
+
+
+def test_the_arrival_field_of_the_sensors_file(tmp_path):
+    lats = ("{ min = 0.5, max = 2.5 }", 1.5, None)
+    path = scenario(tmp_path, latencies=lats, runs=7, steps=5)
+    ok("simulate", path, "-o", tmp_path / "a.mcap")
+    ok("simulate", path, "-o", tmp_path / "b.mcap", "--block-runs", "2")
+    plain = scenario(tmp_path, latencies=(None, None, None), runs=7, steps=5, name="plain")
+    ok("simulate", plain, "-o", tmp_path / "p.mcap")
+    for j, topic in enumerate(("/sensors/s1", "/sensors/s2", "/sensors/s3")):
+        a = decoded(tmp_path / "a.mcap", topic)
+        b = decoded(tmp_path / "b.mcap", topic)
+        p = decoded(tmp_path / "p.mcap", topic)
+        # the readings are those of the scenario without latency: the delays have their own
+        # random stream
+        assert [m[3] for m in a] == [m[3] for m in p]
+        arrival_a = {m[0]: np.array(m[4]) for m in a}
+        arrival_b = {}
+        for step, _, off, _, arr in b:  # blocks of two runs: the same delays
+            arrival_b.setdefault(step, []).extend(arr)
+        for step, t, _, _, arr in a:
+            arr = np.array(arr)
+            if j == 0:  # one value per run, uniform in [t + 0.5, t + 2.5]
+                assert len(arr) == 7 and len(set(arr)) == 7
+                assert ((arr >= t + 0.5) & (arr <= t + 2.5)).all()
+                np.testing.assert_array_equal(arrival_b[step], arrival_a[step])
+            elif j == 1:  # fixed: one value for every run
+                assert arr.tolist() == [t + 1.5]
+            else:  # on time: no field
+                assert arr.size == 0
+
+
+def arrived_by(sim, k):
+    """Which readings (i, j) of each run have arrived by instant k: arrival <= t_k (in whole
+    nanoseconds, as log times are)."""
+    tk = round(sim.times[k] * 1e9)
+    names = list(sim.measurements)
+    out = []
+    for run in range(sim.runs):
+        got = set()
+        for j, name in enumerate(names):
+            arr = sim.arrival.get(name)
+            for i in range(k + 1):
+                a = sim.times[i] if arr is None else arr[run, i]
+                if round(a * 1e9) <= tk:
+                    got.add((i, j))
+        out.append(got)
+    return out
+
+
+RANDOM = ("{ min = 0.2, max = 2.6 }", None, "{ min = 1.0, max = 3.0 }")
+
+
+def test_random_delays_reprocess_is_a_kf_on_exactly_the_arrived_measurements(tmp_path):
+    R = (1.0, 1.0, 0.5)
+    path = scenario(tmp_path, latencies=RANDOM, runs=4)
+    sim = fl.simulate(path)
+    est = fl.estimate(path, sim, ["CKF", "HKF"])
+    for k in range(len(sim.times)):
+        for run, got in enumerate(arrived_by(sim, k)):
+            z = [sim.measurements[f"s{j + 1}"][run, :, 0] for j in range(3)]
+            x, P = kf_on(z, got, k, R)
+            for a in ("CKF", "HKF"):
+                np.testing.assert_allclose(est[a].mean[run, k], x, rtol=1e-9, atol=1e-9)
+                np.testing.assert_allclose(est[a].cov[run, k], P, rtol=1e-9, atol=1e-12)
+
+
+def test_random_delays_neglect_is_the_event_driven_filter(tmp_path):
+    R = (1.0, 1.0, 0.5)
+    path = scenario(tmp_path, latencies=RANDOM, runs=4, late="neglect")
+    sim = fl.simulate(path)
+    est = fl.estimate(path, sim, ["CKF", "SKF:s3"])
+    K = len(sim.times) - 1
+    tk = np.round(sim.times * 1e9)
+    for run in range(4):
+        z = [sim.measurements[f"s{j + 1}"][run, :, 0] for j in range(3)]
+        arrive = {}  # the first instant t_k >= arrival, per reading
+        for j, name in enumerate(("s1", "s2", "s3")):
+            arr = sim.arrival.get(name)
+            for i in range(K + 1):
+                a = tk[i] if arr is None else round(arr[run, i] * 1e9)
+                arrive[i, j] = int(np.searchsorted(tk, a))
+        for arch, sensors in (("CKF", (0, 1, 2)), ("SKF:s3", (2,))):
+            ref = neglect_filter(z, arrive, sensors, K, R)
+            for k, (x, P) in enumerate(ref):
+                np.testing.assert_allclose(est[arch].mean[run, k], x, rtol=1e-9, atol=1e-9)
+                np.testing.assert_allclose(est[arch].cov[run, k], P, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("late", ["reprocess", "neglect"])
+def test_random_delays_exact_given_the_delays_equals_monte_carlo(tmp_path, late):
+    path = scenario(tmp_path, latencies=RANDOM, late=late, runs=2000, steps=8)
+    ok("run", path, "--out-dir", tmp_path / "o")
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["late"] == late
+    for a, s in summary["architectures"].items():
+        assert s["expected"]["conditional"] is True
+        for key in ("mse", "anees"):
+            gap = abs(s[key] - s["expected"][key])
+            assert gap <= 4 * s["stderr"][key], (a, key, s[key], s["expected"][key])
+    # the same numbers on workers (the delays drawn by block, the sample runs' here)
+    ok("run", path, "--out-dir", tmp_path / "w", "--workers", "0")
+    other = json.loads((tmp_path / "w" / "summary.json").read_text())
+    for a, s in summary["architectures"].items():
+        assert other["architectures"][a]["mse"] == pytest.approx(s["mse"], rel=1e-9)
+        assert other["architectures"][a]["expected"]["mse"] == pytest.approx(
+            s["expected"]["mse"], rel=1e-9
+        )

@@ -46,6 +46,7 @@ __all__ = [
     "arrival_steps",
     "draw_arrivals",
     "is_late",
+    "random_delays",
     "late_refusal",
     "stacked_system",
     "system_refusal",
@@ -61,6 +62,12 @@ BUILT_POLICIES = ("reprocess", "neglect")
 def is_late(system: System) -> bool:
     """Whether some sensor's measurements arrive after they are taken."""
     return any(s.timing.late for s in system.sensors)
+
+
+def random_delays(system: System) -> bool:
+    """Whether some sensor's delays are drawn per measurement (a latency range): the runs then
+    differ in what arrives when, like dropouts in what is measured."""
+    return any(s.timing.latency[0] != s.timing.latency[1] for s in system.sensors)
 
 
 def system_refusal(system: System) -> tuple[str, str] | None:
@@ -260,10 +267,10 @@ class LateModel:
             i = np.arange(K1)[got]
             # every lag between the earliest and the latest arrival (within the horizon)
             lo, hi = arrive[got, j] - i, np.minimum(last[got, j], K1 - 1) - i
-            lj = np.unique(np.concatenate([np.arange(a, b + 1) for a, b in zip(lo, hi)] or [[0]]))
+            spans = [np.arange(a, b + 1) for a, b in zip(lo, hi, strict=True)]
+            lj = np.unique(np.concatenate(spans or [np.zeros(1, np.intp)]))
             lags.append(lj.astype(np.intp))
-        per_run = bool((lat[:, 0] != lat[:, 1]).any())
-        return cls(system, steps, arrive, lags, times, per_run)
+        return cls(system, steps, arrive, lags, times, random_delays(system))
 
     @property
     def window(self) -> int:

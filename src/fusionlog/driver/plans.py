@@ -134,18 +134,23 @@ class PlanCache:
         return plan
 
     def block_plans(
-        self, archs: Sequence[str], z: np.ndarray, run_offset: int = 0
+        self,
+        archs: Sequence[str],
+        z: np.ndarray,
+        run_offset: int = 0,
+        arrivals: np.ndarray | None = None,
     ) -> tuple[dict[str, Plan], np.ndarray | None]:
         """Each architecture's plan for the block z (runs, K+1, m) of the runs from
         `run_offset` and its shared pattern (None when the runs differ: plans built per run,
         on history nodes, which the estimates and the exact analysis both take); the pattern
-        is recorded for `provenance`."""
+        is recorded for `provenance`. `arrivals` (runs, K+1, S): when the block's readings
+        arrived (default: `arrivals` of the runs from `run_offset`), where delays differ."""
         late = self.late
         if late is not None and late.per_run:  # random delays: each run its own arrivals
             self.patterns.append(None)
-            if self.arrivals is None:
-                raise ValueError("random delays: the plan cache has no arrival times")
-            arr = self.arrivals[run_offset : run_offset + z.shape[0]]
+            arr = arrivals
+            if arr is None and self.arrivals is not None:
+                arr = self.arrivals[run_offset : run_offset + z.shape[0]]
             present = ~np.isnan(z)
             return {
                 a: self._build(a, present, arrival=arr, history_nodes=True) for a in archs

@@ -14,7 +14,8 @@ is the same for every run of the message and (runs, n, n) otherwise. A Block's `
 is optional: the measurement noise covariance (dim, dim) of a reading whose R varies from
 message to message (a recorded log that carries its own covariances); absent, the sensor's R
 applies. Its optional ``arrival`` is when the readings reached the filters (seconds, one value,
-or one per run when the delays differ: DESIGN.md "Late measurements"); absent, on time. Files written before the field existed decode the same. The field numbers are
+or one per run when the delays differ: DESIGN.md "Late measurements"); absent, on time.
+Files written before the fields existed decode the same. The field numbers are
 defined here once; the wire codec (:mod:`.wire`) derives its tags from them. The schema is
 embedded in every file as a FileDescriptorSet built at run time (no protoc), so any MCAP +
 protobuf reader decodes the files without fusionlog. Its bytes are encoded here directly (a
