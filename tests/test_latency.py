@@ -289,7 +289,7 @@ def test_the_arrival_field_of_the_sensors_file(tmp_path):
         assert [m[3] for m in a] == [m[3] for m in p]
         arrival_a = {m[0]: np.array(m[4]) for m in a}
         arrival_b = {}
-        for step, _, off, _, arr in b:  # blocks of two runs: the same delays
+        for step, _, _, _, arr in b:  # blocks of two runs: the same delays
             arrival_b.setdefault(step, []).extend(arr)
         for step, t, _, _, arr in a:
             arr = np.array(arr)
