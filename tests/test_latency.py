@@ -236,7 +236,7 @@ def test_unknown_policy_is_one_line(tmp_path):
 
 @pytest.mark.parametrize(
     ("arch", "fragment"),
-    [("FBS", "smoother uses every measurement"), ("MSC", "track-to-track")],
+    [("FBS", "smoother uses every measurement")],
 )
 def test_architectures_without_a_meaning_or_a_plan_for_late_sensors(tmp_path, arch, fragment):
     path = scenario(tmp_path, latencies=(1.0, None, None), archs=(arch,))
@@ -379,3 +379,60 @@ def test_random_delays_exact_given_the_delays_equals_monte_carlo(tmp_path, late)
         assert other["architectures"][a]["expected"]["mse"] == pytest.approx(
             s["expected"]["mse"], rel=1e-9
         )
+
+
+# ---- track-to-track: each local filter takes its own sensor's late readings ------------------
+
+T2T = ("MSC", "MSC-GMF", "CI", "AVG", "ICI")
+
+
+def millman(locals_):
+    """Millman's formula assuming independent local errors (eqs. 32-34)."""
+    info = sum(np.linalg.inv(P) for _, P in locals_)
+    P = np.linalg.inv(info)
+    return P @ sum(np.linalg.solve(Pj, xj) for xj, Pj in locals_), P
+
+
+@pytest.mark.parametrize("late", ["reprocess", "neglect"])
+def test_msc_fuses_local_filters_each_on_its_own_arrived_readings(tmp_path, late):
+    """Random delays (readings of one sensor overtake each other): local j is the reference of
+    the policy on sensor j alone; MSC is Millman's formula of the locals at each instant."""
+    R = (1.0, 1.0, 0.5)
+    path = scenario(tmp_path, latencies=RANDOM, runs=3, late=late, archs=("MSC",))
+    sim = fl.simulate(path)
+    est = fl.estimate(path, sim, ["MSC"])["MSC"]
+    K = len(sim.times) - 1
+    tk = np.round(sim.times * 1e9)
+    for run in range(3):
+        z = [sim.measurements[f"s{j + 1}"][run, :, 0] for j in range(3)]
+        arrive = {}
+        for j, name in enumerate(("s1", "s2", "s3")):
+            arr = sim.arrival.get(name)
+            for i in range(K + 1):
+                a = tk[i] if arr is None else round(arr[run, i] * 1e9)
+                arrive[i, j] = int(np.searchsorted(tk, a))
+        if late == "neglect":
+            locals_ = [neglect_filter(z, arrive, (j,), K, R) for j in range(3)]
+        else:
+            locals_ = [
+                [kf_on(z, {(i, j) for i in range(k + 1) if arrive[i, j] <= k}, k, R)
+                 for k in range(K + 1)]
+                for j in range(3)
+            ]  # fmt: skip
+        for k in range(K + 1):
+            x, P = millman([loc[k] for loc in locals_])
+            np.testing.assert_allclose(est.mean[run, k], x, rtol=1e-9, atol=1e-9)
+            np.testing.assert_allclose(est.cov[run, k], P, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("late", ["reprocess", "neglect"])
+@pytest.mark.parametrize("lats", [(1.0, None, 2.5), RANDOM])
+def test_track_to_track_exact_equals_monte_carlo(tmp_path, late, lats):
+    path = scenario(tmp_path, latencies=lats, late=late, archs=T2T, runs=2000, steps=8)
+    sim = fl.simulate(path)
+    summary = fl.evaluate(path, sim, fl.estimate(path, sim)).summary
+    assert set(summary["architectures"]) == set(T2T)
+    for a, s in summary["architectures"].items():
+        for key in ("mse", "anees"):
+            gap = abs(s[key] - s["expected"][key])
+            assert gap <= 4 * s["stderr"][key], (a, key, s[key], s["expected"][key])
