@@ -436,3 +436,170 @@ def test_track_to_track_exact_equals_monte_carlo(tmp_path, late, lats):
         for key in ("mse", "anees"):
             gap = abs(s[key] - s["expected"][key])
             assert gap <= 4 * s["stderr"][key], (a, key, s[key], s["expected"][key])
+
+
+# ---- retrodiction: Bar-Shalom's Algorithm A (2002) and Al1 (Bar-Shalom, Chen, Mallick 2004) --
+
+
+def transition(a, b):
+    """F and Q from instant a to b (dt = 1)."""
+    Fab, Qab = np.eye(2), np.zeros((2, 2))
+    for _ in range(b - a):
+        Fab, Qab = F @ Fab, F @ Qab @ F.T + Q
+    return Fab, Qab
+
+
+def algorithm_a(z, arrive, K, R):
+    """Bar-Shalom 2002, Algorithm A, event-driven: each OOSM lags the filter by one update (the
+    asserted case); x(d|k), P(d|k) retrodicted through the last update's H, S, innovation."""
+    events = sorted((arrive[i, j], i, j) for j in range(len(R)) for i in range(K + 1))
+    x, P, t = np.array([100.0, -1.0]), np.eye(2), 0
+    last = None  # (time before the last update, its predicted P, H, S, innovation)
+    prev = 0
+    out, e = [], 0
+    for k in range(K + 1):
+        while e < len(events) and events[e][0] == k:
+            _, i, j = events[e]
+            e += 1
+            h, r = H, R[j]
+            if i >= t:
+                Fi, Qi = transition(t, i)
+                if i > t:
+                    prev = t
+                x, Pp = Fi @ x, Fi @ P @ Fi.T + Qi
+                t = i
+                S = (h @ Pp @ h.T)[0, 0] + r
+                nu = z[j][i] - (h @ x)[0]
+                K_ = Pp @ h.T / S
+                x = x + K_[:, 0] * nu
+                IKH = np.eye(2) - K_ @ h
+                P = IKH @ Pp @ IKH.T + r * K_ @ K_.T
+                last = (Pp, S, nu)
+                continue
+            assert prev <= i < t, "Algorithm A: a lag of one update"
+            Pp, S, nu = last
+            Fkd, Qkd = transition(i, t)
+            Fdk = np.linalg.inv(Fkd)
+            HSH = h.T @ h / S
+            xd = Fdk @ (x - Qkd @ h.T[:, 0] * nu / S)
+            Pxv = Qkd - Pp @ HSH @ Qkd
+            Pvv = Qkd - Qkd @ HSH @ Qkd
+            Pd = Fdk @ (P + Pvv - Pxv - Pxv.T) @ Fdk.T
+            Sd = (h @ Pd @ h.T)[0, 0] + r
+            Pxz = (P - Pxv) @ Fdk.T @ h.T
+            x = x + Pxz[:, 0] / Sd * (z[j][i] - (h @ xd)[0])
+            P = P - Pxz @ Pxz.T / Sd
+        Fo, Qo = transition(t, k)
+        out.append((Fo @ x, Fo @ P @ Fo.T + Qo))
+    return out
+
+
+def test_retrodict_with_a_one_update_lag_is_algorithm_a_and_exact(tmp_path):
+    """s2 two instants late behind s1 on time: each of its readings lags the filter by one
+    update; Algorithm A is then the exact solution, so retrodict = reprocess too."""
+    R = (1.0, 0.5)
+    est = {}
+    for late in ("retrodict", "reprocess"):
+        path = scenario(tmp_path, latencies=(None, 2.0), R=R, late=late, archs=("CKF",),
+                        runs=3, name=late)  # fmt: skip
+        sim = fl.simulate(path)
+        est[late] = fl.estimate(path, sim, ["CKF"])["CKF"]
+    K = len(sim.times) - 1
+    for run in range(3):
+        z = [sim.measurements[f"s{j + 1}"][run, :, 0] for j in range(2)]
+        arrive = {(i, j): i + (0, 2)[j] for i in range(K + 1) for j in range(2)}
+        for k, (x, P) in enumerate(algorithm_a(z, arrive, K, R)):
+            for late in ("retrodict", "reprocess"):
+                np.testing.assert_allclose(est[late].mean[run, k], x, rtol=1e-9, atol=1e-9)
+                np.testing.assert_allclose(est[late].cov[run, k], P, rtol=1e-9, atol=1e-12)
+
+
+def al1(z, arrive, K, R, W):
+    """Bar-Shalom, Chen, Mallick 2004, Al1, event-driven: the updates since the newest stored
+    estimate at or before the OOSM's time as one equivalent measurement of the current state
+    (H* = I); the estimates stored as they were when the filter left their instant."""
+    groups = {}  # the readings of one instant arriving together: one (vector) measurement
+    for j in range(len(R)):
+        for i in range(K + 1):
+            groups.setdefault((arrive[i, j], i), []).append(j)
+    x, P, t = np.array([100.0, -1.0]), np.eye(2), 0
+    stored = {0: (x, P)}
+    out = []
+    for k in range(K + 1):
+        for i in sorted(i for a, i in groups if a == k):
+            js = groups[k, i]
+            if i >= t:
+                Fi, Qi = transition(t, i)
+                x, P, t = Fi @ x, Fi @ P @ Fi.T + Qi, i
+                x, P = kf_update(x, P, [z[j][i] for j in js], [R[j] for j in js])
+            else:
+                a = max(s for s in stored if s <= i)
+                xa, Pa = stored[a]
+                Fa, Qa = transition(a, t)
+                Pp = Fa @ Pa @ Fa.T + Qa
+                Ppi = np.linalg.inv(Pp)
+                A = Ppi @ (Pp - P) @ Ppi
+                g = Ppi @ (x - Fa @ xa)
+                Fkd, Qkd = transition(i, t)
+                Fdk = np.linalg.inv(Fkd)
+                xd = Fdk @ (x - Qkd @ g)
+                Pxv = Qkd - Pp @ A @ Qkd
+                Pvv = Qkd - Qkd @ A @ Qkd
+                Pd = Fdk @ (P + Pvv - Pxv - Pxv.T) @ Fdk.T
+                Hd = np.vstack([H] * len(js))
+                Sd = Hd @ Pd @ Hd.T + np.diag([R[j] for j in js])
+                Pxz = (P - Pxv) @ Fdk.T @ Hd.T
+                Wd = Pxz @ np.linalg.inv(Sd)
+                x = x + Wd @ (np.array([z[j][i] for j in js]) - Hd @ xd)
+                P = P - Wd @ Pxz.T
+            stored[t] = (x, P)
+        Fo, Qo = transition(t, k)
+        out.append((Fo @ x, Fo @ P @ Fo.T + Qo))
+    return out
+
+
+@pytest.mark.parametrize("lats", [(None, 3.0), (None, 4.0, 1.0), RANDOM])
+def test_retrodict_over_several_updates_is_al1(tmp_path, lats):
+    R = (1.0, 0.5, 0.5)[: len(lats)]
+    path = scenario(tmp_path, latencies=lats, R=R, late="retrodict", archs=("CKF",), runs=3)
+    sim = fl.simulate(path)
+    est = fl.estimate(path, sim, ["CKF"])["CKF"]
+    K = len(sim.times) - 1
+    tk = np.round(sim.times * 1e9)
+    for run in range(3):
+        z = [sim.measurements[f"s{j + 1}"][run, :, 0] for j in range(len(R))]
+        arrive = {}
+        for j in range(len(R)):
+            arr = sim.arrival.get(f"s{j + 1}")
+            for i in range(K + 1):
+                a = tk[i] if arr is None else round(arr[run, i] * 1e9)
+                arrive[i, j] = int(np.searchsorted(tk, a))
+        for k, (x, P) in enumerate(al1(z, arrive, K, R, 4)):
+            np.testing.assert_allclose(est.mean[run, k], x, rtol=1e-9, atol=1e-9)
+            np.testing.assert_allclose(est.cov[run, k], P, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("lats", [(None, 3.0, 1.0), RANDOM])
+def test_retrodict_exact_equals_monte_carlo_and_loses_to_reprocessing(tmp_path, lats):
+    expected = {}
+    for late in ("retrodict", "reprocess"):
+        path = scenario(tmp_path, latencies=lats, late=late, archs=("CKF", "SKF:s3"),
+                        runs=2000, steps=8, name=late)  # fmt: skip
+        sim = fl.simulate(path)
+        summary = fl.evaluate(path, sim, fl.estimate(path, sim)).summary
+        for a, s in summary["architectures"].items():
+            for key in ("mse", "anees"):
+                gap = abs(s[key] - s["expected"][key])
+                assert gap <= 4 * s["stderr"][key], (late, a, key, s[key], s["expected"][key])
+        expected[late] = summary["architectures"]["CKF"]["expected"]["mse"]
+    # reprocessing is optimal: retrodiction's approximation over several updates costs
+    assert expected["retrodict"] > expected["reprocess"] * (1 + 1e-6)
+
+
+def test_retrodict_has_no_plan_for_hierarchical_or_track_to_track_filters(tmp_path):
+    path = scenario(tmp_path, latencies=(1.0, None, 2.0), late="retrodict", archs=("MSC",))
+    one_line_error(cli("run", path, "--out-dir", tmp_path / "o"), "MSC", "retrodiction")
+    ok_path = scenario(tmp_path, latencies=(1.0, None, 2.0), archs=("CKF", "HKF"), runs=5,
+                       name="ok")  # fmt: skip
+    res = cli("run", ok_path, "--out-dir", tmp_path / "o", "--late", "retrodict")
+    one_line_error(res, "--late retrodict", "HKF")

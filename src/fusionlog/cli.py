@@ -109,9 +109,7 @@ def main(debug: bool) -> None:
     architectures, and evaluate the estimates into Rerun recordings."""
 
 
-def _scenario(
-    path: Path, runs: int | None, steps: int | None, seed: int | None, align=None, late=None
-):
+def _scenario(path: Path, runs, steps, seed, align=None, late=None, archs=()):
     """The scenario, of whichever kind the file is (decided once, by the loader); `align`:
     ``--align`` (overrides ``[evaluate] align``), `late`: ``--late`` ([estimate] late)."""
     from fusionlog.scenario import load_scenario
@@ -119,7 +117,7 @@ def _scenario(
     from fusionlog.stages.state_kind import scenario_with_late
 
     sc = with_align(load_scenario(path, runs=runs, steps=steps, seed=seed), align)
-    return scenario_with_late(sc, late)
+    return scenario_with_late(sc, late, archs)
 
 
 def _warn_stale(targets: list[Path]) -> None:
@@ -294,7 +292,7 @@ def run(scenario, out_dir, runs, steps, seed, archs, filter_name, late, align, f
     from fusionlog.stages.kinds import kind_of
     from fusionlog.stages.run import RUN_OUTPUTS, run_pipeline
 
-    sc = _scenario(scenario, runs, steps, seed, align, late)
+    sc = _scenario(scenario, runs, steps, seed, align, late, archs)
     archs = kind_of(sc.kind).check_architectures(list(archs), sc.system, "--arch")
     d = out_dir if out_dir is not None else Path("recordings") / sc.name
     _warn_stale([d / k for k in RUN_OUTPUTS])
@@ -323,7 +321,7 @@ def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, 
     from fusionlog.report import format_table, headline
     from fusionlog.stages.distributed_run import DISTRIBUTED_OUTPUTS, run_distributed
 
-    sc = _scenario(scenario, runs, steps, seed, align, late)
+    sc = _scenario(scenario, runs, steps, seed, align, late, archs)
     d = out_dir if out_dir is not None else Path("recordings") / sc.name
     _warn_stale([d / name for name in DISTRIBUTED_OUTPUTS])
     res = run_distributed(

@@ -54,8 +54,8 @@ __all__ = [
 #: [estimate] late: the first is the default.
 LATE_POLICIES = ("reprocess", "retrodict", "neglect")
 
-#: Policies whose plans exist (retrodiction is Bar-Shalom's Algorithm A / Al1, not built yet).
-BUILT_POLICIES = ("reprocess", "neglect")
+#: Policies whose plans exist.
+BUILT_POLICIES = ("reprocess", "neglect", "retrodict")
 
 
 def is_late(system: System) -> bool:
@@ -89,6 +89,13 @@ def system_refusal(system: System) -> tuple[str, str] | None:
             "missing: reprocessing late measurements runs the filter on the state stacked "
             "over the latency window, which starts from [prior] (mean, cov)",
         )
+    if system.late == "retrodict":
+        Fs = [system.F] if system.Fs is None else list(system.Fs)
+        if not all(abs(np.linalg.det(F)) >= 1e-300 for F in Fs):
+            return (
+                "estimate.late",
+                "retrodict predicts backwards through F^-1, and F is singular",
+            )
     for i, j in system.cross_R:
         if lat[i] != lat[j]:
             return (
@@ -109,6 +116,11 @@ def late_refusal(system: System, locals_kind: str, arch: str) -> str | None:
         return (
             f"architecture {arch}: a fixed-interval smoother uses every measurement of the run "
             "whenever it arrives: a latency has no meaning there"
+        )
+    if system.late == "retrodict" and locals_kind not in ("centralised", "single"):
+        return (
+            f"architecture {arch}: retrodiction (Bar-Shalom's Al1) is built for one filter "
+            "(CKF, SKF); with hierarchical or track-to-track filters use reprocess or neglect"
         )
     return None
 
@@ -272,6 +284,12 @@ class LateModel:
                     raise ValueError(
                         f"sensor {names[j]}: a reading arrives outside its latency range"
                     )
+        if self.system.late == "retrodict":
+            from .retrodict import retrodict_plan
+
+            arr = self.arrive if arrive is None else arrive
+            plan = retrodict_plan(self.system, arch, present, arr, filters[0], self.window)
+            return plan
         mask = self.stacked_mask(present, filters, arrive)
         if locals_kind == "per-sensor":  # the rule on the locals' current blocks
             criterion = kw.get("criterion", "trace")

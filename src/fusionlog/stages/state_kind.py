@@ -81,9 +81,14 @@ def with_late(system: Any, late: str | None, where: str = "--late") -> Any:
     return system
 
 
-def scenario_with_late(sc: Scenario, late: str | None) -> Scenario:
-    """The scenario with ``--late`` applied to its system (`with_late`)."""
-    return sc if late is None else dataclasses.replace(sc, system=with_late(sc.system, late))
+def scenario_with_late(sc: Scenario, late: str | None, archs: Sequence[str] = ()) -> Scenario:
+    """The scenario with ``--late`` applied to its system (`with_late`), the architectures
+    that will run (`archs`, else the scenario's) checked against it."""
+    if late is None:
+        return sc
+    system = with_late(sc.system, late)
+    check_architectures(list(archs) or sc.architectures, system, f"--late {late}")
+    return dataclasses.replace(sc, system=system)
 
 
 def step_writers(
