@@ -50,6 +50,8 @@ def simulate_to(
     per_step = [np.flatnonzero(measures[k]).tolist() for k in range(K + 1)]
     w.add_metadata(SCENARIO_META, scenario_metadata(scenario, kind.system_fields(scenario)))
     w.add_metadata(PROVENANCE_META, provenance(command, scenario.seed))
+    if kind.arrivals(scenario, 0, 1) is not None:  # late sensors: the schema says arrival
+        w.declare_arrival()
     messages = 0
     offsets = range(0, M, B)
     for off in progress(offsets, len(offsets), "simulate"):

@@ -77,10 +77,18 @@ OPTIONAL_PAYLOADS: dict[str, tuple[str, ...]] = {
 _MESSAGES = ((SENSOR_SCHEMA, VALUES), (ESTIMATE_SCHEMA, ESTIMATE))
 
 
-def message_fields(kind: str) -> list[tuple[str, int, int, int]]:
-    """(name, number, type, label) of the fields of the message of a kind, in number order."""
+#: The payload only the sensors files of late sensors declare (their schema says ``arrival``;
+#: every other file's schema is as it was before the field existed, byte for byte).
+LATE_ONLY = "arrival"
+
+
+def message_fields(kind: str, arrival: bool = False) -> list[tuple[str, int, int, int]]:
+    """(name, number, type, label) of the fields of the message of a kind, in number order;
+    a Block's ``arrival`` where `arrival` (a sensors file with late sensors)."""
     return [(n, num, t, LABEL_OPTIONAL) for n, num, t in HEADER_FIELDS] + [
-        (n, num, TYPE_DOUBLE, LABEL_REPEATED) for n, num in PAYLOAD_FIELDS[kind]
+        (n, num, TYPE_DOUBLE, LABEL_REPEATED)
+        for n, num in PAYLOAD_FIELDS[kind]
+        if arrival or n != LATE_ONLY
     ]
 
 
@@ -102,18 +110,19 @@ def _int_field(number: int, v: int) -> bytes:
     return _varint(number << 3) + _varint(v)
 
 
-@lru_cache(maxsize=1)
-def file_descriptor_set() -> bytes:
+@lru_cache(maxsize=2)
+def file_descriptor_set(arrival: bool = False) -> bytes:
     """Serialized FileDescriptorSet embedded as the schema data of both schemas: the proto3
     file holding both message types (FileDescriptorProto: name 1, package 2, message_type 4,
     syntax 12; DescriptorProto: name 1, field 2; FieldDescriptorProto: name 1, number 3,
-    label 4, type 5), fields in number order as protobuf serialises them."""
+    label 4, type 5), fields in number order as protobuf serialises them; with the Block's
+    ``arrival`` where `arrival`."""
     messages = b""
     for full_name, kind in _MESSAGES:
         fields = b"".join(
             _len_field(2, _len_field(1, n.encode()) + _int_field(3, num) + _int_field(4, lab)
                        + _int_field(5, typ))
-            for n, num, typ, lab in message_fields(kind)
+            for n, num, typ, lab in message_fields(kind, arrival)
         )  # fmt: skip
         messages += _len_field(4, _len_field(1, full_name.rsplit(".", 1)[1].encode()) + fields)
     fdp = (

@@ -118,6 +118,8 @@ class McapWriter:
         self.name = str(name)
         self._sink = Sink(file, self.name)
         self._schemas: dict[str, foxglove.Schema] = {}
+        #: whether the schema declares the Block's ``arrival`` (`declare_arrival`)
+        self._arrival_schema = False
         self._topic_states: dict[str, _TopicState] = {}
         self._messages = 0
         self._block_offset, self._block_runs = -1, 0  # block of runs being written
@@ -305,7 +307,9 @@ class McapWriter:
         schema = self._schemas.get(schema_name)
         if schema is None:
             schema = foxglove.Schema(
-                name=schema_name, encoding="protobuf", data=file_descriptor_set()
+                name=schema_name,
+                encoding="protobuf",
+                data=file_descriptor_set(self._arrival_schema),
             )
             self._schemas[schema_name] = schema
         channel = foxglove.Channel(
@@ -386,6 +390,13 @@ class McapWriter:
         if self._sink.alert:  # a write failed or a signal came during this message
             self._fail()
 
+    def declare_arrival(self) -> None:
+        """Declare the Block's ``arrival`` field in the file's schema (a sensors file of late
+        sensors), before the first message; other files keep the schema without it."""
+        if self._schemas:
+            raise RuntimeError("declare_arrival: a schema is already written")
+        self._arrival_schema = True
+
     def write_values(
         self,
         topic: str,
@@ -414,6 +425,8 @@ class McapWriter:
         if arrival is not None:
             if np.size(arrival) not in (1, shape[0]):
                 raise ValueError(f"arrival must have one value or {shape[0]}")
+            if not self._arrival_schema:
+                raise ValueError("arrival: call declare_arrival before the first message")
             p3 = arrival_field(arrival)
         # tobytes() is C order whatever the strides, so no ascontiguousarray copy is needed.
         self._write(
