@@ -605,3 +605,15 @@ def test_retrodict_has_no_plan_for_hierarchical_or_track_to_track_filters(tmp_pa
                        name="ok")  # fmt: skip
     res = cli("run", ok_path, "--out-dir", tmp_path / "o", "--late", "retrodict")
     one_line_error(res, "--late retrodict", "HKF")
+
+
+def test_random_delays_do_not_depend_on_the_blocks_of_runs(tmp_path):
+    """Each block of runs takes its own runs' arrivals from the sensors file."""
+    path = scenario(tmp_path, latencies=RANDOM, runs=60, archs=("CKF", "MSC"))
+    ok("run", path, "--out-dir", tmp_path / "a")
+    ok("run", path, "--out-dir", tmp_path / "b", "--block-runs", "7")
+    a, b = (json.loads((tmp_path / d / "summary.json").read_text()) for d in ("a", "b"))
+    for arch, s in a["architectures"].items():
+        t = b["architectures"][arch]
+        assert t["mse"] == pytest.approx(s["mse"], rel=1e-9)
+        assert t["expected"]["mse"] == pytest.approx(s["expected"]["mse"], rel=1e-9)
