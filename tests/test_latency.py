@@ -617,3 +617,16 @@ def test_random_delays_do_not_depend_on_the_blocks_of_runs(tmp_path):
         t = b["architectures"][arch]
         assert t["mse"] == pytest.approx(s["mse"], rel=1e-9)
         assert t["expected"]["mse"] == pytest.approx(s["expected"]["mse"], rel=1e-9)
+
+
+def test_the_api_s_late_argument_reaches_the_evaluation(tmp_path):
+    path = scenario(tmp_path, latencies=(None, None, 2.0), runs=1500, steps=8, archs=("CKF",))
+    sim = fl.simulate(path)
+    est = fl.estimate(path, sim, late="neglect")
+    summary = fl.evaluate(path, sim, est).summary
+    assert summary["late"] == "neglect"
+    s = summary["architectures"]["CKF"]
+    assert abs(s["mse"] - s["expected"]["mse"]) <= 4 * s["stderr"]["mse"]
+    # neglect drops s3 for good here: the expected MSE of reprocessing is lower
+    own = fl.evaluate(path, sim, fl.estimate(path, sim)).summary["architectures"]["CKF"]
+    assert own["expected"]["mse"] < s["expected"]["mse"] * 0.99

@@ -24,6 +24,7 @@ refuses runs that cannot all be held in memory before allocating them
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -355,7 +356,7 @@ def estimate(
         for a, e in block.estimates.items():
             parts[a].append(e)
     out = Estimates({a: _joined(es) for a, es in parts.items()})
-    out.provenance = cache.provenance()
+    out.provenance = cache.provenance() | {"late": system.late}  # the policy, for `evaluate`
     return out
 
 
@@ -392,7 +393,11 @@ def evaluate(
     scenario = _state_scenario(scenario)
     _check_sim(sim)
     sc = sim.scenario  # the truth's: the runs, steps and seed simulated
-    filter_sys, truth_sys = sim.on_instants(scenario.system), sim.on_instants(sc.system)
+    system = scenario.system
+    late = getattr(estimates, "provenance", {}).get("late")
+    if late is not None and isinstance(system, System):  # `estimate(late=)`: its policy
+        system = dataclasses.replace(system, late=late)
+    filter_sys, truth_sys = sim.on_instants(system), sim.on_instants(sc.system)
     _check_estimates(sim, estimates, filter_sys)
     # the estimates' record of their measurement pattern (plain dicts: none known, per run)
     prov = (
