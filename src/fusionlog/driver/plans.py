@@ -66,7 +66,8 @@ class PlanCache:
 
     system: System
     steps: int
-    criterion: str = "trace"
+    #: covariance intersection's cost (None: the system's, [estimate] ci_criterion)
+    criterion: str | None = None
     plans: dict[tuple[str, bytes], Plan] = field(default_factory=dict, repr=False)
     #: the instants (K+1,) in seconds, where they are not k dt (a nonlinear model's filters
     #: take each interval from them; the plans have them in `system` already)
@@ -99,6 +100,10 @@ class PlanCache:
         if self.late is not None:
             return self.late.build(build_plan, arch, present, criterion=self.criterion, **kw)
         return build_plan(self.system, arch, self.steps, present, self.criterion, **kw)
+
+    def __post_init__(self) -> None:
+        if self.criterion is None:
+            self.criterion = self.system.ci_criterion
 
     @classmethod
     def of(

@@ -43,9 +43,9 @@ from fusionlog.core.models import SensorModel
 from fusionlog.core.names import STATE_ARCHITECTURES, known_arch, parse_arch_of
 from fusionlog.core.timing import Schedule, SensorTiming
 
+from . import estimate_keys, toml, trajectory
 from . import nonlinear_syntax as nonlinear
 from . import sensors as sensor_tables
-from . import toml, trajectory
 from .latency import LATE_POLICIES, late_section, latency_dict
 from .model_section import (
     MODEL_KINDS,
@@ -160,6 +160,8 @@ def system_to_dict(system: System) -> dict[str, Any]:
     ]
     if system.filter is not None:
         d["estimate"] = nonlinear.estimate_dict(system)
+    if system.ci_criterion != "trace":
+        d.setdefault("estimate", {})["ci_criterion"] = system.ci_criterion
     if system.late != LATE_POLICIES[0]:
         d.setdefault("estimate", {})["late"] = system.late
     return d
@@ -296,6 +298,7 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
     cross_R = correlations_section(ctx, doc, sensors)
     linear = motion is None and all(s.linear for s in sensors)
     filt, ukf = nonlinear.filter_section(ctx, doc, n, linear)
+    criterion = estimate_keys.ci_criterion(ctx, doc)
 
     system = System(
         F=F,
@@ -311,6 +314,7 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
         motion_model=motion,
         filter=filt,
         ukf=ukf,
+        ci_criterion=criterion,
         late=late_section(ctx, doc),
     )
     nonlinear.check_nonlinear(ctx, system, bool(cross_R))
@@ -452,7 +456,7 @@ def architectures_section(ctx: Ctx, doc: dict[str, Any], system: System) -> tupl
 
     # late sensors: by default the architectures that take them
     default = tuple(a for a in STATE_ARCHITECTURES if known_arch(a, system))
-    return toml.architectures(ctx, doc, default, check, ("filter", "ukf", "late"))
+    return toml.architectures(ctx, doc, default, check, ("filter", "ukf", "ci_criterion", "late"))
 
 
 def evaluate_section(ctx: Ctx, doc: dict[str, Any]) -> tuple[float, int, bool]:
