@@ -29,6 +29,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from fusionlog.core.architectures import Estimate
+from fusionlog.core.latency import random_delays
 from fusionlog.driver import JobPlans, PlanCache, estimate_block
 from fusionlog.errors import NumericalError
 from fusionlog.memory import keep_freed_memory
@@ -158,12 +159,14 @@ def _plans(job: Job, plans: JobPlans | None) -> PlanCache:
     return (JobPlans() if plans is None else plans).of(job.token, sc.system, sc.times)
 
 
-def _simulated(job: Job, run_offset: int, runs: int) -> tuple[np.ndarray, np.ndarray]:
-    """Truth (runs, K+1, n) and stacked readings (runs, K+1, m; NaN where absent) of runs
-    [run_offset, run_offset + runs), simulated with the kind's hook (those `run` writes)."""
+def _simulated(job: Job, run_offset: int, runs: int) -> tuple[np.ndarray, np.ndarray, Any]:
+    """Truth (runs, K+1, n), stacked readings (runs, K+1, m; NaN where absent) and when they
+    arrived (None: on time) of runs [run_offset, run_offset + runs), simulated with the
+    kind's hooks (those `run` writes)."""
     sc = job.scenario
-    x, zs = kind_of(sc.kind).simulate(sc, run_offset, runs)
-    return x, np.concatenate(zs, axis=-1)
+    kind = kind_of(sc.kind)
+    x, zs = kind.simulate(sc, run_offset, runs)
+    return x, np.concatenate(zs, axis=-1), kind.arrivals(sc, run_offset, runs)
 
 
 @_one_blas_thread
@@ -172,9 +175,9 @@ def block_estimates(
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Estimate], np.ndarray | None]:
     """Truth, the stacked readings, each architecture's estimates and the shared measurement
     pattern (None when runs differ) of a block: `estimate_block`, as the estimate stage."""
-    x, z = _simulated(job, run_offset, runs)
+    x, z, arrivals = _simulated(job, run_offset, runs)
     c = _plans(job, plans)
-    block = estimate_block(c.system, job.archs, z, cache=c)
+    block = estimate_block(c.system, job.archs, z, cache=c, arrivals=arrivals)
     return x, z, block.estimates, block.pattern
 
 
@@ -184,7 +187,7 @@ def block_sums(job: Job, run_offset: int, runs: int, plans: JobPlans | None = No
     the truth, the estimates dropped once reduced (and, for a conditional job, its runs'
     exact sums given their patterns)."""
     t0 = time.perf_counter()
-    x, z = _simulated(job, run_offset, runs)
+    x, z, arrivals = _simulated(job, run_offset, runs)
     c = _plans(job, plans)
     ws = getattr(_LOCAL, "workspace", None)
     if ws is None:
@@ -195,8 +198,9 @@ def block_sums(job: Job, run_offset: int, runs: int, plans: JobPlans | None = No
     sc = job.scenario
     keep = sc.trajectory is not None  # the APE/RPE need the means, reduced here
     block = estimate_block(
-        c.system, job.archs, z, truth=x, expected_of=expected_of, cache=c, workspace=ws, keep=keep
-    )
+        c.system, job.archs, z, truth=x, expected_of=expected_of, cache=c, workspace=ws,
+        keep=keep, arrivals=arrivals,
+    )  # fmt: skip
     key = None if block.pattern is None else np.packbits(block.pattern).tobytes()
     assert block.sums is not None
     traj = None
@@ -235,6 +239,8 @@ def exact_mask(scenario: Scenario) -> tuple[bool, np.ndarray | None]:
     analysis would average each run's)."""
     system = scenario.system
     if not system.linear or any(s.timing.dropout > 0 for s in system.sensors):
+        return False, None
+    if random_delays(system):  # what arrives when differs per run, as with dropouts
         return False, None
     measures = scenario.schedule.measures
     if measures.all():
