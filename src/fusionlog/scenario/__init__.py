@@ -191,19 +191,25 @@ def scenario_from_metadata(meta: Mapping[str, str], source: str) -> Scenario:
 
 
 def _with_recorded_R(sc: Scenario, meta: Mapping[str, str], source: str) -> Scenario:
-    """A replay's sensor given by its messages' covariances alone has no R in the file; the
-    import recorded the nominal R it took (their mean) in the resolved system: use it."""
+    """What a replay's import found in the data, from the resolved system it recorded: the
+    nominal R (their mean) of a sensor given by its messages' covariances alone (no R in the
+    file), and the latency (the range of the delays read) of a sensor with ``arrival``."""
     import dataclasses
     import json
 
     import numpy as np
 
-    if all(np.isfinite(s.R).all() for s in sc.system.sensors) or "system" not in meta:
+    arrival = [st.arrival for st in sc.replay.sensors]
+    given = all(np.isfinite(s.R).all() for s in sc.system.sensors)
+    if (given and not any(arrival)) or "system" not in meta:
         return sc
-    recorded = system_from_dict(json.loads(meta["system"]), source)
-    by_name = {s.name: s.R for s in recorded.sensors}
+    recorded = {s.name: s for s in system_from_dict(json.loads(meta["system"]), source).sensors}
     sensors = tuple(
-        s if np.isfinite(s.R).all() else dataclasses.replace(s, R=by_name[s.name])
-        for s in sc.system.sensors
+        dataclasses.replace(
+            s,
+            R=s.R if np.isfinite(s.R).all() else recorded[s.name].R,
+            timing=recorded[s.name].timing if late else s.timing,
+        )
+        for s, late in zip(sc.system.sensors, arrival, strict=True)
     )
     return dataclasses.replace(sc, system=dataclasses.replace(sc.system, sensors=sensors))

@@ -15,7 +15,9 @@
                  converted to ENU metres) with origin = [lat, lon, alt] (default the first
                  fix); R, or covariance (a field holding a flat square covariance) with
                  covariance_index (its rows/columns of `values`), R then applying where a
-                 message's matrix is all zero or not positive definite.
+                 message's matrix is all zero or not positive definite; arrival = "log_time"
+                 (MCAP and bags, with `time`): each message arrived when it was logged, its
+                 delay the log time minus `time` (DESIGN.md "Late measurements").
     [truth]      optional: the stream keys above, states (the state names those values are:
                  some or all), match = "nearest" | "interpolate" | "exact" and max_diff (s,
                  default 0.01): turns on the truth-based metrics, over the truthed states.
@@ -39,6 +41,7 @@ from fusionlog.core.timing import MAX_PERIOD_S, MIN_PERIOD_S, TIME_UNITS
 from fusionlog.errors import ValidationError
 
 from . import estimate_keys, toml
+from .latency import late_section
 from .model_section import model_section
 from .scenario_base import Header
 from .sensors import sensor_matrices
@@ -61,7 +64,9 @@ _SCENARIO_KEYS = ("name", "description", "state_names", "dt")
 _STREAM_KEYS = ("source", "topic", "values", "time", "time_unit", "delimiter", "columns", "format",
                 "geodetic", "origin")  # fmt: skip
 _SENSOR_REQUIRED = ("name", "H", "source", "values")
-_SENSOR_OPTIONAL = _STREAM_KEYS[2:] + ("topic", "R", "covariance", "covariance_index")
+_SENSOR_OPTIONAL = _STREAM_KEYS[2:] + ("topic", "R", "covariance", "covariance_index", "arrival")
+#: the values of a replay sensor's ``arrival``: where its messages' arrival times are
+ARRIVALS = ("log_time",)
 MATCHES = ("nearest", "interpolate", "exact")
 FORMATS = ("tum",)
 
@@ -83,6 +88,8 @@ class Stream:
     format: str | None = None
     geodetic: bool = False
     origin: tuple[float, float, float] | None = None
+    #: arrival = "log_time": each message arrived at its log (record) time
+    arrival: bool = False
 
     def reader_args(self) -> dict[str, Any]:
         """The keyword arguments of `fusionlog.io.replay.read_series` besides the source."""
@@ -261,6 +268,50 @@ def _stream(ctx: Ctx, t: dict[str, Any], where: str, base: Path) -> Stream:
     return Stream(path, topic, tuple(v.strip() for v in values), time, unit, **extra)
 
 
+def _arrival(ctx: Ctx, t: dict[str, Any], where: str, stream: Stream) -> bool:
+    """``arrival = "log_time"``: the sensor's messages arrived when they were logged, taken
+    at `time` (a header stamp); only where the source has log times and `time` is a field."""
+    if "arrival" not in t:
+        return False
+    key = f"{where}.arrival"
+    a = toml.string(ctx, t["arrival"], key)
+    if a not in ARRIVALS:
+        raise ctx.err(key, f"unknown arrival {a!r} (known: {', '.join(ARRIVALS)})")
+    if stream.topic is None:
+        raise ctx.err(
+            key,
+            f"{stream.source.name!r} is read as a text table, which has no log time (only MCAP "
+            "files and bags log when each message was received)",
+        )
+    if stream.time is None:
+        raise ctx.err(
+            key,
+            "without `time` the measurement time is the log time itself (no delay): give "
+            "time, the field stamped when the message was measured (e.g. 'header.stamp')",
+        )
+    return True
+
+
+def _late_probe(ctx: Ctx, system: System, streams: list[Stream]) -> System:
+    """The system as the estimation will see it once the delays are read (`arrival` sensors
+    late by an unknown delay): refused in one line where late measurements cannot be
+    estimated (`core.latency.system_refusal`), and the architectures checked against it."""
+    from fusionlog.core.latency import system_refusal
+    from fusionlog.core.timing import SensorTiming
+
+    late = [j for j, st in enumerate(streams) if st.arrival]
+    sensors = tuple(
+        replace(s, timing=SensorTiming(latency=(0.0, 1.0))) if j in late else s
+        for j, s in enumerate(system.sensors)
+    )
+    probe = replace(system, sensors=sensors)
+    if late and (why := system_refusal(probe)) is not None:
+        key, reason = why
+        where = f"sensors[{late[0]}].arrival" if key.endswith(".latency") else key
+        raise ctx.err(where, f"a sensor with arrival = 'log_time' is late: {reason}")
+    return probe
+
+
 def _covariance(ctx: Ctx, t: dict[str, Any], where: str, m: int) -> tuple[str | None, Any]:
     if "covariance" not in t:
         if "covariance_index" in t:
@@ -342,7 +393,8 @@ def replay_from_doc(
                 f"{where}.values",
                 f"{len(stream.values)} values, but H has {H.shape[0]} rows",
             )
-        streams.append(replace(stream, covariance=cov_field, covariance_index=cov_index))
+        streams.append(replace(stream, covariance=cov_field, covariance_index=cov_index,
+                               arrival=_arrival(ctx, t, where, stream)))  # fmt: skip
         # Without R the sensor's nominal R is set when the data are read (from the messages'
         # own covariances); NaN until then.
         m = H.shape[0]
@@ -351,9 +403,10 @@ def replay_from_doc(
     cross_R = correlations_section(ctx, doc, tuple(sensors))
     system = System(F=F, Q=Q, G=G, sensors=tuple(sensors), prior=prior, cross_R=cross_R, dt=dt,
                     state_names=state_names, continuous=continuous,
-                    ci_criterion=estimate_keys.ci_criterion(ctx, doc))  # fmt: skip
+                    ci_criterion=estimate_keys.ci_criterion(ctx, doc),
+                    late=late_section(ctx, doc))  # fmt: skip
     check_determined(ctx, system)
-    architectures = architectures_section(ctx, doc, system)
+    architectures = architectures_section(ctx, doc, _late_probe(ctx, system, streams))
     confidence, sample_runs, plane_view = evaluate_section(ctx, doc)
     if plane_view and n != 2:
         raise ctx.err("evaluate.plane_view", f"needs a 2-D state, this one has {n}")

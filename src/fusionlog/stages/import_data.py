@@ -6,7 +6,9 @@ times; the file has one run, each sensor's topic a message only at its own insta
 covariance where R varies from message to message), times in seconds from the first instant,
 and the recorded timestamps as ``log_time``. Where a message's covariance is all zero or not
 positive definite (odometry drivers often leave it zero) the sensor's R applies, and the count
-is reported.
+is reported. A sensor with ``arrival = "log_time"`` arrived when each message was logged: its
+messages carry that time as their ``arrival`` field, and its latency is the range of the delays
+(log time - `time`) read, so the estimate takes them as late (DESIGN.md "Late measurements").
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ class _Sensor:
     at: np.ndarray  # (N,) instant indices
     values: np.ndarray  # (N, d)
     cov: np.ndarray | None  # (N, d, d), the R of every message, or None: the sensor's R
+    arrival_ns: np.ndarray | None = None  # (N,) when each reading arrived, or None: on time
 
 
 def _read(stream: Stream, what: str):
@@ -123,6 +126,28 @@ def _usable(cov: np.ndarray) -> np.ndarray:
     return out
 
 
+def _arrivals(what: str, s) -> tuple[np.ndarray | None, tuple[float, float], list[str]]:
+    """A sensor's arrivals (N,) ns at its messages' log times, its latency (min, max) s, and a
+    note. A message logged before its stamp (the two clocks disagree) arrived when it was
+    measured: a filter cannot use a reading before it is taken."""
+    delay = s.record_ns - s.times_ns
+    early = int(np.count_nonzero(delay < 0))
+    delay = np.maximum(delay, 0)
+    lo, hi = int(delay.min()), int(delay.max())
+    notes = [
+        f"{what}: arrival = log time: delays {lo / 1e6:.6g} to {hi / 1e6:.6g} ms (median "
+        f"{float(np.median(delay)) / 1e6:.6g} ms) over {len(delay)} messages"
+    ]
+    if early:
+        notes.append(
+            f"{what}: {early} of {len(delay)} messages logged before their stamp (time): "
+            "taken as arrived when measured"
+        )
+    if hi == 0:
+        return None, (0.0, 0.0), notes
+    return s.times_ns + delay, (lo / 1e9, hi / 1e9), notes
+
+
 def _disjoint(names: list[str], times: list[str | None], series: list) -> list[str]:
     """A note when two sensors' readings do not overlap in time: the filters then predict
     across the whole gap. Usually one `time` is a header stamp and the other the log/record
@@ -174,6 +199,7 @@ def read_replay(scenario: Scenario) -> ReplayData:
     instants = np.unique(np.concatenate([s.times_ns for s in sensor_series]))
     sensors: list[_Sensor] = []
     nominal = []
+    latencies = []
     for j, (sen, s) in enumerate(zip(system.sensors, sensor_series, strict=True)):
         at = np.searchsorted(instants, s.times_ns)
         cov = None
@@ -200,7 +226,12 @@ def read_replay(scenario: Scenario) -> ReplayData:
             if np.array_equal(cov, np.broadcast_to(R, cov.shape)):
                 cov = None  # R does not vary: no per-message covariance needed
         nominal.append(R)
-        sensors.append(_Sensor(at, s.values, cov))
+        arrival, latency = None, (0.0, 0.0)
+        if replay.sensors[j].arrival:
+            arrival, latency, more = _arrivals(sen.name, s)
+            notes += more
+        latencies.append(latency)
+        sensors.append(_Sensor(at, s.values, cov, arrival))
     truth: dict = {}
     truth_info: dict = {}
     if replay.truth is not None:
@@ -231,8 +262,10 @@ def read_replay(scenario: Scenario) -> ReplayData:
         values[:, list(replay.truth_states)] = at_instants[matched]
         truth = {"at": np.flatnonzero(matched), "values": values}
     new_sensors = tuple(
-        dataclasses.replace(sen, R=np.asarray(R))
-        for sen, R in zip(system.sensors, nominal, strict=True)
+        dataclasses.replace(
+            sen, R=np.asarray(R), timing=dataclasses.replace(sen.timing, latency=lat)
+        )
+        for sen, R, lat in zip(system.sensors, nominal, latencies, strict=True)
     )
     sc = dataclasses.replace(scenario, system=dataclasses.replace(system, sensors=new_sensors))
     sc = scenario_with(sc, steps=len(instants) - 1)
@@ -262,6 +295,8 @@ def import_to(data: ReplayData, w: McapWriter, *, command: str) -> int:
     extra = {f"source_sha256:{p}": sha256_of_source(Path(p)) for p in sources}
     w.add_metadata(PROVENANCE_META, provenance(command, None, sources=json.dumps(sources), **extra))
     topics = [sensor_topic(s.name) for s in sc.system.sensors]
+    if any(s.arrival_ns is not None for s in sensors):  # late sensors: the schema says arrival
+        w.declare_arrival()
     # every message in instant order, the truth first at an instant, then the sensors in
     # their order: one sort of (instant, source) over flat arrays (no per-instant lists)
     src = [np.full(len(truth["at"]), -1)] if truth else []
@@ -282,7 +317,10 @@ def import_to(data: ReplayData, w: McapWriter, *, command: str) -> int:
         else:
             s = sensors[j]
             cov = None if s.cov is None else s.cov[r][None]
-            w.write_values(topics[j], k, t, 0, s.values[r][None], cov)
+            arrival = None
+            if s.arrival_ns is not None:  # s from the first instant, as the times
+                arrival = (int(s.arrival_ns[r]) - int(instants[0])) / 1e9
+            w.write_values(topics[j], k, t, 0, s.values[r][None], cov, arrival=arrival)
         messages += 1
     return messages
 

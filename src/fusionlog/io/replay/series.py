@@ -33,6 +33,10 @@ class Series:
     values: np.ndarray  # (N, d) float64
     cov: np.ndarray | None  # (N, d, d) the per-message covariance blocks, or None when not asked
     notes: tuple[str, ...]  # counted, reported skips/fixes
+    #: (N,) int64 the log/record time (ns) of each message, in the order of `times_ns`, where
+    #: the time is a field of the message (a header stamp): when the message was logged, i.e.
+    #: received (``arrival = "log_time"``, DESIGN.md "Late measurements"); None otherwise
+    record_ns: np.ndarray | None = None
 
 
 def fail(source: Path, what: str, problem: str) -> ValidationError:
@@ -141,6 +145,11 @@ class Collector:
                 else f"no {u}s",
             )
         t = np.frombuffer(self._times, dtype=np.int64).copy()
+        record = (
+            np.frombuffer(self._record, dtype=np.int64).copy()
+            if len(self._record) == len(t)
+            else None
+        )
         far = self._far(t)
         if far:
             notes.append(far)
@@ -156,6 +165,7 @@ class Collector:
             notes.append(f"{_plural(late, u)} out of time order (sorted)")
             t, values = t[order], values[order]
             cov = cov[order] if cov is not None else None
+            record = record[order] if record is not None else None
         dup = np.flatnonzero(t[1:] == t[:-1])
         if dup.size:
             i = int(dup[0])
@@ -174,4 +184,4 @@ class Collector:
                 f"{_plural(self.bad_covs, u)} with NaN or infinite covariance entries "
                 "(returned as read)"
             )
-        return Series(times_ns=t, values=values, cov=cov, notes=tuple(notes))
+        return Series(times_ns=t, values=values, cov=cov, notes=tuple(notes), record_ns=record)
