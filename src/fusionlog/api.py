@@ -285,8 +285,11 @@ def _recorded(scenario: Scenario) -> Simulation:
     data = read_replay(scenario)
     sc = data.scenario
     K1, n = len(data.instants), sc.system.n
-    measurements, scheduled, covariances = {}, {}, {}
+    measurements, scheduled, covariances, arrival = {}, {}, {}, {}
     for sen, r in zip(sc.system.sensors, data.sensors, strict=True):
+        if r.arrival_ns is not None:  # arrival = "log_time": when each reading was logged
+            arrival[sen.name] = np.full((1, K1), np.nan)
+            arrival[sen.name][0, r.at] = (r.arrival_ns - data.instants[0]) / 1e9
         z = np.full((1, K1, sen.dim), np.nan)
         z[0, r.at] = r.values
         measurements[sen.name] = z
@@ -301,7 +304,7 @@ def _recorded(scenario: Scenario) -> Simulation:
         truth[0, data.truth["at"]] = data.truth["values"]
     times = (data.instants - data.instants[0]) / 1e9
     info = data.truth_info or None
-    return Simulation(sc, times, truth, measurements, scheduled, covariances, info)
+    return Simulation(sc, times, truth, measurements, scheduled, covariances, info, arrival)
 
 
 def _blocks(sim: Simulation) -> list[tuple[int, int]]:
