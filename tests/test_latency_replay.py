@@ -58,7 +58,7 @@ def replay(tmp_path: Path, *, arrival: bool = True, late: str | None = None, ext
            name: str = "late_log", source: str = "log.mcap", time: str = "time = \"header.stamp\"",
            prior: bool = True) -> Path:  # fmt: skip
     key = 'arrival = "log_time"\n' if arrival else ""
-    est = f'[estimate]\narchitectures = ["CKF"]\n' + (f'late = "{late}"\n' if late else "")
+    est = '[estimate]\narchitectures = ["CKF"]\n' + (f'late = "{late}"\n' if late else "")
     pri = "[prior]\nmean = [0.0]\ncov = [[4.0]]\n" if prior else ""
     text = f"""
 [scenario]
