@@ -274,6 +274,7 @@ source = "{bag}"
 topic = "/husky_velocity_controller/odom"
 values = ["twist.twist.angular.z"]
 time = "header.stamp"
+arrival = "log_time"
 H = [[1.0]]
 R = 0.001
 [estimate]
