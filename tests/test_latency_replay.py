@@ -123,8 +123,9 @@ def kf(instants, used):
 
 def test_reprocess_is_a_kf_on_exactly_the_messages_logged_by_each_instant(tmp_path):
     msgs = write_log(tmp_path / "log.mcap")
-    sim = fl.simulate(replay(tmp_path))
-    est = fl.estimate(sim.scenario, sim, ["CKF"])["CKF"]
+    path = replay(tmp_path)
+    sim = fl.simulate(path)
+    est = fl.estimate(path, sim, ["CKF"])["CKF"]  # the delays are the data's: taken from sim
     ev = events(msgs)
     instants = sorted({round(s, 9) for s, _, _, _ in ev})
     np.testing.assert_allclose(sim.times, instants, rtol=0, atol=1e-9)

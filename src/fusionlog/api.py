@@ -331,7 +331,7 @@ def estimate(
     measurements as `--late` does."""
     scenario = _state_scenario(scenario)
     _check_sim(sim)
-    system = scenario.system
+    system = _with_arrivals(scenario.system, sim)
     if filter is not None:
         from .stages.state_kind import with_filter
 
@@ -361,6 +361,20 @@ def estimate(
     out = Estimates({a: _joined(es) for a, es in parts.items()})
     out.provenance = cache.provenance() | {"late": system.late}  # the policy, for `evaluate`
     return out
+
+
+def _with_arrivals(system: System, sim: Simulation) -> System:
+    """The filters' model with the latency a replay's import found for its sensors with
+    ``arrival = "log_time"`` (the range of their delays, in `sim.scenario`): the model as
+    loaded has none, the delays being in the data."""
+    if sim.scenario.replay is None or not sim.arrival:
+        return system
+    found = {s.name: s.timing for s in sim.scenario.system.sensors if s.name in sim.arrival}
+    sensors = tuple(
+        dataclasses.replace(s, timing=found[s.name]) if s.name in found else s
+        for s in system.sensors
+    )
+    return dataclasses.replace(system, sensors=sensors)
 
 
 def _check_sim(sim: Simulation) -> None:
