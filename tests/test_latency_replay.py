@@ -199,6 +199,17 @@ def test_the_import_writes_each_reading_s_log_time_as_its_arrival(tmp_path):
         else:
             assert arrival == pytest.approx([(log - T0) / NS], abs=1e-12)
     assert all(not m[4] for m in decoded(tmp_path / "s.mcap", "/sensors/a"))
+    # `estimate` of the file alone (the recorded replay, its delays from the file) = the API
+    ok("estimate", tmp_path / "s.mcap", "-o", tmp_path / "e.mcap", "--late", "neglect")
+    ok("evaluate", tmp_path / "s.mcap", tmp_path / "e.mcap", "-o", tmp_path / "e.rrd",
+       "--summary", tmp_path / "e.json")  # fmt: skip
+    summary = json.loads((tmp_path / "e.json").read_text())
+    sim = fl.simulate(replay(tmp_path))
+    est = fl.estimate(sim.scenario, sim, ["CKF"], late="neglect")["CKF"]
+    assert summary["late"] == "neglect"
+    assert summary["architectures"]["CKF"]["mean_trace"] == pytest.approx(
+        float(est.cov[0, :, 0, 0].mean()), rel=1e-9
+    )
 
 
 @pytest.mark.parametrize("late", ["reprocess", "retrodict", "neglect"])
