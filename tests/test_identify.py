@@ -70,11 +70,15 @@ def scenario(tmp_path: Path, name: str = "two.toml", **kw) -> Path:
 # -- the likelihood against independent computations -------------------------------------------
 
 
-def dense_loglik(system, times, z) -> float:
+def dense_loglik(system, times, z, truth_rows=None) -> float:
     """log N(z; H mu, H Sigma H' + R) of each run's present readings, the states x_0..x_K
     stacked into one Gaussian vector: mean F_k..F_1 m0, covariances from x_k = F_k x_{k-1}
-    + w_k (cov(x_i, x_j) = F_j..F_{i+1} var(x_i) for j > i), summed over the runs."""
+    + w_k (cov(x_i, x_j) = F_j..F_{i+1} var(x_i) for j > i), summed over the runs. With
+    `truth_rows`, z's last columns are those states themselves (rows of the identity, no
+    noise): the joint density of readings and truth."""
     s = system.on_times(times)
+    if truth_rows is not None:
+        s = _WithTruth(s, truth_rows)
     n, K1 = s.n, len(times)
     means, var = [s.prior.mean], [s.prior.cov]
     for k in range(1, K1):
@@ -119,6 +123,60 @@ def test_loglik_equals_the_dense_normal_density_of_the_stacked_readings(tmp_path
     noise = Noise(s.prior.cov[None], Qs[None], np.arange(K), s.R[None, None], np.zeros(K + 1, int))
     want = dense_loglik(sc.system, sim.times, z)
     assert loglik(s, z, noise)[0] == pytest.approx(want, rel=1e-10, abs=1e-9)
+
+
+class _WithTruth:
+    """A system whose readings are followed by the states `rows` themselves (no noise)."""
+
+    def __init__(self, system, rows):
+        self._s = system
+        self.H = np.vstack([system.H, np.eye(system.n)[rows]])
+        self.m = self.H.shape[0]
+
+    def R_at(self, k):
+        R = np.zeros((self.m, self.m))
+        R[: self._s.m, : self._s.m] = self._s.R_at(k)
+        return R
+
+    def __getattr__(self, name):
+        return getattr(self._s, name)
+
+
+def _noise_of(systems, K):
+    """The candidates' `Noise`, each model on its instants: its Q per interval and R per
+    instant (no sharing assumed)."""
+    P0 = np.array([s.prior.cov for s in systems])
+    Q = np.array([[s.GQG_at(k) for k in range(1, K + 1)] for s in systems])
+    R = np.array([[s.R_at(k) for k in range(K + 1)] for s in systems])
+    return Noise(P0, Q, np.arange(K), R, np.arange(K + 1))
+
+
+def test_the_one_run_loglik_of_several_candidates_equals_the_dense_density(tmp_path):
+    """One recorded run (the one-run path of a replayed log): a sensor at half rate with an
+    offset (irregular instants), dropouts, correlated sensors, three candidate noise models
+    at once; alone and with a truth of the position only, lost at some instants (the joint
+    density of readings and truth)."""
+    extra = '[[correlations]]\nsensors = ["s1", "s2"]\ncov = [[{c}]]'
+    kw = dict(steps=12, runs=1, s2_extra="period = 2.0\noffset = 0.5\ndropout = 0.3",
+              s1_extra="dropout = 0.2")  # fmt: skip
+    sim = fl.simulate(fl.load(scenario(tmp_path, extra=extra.format(c=0.3), **kw)), seed=5)
+    z = sim.stacked(sim.scenario.system)
+    assert np.isnan(z).any() and len(sim.times) > 13 and z.shape[0] == 1
+    cands = [(0.5, 2.0, 0.3, 0.3), (1.7, 0.4, 0.05, -0.2), (0.2, 3.0, 1.2, 0.0)]
+    models = [fl.load(scenario(tmp_path, f"c{i}.toml", r1=a, r2=b, n0=q, extra=extra.format(c=c),
+                               **kw)).system for i, (a, b, q, c) in enumerate(cands)]  # fmt: skip
+    systems = [sim.on_instants(m) for m in models]
+    K = len(sim.times) - 1
+    got = loglik(systems[0], z, _noise_of(systems, K))
+    want = [dense_loglik(m, sim.times, z) for m in models]
+    assert got == pytest.approx(want, rel=1e-10)
+    truth = sim.truth[..., :1].copy()
+    truth[0, [0, 3, 4, 9]] = np.nan
+    rows = np.array([0])
+    got = loglik(systems[0], z, _noise_of(systems, K), truth, rows)
+    both = np.concatenate([z, truth], axis=-1)
+    want = [dense_loglik(m, sim.times, both, rows) for m in models]
+    assert got == pytest.approx(want, rel=1e-10)
 
 
 def test_identified_loglik_is_the_dense_density_at_the_identified_values(tmp_path):
