@@ -388,6 +388,12 @@ def test_bad_input_is_one_line(tmp_path):
     refused("--param", "model.n0", "--with-truth", tmp_path / "missing.mcap",
             fragments=["missing.mcap"])  # fmt: skip
     one_line_error(cli("identify", p, "-o", out), "--param")  # click: required
+    # no [prior]: the filters start from no information there (no diffuse likelihood)
+    text = p.read_text()
+    prior = text[text.index("[prior]") : text.index("[[sensors]]")]
+    p.write_text(text.replace(prior, "") + '\n[truth]\ninitial_mean = [0.0, 1.0]\n'
+                 "initial_cov = [[4.0, 0.0], [0.0, 1.0]]\n")  # fmt: skip
+    refused("--param", "sensors.s1.R", fragments=[str(p), "needs a [prior]", "diffuse"])
 
 
 def test_a_sensor_whose_readings_are_all_lost_is_not_identifiable(tmp_path):
@@ -464,6 +470,23 @@ def test_one_entry_of_a_matrix_is_a_parameter_and_written_back_in_its_matrix(tmp
     assert R[1, 1] == rep["value"] and R[0, 0] == 1.0 and R[0, 1] == 0.0
     assert abs(rep["value"] - 2.0) < 4 * rep["stderr"]
     assert "# per axis" in out.read_text()
+
+
+def test_a_likelihood_without_a_maximum_is_refused(tmp_path):
+    """s2's readings are s1's, copied: with R1 = R2 = their cross-covariance the difference
+    of the two has variance 0, which it has, so the likelihood grows without bound towards
+    that singular R; what the optimiser stops at is no maximum, and is refused (one line
+    naming a parameter), not reported with standard errors."""
+    extra = '[[correlations]]\nsensors = ["s1", "s2"]\ncov = [[0.0]]'
+    sc = fl.load(scenario(tmp_path, runs=20, r1=1.0, r2=1.0, extra=extra))
+    sim = fl.simulate(sc, seed=1)
+    sim.measurements["s2"] = sim.measurements["s1"].copy()
+    keys = ["sensors.s1.R", "sensors.s2.R", "correlations.0.cov"]
+    with pytest.raises(fl.FusionlogError) as err:
+        fl.identify(sc, sim, keys, cost=False)
+    msg = str(err.value)
+    assert "\n" not in msg and any(msg.startswith(f"--param {k}: not identifiable") for k in keys)
+    assert "not a maximum" in msg or "flat" in msg, msg
 
 
 def test_a_cross_covariance_of_sensors_that_never_measure_together_is_refused(tmp_path):

@@ -181,8 +181,9 @@ def _data(sc: Scenario, sim: Simulation, with_truth: bool) -> _Data:
     system = sim.on_instants(sc.system)
     if system.prior is None:
         raise FusionlogError(
-            f"{file}: identify needs a [prior] (the likelihood of the first readings is that "
-            "of their prediction from it)"
+            f"{file}: identify needs a [prior]: without one the filters start from no "
+            "information, and the likelihood of the readings before the state is observable "
+            "(the diffuse one) is not computed; give a [prior] (a wide one approaches it)"
         )
     z = sim.stacked(system)
     if not np.isfinite(z).any():
@@ -236,17 +237,22 @@ def _hessian(f: _Objective, theta: np.ndarray) -> tuple[np.ndarray, float]:
     return H, rounding
 
 
-def _flat(params: list[ip.Param], info: np.ndarray, rounding: float) -> str | None:
+def _flat(params: list[ip.Param], info: np.ndarray, rounding: float) -> tuple[str, str] | None:
     """The key of the parameter along the flattest direction of the information matrix
-    (minus the Hessian), when that direction is flat; None when every one is curved."""
+    (minus the Hessian), when that direction is flat or curves up (then not a maximum), and
+    which of the two; None when every one is curved down."""
     if not np.isfinite(info).all():
-        return params[0].key
+        return params[0].key, "flat"
     w, V = np.linalg.eigh(info)
     if w[0] > max(FLAT_RTOL * max(w[-1], 0.0), 10 * rounding):
         return None
-    weight = V[:, 0] ** 2
+    return _owner(params, V[:, 0]), "flat" if w[0] >= -10 * rounding else "up"
+
+
+def _owner(params: list[ip.Param], direction: np.ndarray) -> str:
+    """The key of the parameter with the largest share of a direction in theta."""
     owner = np.repeat(np.arange(len(params)), [p.size for p in params])
-    share = np.bincount(owner, weights=weight, minlength=len(params))
+    share = np.bincount(owner, weights=direction**2, minlength=len(params))
     return params[int(np.argmax(share))].key
 
 
@@ -263,17 +269,24 @@ def _flat_at(f: _Objective, theta: np.ndarray, ll: float) -> int | None:
     return int(flat[0]) if len(flat) else None
 
 
-def _refuse_flat(params: list[ip.Param], flat: int | str | None) -> None:
-    """The one-line refusal of a parameter the data cannot tell (a coordinate, or a key)."""
+def _refuse_flat(params: list[ip.Param], flat: int | tuple[str, str] | None) -> None:
+    """The one-line refusal of a parameter the data cannot tell (a coordinate, or a key and
+    how the likelihood is shaped along it: "flat", "up" or "rising")."""
     if flat is None:
         return
+    how = "flat"
     if isinstance(flat, int):
         owner = np.repeat(np.arange(len(params)), [p.size for p in params])
-        flat = params[int(owner[flat])].key
-    raise FusionlogError(
-        f"--param {flat}: not identifiable from these data (the likelihood is flat along it: "
-        "its information matrix is singular)"
-    )
+        key = params[int(owner[flat])].key
+    else:
+        key, how = flat
+    why = {
+        "rising": f"no maximum of the likelihood within {MAX_ITER} iterations: it still rises "
+        "along it",
+        "up": "the likelihood curves up along it where the optimiser stopped: not a maximum",
+        "flat": "the likelihood is flat along it: its information matrix is singular",
+    }[how]
+    raise FusionlogError(f"--param {key}: not identifiable from these data ({why})")
 
 
 def identify(
@@ -311,7 +324,9 @@ def identify(
     observations = int(np.isfinite(data.z).sum())
     if data.truth is not None:
         observations += int(np.isfinite(data.truth).sum())
-    theta, iterations = _maximise(f, theta0, observations)
+    theta, iterations, converged = _maximise(f, theta0, observations)
+    if not converged:  # the parameter the likelihood still rises along most
+        _refuse_flat(plist, (_owner(plist, _gradient(f, theta, 1.0)[1]), "rising"))
     info, rounding = _hessian(f, theta)
     info = -info
     _refuse_flat(plist, _flat(plist, info, rounding))
@@ -346,8 +361,9 @@ def identify(
     return out
 
 
-def _maximise(f: _Objective, theta0: np.ndarray, scale: float) -> tuple[np.ndarray, int]:
-    """BFGS on -log p / (number of observations) from theta0; (theta, iterations)."""
+def _maximise(f: _Objective, theta0: np.ndarray, scale: float) -> tuple[np.ndarray, int, bool]:
+    """BFGS on -log p / (number of observations) from theta0; (theta, iterations, whether it
+    stopped before using all MAX_ITER: converged, or no longer able to improve)."""
     from scipy.optimize import minimize
 
     bar = Counter("identify", "iteration")
@@ -362,4 +378,4 @@ def _maximise(f: _Objective, theta0: np.ndarray, scale: float) -> tuple[np.ndarr
         )
     finally:
         bar.close()
-    return np.asarray(res.x, dtype=float), int(res.nit)
+    return np.asarray(res.x, dtype=float), int(res.nit), int(res.nit) < MAX_ITER
