@@ -11,6 +11,8 @@ against a Monte Carlo run with the identified values as the truth (within 4 SE).
 from __future__ import annotations
 
 import json
+import re
+import shlex
 import textwrap
 from pathlib import Path
 
@@ -505,6 +507,7 @@ def test_a_cross_covariance_of_sensors_that_never_measure_together_is_refused(tm
 # -- recorded logs --------------------------------------------------------------------------------
 
 REPO = Path(__file__).resolve().parents[1]
+DOC = REPO / "docs" / "tutorials" / "identify.md"
 
 
 def test_a_replay_identifies_from_its_recordings_and_the_tuned_file_reads_them(tmp_path):
@@ -543,6 +546,72 @@ def test_evo_bag_the_two_slam_systems_cross_covariance_is_refused(tmp_path):
         "--param correlations.0.cov",
         "not identifiable",
     )
+
+
+def _commands(doc: str) -> list[tuple[str, str]]:
+    """(command, the output shown) of each console block of the page's evo section."""
+    out = []
+    for block in re.findall(r"```console\n(.*?)```", doc[doc.index("## A recorded log") :], re.S):
+        lines = block.splitlines()
+        cmd, i = lines[0][2:], 1
+        while cmd.endswith("\\"):
+            cmd, i = cmd[:-1] + " " + lines[i].strip(), i + 1
+        out.append((cmd, "\n".join(lines[i:])))
+    return out
+
+
+_PARAM = re.compile(r"^  (\S+)\s+(\S+)  \+- (\S+)  \(given \S+\)$", re.M)
+
+
+@pytest.mark.skipif(not EVO_BAG.exists(), reason="evo's ROS_example.bag is not available")
+def test_the_evo_walkthrough(tmp_path, monkeypatch):
+    """docs/tutorials/identify.md on evo's bag (its commands, marked skip there for their
+    time): the values it shows are those identified (within 0.1 of their standard error:
+    the optimiser's stopping point, not the page's rounding), the tables of `fusionlog run`
+    are what it prints. Independent of the code: with the truth, each diagonal R entry is
+    the mean square of the track's distance from the motion capture on that axis, up to what
+    the readings without a truth sample (6 % of ORB-SLAM's, 7 % of S-PTAM's) move it; the
+    fused track with the identified R is no worse than the better system alone (it was
+    worse before); the innovations are not white (the drift)."""
+    doc = DOC.read_text()
+    toml_text = re.search(r"```toml\n(# evo_example.toml\n.*?)```", doc, re.S).group(1)
+    (tmp_path / "evo_example.toml").write_text(toml_text)
+    (tmp_path / "ROS_example.bag").symlink_to(EVO_BAG)
+    monkeypatch.chdir(tmp_path)
+    printed = {}
+    for cmd, shown in _commands(doc):
+        res = ok(*shlex.split(cmd)[1:])
+        printed[cmd] = res.stdout
+        if " identify " in cmd:
+            got = {k: (float(v), float(se)) for k, v, se in _PARAM.findall(res.stdout)}
+            want = {k: (float(v), float(se)) for k, v, se in _PARAM.findall(shown)}
+            assert want and set(got) == set(want), cmd
+            for k, (v, se) in want.items():
+                assert abs(got[k][0] - v) <= 0.1 * se, (cmd, k, got[k], v)
+                assert got[k][1] == pytest.approx(se, rel=0.05), (cmd, k)
+            assert re.findall(r"p = (\S+)", res.stdout) == ["0", "0"]  # neither is white
+        else:  # the rows of the tables
+            for line in shown.splitlines():
+                if line.startswith(("CKF", "SKF", "  ")) and "%" in line:
+                    assert line in res.stdout.splitlines(), (cmd, line)
+    sc = fl.load("evo_example.toml")
+    sim = fl.simulate(sc)
+    report = json.loads(Path("evo_report_truth.json").read_text())["parameters"]
+    for name, rows in (("orb", [0, 2, 4]), ("sptam", [0, 2, 4])):
+        z, t = sim.measurements[name][0], sim.truth[0][:, rows]
+        both = np.isfinite(z).all(axis=1) & np.isfinite(t).all(axis=1)
+        assert 0.9 < both.sum() / np.isfinite(z).all(axis=1).sum() < 0.95
+        mean_square = ((z[both] - t[both]) ** 2).mean(axis=0)
+        for j in range(3):
+            got = report[f"sensors.{name}.R.{j}.{j}"]["value"]
+            assert got == pytest.approx(mean_square[j], rel=0.1), (name, j)
+    mse = {}
+    for out in ("before", "after"):
+        arch = json.loads(Path(out, "summary.json").read_text())["architectures"]
+        mse[out] = {a: e["mse"] for a, e in arch.items()}
+    assert mse["before"]["CKF"] > mse["before"]["SKF:orb"]
+    assert mse["after"]["CKF"] <= mse["after"]["SKF:orb"] * (1 + 1e-6)
+    assert mse["after"]["CKF"] < mse["before"]["CKF"]
 
 
 EVO_REPLAY = """
