@@ -610,7 +610,8 @@ def test_the_evo_walkthrough(tmp_path, monkeypatch):
         arch = json.loads(Path(out, "summary.json").read_text())["architectures"]
         mse[out] = {a: e["mse"] for a, e in arch.items()}
     assert mse["before"]["CKF"] > mse["before"]["SKF:orb"]
-    assert mse["after"]["CKF"] <= mse["after"]["SKF:orb"] * (1 + 1e-6)
+    # S-PTAM's R is 5e4 times ORB-SLAM's or more: its weight moves the fused MSE by ~1e-5
+    assert mse["after"]["CKF"] <= mse["after"]["SKF:orb"] * (1 + 1e-4)
     assert mse["after"]["CKF"] < mse["before"]["CKF"]
 
 
