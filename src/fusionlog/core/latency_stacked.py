@@ -170,8 +170,10 @@ def fused_plan(
     per sensor) and its registered rule applied to their current blocks (`first_blocks`),
     by the generic rule builder (`track_to_track.build_rule`)."""
     base = definition(arch)
+    # `first_blocks` hands the rule mean-form covariances only: late sensors need a prior, so
+    # the locals never start in information form here (information=False).
     stacked = dataclasses.replace(
-        base, rule=first_blocks(base.rule, n, system.n), build=None, color=None
+        base, rule=first_blocks(base.rule, n, system.n), build=None, color=None, information=False
     )
     request = BuildRequest(system, arch, present, None, criterion)
     if present.ndim == 3:
