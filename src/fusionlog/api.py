@@ -24,6 +24,7 @@ refuses runs that cannot all be held in memory before allocating them
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -153,13 +154,15 @@ def estimate(
     architectures: Sequence[str] | str | None = None,
     *,
     filter: str | None = None,
+    late: str | None = None,
 ) -> Estimates:
     """Each architecture's estimates of the runs (default: the scenario's `[estimate]
     architectures`; one name may be given as a string; an empty list is refused), as
     `fusionlog estimate` computes them: {name: `Estimate`} with `.mean` (M, K+1, n) and `.cov`
     (M, K+1, n, n). `scenario` is the filters' model: the one simulated, or another
     (`fusionlog estimate --model`), whose sensors are taken from `sim` by name; `filter`
-    ("EKF" or "UKF") overrides its local filter as `--filter` does."""
+    ("EKF" or "UKF") overrides its local filter as `--filter` does, `late` its policy for late
+    measurements as `--late` does."""
     scenario = state_scenario(scenario)
     _check_sim(sim)
     system = scenario.system
@@ -167,6 +170,10 @@ def estimate(
         from .stages.state_kind import with_filter
 
         system = with_filter(system, filter, "filter")
+    if late is not None:
+        from .stages.state_kind import with_late
+
+        system = with_late(system, late, "late")
     names = check_architecture_names(architectures)
     archs = check_architectures(names or list(scenario.architectures), system, "architectures")
     check_discretisable(
@@ -177,7 +184,7 @@ def estimate(
     )
     parts, provenance = estimate_blocks(system, sim, archs)
     out = Estimates({a: _joined(es) for a, es in parts.items()})
-    out.provenance = provenance
+    out.provenance = provenance | {"late": system.late}  # the policy, for `evaluate`
     return out
 
 
@@ -214,7 +221,11 @@ def evaluate(
     scenario = state_scenario(scenario)
     _check_sim(sim)
     sc = sim.scenario  # the truth's: the runs, steps and seed simulated
-    filter_sys, truth_sys = sim.on_instants(scenario.system), sim.on_instants(sc.system)
+    system = scenario.system
+    late = getattr(estimates, "provenance", {}).get("late")
+    if late is not None and isinstance(system, System):  # `estimate(late=)`: its policy
+        system = dataclasses.replace(system, late=late)
+    filter_sys, truth_sys = sim.on_instants(system), sim.on_instants(sc.system)
     _check_estimates(sim, estimates, filter_sys)
     # the estimates' record of their measurement pattern (plain dicts: none known, per run)
     prov = (
@@ -224,7 +235,12 @@ def evaluate(
     )
     # the sensors' availability, where it says something (their own timing, a recording)
     timed = sc.replay is not None or any(not s.timing.default for s in sc.system.sensors)
-    log = SensorLog(sim.truth is not None, sim.scheduled if timed else None, sim.truth_info)
+    log = SensorLog(
+        sim.truth is not None,
+        sim.scheduled if timed else None,
+        sim.truth_info,
+        sim.arrivals(scenario.system),
+    )
     ev = StateEvaluator(
         sc, list(estimates), filter_sys, truth_sys, sim.runs, sim.times, prov, log, sc.name
     )

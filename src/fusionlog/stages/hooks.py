@@ -112,6 +112,10 @@ class Kind(ABC):
     ) -> tuple[np.ndarray, list[np.ndarray]]:
         """Truth (runs, K+1, d) and each sensor's readings (runs, K+1, m), in sensor order."""
 
+    def arrivals(self, scenario: Scenario, run_offset: int, runs: int) -> np.ndarray | None:
+        """When each reading of the runs arrives, (runs, K+1, S) seconds; None: on time."""
+        return None
+
     @abstractmethod
     def model(self, sensors: McapFile, recorded: Scenario | None, model_path: Path | None) -> Model:
         """The filter's model: the recorded scenario's system, or the ``--model`` file's."""

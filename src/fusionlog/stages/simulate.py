@@ -50,16 +50,26 @@ def simulate_to(
     per_step = [np.flatnonzero(measures[k]).tolist() for k in range(K + 1)]
     w.add_metadata(SCENARIO_META, scenario_metadata(scenario, kind.system_fields(scenario)))
     w.add_metadata(PROVENANCE_META, provenance(command, scenario.seed))
+    if kind.arrivals(scenario, 0, 1) is not None:  # late sensors: the schema says arrival
+        w.declare_arrival()
     messages = 0
     offsets = range(0, M, B)
     for off in progress(offsets, len(offsets), "simulate"):
         runs = min(B, M - off)
         x, z = kind.simulate(scenario, off, runs)
+        # late sensors: when each reading arrives (one value where every run's is the same)
+        arrival = kind.arrivals(scenario, off, runs)
+        late = [] if arrival is None else [j for j, s in enumerate(scenario.system.sensors)
+                                           if s.timing.late]  # fmt: skip
         for k in range(K + 1):
             t = float(times[k])
             w.write_values(TRUTH, k, t, off, x[:, k])
             for j in per_step[k]:
-                w.write_values(topics[j], k, t, off, z[j][:, k])
+                a = None
+                if j in late:
+                    a = arrival[:, k, j]  # type: ignore[index]
+                    a = a[:1] if (a == a[0]).all() else a
+                w.write_values(topics[j], k, t, off, z[j][:, k], arrival=a)
         messages += (K + 1) + int(measures.sum())
     return messages
 

@@ -51,6 +51,17 @@ class Simulation:
     covariances: dict[str, np.ndarray] = field(default_factory=dict)
     #: a replay's truth: {"states", "matched", "unmatched"} (summary.json `truth`), else None
     truth_info: dict | None = None
+    #: late sensors: when each reading arrived, {sensor: (M, K+1)} seconds (the MCAP field
+    #: `arrival`; DESIGN.md "Late measurements"); sensors on time are not in it
+    arrival: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def arrivals(self, system: System) -> np.ndarray | None:
+        """When each reading of `system`'s sensors arrived, (M, K+1, S) s (on time where the
+        simulation has none), or None when none is late."""
+        if not self.arrival:
+            return None
+        on_time = np.broadcast_to(self.times, (self.runs, len(self.times)))
+        return np.stack([self.arrival.get(s.name, on_time) for s in system.sensors], -1)
 
     @property
     def z(self) -> np.ndarray:
@@ -146,7 +157,13 @@ def simulation_of(
     names = [s.name for s in sc.system.sensors]
     measures = sc.schedule.measures  # (K+1, S)
     scheduled = {name: measures[:, j] for j, name in enumerate(names)}
-    return Simulation(sc, sc.times, x, dict(zip(names, zs, strict=True)), scheduled)
+    arr = kind.arrivals(sc, 0, sc.runs)
+    arrival = {} if arr is None else {
+        s.name: arr[..., j] for j, s in enumerate(sc.system.sensors) if s.timing.late
+    }  # fmt: skip
+    sim = Simulation(sc, sc.times, x, dict(zip(names, zs, strict=True)), scheduled)
+    sim.arrival = arrival
+    return sim
 
 
 def _recorded(scenario: Scenario) -> Simulation:
@@ -189,7 +206,10 @@ def estimate_blocks(
     sensors' readings taken from `sim` by name), one per block of runs (`blocks_of`), and the
     record of their measurement pattern (`PlanCache.provenance`)."""
     z = sim.stacked(system)
-    cache = PlanCache(sim.on_instants(system), len(sim.times) - 1, one_run=z.shape[0] == 1)
+    cache = PlanCache(
+        sim.on_instants(system), len(sim.times) - 1, one_run=z.shape[0] == 1, clock=sim.times
+    )
+    cache.arrivals = sim.arrivals(system)
     parts: dict[str, list[BlockEstimate]] = {a: [] for a in archs}
     for off, n in blocks_of(sim):
         block = estimate_block(cache.system, archs, z[off : off + n], cache=cache)
