@@ -11,6 +11,7 @@ against a Monte Carlo run with the identified values as the truth (within 4 SE).
 from __future__ import annotations
 
 import json
+import os
 import re
 import shlex
 import textwrap
@@ -564,6 +565,10 @@ _PARAM = re.compile(r"^  (\S+)\s+(\S+)  \+- (\S+)  \(given \S+\)$", re.M)
 
 
 @pytest.mark.skipif(not EVO_BAG.exists(), reason="evo's ROS_example.bag is not available")
+@pytest.mark.skipif(
+    os.environ.get("FUSIONLOG_WALKTHROUGHS") != "1",
+    reason="about 6 CPU-minutes (two identifications on 13,801 instants): `make walkthroughs`",
+)
 def test_the_evo_walkthrough(tmp_path, monkeypatch):
     """docs/tutorials/identify.md on evo's bag (its commands, marked skip there for their
     time): the values it shows are those identified (within 0.1 of their standard error:
