@@ -142,12 +142,7 @@ def first_blocks(rule, n: int, N: int):
     the weights C put back on the stacked locals' first blocks (C~ (..., N, S N), zero
     elsewhere) and P~ = blockdiag(P_fused, I) (only its first block is read: `wrap`)."""
 
-    def fused(P: np.ndarray, J: np.ndarray | None, criterion: str, forms=None, found=None):
-        # the rules that also fuse locals in information form are called with their forms
-        # (`Architecture.information`); late sensors need [prior], so every stacked local is
-        # in mean form and its first block is its covariance: the rule's mean-form call
-        if forms is not None and np.any(forms):
-            raise AssertionError("late sensors: a stacked local filter in information form")
+    def fused(P: np.ndarray, J: np.ndarray | None, criterion: str):
         S = P.shape[-3]
         idx = (np.arange(S)[:, None] * N + np.arange(n)).ravel()
         Jn = None if J is None else J[..., idx[:, None], idx]
@@ -175,8 +170,10 @@ def fused_plan(
     per sensor) and its registered rule applied to their current blocks (`first_blocks`),
     by the generic rule builder (`track_to_track.build_rule`)."""
     base = definition(arch)
+    # `first_blocks` hands the rule mean-form covariances only: late sensors need a prior, so
+    # the locals never start in information form here (information=False).
     stacked = dataclasses.replace(
-        base, rule=first_blocks(base.rule, n, system.n), build=None, color=None
+        base, rule=first_blocks(base.rule, n, system.n), build=None, color=None, information=False
     )
     request = BuildRequest(system, arch, present, None, criterion)
     if present.ndim == 3:
