@@ -60,6 +60,11 @@ class Estimator(ABC):
     def provenance(self) -> dict[str, str]:
         """Fields the estimates' provenance record adds, known once every block is done."""
 
+    def time_windows(self, sensors: McapFile) -> Any:
+        """A one-run log too long for one block: its estimates block of time by block,
+        (k0, k1, {output topic: StepWriter at steps k0..k1-1}), or None (blocks of runs)."""
+        return None
+
 
 class Evaluator(ABC):
     """Accumulates a kind's metrics block by block and writes its recording."""
