@@ -471,5 +471,7 @@ def full_resolution_of(ctx: Ctx, doc: dict[str, Any]) -> bool:
     (default false: a few 10^4 points per series, `core.decimate`)."""
     value = (toml.table(ctx, doc, "evaluate", required=False) or {}).get("full_resolution", False)
     if not isinstance(value, bool):
-        raise ctx.err("evaluate.full_resolution", f"expected true or false, got {toml.tname(value)}")
+        raise ctx.err(
+            "evaluate.full_resolution", f"expected true or false, got {toml.tname(value)}"
+        )
     return value

@@ -19,8 +19,8 @@ import numpy as np
 
 from fusionlog.core.architectures.long_log import steady_log
 from fusionlog.core.model import System
-from fusionlog.core.reference import reference_paths
 from fusionlog.core.names import check_architectures
+from fusionlog.core.reference import reference_paths
 from fusionlog.core.simulate import simulate
 from fusionlog.driver import KeptPlans, PlanCache, estimate_block
 from fusionlog.errors import FusionlogError, NumericalError

@@ -43,11 +43,11 @@ from typing import IO, Any
 import numpy as np
 import rerun.blueprint as rrb
 
+from fusionlog.core.decimate import decimate_evaluation
 from fusionlog.core.evaluation import Evaluation
 from fusionlog.core.linalg import overflow_is_inf
 
 from .consistency_views import NisSeries, check_consistency, consistency_views, write_consistency
-from .decimation import decimation
 from .legend import legend_box, place_legend
 from .log_recording import opening_range, plane_states, replay_blueprint, write_replay
 from .plane import check_plane, write_plane
@@ -140,6 +140,7 @@ def write_evaluation(
     `write_recording` for what each part draws and the errors)."""
     if scenario_name is None:
         scenario_name, seed = ev.summary["scenario"], ev.summary["seed"]
+    ev = decimate_evaluation(ev)  # a long log: a few 10^4 points per series
     times = np.asarray(ev.times, dtype=float)
     state_names = [str(s) for s in ev.state_names]
     series, nees_bounds, confidence, plane = ev.series, ev.nees_bounds, ev.confidence, ev.plane
@@ -170,19 +171,16 @@ def write_evaluation(
         blueprint = _blueprint(
             state_names, series, samples, plane is not None, extra, timeline, pcrb is not None
         )
-    # a long log: overview series decimated, the first run's states kept (io/rrd/decimation.py)
-    n_full = sum(len(state_names) * (1 + len(est)) for _, est in samples.values())
-    n_full += sum(len(by) for by in (measured or {}).values())
-    stride, decimated = decimation(len(times), n_full)
-    if decimated:
-        properties = {**(properties or {}), "decimation": decimated}
+    axes = None
+    if ev.steps is not None:  # a long log's series, decimated before (core/decimate.py)
+        axes = {"step": ("sequence", np.asarray(ev.steps)), "time": ("duration", times)}
+        properties = {**(properties or {}), "decimation": dict(ev.decimation or {})}
     # A sensor's readings have one colour in every view (its place among the sensors, as in
     # the Sensors tab), not its place among the sensors of one state.
     sensors = dict.fromkeys([*avail, *(s for by in (measured or {}).values() for s in by)])
     sensor_color = {s: class_color(k) for k, s in enumerate(sensors)}
     args = (scenario_name, seed, times, summary, properties, recording_id)
-    with recording_stream(file, blueprint, *args) as w:
-        w.stride = stride
+    with recording_stream(file, blueprint, *args, axes=axes) as w:
         _write_metrics(w, state_names, series, nees_bounds, confidence)
         for i, state in enumerate(state_names if pcrb is not None else []):
             p = entity_path("metrics", "pcrb", "mse", state)

@@ -199,5 +199,6 @@ class StateEvaluator(Evaluator):
             confidence=self.sc.confidence,
             properties={"scenario": self.sc.source, "provenance": provenance or self.prov},
             sensors=self.sensors,
+            full_resolution=self.sc.full_resolution,
             **into.fields,
         )
