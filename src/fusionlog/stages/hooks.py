@@ -78,6 +78,11 @@ class Evaluator(ABC):
     def block_runs(self, requested: int | None) -> int:
         """Runs per block."""
 
+    def time_windows(self) -> Any:
+        """A one-run log evaluated in blocks of time: an object with ``add(k0, k1, truth,
+        estimates)`` and ``evaluation()``, or None (blocks of runs)."""
+        return None
+
     @abstractmethod
     def add(self, off: int, truth: Array, estimates: Topics, sensors: Readings = None) -> None:
         """Add one block: truth (runs, K+1, dim), each topic's decoded estimates, and the

@@ -167,18 +167,62 @@ class StateEvaluator(Evaluator):
         """The summary.json dict (also `evaluation().summary`)."""
         return self._finish().summary
 
-    def _finish(self) -> Finished:
-        archs: dict[str, dict[str, Any]] = {}
+    def _head(self) -> dict[str, Any]:
         sc = self.sc
-        summary = {
+        return {
             "scenario": sc.name,
             "seed": sc.seed,
             "runs": self.M,
             "steps": self.K,
             "state_names": list(sc.state_names),
             "confidence": sc.confidence,
-            "architectures": archs,
         }
+
+    def time_windows(self) -> Any:
+        """A `LongEvaluator` for a one-run log longer than a block of time whose evaluation
+        needs nothing of the whole log at once (the Monte Carlo metrics with truth for every
+        state, the exact analysis of a steady model, the sample run); None otherwise."""
+        from fusionlog.core.architectures.long_log import converged, steady_log
+        from fusionlog.core.reference import reference_paths
+        from fusionlog.driver.long_log import time_block
+
+        from .long_evaluator import LongEvaluator
+
+        if self.M != 1 or self.K + 1 <= time_block() or reference_paths():
+            return None
+        if not {type(p) for p in self.parts} <= {MetricsPart, ExactPart, SamplesPart}:
+            return None
+        if not self.has_truth or len(self.metrics.truthed) != self.n:
+            return None
+        log, expected = None, {}
+        exact = next((p for p in self.parts if isinstance(p, ExactPart)), None)
+        if exact is not None:
+            if exact.route == "per-run" or exact.mask is not None:
+                return None
+            p = exact.plans
+            log = steady_log(p.system, exact.known, self.K, p.criterion)
+            if log is None:
+                return None
+            for a in exact.known:
+                expected[a] = log.expected(a, exact.truth)
+                if not converged(expected[a], log.c):
+                    return None
+        sc = self.sc
+        fields = {
+            "state_names": tuple(sc.state_names),
+            "confidence": sc.confidence,
+            "properties": {"scenario": sc.source, "provenance": self.prov},
+            "sensors": self.sensors,
+            "full_resolution": sc.full_resolution,
+        }
+        return LongEvaluator(
+            self._head(), self.archs, self.topics, self.times, self.n, sc.confidence,
+            min(sc.sample_runs, 1), sc.full_resolution, log, expected, fields,
+        )  # fmt: skip
+
+    def _finish(self) -> Finished:
+        archs: dict[str, dict[str, Any]] = {}
+        summary = {**self._head(), "architectures": archs}
         into = Finished(summary, archs, metric_runs=self.metrics.runs_of())
         into.fields.update(
             plane=None, availability={}, measured={}, nis=None, innovations=None, pcrb=None
