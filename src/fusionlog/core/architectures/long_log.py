@@ -32,10 +32,12 @@ from .executor import STEADY_BLOCK, _recursion, _steady_states
 from .plan import Plan, StepMap
 from .registry import build_plan
 
-__all__ = ["HORIZON", "SteadyLog", "steady_log"]
+__all__ = ["HORIZONS", "SteadyLog", "steady_log"]
 
-#: Instants of the plans that stand for a long log (their middle must be steady).
-HORIZON = 2048
+#: Instants of the plans that stand for a long log, tried in turn until their middle is
+#: steady (a 200 Hz constant-velocity log takes ~1500 instants to reach its steady state).
+#: The steady maps are one object each: a longer horizon costs its transient, not its length.
+HORIZONS = (4096, 16384, 65536)
 
 
 @dataclass
@@ -52,6 +54,11 @@ class SteadyLog:
     @property
     def c(self) -> int:
         return self.horizon // 2
+
+    @property
+    def whole(self) -> bool:
+        """The plans are over the whole log (`index` is k itself)."""
+        return self.horizon == self.steps + 1
 
     def index(self, k0: int, k1: int) -> np.ndarray:
         """(k1 - k0,) the plans' step standing for each instant k0..k1-1."""
@@ -175,22 +182,22 @@ def _steady(plan: Plan, c: int) -> bool:
 
 
 def steady_log(
-    system: System,
-    archs: Sequence[str],
-    steps: int,
-    criterion: str = "trace",
-    horizon: int = HORIZON,
+    system: System, archs: Sequence[str], steps: int, criterion: str = "trace"
 ) -> SteadyLog | None:
     """The short plans standing for a log of instants 0..`steps` with every measurement present
-    (`SteadyLog`), or None where they do not: a model that is not time-invariant or linear, a
-    log not longer than the horizon, a plan not steady by the horizon's middle."""
-    if not (system.linear and system.time_invariant) or steps + 1 <= horizon:
+    (`SteadyLog`), or None where they do not: a model that is not time-invariant or linear, or
+    plans not steady by the middle of the longest horizon (`HORIZONS`). A log no longer than
+    that horizon has its plans over all of it (`SteadyLog.whole`)."""
+    if not (system.linear and system.time_invariant):
         return None
-    plans = {a: build_plan(system, a, horizon - 1, None, criterion) for a in archs}
-    c = horizon // 2
-    if not all(_steady(p, c) for p in plans.values()):
-        return None
-    return SteadyLog(plans, steps, horizon)
+    if steps + 1 <= HORIZONS[-1]:
+        plans = {a: build_plan(system, a, steps, None, criterion) for a in archs}
+        return SteadyLog(plans, steps, steps + 1)
+    for horizon in HORIZONS:
+        plans = {a: build_plan(system, a, horizon - 1, None, criterion) for a in archs}
+        if all(_steady(p, horizon // 2) for p in plans.values()):
+            return SteadyLog(plans, steps, horizon)
+    return None
 
 
 def expected_window(ex: Expected, idx: np.ndarray) -> Expected:
