@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import math
-import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -94,20 +93,20 @@ def test_blocked_summary_equals_the_whole_run(paper_runs) -> None:
         assert whole["architectures"][a]["expected"]["mse"] is not None
 
 
-def test_blocked_estimates_of_a_replay_equal_the_whole_log(tmp_path, monkeypatch) -> None:
-    """A recorded CSV log at a regular rate (a replay: its instants from the data) estimated in
-    blocks of time equals the whole log (every architecture)."""
-    rng = np.random.default_rng(7)
-    K1 = 2600
-    t = np.arange(K1) * 0.005
-    pos = 1.0 + 0.2 * np.cumsum(rng.normal(size=K1)) * 0.005
-    rows = "\n".join(
-        f"{int(round(ti * 1e9))},{p + rng.normal():.6f},{p + rng.normal():.6f}"
-        for ti, p in zip(t, pos, strict=True)
-    )
-    (tmp_path / "log.csv").write_text("time,a,b\n" + rows + "\n")
-    (tmp_path / "replay.toml").write_text(
-        """
+def _series_close(whole: Path, blocked: Path) -> None:
+    """The two recordings draw the same series (a log below the decimation threshold)."""
+    a, b = (read_recording(d / "evaluation.rrd") for d in (whole, blocked))
+    np.testing.assert_array_equal(a["steps"], b["steps"])
+    assert a["series"].keys() == b["series"].keys()
+    for key, v in a["series"].items():
+        np.testing.assert_allclose(b["series"][key], v, rtol=RTOL, atol=1e-9, err_msg=key)
+
+
+def test_blocked_recording_equals_the_whole_run(paper_runs) -> None:
+    _series_close(*paper_runs)
+
+
+CSV_REPLAY = """
 [scenario]
 name = "long_csv"
 state_names = ["p", "v"]
@@ -134,7 +133,34 @@ R = 1.0
 [estimate]
 architectures = ["CKF", "HKF", "MSC-GMF", "MSC", "SKF", "CI", "FBS"]
 """
+
+TRUTH = """
+[truth]
+source = "log.csv"
+values = ["p", "v"]
+states = ["p", "v"]
+time_unit = "ns"
+match = "exact"
+"""
+
+
+@pytest.mark.parametrize("truth", [False, True], ids=["no truth: NIS", "truth"])
+def test_a_replay_in_blocks_equals_the_whole_log(tmp_path, monkeypatch, truth) -> None:
+    """A recorded CSV log at a regular rate (a replay: its instants from the data) estimated
+    and evaluated in blocks of time equals the whole log: every architecture's estimates, the
+    summary (NIS per sensor with its whiteness across blocks; with truth, the metrics and
+    exact values) and the recording."""
+    rng = np.random.default_rng(7)
+    K1 = 2600
+    t = np.arange(K1) * 0.005
+    v = 0.2 * np.cumsum(rng.normal(size=K1)) * 0.07
+    pos = 1.0 + np.cumsum(v) * 0.005
+    rows = "\n".join(
+        f"{round(ti * 1e9)},{p + rng.normal():.6f},{p + rng.normal():.6f},{p:.9f},{vi:.9f}"
+        for ti, p, vi in zip(t, pos, v, strict=True)
     )
+    (tmp_path / "log.csv").write_text("time,a,b,p,v\n" + rows + "\n")
+    (tmp_path / "replay.toml").write_text(CSV_REPLAY + (TRUTH if truth else ""))
     outs = []
     for name, block in (("whole", None), ("blocked", "400")):
         if block is None:
@@ -152,3 +178,6 @@ architectures = ["CKF", "HKF", "MSC-GMF", "MSC", "SKF", "CI", "FBS"]
         json.loads((tmp_path / d / "summary.json").read_text()) for d in ("whole", "blocked")
     )
     _close(blocked, whole)
+    assert ("expected" in whole["architectures"]["CKF"]) == truth
+    assert "nis" in whole["architectures"]["CKF"]
+    _series_close(tmp_path / "whole", tmp_path / "blocked")

@@ -69,13 +69,16 @@ def evaluate_into(
     long = ev.time_windows() if M == 1 else None
     if long is not None:  # a long one-run log in blocks of time (stages/evaluator/long_*)
         T = time_block()
+        read = truth + list(ev.sensor_topics)
         windows = zip(
-            sens.iter_time_blocks(truth, T), est.iter_time_blocks(ev.topics, T), strict=True
+            sens.iter_time_blocks(read, T) if read else _nothing(est.steps(), T),
+            est.iter_time_blocks(ev.topics, T),
+            strict=True,
         )
         for (k0, k1, sdata), (_, _, edata) in windows:
             for topic, e in edata.items():
                 _check_variances(estimates_name or estimates_path, topic, e[1])
-            long.add(k0, k1, sdata[TRUTH], edata)
+            long.add(k0, k1, sdata.pop(TRUTH, None), edata, sdata)
         del windows, sdata, edata
         return _written(long.evaluation(), kind, outs, out, summary_path, prov)
     blocks = zip(
@@ -98,6 +101,12 @@ def evaluate_into(
     # log's times, twice) are not kept while the recording is encoded, the run's peak.
     del ev, sens, est
     return _written(evaluation, kind, outs, out, summary_path, prov)
+
+
+def _nothing(instants: int, T: int):
+    """Blocks of time of no topic (a log read for nothing but its estimates)."""
+    for k0 in range(0, instants, T):
+        yield k0, min(k0 + T, instants), {}
 
 
 def _written(evaluation, kind, outs: Outputs, out: Path, summary_path, prov):

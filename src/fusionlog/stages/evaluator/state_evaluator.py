@@ -181,22 +181,30 @@ class StateEvaluator(Evaluator):
     def time_windows(self) -> Any:
         """A `LongEvaluator` for a one-run log longer than a block of time whose evaluation
         needs nothing of the whole log at once (the Monte Carlo metrics with truth for every
-        state, the exact analysis of a steady model, the sample run); None otherwise."""
-        from fusionlog.core.architectures.long_log import converged, steady_log
+        state or none, the exact analysis and the NIS of a steady model, the sample run);
+        None otherwise."""
         from fusionlog.core.reference import reference_paths
         from fusionlog.driver.long_log import time_block
 
-        from .long_evaluator import LongEvaluator
-
         if self.M != 1 or self.K + 1 <= time_block() or reference_paths():
             return None
-        if not {type(p) for p in self.parts} <= {MetricsPart, ExactPart, SamplesPart}:
+        if not {type(p) for p in self.parts} <= {MetricsPart, ExactPart, SamplesPart, NisPart}:
             return None
-        if not self.has_truth or len(self.metrics.truthed) != self.n:
+        if self.has_truth and len(self.metrics.truthed) != self.n:
             return None
+        return self._long(
+            next((p for p in self.parts if isinstance(p, ExactPart)), None),
+            next((p for p in self.parts if isinstance(p, NisPart)), None),
+        )
+
+    def _long(self, exact: ExactPart | None, nis: NisPart | None) -> Any:
+        from fusionlog.core.architectures.long_log import converged, steady_log
+
+        from .long_evaluator import LongEvaluator, LongSetup
+        from .long_nis import LongNis
+
         log, expected = None, {}
-        exact = next((p for p in self.parts if isinstance(p, ExactPart)), None)
-        if exact is not None:
+        if exact is not None and self.has_truth:
             if exact.route == "per-run" or exact.mask is not None:
                 return None
             p = exact.plans
@@ -207,17 +215,33 @@ class StateEvaluator(Evaluator):
                 expected[a] = log.expected(a, exact.truth)
                 if not log.whole and not converged(expected[a], log.c):
                     return None
+        long_nis = None
+        if nis is not None:
+            from fusionlog.core.architectures import definition
+
+            from ..consistency import _centralised
+
+            forward, ckf = None, _centralised()
+            archs = nis.nis.archs if nis.nis is not None else []
+            if any(definition(a).locals == "smoother" for a in archs):
+                forward = steady_log(nis.system, [ckf], self.K)
+                if forward is None:
+                    return None
+            long_nis = LongNis(nis, forward, ckf)
         sc = self.sc
-        fields = {
-            "state_names": tuple(sc.state_names),
-            "confidence": sc.confidence,
-            "properties": {"scenario": sc.source, "provenance": self.prov},
-            "sensors": self.sensors,
-            "full_resolution": sc.full_resolution,
-        }
         return LongEvaluator(
-            self._head(), self.archs, self.topics, self.times, self.n, sc.confidence,
-            min(sc.sample_runs, 1), sc.full_resolution, log, expected, fields,
+            LongSetup(
+                head=self._head(), archs=self.archs, topics=self.topics, times=self.times,
+                n=self.n, confidence=sc.confidence, samples=min(sc.sample_runs, 1),
+                full_resolution=sc.full_resolution, has_truth=self.has_truth,
+                recorded=sc.replay is not None, truth_info=self.metrics.truth_info, log=log,
+                expected=expected, nis=long_nis,
+                fields={
+                    "state_names": tuple(sc.state_names), "confidence": sc.confidence,
+                    "properties": {"scenario": sc.source, "provenance": self.prov},
+                    "sensors": self.sensors, "full_resolution": sc.full_resolution,
+                },
+            )
         )  # fmt: skip
 
     def _finish(self) -> Finished:
