@@ -100,15 +100,19 @@ class TreeDecimator:
     """Nested dicts and tuples whose leaves are series (w, ...) of the same instants, handed
     over block by block (the same structure each time), reduced leaf by leaf."""
 
-    def __init__(self, b: int) -> None:
-        self.b = b
+    def __init__(self, b: int, length: int | None = None) -> None:
+        self.b, self.length = b, length
         self.leaves: dict[tuple, Decimator] = {}
+        self.kept: dict[tuple, np.ndarray] = {}  # arrays that are no series (not `length` long)
         self.shape: Any = None
 
     def add(self, tree: Any) -> None:
         self.shape = _walk(tree, (), self._leaf)
 
     def _leaf(self, path: tuple, v: np.ndarray) -> tuple:
+        if self.length is not None and (v.ndim == 0 or v.shape[0] != self.length):
+            self.kept[path] = v
+            return path
         d = self.leaves.get(path)
         if d is None:
             d = self.leaves[path] = Decimator(self.b)
@@ -117,7 +121,11 @@ class TreeDecimator:
 
     def result(self) -> Any:
         """The tree of the last block's structure with each leaf's points."""
-        return _walk(self.shape, (), lambda p, leaf: self.leaves[leaf].result(), leaf_is=tuple)
+
+        def done(path: tuple, leaf: tuple) -> np.ndarray:
+            return self.kept[leaf] if leaf in self.kept else self.leaves[leaf].result()
+
+        return _walk(self.shape, (), done, leaf_is=tuple)
 
 
 def _walk(tree: Any, path: tuple, fn, leaf_is: type = np.ndarray) -> Any:
@@ -135,8 +143,27 @@ def _walk(tree: Any, path: tuple, fn, leaf_is: type = np.ndarray) -> Any:
 #: The `Evaluation` fields whose arrays are series over the instants.
 SERIES_FIELDS = (
     "series", "nees_bounds", "samples", "availability", "nis", "traces", "measured", "pcrb",
-    "innovations",
+    "innovations", "trajectory", "bands",
 )  # fmt: skip
+
+
+def with_derived(tree: dict[str, Any], reference: str) -> dict[str, Any]:
+    """`tree` (the `Evaluation`'s series fields) with what the recording draws as a function of
+    several series computed before they are decimated (a bucket's extremes of a difference
+    are not the difference of the extremes): each architecture's MSE minus the `reference`
+    architecture's ("mse_minus_ckf") and each sample run's ±2σ band ("bands"). The given
+    dicts are not changed."""
+    series = {a: dict(d) for a, d in (tree.get("series") or {}).items()}
+    ref = series.get(reference)
+    for a, d in series.items():
+        if ref is not None and a != reference:
+            d["mse_minus_ckf"] = np.asarray(d["mse"], float) - np.asarray(ref["mse"], float)
+    with np.errstate(over="ignore", invalid="ignore"):  # inf - inf: NaN, drawn as a gap
+        bands = {
+            m: {a: (v[0] - 2 * v[1], v[0] + 2 * v[1]) for a, v in est.items()}
+            for m, (_, est) in (tree.get("samples") or {}).items()
+        }
+    return {**tree, "series": series, "bands": bands}
 
 
 def note(instants: int, b: int) -> dict[str, str]:
@@ -151,18 +178,20 @@ def note(instants: int, b: int) -> dict[str, str]:
     }
 
 
-def decimate_evaluation(ev: Any) -> Any:
+def decimate_evaluation(ev: Any, reference: str) -> Any:
     """`ev` (`core.evaluation.Evaluation`) with its series decimated where the log is longer
     than `DECIMATE_ABOVE` instants, unless it asks for full resolution, is decimated already, or
-    draws a state plane or trajectory (kept whole: their views pair the instants)."""
+    draws a state plane (`reference`: the architecture the others' MSE is drawn against, see
+    `with_derived`; kept whole: its ellipses are covariances, whose entries' extremes
+    are none)."""
     import dataclasses
 
     K1 = len(ev.times)
     b = bucket_size(K1, ev.full_resolution)
-    if b == 1 or ev.steps is not None or ev.plane is not None or ev.trajectory:
+    if b == 1 or ev.steps is not None or ev.plane is not None:
         return ev
-    tree = TreeDecimator(b)
-    tree.add({f: getattr(ev, f) for f in SERIES_FIELDS})
+    tree = TreeDecimator(b, K1)
+    tree.add(with_derived({f: getattr(ev, f) for f in SERIES_FIELDS}, reference))
     steps = point_steps(K1, b)
     return dataclasses.replace(
         ev, **tree.result(), times=np.asarray(ev.times)[steps], steps=steps, decimation=note(K1, b)

@@ -67,6 +67,9 @@ class Evaluation:
     decimation: dict[str, str] | None = None
     #: `[evaluate] full_resolution`: the recording keeps every instant of a long log
     full_resolution: bool = False
+    #: a decimated log's sample-run bands {run: {arch: (lower, upper)}} (K+1, n) each,
+    #: decimated as drawn (`core.decimate.with_derived`); None: mean ∓ 2 std
+    bands: dict[int, dict[str, tuple[np.ndarray, np.ndarray]]] | None = None
 
     @property
     def architectures(self) -> list[str]:

@@ -67,6 +67,7 @@ _SHAPES = {
     "expected_mse": "sn",
     "expected_nees": "s",
     "expected_dm": "s",
+    "mse_minus_ckf": "sn",  # a decimated log's, decimated as drawn (core.decimate)
 }
 _REQUIRED = ("mse", "trace", "nees", "dm")
 
@@ -140,7 +141,7 @@ def write_evaluation(
     `write_recording` for what each part draws and the errors)."""
     if scenario_name is None:
         scenario_name, seed = ev.summary["scenario"], ev.summary["seed"]
-    ev = decimate_evaluation(ev)  # a long log: a few 10^4 points per series
+    ev = decimate_evaluation(ev, CKF)  # a long log: a few 10^4 points per series
     times = np.asarray(ev.times, dtype=float)
     state_names = [str(s) for s in ev.state_names]
     series, nees_bounds, confidence, plane = ev.series, ev.nees_bounds, ev.confidence, ev.plane
@@ -185,7 +186,7 @@ def write_evaluation(
         for i, state in enumerate(state_names if pcrb is not None else []):
             p = entity_path("metrics", "pcrb", "mse", state)
             w.line(p, np.asarray(pcrb, dtype=float)[:, i], "PCRB", BOUND_COLOR, 2.5)
-        _write_sample_runs(w, state_names, samples)
+        _write_sample_runs(w, state_names, samples, ev.bands)
         for i, by_sensor in (measured or {}).items():
             for sensor, v in by_sensor.items():
                 p = entity_path("runs", 0, state_names[i], "measured", sensor)
@@ -251,7 +252,11 @@ def _write_metrics(
         mse = np.asarray(d["mse"], dtype=float)
         for i, state in enumerate(state_names):
             w.line(entity_path("metrics", "mse", state, arch), mse[:, i], arch, col, width)
-            if ckf is not None and arch != CKF:
+            if "mse_minus_ckf" in d:
+                diff = np.asarray(d["mse_minus_ckf"], dtype=float)[:, i]
+                p = entity_path("metrics", "mse_minus_ckf", state, arch)
+                w.line(p, diff, f"{arch} − CKF", col, width)
+            elif ckf is not None and arch != CKF:
                 diff = mse[:, i] - np.asarray(ckf["mse"], dtype=float)[:, i]
                 p = entity_path("metrics", "mse_minus_ckf", state, arch)
                 w.line(p, diff, f"{arch} − CKF", col, width)
@@ -271,8 +276,11 @@ def _write_metrics(
             w.line(p, arr, f"{label} {side}", BOUND_COLOR, 1.5)
 
 
-def _write_sample_runs(w: SeriesWriter, state_names: list[str], sample_runs: SampleRuns) -> None:
-    """Each sample run: the truth, and per architecture the estimate with its ±2σ band."""
+def _write_sample_runs(
+    w: SeriesWriter, state_names: list[str], sample_runs: SampleRuns, bands: Any = None
+) -> None:
+    """Each sample run: the truth, and per architecture the estimate with its ±2σ band (as
+    given in `bands`, a decimated log's, else mean ∓ 2 std)."""
     for m in sorted(sample_runs):
         truth, est = sample_runs[m]
         truth = np.asarray(truth, dtype=float)
@@ -285,8 +293,11 @@ def _write_sample_runs(w: SeriesWriter, state_names: list[str], sample_runs: Sam
                 base = ("runs", m, state, arch)
                 w.line(entity_path(*base, "mean"), mu, arch, col, 2.0)
                 # The band shares the estimate's legend entry (one toggle for both).
-                w.line(entity_path(*base, "upper"), mu + 2 * sd, arch, col, 0.75)
-                w.line(entity_path(*base, "lower"), mu - 2 * sd, arch, col, 0.75)
+                lower, upper = mu - 2 * sd, mu + 2 * sd
+                if bands and arch in bands.get(m, {}):
+                    lower, upper = (np.asarray(v, dtype=float)[:, i] for v in bands[m][arch])
+                w.line(entity_path(*base, "upper"), upper, arch, col, 0.75)
+                w.line(entity_path(*base, "lower"), lower, arch, col, 0.75)
 
 
 @overflow_is_inf  # inf - inf: NaN, drawn as a gap

@@ -21,9 +21,10 @@ from typing import Any
 import numpy as np
 
 from fusionlog.core.architectures.long_log import SteadyLog, expected_window
-from fusionlog.core.decimate import TreeDecimator, bucket_size, note, point_steps
+from fusionlog.core.decimate import TreeDecimator, bucket_size, note, point_steps, with_derived
 from fusionlog.core.evaluation import Evaluation
 from fusionlog.core.step_sums import StepSums
+from fusionlog.io.rrd.style import CKF
 
 from .long_nis import LongNis
 
@@ -109,7 +110,7 @@ class LongEvaluator:
             tree["samples"] = {0: (x, sample)}
         if s.nis is not None and sensors is not None:
             tree.update(s.nis.add(k0, k1, sensors, by_arch))
-        self.tree.add(tree)
+        self.tree.add(with_derived(tree, CKF))
 
     def _mean_trace(self, a: str) -> float:
         total, count = self.traces[a]
@@ -146,6 +147,7 @@ class LongEvaluator:
             availability=drawn.get("availability", {}),
             measured=drawn.get("measured", {}) if nis is not None else {},
             nis=nis,
+            bands=drawn.get("bands"),
             innovations=drawn.get("innovations") if nis is not None else None,
             steps=steps if self.b > 1 else None,
             decimation=note(K1, self.b) if self.b > 1 else None,
