@@ -35,7 +35,7 @@ class LongNis:
 
     def __init__(self, part: NisPart, forward: SteadyLog | None, ckf: str) -> None:
         self.part, self.forward, self.ckf = part, forward, ckf
-        self.archs = list(part.nis.archs) if part.nis is not None else []
+        self.archs = part.archs
         self.prev: dict[str, Any] = {}  # each architecture's (mean, cov) of the last instant
         self.zprev: np.ndarray | None = None
         self.fprev: Any = None

@@ -222,8 +222,7 @@ class StateEvaluator(Evaluator):
             from ..consistency import _centralised
 
             forward, ckf = None, _centralised()
-            archs = nis.nis.archs if nis.nis is not None else []
-            if any(definition(a).locals == "smoother" for a in archs):
+            if any(definition(a).locals == "smoother" for a in nis.archs):
                 forward = steady_log(nis.system, [ckf], self.K)
                 if forward is None:
                     return None
