@@ -121,7 +121,7 @@ def write_csv_replay(folder: Path, rows: int) -> Path:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[100_000, 1_000_000, 4_000_000])
+    ap.add_argument("--sizes", type=int, nargs="*", default=[100_000, 1_000_000, 4_000_000])
     ap.add_argument("--filterpy-instants", type=int, default=100_000)
     ap.add_argument("--csv-rows", type=int, default=1_000_000)
     ap.add_argument("--no-csv", action="store_true")
@@ -131,7 +131,7 @@ def main() -> None:
     base = args.dir or Path(tempfile.mkdtemp(prefix="fusionlog-bench-long-"))
     print(f"load before: {_uptime()}", flush=True)
     results: dict = {"runs": {}}
-    per_instant = None
+    per_instant, measured_on = None, 0
     for N in args.sizes:
         out = base / f"paper-{N}"
         r = _fusionlog_run([str(PAPER), "--runs", "1", "--steps", str(N - 1)], out)

@@ -137,6 +137,12 @@ def whiteness(normalised: np.ndarray, lags: int = 10) -> dict[str, float]:
             if den <= 0:
                 continue
             rhos += [float(seq[:-lag] @ seq[lag:]) / den for lag in range(1, lags + 1)]
+    return _whiteness(rhos, n_min, lags)
+
+
+def _whiteness(rhos: list[float], n_min: int | None, lags: int) -> dict[str, float]:
+    """`whiteness`'s record of the autocorrelations `rhos` of sequences of `n_min` values or
+    more: the largest |rho|, the band +-1.96/sqrt(n_min), the share inside it."""
     if not rhos:
         return {"lags": lags, "max_abs_autocorr": float("nan"), "bound": float("nan"),
                 "fraction_inside": float("nan")}  # fmt: skip
@@ -247,14 +253,4 @@ class WhitenessSums:
                     + (N - lag) * mu * mu
                 )
                 rhos.append(num / den)
-        if not rhos:
-            return {"lags": L, "max_abs_autocorr": float("nan"), "bound": float("nan"),
-                    "fraction_inside": float("nan")}  # fmt: skip
-        bound = 1.96 / np.sqrt(n_min)
-        a = np.abs(np.array(rhos))
-        return {
-            "lags": L,
-            "max_abs_autocorr": float(a.max()),
-            "bound": float(bound),
-            "fraction_inside": float((a <= bound).mean()),
-        }
+        return _whiteness(rhos, n_min, L)
