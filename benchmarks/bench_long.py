@@ -6,7 +6,8 @@ same log; and a 10^6-row recorded CSV replayed.
     .venv/bin/python benchmarks/bench_long.py --sizes 100000 --no-csv
 
 Each `fusionlog run` is a child process under `nice -n 5` (the machine is shared) timed by
-`/usr/bin/time -f "%e %M"`: wall time and peak RSS (max resident set size of the command).
+`/usr/bin/time -f "%e %M %U %S"`: wall time, peak RSS (max resident set size of the command)
+and CPU time (user + system: what the load of a shared machine moves less).
 The sizes of its four outputs are read afterwards. The FilterPy loop is the centralised KF
 (one filter, three sensors stacked: predict, update) over the sensors file's readings, read in
 blocks of time; it is timed on the first `--filterpy-instants` instants (default 10^5) and
@@ -41,15 +42,21 @@ def _fusionlog_run(args: list[str], out: Path) -> dict:
     """`fusionlog run ARGS --out-dir OUT --force` as a niced child: seconds, peak RSS (bytes),
     the stage seconds it prints and its outputs' sizes."""
     exe = Path(sys.executable).with_name("fusionlog")
-    cmd = ["nice", "-n", "5", "/usr/bin/time", "-f", "%e %M", str(exe), "run", *args]
+    cmd = ["nice", "-n", "5", "/usr/bin/time", "-f", "%e %M %U %S", str(exe), "run", *args]
     cmd += ["--out-dir", str(out), "--force"]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)}: exit {res.returncode}\n{res.stderr}")
-    wall, kb = res.stderr.strip().splitlines()[-1].split()
+    wall, kb, user, system = res.stderr.strip().splitlines()[-1].split()
     stages = res.stdout.strip().splitlines()[-1].split(" -> ")[0]
     sizes = {name: (out / name).stat().st_size for name in OUTPUTS}
-    return {"seconds": float(wall), "peak_rss": int(kb) * 1024, "stages": stages, "sizes": sizes}
+    return {
+        "seconds": float(wall),
+        "cpu_seconds": float(user) + float(system),  # what a shared machine's load moves less
+        "peak_rss": int(kb) * 1024,
+        "stages": stages,
+        "sizes": sizes,
+    }
 
 
 def filterpy_per_instant(sensors: Path, instants: int) -> float:
