@@ -122,6 +122,11 @@ class Kind(ABC):
     ) -> tuple[np.ndarray, list[np.ndarray]]:
         """Truth (runs, K+1, d) and each sensor's readings (runs, K+1, m), in sensor order."""
 
+    def simulate_blocks(self, scenario: Scenario, block: int) -> Any:
+        """A one-run scenario's truth and readings in blocks of time, (k0, k1, truth (1, w, d),
+        [readings (1, w, m) per sensor]), or None (the whole run at once, `simulate`)."""
+        return None
+
     @abstractmethod
     def model(self, sensors: McapFile, recorded: Scenario | None, model_path: Path | None) -> Model:
         """The filter's model: the recorded scenario's system, or the ``--model`` file's."""

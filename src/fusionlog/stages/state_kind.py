@@ -113,6 +113,22 @@ class StateKind(Kind):
             raise NumericalError(f"{scenario.path or scenario.name}: {e}") from None
         return x, [z[..., sl] for sl in system.sensor_slices]
 
+    def simulate_blocks(self, scenario: Scenario, block: int) -> Any:
+        """One run of a time-invariant linear model without timing or dropouts, longer than a
+        block of time: `core.simulate.one_run_blocks` (the numbers of `simulate`)."""
+        from fusionlog.core.simulate import one_run_blocks
+
+        sched, system = scenario.schedule, scenario.system
+        if scenario.runs != 1 or sched.steps + 1 <= block or not sched.measures.all():
+            return None
+        system = system.on_times(sched.times)
+        if not (system.linear and system.time_invariant) or any(
+            s.timing.dropout for s in system.sensors
+        ):
+            return None
+        blocks = one_run_blocks(system, sched.steps, scenario.seed, block)
+        return ((k0, k1, x, [z[..., sl] for sl in system.sensor_slices]) for k0, k1, x, z in blocks)
+
     def model(self, sensors: McapFile, recorded: Scenario | None, model_path: Path | None) -> Model:
         if model_path is None:
             recorded = self.recorded(sensors, recorded)
