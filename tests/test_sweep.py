@@ -51,6 +51,7 @@ COLUMNS = [
     "nees_fraction_inside",
     "expected_mse",
     "expected_anees",
+    "bound_worst",
 ]
 
 

@@ -144,7 +144,7 @@ _arch = click.option(
     multiple=True,
     # the registry's names, written out so that `--help` imports no numpy
     # (tests/test_docs.py::test_the_arch_help_names_every_registered_architecture)
-    help="Architecture (repeatable): CKF, HKF, MSC, MSC-GMF, SKF[:sensor], CI, FBS, AVG, ICI; "
+    help="Architecture (repeatable): CKF, HKF, MSC, MSC-GMF, SKF[:sensor], CI, FBS, AVG, ICI, EI; "
     "BAYES, DS for identity scenarios.",
 )
 _filter = click.option("--filter", "filter_name", type=click.Choice(["EKF", "UKF"]),

@@ -78,10 +78,34 @@ _TRAJECTORY_COLUMNS: tuple[tuple[str, tuple[str, ...]], ...] = (
 )
 
 
+#: The bound check's column, last where an architecture has one (DESIGN.md "Unknown correlation
+#: and the bound check"): the worst lambda_max(P^-1 E[e e^T]), and where it exceeds 1 the step.
+BOUND_COLUMN = ("bound", ("bound",))
+
+
 def _columns(archs: Mapping[str, Any]) -> tuple[tuple[str, tuple[str, ...]], ...]:
-    if not any(isinstance(e, Mapping) and "ape" in e for e in archs.values()):
-        return _COLUMNS
-    return _COLUMNS[:1] + _TRAJECTORY_COLUMNS + _COLUMNS[1:]
+    cols = _COLUMNS
+    if any(isinstance(e, Mapping) and "ape" in e for e in archs.values()):
+        cols = _COLUMNS[:1] + _TRAJECTORY_COLUMNS + _COLUMNS[1:]
+    if any(isinstance(e, Mapping) and isinstance(e.get("bound"), Mapping) for e in archs.values()):
+        cols = (*cols, BOUND_COLUMN)
+    return cols
+
+
+def _bound_cell(b: Any) -> str:
+    """The bound column's cell: the worst ratio, "ok" where the reported covariance bounds the
+    error at every instant, else "fails at k"; a Monte Carlo estimate as "~value ± stderr"."""
+    if not isinstance(b, Mapping) or not isinstance(b.get("worst"), int | float):
+        return "—"
+    mc = b.get("monte_carlo") is True
+    value = f"~{_fmt(b['worst'])} ± {_fmt(b.get('stderr'))}" if mc else _fmt(b["worst"])
+    return f"{value} ok" if b.get("holds") else f"{value} fails at k={b.get('worst_step')}"
+
+
+def _cell(entry: Any, header: str, keys: tuple[str, ...]) -> str:
+    if (header, keys) == BOUND_COLUMN:
+        return _bound_cell(_get(entry, keys))
+    return _fmt(_get(entry, keys), percent=header == "in band")
 
 
 def alignment_lines(archs: Mapping[str, Any]) -> str:
@@ -156,9 +180,7 @@ def format_table(summary: Mapping[str, Any], sensors: Sequence[str] | None = Non
     header = ["architecture"] + [h for h, _ in columns]
     rows = [header]
     for arch, entry in archs.items():
-        rows.append(
-            [str(arch)] + [_fmt(_get(entry, keys), percent=h == "in band") for h, keys in columns]
-        )
+        rows.append([str(arch)] + [_cell(entry, h, keys) for h, keys in columns])
     if isinstance(summary.get("pcrb"), Mapping):  # nonlinear models: the bound on the MSE
         rows.append(
             ["PCRB (bound)", _fmt(_get(summary, ("pcrb", "mse")))] + ["—"] * (len(columns) - 1)
@@ -260,7 +282,7 @@ def _sweep_table(summary: Mapping[str, Any]) -> str:
     for p in summary.get("points", []):
         values = [_value(p.get("values", {}).get(k)) for k in keys]
         for arch, entry in p.get("architectures", {}).items():
-            cells = [_fmt(_get(entry, keys_), percent=h == "in band") for h, keys_ in columns]
+            cells = [_cell(entry, h, keys_) for h, keys_ in columns]
             rows.append([*values, str(arch), *cells])
     lines = []
     if len(rows) - 1 <= SWEEP_ROWS:

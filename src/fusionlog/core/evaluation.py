@@ -28,9 +28,11 @@ class Evaluation:
 
     `summary`: the summary.json dict. `times` (K+1,) s. `series[arch]`: per-step arrays,
     "mse" (K+1, n), "trace", "nees", "dm" (K+1,) and, where an exact analysis exists,
-    "expected_mse" (K+1, n), "expected_nees", "expected_dm" (K+1,). `nees_bounds`: the
-    two-sided chi-square band (lower, upper) of the run-averaged NEES, each (K+1,), at
-    `confidence`. `samples[m]`: sample run m. `plane`: the 2-D state-plane view's data;
+    "expected_mse" (K+1, n), "expected_nees", "expected_dm" (K+1,); "bound" (K+1,) the bound
+    check's lambda_max(P^-1 E[e e^T]) (`core.bound`), exact or a Monte Carlo estimate.
+    `nees_bounds`: the two-sided chi-square band (lower, upper) of the run-averaged NEES,
+    each (K+1,), at `confidence`. `samples[m]`: sample run m. `plane`: the 2-D state-plane
+    view's data;
     `availability[sensor]` (K+1,) share of runs measured; `nis[arch][part]`: (run-averaged
     NIS, band lower, band upper); `traces[arch]` (K+1,) tr P without truth; `measured[state]
     [sensor]` (K+1,) the first sample run's direct readings; `properties`: the recording's

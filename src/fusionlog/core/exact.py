@@ -312,19 +312,22 @@ class ConditionalExpected:
     mse_sum: np.ndarray = field(init=False)  # (K+1, n)
     nees_sum: np.ndarray = field(init=False)  # (K+1,)
     dm_sum: np.ndarray = field(init=False)  # (K+1,)
+    #: (K+1,) the bound check's ratio (`core.bound`), the worst over the runs (NaN: none)
+    bound_max: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
         self.count = np.zeros(self.n_steps, dtype=np.int64)
         self.mse_sum = np.zeros((self.n_steps, self.n_states))
         self.nees_sum = np.zeros(self.n_steps)
         self.dm_sum = np.zeros(self.n_steps)
+        self.bound_max = np.full(self.n_steps, np.nan)
 
     def add(self, ex: Expected, runs: int = 1) -> None:
         """Add the per-run statistics (M, K+1, ...) of a block of runs, or those of a shared
         plan (K+1, ...) as `runs` runs with that pattern."""
-        mse, nees, dm, ok = ex.mse_per_state, ex.nees, ex.dm, ex.defined
+        mse, nees, dm, ok, bound = ex.mse_per_state, ex.nees, ex.dm, ex.defined, ex.bound
         if nees.ndim == 1:
-            mse, nees, dm, ok = mse[None], nees[None], dm[None], ok[None]
+            mse, nees, dm, ok, bound = mse[None], nees[None], dm[None], ok[None], bound[None]
         else:
             runs = 1
         if nees.shape[1:] != (self.n_steps,) or mse.shape[2:] != (self.n_states,):
@@ -337,6 +340,8 @@ class ConditionalExpected:
         self.mse_sum += runs * np.where(ok[..., None], mse, 0.0).sum(axis=0)
         self.nees_sum += runs * np.where(ok, nees, 0.0).sum(axis=0)
         self.dm_sum += runs * np.where(ok, dm, 0.0).sum(axis=0)
+        # fmax: NaN (no estimate) loses to any number, and NaN only where every run has none
+        self.bound_max = np.fmax(self.bound_max, np.fmax.reduce(np.where(ok, bound, np.nan)))
 
     def merge(self, other: ConditionalExpected) -> ConditionalExpected:
         """Add another accumulator's sums (same steps and states) into this one; returns self."""
@@ -345,6 +350,7 @@ class ConditionalExpected:
         self.runs += other.runs
         for name in ("count", "mse_sum", "nees_sum", "dm_sum"):
             setattr(self, name, getattr(self, name) + getattr(other, name))
+        self.bound_max = np.fmax(self.bound_max, other.bound_max)
         return self
 
     def _mean(self, total: np.ndarray) -> np.ndarray:
@@ -366,3 +372,8 @@ class ConditionalExpected:
     def dm(self) -> np.ndarray:
         """(K+1,) run-averaged expected DM (eq. 46)."""
         return self._mean(self.dm_sum)
+
+    @property
+    def bound(self) -> np.ndarray:
+        """(K+1,) the bound check's ratio, the worst over the runs given their patterns."""
+        return self.bound_max

@@ -51,7 +51,7 @@ def replay_expected(
     archs: Sequence[str],
     present: np.ndarray | None,
     steps: int,
-    criterion: str = "trace",
+    criterion: str | None = None,
 ) -> dict[str, Expected]:
     """The exact expected statistics (`exact.Expected`, (K+1, ...)) of the architectures of
     one run with the measurement mask `present` (K+1, m) (None: all present) that this path

@@ -5,6 +5,7 @@ without them."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -26,6 +27,14 @@ class Expected:
     def mse_per_state(self) -> np.ndarray:
         """(..., K+1, n) expected MSE of each state component, the exact counterpart of eq. (44)."""
         return np.diagonal(self.mse, axis1=-2, axis2=-1).copy()
+
+    @cached_property
+    def bound(self) -> np.ndarray:
+        """(..., K+1) lambda_max(P^-1 E[e e^T]), the bound check's ratio (`core.bound`; NaN
+        where the architecture has no estimate)."""
+        from .bound import bound_ratio
+
+        return bound_ratio(self.P, self.mse)
 
     @property
     def defined(self) -> np.ndarray:

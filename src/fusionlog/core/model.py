@@ -64,6 +64,8 @@ class System:
     #: the KF), and the UKF's (alpha, beta, kappa) (DESIGN.md, "Nonlinear sensors and motion").
     filter: str | None = None
     ukf: tuple[float, float, float] = (1.0, 2.0, 0.0)
+    #: The cost covariance intersection minimises, "trace" | "det" ([estimate] ci_criterion).
+    ci_criterion: str = "trace"
     #: With a nonlinear motion on irregular instants (`on_times`), the interval before each
     #: instant k >= 1 (K,); None: dt.
     intervals: np.ndarray | None = None

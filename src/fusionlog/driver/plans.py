@@ -65,7 +65,8 @@ class PlanCache:
 
     system: System
     steps: int
-    criterion: str = "trace"
+    #: covariance intersection's cost (None: the system's, [estimate] ci_criterion)
+    criterion: str | None = None
     plans: dict[tuple[str, bytes], Plan] = field(default_factory=dict, repr=False)
     #: the instants (K+1,) in seconds, where they are not k dt (a nonlinear model's filters
     #: take each interval from them; the plans have them in `system` already)
@@ -77,6 +78,10 @@ class PlanCache:
     one_run: bool = False
     #: per-run plans shared with another stage of the same command (`KeptPlans`)
     kept: KeptPlans | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.criterion is None:
+            self.criterion = self.system.ci_criterion
 
     @classmethod
     def of(

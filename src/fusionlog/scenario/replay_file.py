@@ -38,7 +38,7 @@ from fusionlog.core.model import Sensor, System
 from fusionlog.core.timing import MAX_PERIOD_S, MIN_PERIOD_S, TIME_UNITS
 from fusionlog.errors import ValidationError
 
-from . import toml
+from . import estimate_keys, toml
 from .model_section import model_section
 from .scenario_base import Header
 from .sensors import sensor_matrices
@@ -350,7 +350,8 @@ def replay_from_doc(
     truth, truth_states, match, max_diff_ns = _truth(ctx, doc, base, state_names)
     cross_R = correlations_section(ctx, doc, tuple(sensors))
     system = System(F=F, Q=Q, G=G, sensors=tuple(sensors), prior=prior, cross_R=cross_R, dt=dt,
-                    state_names=state_names, continuous=continuous)  # fmt: skip
+                    state_names=state_names, continuous=continuous,
+                    ci_criterion=estimate_keys.ci_criterion(ctx, doc))  # fmt: skip
     check_determined(ctx, system)
     architectures = architectures_section(ctx, doc, system)
     confidence, sample_runs, plane_view = evaluate_section(ctx, doc)

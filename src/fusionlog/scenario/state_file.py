@@ -42,9 +42,9 @@ from fusionlog.core.models import SensorModel
 from fusionlog.core.names import STATE_ARCHITECTURES, parse_arch
 from fusionlog.core.timing import Schedule, SensorTiming
 
+from . import estimate_keys, toml, trajectory
 from . import nonlinear_syntax as nonlinear
 from . import sensors as sensor_tables
-from . import toml, trajectory
 from .model_section import (
     MODEL_KINDS,
     check_schedule,
@@ -158,6 +158,8 @@ def system_to_dict(system: System) -> dict[str, Any]:
     ]
     if system.filter is not None:
         d["estimate"] = nonlinear.estimate_dict(system)
+    if system.ci_criterion != "trace":
+        d.setdefault("estimate", {})["ci_criterion"] = system.ci_criterion
     return d
 
 
@@ -293,6 +295,7 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
     cross_R = correlations_section(ctx, doc, sensors)
     linear = motion is None and all(s.linear for s in sensors)
     filt, ukf = nonlinear.filter_section(ctx, doc, n, linear)
+    criterion = estimate_keys.ci_criterion(ctx, doc)
 
     system = System(
         F=F,
@@ -308,6 +311,7 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
         motion_model=motion,
         filter=filt,
         ukf=ukf,
+        ci_criterion=criterion,
     )
     nonlinear.check_nonlinear(ctx, system, bool(cross_R))
     check_determined(ctx, system)
@@ -443,7 +447,11 @@ def correlations_section(
 def architectures_section(ctx: Ctx, doc: dict[str, Any], system: System) -> tuple[str, ...]:
     names = tuple(s.name for s in system.sensors)
     return toml.architectures(
-        ctx, doc, STATE_ARCHITECTURES, lambda a: parse_arch(a, names), ("filter", "ukf")
+        ctx,
+        doc,
+        STATE_ARCHITECTURES,
+        lambda a: parse_arch(a, names),
+        ("filter", "ukf", "ci_criterion"),
     )
 
 

@@ -272,16 +272,24 @@ def expected_overall(ex: Any) -> dict[str, float | None]:
 
 
 @_one_blas_thread
-def point_expected(job: Job) -> dict[str, dict[str, float | None] | None]:
-    """The exact expected MSE, ANEES and DM of every architecture of a scenario (None where
-    there is no exact analysis: runs with different measurement patterns)."""
+def point_expected(job: Job) -> dict[str, dict[str, Any] | None]:
+    """The exact expected MSE, ANEES and DM of every architecture of a scenario, and its
+    bound check under "bound" (`core.bound.bound_summary`); None where there is no exact
+    analysis: runs with different measurement patterns."""
     from fusionlog.core.exact import analyse
 
     ok, mask = exact_mask(job.scenario)
     if not ok:
         return dict.fromkeys(job.archs)
+    from fusionlog.core.bound import bound_summary
+
     c = _plans(job)
-    return {a: expected_overall(analyse(c.plan(a, mask), c.system)) for a in job.archs}
+    out: dict[str, dict[str, Any] | None] = {}
+    for a in job.archs:
+        ex = analyse(c.plan(a, mask), c.system)
+        # the bound check rides beside the expected values (`sweep_outputs` moves it out)
+        out[a] = expected_overall(ex) | {"bound": bound_summary(ex.bound)}
+    return out
 
 
 def simulated_readings(

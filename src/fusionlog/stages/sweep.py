@@ -236,7 +236,12 @@ def _conditional_expected(
     for a in job.archs:
         ce = conditional.get(a)
         ok = ce is not None and a in sums and ce.runs == sums[a].runs
-        out[a] = expected_overall(ce) | {"conditional": True} if ok else None
+        if ok:
+            from fusionlog.core.bound import bound_summary
+
+            out[a] = expected_overall(ce) | {"conditional": True, "bound": bound_summary(ce.bound)}
+        else:
+            out[a] = None
     return out
 
 

@@ -21,6 +21,7 @@ METRIC_COLUMNS = (
     "nees_fraction_inside",
     "expected_mse",
     "expected_anees",
+    "bound_worst",
 )
 
 
@@ -42,11 +43,14 @@ def _point_summary(
     for a in job.archs:
         ex = expected.get(a)
         exp = dict(ex) if ex is not None else {"mse": None, "anees": None, "dm": None}
+        bound = exp.pop("bound", None)  # its own entry, as in `fusionlog run`'s summary
         if exact_only:
-            out[a] = {"expected": exp}
+            out[a] = {"expected": exp} | ({"bound": bound} if bound else {})
             continue
         entry = sums[a].finalize(job.scenario.confidence).summary()
         entry["expected"] = exp
+        if bound:
+            entry["bound"] = bound
         if trajectory and a in trajectory:
             ape, rpe = trajectory[a].summary()
             entry |= {"ape": ape, "rpe": rpe}
@@ -148,6 +152,7 @@ def sweep_table(summary: dict[str, Any]) -> list[dict[str, Any]]:
                 row[m] = e.get(m)
             row["expected_mse"] = e["expected"]["mse"]
             row["expected_anees"] = e["expected"]["anees"]
+            row["bound_worst"] = (e.get("bound") or {}).get("worst")
             if "ape" in e:
                 row["ape_rmse"], row["rpe_rmse"] = e["ape"]["rmse"], e["rpe"]["rmse"]
             rows.append(row)

@@ -29,9 +29,9 @@ def shared_pattern(z: np.ndarray) -> np.ndarray | None:
     return present[0] if (present == present[:1]).all() else None
 
 
-def estimate(system, z: np.ndarray, arch: str, criterion: str = "trace") -> Estimate:
+def estimate(system, z: np.ndarray, arch: str, criterion: str | None = None) -> Estimate:
     """Run architecture `arch` on measurements z (M, K+1, m) (NaN: missing) of `system` (on
-    its instants, `System.on_times`)."""
+    its instants, `System.on_times`); `criterion` CI's cost (default the system's)."""
     if not system.linear:  # EKF/UKF: no plans, every run has its own linearisation
         from ..nonlinear.architectures import estimate as nonlinear_estimate
 

@@ -14,6 +14,8 @@ rule is linear in the data and has the exact analysis like every other.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from ..linalg import spd_inv, sym
@@ -75,19 +77,26 @@ def ici_bisect(Pa: np.ndarray, Pb: np.ndarray, Ya: np.ndarray, Yb: np.ndarray) -
     return 0.5 * (lo + hi)
 
 
-def ici(P: np.ndarray, J: np.ndarray | None, criterion: str) -> tuple[np.ndarray, np.ndarray]:
-    """The rule (`definition.Rule`): the locals (..., S, n, n) fused pairwise in sensor order;
-    C (..., n, S n) composes each pair's weights (the running fusion's A, the next local's B).
-    tr P is ICI's cost whatever `criterion` (covariance intersection's) says."""
+def in_sensor_order(P: np.ndarray, pair: Callable) -> tuple[np.ndarray, np.ndarray]:
+    """The locals (..., S, n, n) fused pairwise in sensor order, ((1 + 2) + 3) + ..., by
+    `pair(P_a, P_b) -> (A, B, P, ...)` (x = A x_a + B x_b): C (..., n, S n) composes each
+    pair's weights (the running fusion's A, the next local's B); returns C and the fused P."""
     S, n = P.shape[-3], P.shape[-1]
     C = np.zeros(P.shape[:-3] + (n, S * n))
     C[..., :, :n] = np.eye(n)
     Pf = P[..., 0, :, :]
     for j in range(1, S):
-        A, B, Pf, _ = ici_pair(Pf, P[..., j, :, :])
+        A, B, Pf = pair(Pf, P[..., j, :, :])[:3]
         C = A @ C
         C[..., :, j * n : (j + 1) * n] = B
     return C, Pf
+
+
+def ici(P: np.ndarray, J: np.ndarray | None, criterion: str) -> tuple[np.ndarray, np.ndarray]:
+    """The rule (`definition.Rule`): the locals (..., S, n, n) fused pairwise in sensor order
+    (`in_sensor_order`). tr P is ICI's cost whatever `criterion` (covariance intersection's)
+    says."""
+    return in_sensor_order(P, ici_pair)
 
 
 ICI = Architecture(

@@ -17,6 +17,7 @@ from ..linalg import all_finite, numerical_errors
 from ..model import System
 from . import rules
 from .definition import Architecture
+from .ei import EI
 from .fbs import build_fbs
 from .hkf import build_hkf
 from .ici import ICI
@@ -127,6 +128,7 @@ for _a in (
         default=True,
     ),
     ICI,
+    EI,
 ):
     register(_a)
 
@@ -167,7 +169,7 @@ def build_plan(
     arch: str,
     steps: int,
     present: np.ndarray | None = None,
-    criterion: str = "trace",
+    criterion: str | None = None,
     *,
     history_nodes: bool = False,
     groups: HistoryNodes | None | str = "group",
@@ -187,6 +189,7 @@ def build_plan(
     base, sensor = parse_arch(arch, [s.name for s in system.sensors])
     if present is None:
         present = np.ones((steps + 1, system.m), dtype=bool)
+    criterion = criterion or system.ci_criterion  # CI's cost: [estimate] ci_criterion
     request = BuildRequest(system, arch, present, sensor, criterion, step=None)
     if present.ndim == 3:
         request.nodes = group_by_history(present) if isinstance(groups, str) else groups

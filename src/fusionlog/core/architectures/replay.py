@@ -72,7 +72,7 @@ def applies(system: System, z: np.ndarray) -> bool:
 
 
 def replay_estimates(
-    system: System, archs: Sequence[str], z: np.ndarray, criterion: str = "trace"
+    system: System, archs: Sequence[str], z: np.ndarray, criterion: str | None = None
 ) -> dict[str, Estimate] | None:
     """Each architecture's estimate of the one run z (1, K+1, m) (NaN: missing), as the plans
     give it; None where the plans must do it: what `applies` refuses, HKF on noise levels
@@ -83,6 +83,7 @@ def replay_estimates(
     bases = _bases(system, archs)
     if bases is None or any(_hkf_wide(system, b) for b, _ in bases):
         return None
+    criterion = criterion or system.ci_criterion
     out = _computed(system, z[0], bases, criterion, lambda r: r.estimates(archs, bases))
     if out is None or not all(all_finite(e.mean) and all_finite(e.cov) for e in out.values()):
         return None
@@ -120,7 +121,7 @@ def _computed(system: System, z: np.ndarray, bases, criterion: str, what):
 
 
 def replay_error_covariances(
-    system: System, archs: Sequence[str], present: np.ndarray, criterion: str = "trace"
+    system: System, archs: Sequence[str], present: np.ndarray, criterion: str | None = None
 ) -> dict[str, tuple[np.ndarray, np.ndarray]] | None:
     """Each architecture's true error covariance E[e_k e_k^T] and reported covariance P_k
     (K+1, n, n) on one run with the measurement mask `present` (K+1, m), when the truth is
@@ -144,6 +145,7 @@ def replay_error_covariances(
     keep = [not _hkf_wide(system, b[0]) for b in bases]
     archs = [a for a, k in zip(archs, keep, strict=True) if k]
     bases = [b for b, k in zip(bases, keep, strict=True) if k]
+    criterion = criterion or system.ci_criterion
     out = _computed(system, z[0], bases, criterion, lambda r: r.error_covariances(archs, bases))
     if out is None or not all(all_finite(E) and all_finite(P) for E, P in out.values()):
         return None

@@ -273,7 +273,7 @@ def _track_to_track(st: _Steps, arch: Architecture) -> Steps:
             J = _congruence(A, J)
             for i in range(S):
                 J[:, i, i] = Ps[i]  # the local's own covariance (equal for the EKF)
-        yield _fuse(arch, np.stack(xs, 1), np.stack(Ps, 1), J)
+        yield _fuse(arch, np.stack(xs, 1), np.stack(Ps, 1), J, st.system.ci_criterion)
 
 
 def _congruence(T: np.ndarray, J: np.ndarray) -> np.ndarray:
@@ -284,12 +284,12 @@ def _congruence(T: np.ndarray, J: np.ndarray) -> np.ndarray:
 
 
 def _fuse(
-    arch: Architecture, xs: np.ndarray, Ps: np.ndarray, J: np.ndarray | None
+    arch: Architecture, xs: np.ndarray, Ps: np.ndarray, J: np.ndarray | None, criterion: str
 ) -> tuple[np.ndarray, np.ndarray]:
     """The rule of `arch` (`definition.Rule`) on the locals' means xs (M, S, n), covariances
     Ps (M, S, n, n) and joint error covariance J (M, S, S, n, n) (None: the rule reads none):
     x = C [x_1; ...; x_S]."""
     M, S, n = xs.shape
     joint = None if J is None else sym(J.transpose(0, 1, 3, 2, 4).reshape(M, S * n, S * n))
-    C, P = arch.rule(Ps, joint, "trace")
+    C, P = arch.rule(Ps, joint, criterion)
     return np.einsum("mij,mj->mi", C, xs.reshape(M, S * n)), P

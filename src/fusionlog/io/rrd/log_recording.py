@@ -180,9 +180,11 @@ def replay_blueprint(
     traces: Mapping[str, np.ndarray],
     timeline: str,
     more: Sequence[Any] = (),
+    bound: Mapping[str, np.ndarray] | None = None,
 ) -> rrb.Blueprint:
     """Trajectory, States, NIS, Innovations[, Errors] (see the module's docstring), then the
-    tabs `more` (the trajectory metrics': `.trajectory`)."""
+    tabs `more` (the trajectory metrics': `.trajectory`); `bound` the bound check's ratio of
+    the architectures that have one (drawn under Errors with the line 1)."""
     tabs: list = [
         rrb.Spatial2DView(
             origin="/trajectory",
@@ -223,6 +225,10 @@ def replay_blueprint(
         curves = list(nees.values()) + ([nees_bounds[1]] if nees_bounds is not None else [])
         errors.append(_ts("NEES of the truthed states (grey: χ² band)",
                           [query("metrics", "nees") + "/**"], view_range(curves, 0.0)))  # fmt: skip
+    if bound:
+        title = "bound check: λmax of P^-1 E[e e^T] (grey: 1)"
+        span = view_range([*bound.values(), np.ones(1)], 0.0)
+        errors.append(_ts(title, [query("metrics", "bound") + "/**"], span))
     if traces:
         errors.append(_ts("trace of P", [query("metrics", "trace") + "/**"],
                           view_range(list(traces.values()), 0.0)))  # fmt: skip

@@ -16,6 +16,9 @@ entity-path parts, see :func:`~fusionlog.io.rrd.stream.entity_path`: ``SKF:s2`` 
 ``metrics/expected/mse/<state>/<ARCH>``         exact expected MSE (covariance analysis)
 ``metrics/expected/nees/<ARCH>``                exact expected NEES
 ``metrics/expected/dm/<ARCH>``                  exact expected Mahalanobis distance
+``metrics/bound/<ARCH>``                        the bound check: lambda_max(P^-1 E[e e^T]) per
+                                                step (exact, or a Monte Carlo estimate)
+``metrics/bound/limit``                         the line 1 (at most 1: P bounds the error)
 ``metrics/pcrb/mse/<state>``                    the posterior Cramér-Rao bound on the MSE
                                                 (nonlinear models: no exact analysis)
 ``runs/<m>/<state>/truth``                      true state of sample run m
@@ -68,6 +71,7 @@ _SHAPES = {
     "expected_nees": "s",
     "expected_dm": "s",
     "mse_minus_ckf": "sn",  # a decimated log's, decimated as drawn (core.decimate)
+    "bound": "s",
 }
 _REQUIRED = ("mse", "trace", "nees", "dm")
 
@@ -164,9 +168,10 @@ def write_evaluation(
         ij = plane_states(state_names, measured or {})
         all_traces = traces or {a: np.asarray(d["trace"], dtype=float) for a, d in series.items()}
         nees = {a: np.asarray(d["nees"], dtype=float) for a, d in series.items()}
+        bound = {a: np.asarray(d["bound"], float) for a, d in series.items() if "bound" in d}
         blueprint = replay_blueprint(state_names, ij, samples, nis, ev.innovations, nees,
                                      nees_bounds, all_traces, timeline,
-                                     trajectory_tabs(ev.trajectory))  # fmt: skip
+                                     trajectory_tabs(ev.trajectory), bound)  # fmt: skip
     else:
         extra = consistency_views(nis, avail, bool(traces)) + trajectory_tabs(ev.trajectory)
         blueprint = _blueprint(
@@ -216,6 +221,8 @@ def _check(
     bad = partial(recording_error, file)
     if "bounds" in series:
         raise bad("'bounds' cannot be an architecture name (metrics/nees/bounds is the band)")
+    if "limit" in series:
+        raise bad("'limit' cannot be an architecture name (metrics/bound/limit is the line 1)")
     for arch, d in series.items():
         for key in _REQUIRED:
             if key not in d:
@@ -269,6 +276,13 @@ def _write_metrics(
         for key, metric in (("expected_nees", "nees"), ("expected_dm", "dm")):
             if key in d:
                 w.points(entity_path("metrics", "expected", metric, arch), d[key], arch, col)
+        if "bound" in d:
+            w.line(entity_path("metrics", "bound", arch), d["bound"], arch, col, width)
+    if any("bound" in d for d in series.values()):
+        one = np.ones(len(next(iter(series.values()))["trace"]))
+        w.line(
+            entity_path("metrics", "bound", "limit"), one, "1: P bounds the error", BOUND_COLOR, 1.5
+        )
     if nees_bounds is not None:
         label = f"χ² {confidence:.0%}" if confidence is not None else "χ²"
         for side, arr in zip(("lower", "upper"), nees_bounds, strict=True):
@@ -377,10 +391,19 @@ def _blueprint(
         [query("metrics", "dm") + "/**", query("metrics", "expected", "dm") + "/**"],
         legend=False,
     )
+    consistency = [fig6, nees, dm]
+    if any("bound" in d for d in series.values()):  # DESIGN.md "the bound check"
+        consistency.append(
+            time_series_view(
+                "bound check: λmax of P^-1 E[e e^T] (grey: 1; above it P does not bound the error)",
+                [query("metrics", "bound") + "/**"],
+                legend=False,  # the colours of Fig. 4's legend, as the NEES and DM views
+            )
+        )
     columns: list[rrb.Container] = [rrb.Vertical(*fig4, name="Fig. 4")]
     if with_fig5:
         columns.append(rrb.Vertical(*fig5, name="Fig. 5"))
-    columns.append(rrb.Vertical(fig6, nees, dm, name="Fig. 6 and consistency"))
+    columns.append(rrb.Vertical(*consistency, name="Fig. 6 and consistency"))
     # Without truth (a recorded log) there are no Monte Carlo metrics: no Overview.
     tabs: list[rrb.Container | rrb.View] = (
         [rrb.Horizontal(*columns, name="Overview")] if series else []

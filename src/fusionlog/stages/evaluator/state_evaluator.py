@@ -27,6 +27,7 @@ from fusionlog.scenario import Scenario
 
 from ..common import block_runs
 from ..hooks import Array, Evaluator, Readings, Topics
+from .bound_part import BoundPart
 from .exact_part import ExactPart, exact_setup
 from .metrics_part import MetricsPart
 from .nis_part import NisPart
@@ -103,6 +104,11 @@ class StateEvaluator(Evaluator):
         setup = exact_setup(prov, filter_sys, truth_sys)
         if setup is not None:
             parts.append(ExactPart(plans, known, setup, runs, recorded, sensor_topics))
+        # does the reported covariance bound the error: exact where the analysis is, else
+        # Monte Carlo (DESIGN.md "Unknown correlation and the bound check")
+        exact = known if setup is not None else []
+        guessed = [a for a in self.archs if a not in exact] if log.has_truth and runs > 1 else []
+        parts.append(BoundPart(exact, guessed, self.n, self.K + 1, sc.confidence))
         if pcrb is not None:  # nonlinear: the posterior Cramer-Rao bound
             parts.append(pcrb)
         if log.scheduled:  # the readings say when each sensor measured (and, replayed, NIS)
