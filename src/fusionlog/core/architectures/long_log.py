@@ -70,6 +70,12 @@ class SteadyLog:
         out[end] = H - 1 - (K - k[end])
         return out
 
+    def first_instant(self, h: int) -> int:
+        """The first instant whose plan step is `h` (`index`'s inverse)."""
+        if h <= self.c or self.whole:
+            return h
+        return self.steps - (self.horizon - 1 - h)
+
     def cov(self, arch: str, k0: int, k1: int) -> np.ndarray:
         """(w, n, n): the covariance `arch` reports at the instants k0..k1-1."""
         plan = self.plans[arch]

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from fusionlog.core.architectures.long_log import SteadyLog, expected_window
+from fusionlog.core.bound import bound_summary
 from fusionlog.core.decimate import TreeDecimator, bucket_size, note, point_steps, with_derived
 from fusionlog.core.evaluation import Evaluation
 from fusionlog.core.step_sums import StepSums
@@ -54,6 +55,13 @@ class LongSetup:
     expected: dict[str, Any]
     nis: LongNis | None
     fields: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def bound(self) -> dict[str, np.ndarray]:
+        """Each exact architecture's bound ratio at the short plans' steps (`Expected.bound`)."""
+        if not hasattr(self, "_bound"):
+            self._bound = {a: np.asarray(ex.bound, dtype=float) for a, ex in self.expected.items()}
+        return self._bound
 
 
 class LongEvaluator:
@@ -101,6 +109,8 @@ class LongEvaluator:
                 kw = {"expected_mse": ex.mse_per_state, "expected_nees": ex.nees,
                       "expected_dm": ex.dm}  # fmt: skip
             series[a] = res.series(**kw)
+            if a in s.expected:  # the bound check's ratio, exact (`core.bound`)
+                series[a]["bound"] = s.bound[a][idx]
             self.sums[a].add(res, **kw)
             if bounds is None:
                 bounds = (res.nees_lower, res.nees_upper)
@@ -127,6 +137,10 @@ class LongEvaluator:
             archs[a] = self.sums[a].summary()
             if s.recorded:
                 archs[a]["mean_trace"] = self._mean_trace(a)
+        for a in s.expected:  # the bound check over every instant (`BoundPart`'s)
+            b = bound_summary(s.bound[a])
+            if b is not None and a in archs:
+                archs[a]["bound"] = {**b, "worst_step": s.log.first_instant(b["worst_step"])}
         summary = {**s.head, "architectures": archs}
         if s.truth_info is not None and s.has_truth:
             summary["truth"] = dict(s.truth_info)

@@ -194,8 +194,11 @@ class StateEvaluator(Evaluator):
 
         if self.M != 1 or self.K + 1 <= time_block() or reference_paths():
             return None
-        if not {type(p) for p in self.parts} <= {MetricsPart, ExactPart, SamplesPart, NisPart}:
+        parts = {MetricsPart, ExactPart, SamplesPart, NisPart, BoundPart}
+        if not {type(p) for p in self.parts} <= parts:
             return None
+        if any(isinstance(p, BoundPart) and p.sums for p in self.parts):
+            return None  # a Monte Carlo bound (of several runs)
         if self.has_truth and len(self.metrics.truthed) != self.n:
             return None
         return self._long(
