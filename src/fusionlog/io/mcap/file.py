@@ -337,8 +337,12 @@ class McapFile:
         return self._get_structure().runs
 
     def times(self) -> np.ndarray:
-        """(K + 1,) time in seconds of each step (first message of that step in the file)."""
-        return self._get_structure().times.copy()
+        """(K + 1,) time in seconds of each step (first message of that step in the file), read
+        only: one array however often it is asked for (8 bytes per instant each copy would
+        cost a 4*10^6-instant log 32 MB)."""
+        t = self._get_structure().times
+        t.flags.writeable = False
+        return t
 
     def time_origin_ns(self) -> int:
         """The clock of the file's messages: log_time - round(time * 1e9) of its first fusionlog
