@@ -24,6 +24,7 @@ refuses runs that cannot all be held in memory before allocating them
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -78,6 +79,17 @@ class Simulation:
     covariances: dict[str, np.ndarray] = field(default_factory=dict)
     #: a replay's truth: {"states", "matched", "unmatched"} (summary.json `truth`), else None
     truth_info: dict | None = None
+    #: late sensors: when each reading arrived, {sensor: (M, K+1)} seconds (the MCAP field
+    #: `arrival`; DESIGN.md "Late measurements"); sensors on time are not in it
+    arrival: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def arrivals(self, system: System) -> np.ndarray | None:
+        """When each reading of `system`'s sensors arrived, (M, K+1, S) s (on time where the
+        simulation has none), or None when none is late."""
+        if not self.arrival:
+            return None
+        on_time = np.broadcast_to(self.times, (self.runs, len(self.times)))
+        return np.stack([self.arrival.get(s.name, on_time) for s in system.sensors], -1)
 
     @property
     def z(self) -> np.ndarray:
@@ -240,7 +252,13 @@ def simulate(
     names = [s.name for s in sc.system.sensors]
     measures = sc.schedule.measures  # (K+1, S)
     scheduled = {name: measures[:, j] for j, name in enumerate(names)}
-    return Simulation(sc, sc.times, x, dict(zip(names, zs, strict=True)), scheduled)
+    arr = kind.arrivals(sc, 0, sc.runs)
+    arrival = {} if arr is None else {
+        s.name: arr[..., j] for j, s in enumerate(sc.system.sensors) if s.timing.late
+    }  # fmt: skip
+    sim = Simulation(sc, sc.times, x, dict(zip(names, zs, strict=True)), scheduled)
+    sim.arrival = arrival
+    return sim
 
 
 def _state_scenario(scenario: Scenario | str | os.PathLike[str]) -> Scenario:
@@ -299,13 +317,15 @@ def estimate(
     architectures: Sequence[str] | str | None = None,
     *,
     filter: str | None = None,
+    late: str | None = None,
 ) -> Estimates:
     """Each architecture's estimates of the runs (default: the scenario's `[estimate]
     architectures`; one name may be given as a string; an empty list is refused), as
     `fusionlog estimate` computes them: {name: `Estimate`} with `.mean` (M, K+1, n) and `.cov`
     (M, K+1, n, n). `scenario` is the filters' model: the one simulated, or another
     (`fusionlog estimate --model`), whose sensors are taken from `sim` by name; `filter`
-    ("EKF" or "UKF") overrides its local filter as `--filter` does."""
+    ("EKF" or "UKF") overrides its local filter as `--filter` does, `late` its policy for late
+    measurements as `--late` does."""
     scenario = _state_scenario(scenario)
     _check_sim(sim)
     system = scenario.system
@@ -313,6 +333,10 @@ def estimate(
         from .stages.state_kind import with_filter
 
         system = with_filter(system, filter, "filter")
+    if late is not None:
+        from .stages.state_kind import with_late
+
+        system = with_late(system, late, "late")
     names = check_architecture_names(architectures)
     archs = check_architectures(names or list(scenario.architectures), system, "architectures")
     check_discretisable(
@@ -322,14 +346,17 @@ def estimate(
         f"the simulation of {sim.scenario.name}",
     )
     z = sim.stacked(system)
-    cache = PlanCache(sim.on_instants(system), len(sim.times) - 1, one_run=z.shape[0] == 1)
+    cache = PlanCache(
+        sim.on_instants(system), len(sim.times) - 1, one_run=z.shape[0] == 1, clock=sim.times
+    )
+    cache.arrivals = sim.arrivals(system)
     parts: dict[str, list[BlockEstimate]] = {a: [] for a in archs}
     for off, n in _blocks(sim):
         block = estimate_block(cache.system, archs, z[off : off + n], cache=cache)
         for a, e in block.estimates.items():
             parts[a].append(e)
     out = Estimates({a: _joined(es) for a, es in parts.items()})
-    out.provenance = cache.provenance()
+    out.provenance = cache.provenance() | {"late": system.late}  # the policy, for `evaluate`
     return out
 
 
@@ -366,7 +393,11 @@ def evaluate(
     scenario = _state_scenario(scenario)
     _check_sim(sim)
     sc = sim.scenario  # the truth's: the runs, steps and seed simulated
-    filter_sys, truth_sys = sim.on_instants(scenario.system), sim.on_instants(sc.system)
+    system = scenario.system
+    late = getattr(estimates, "provenance", {}).get("late")
+    if late is not None and isinstance(system, System):  # `estimate(late=)`: its policy
+        system = dataclasses.replace(system, late=late)
+    filter_sys, truth_sys = sim.on_instants(system), sim.on_instants(sc.system)
     _check_estimates(sim, estimates, filter_sys)
     # the estimates' record of their measurement pattern (plain dicts: none known, per run)
     prov = (
@@ -376,7 +407,12 @@ def evaluate(
     )
     # the sensors' availability, where it says something (their own timing, a recording)
     timed = sc.replay is not None or any(not s.timing.default for s in sc.system.sensors)
-    log = SensorLog(sim.truth is not None, sim.scheduled if timed else None, sim.truth_info)
+    log = SensorLog(
+        sim.truth is not None,
+        sim.scheduled if timed else None,
+        sim.truth_info,
+        sim.arrivals(scenario.system),
+    )
     ev = StateEvaluator(
         sc, list(estimates), filter_sys, truth_sys, sim.runs, sim.times, prov, log, sc.name
     )

@@ -109,13 +109,15 @@ def main(debug: bool) -> None:
     architectures, and evaluate the estimates into Rerun recordings."""
 
 
-def _scenario(path: Path, runs: int | None, steps: int | None, seed: int | None, align=None):
+def _scenario(path: Path, runs, steps, seed, align=None, late=None, archs=()):
     """The scenario, of whichever kind the file is (decided once, by the loader); `align`:
-    ``--align`` (overrides ``[evaluate] align``)."""
+    ``--align`` (overrides ``[evaluate] align``), `late`: ``--late`` ([estimate] late)."""
     from fusionlog.scenario import load_scenario
     from fusionlog.scenario.trajectory import with_align
+    from fusionlog.stages.state_kind import scenario_with_late
 
-    return with_align(load_scenario(path, runs=runs, steps=steps, seed=seed), align)
+    sc = with_align(load_scenario(path, runs=runs, steps=steps, seed=seed), align)
+    return scenario_with_late(sc, late, archs)
 
 
 def _warn_stale(targets: list[Path]) -> None:
@@ -149,6 +151,8 @@ _arch = click.option(
 )
 _filter = click.option("--filter", "filter_name", type=click.Choice(["EKF", "UKF"]),
                        help="Local filter of every architecture ([estimate] filter).")  # fmt: skip
+_late = click.option("--late", type=click.Choice(["reprocess", "retrodict", "neglect"]),
+                     help="Policy for late measurements ([estimate] late).")  # fmt: skip
 _workers = click.option("--workers", type=click.IntRange(min=0), help="Compute the runs, in "
     "blocks, on a Dask LocalCluster of N worker processes (0: in this process, without Dask). "
     "Default: run, this process; sweep, from the size of the work (sweep --help).")  # fmt: skip
@@ -217,9 +221,10 @@ def import_(replay, output, force) -> None:
 @_arch
 @click.option("--model", type=PATH, help="Filter model TOML replacing the recorded scenario's.")
 @_filter
+@_late
 @_force
 @_block
-def estimate(sensors, output, archs, model, filter_name, force, block_runs) -> None:
+def estimate(sensors, output, archs, model, filter_name, late, force, block_runs) -> None:
     """Replay SENSORS.mcap through fusion architectures into an estimates MCAP file."""
     from fusionlog.stages.estimate import run_estimate
 
@@ -232,6 +237,7 @@ def estimate(sensors, output, archs, model, filter_name, force, block_runs) -> N
         force=force,
         block=block_runs,
         command=_command_line(),
+        late=late,
     )
     click.echo(f"{res.path}: {', '.join(res.architectures)} on {res.runs} runs")
 
@@ -263,13 +269,14 @@ def evaluate(sensors, estimates, output, summary_path, align, force, block_runs)
 @_seed
 @_arch
 @_filter
+@_late
 @align_option
 @_force
 @_block
 @_workers
 @_scheduler
 @_scheduler_timeout
-def run(scenario, out_dir, runs, steps, seed, archs, filter_name, align, force, block_runs,
+def run(scenario, out_dir, runs, steps, seed, archs, filter_name, late, align, force, block_runs,
         workers, scheduler, scheduler_timeout) -> None:  # fmt: skip
     """Simulate, estimate and evaluate SCENARIO.toml; print the results table.
 
@@ -278,14 +285,14 @@ def run(scenario, out_dir, runs, steps, seed, archs, filter_name, align, force, 
     carry every estimate back); the sample runs are computed here."""
     _one_executor(workers, scheduler)
     if workers is not None or scheduler is not None:
-        _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block_runs,
-                         workers, scheduler, scheduler_timeout, filter_name, align)  # fmt: skip
+        _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block_runs, workers,
+                         scheduler, scheduler_timeout, filter_name, align, late)  # fmt: skip
         return
     from fusionlog.report import format_table, headline
     from fusionlog.stages.kinds import kind_of
     from fusionlog.stages.run import RUN_OUTPUTS, run_pipeline
 
-    sc = _scenario(scenario, runs, steps, seed, align)
+    sc = _scenario(scenario, runs, steps, seed, align, late, archs)
     archs = kind_of(sc.kind).check_architectures(list(archs), sc.system, "--arch")
     d = out_dir if out_dir is not None else Path("recordings") / sc.name
     _warn_stale([d / k for k in RUN_OUTPUTS])
@@ -309,12 +316,12 @@ def run(scenario, out_dir, runs, steps, seed, archs, filter_name, align, force, 
 
 
 def _run_distributed(scenario, out_dir, runs, steps, seed, archs, force, block, workers,
-                     scheduler, timeout, filter_name, align):  # fmt: skip
+                     scheduler, timeout, filter_name, align, late=None):  # fmt: skip
     """`run --workers/--scheduler`: evaluation.rrd and summary.json from metric sums."""
     from fusionlog.report import format_table, headline
     from fusionlog.stages.distributed_run import DISTRIBUTED_OUTPUTS, run_distributed
 
-    sc = _scenario(scenario, runs, steps, seed, align)
+    sc = _scenario(scenario, runs, steps, seed, align, late, archs)
     d = out_dir if out_dir is not None else Path("recordings") / sc.name
     _warn_stale([d / name for name in DISTRIBUTED_OUTPUTS])
     res = run_distributed(

@@ -69,6 +69,9 @@ class System:
     #: With a nonlinear motion on irregular instants (`on_times`), the interval before each
     #: instant k >= 1 (K,); None: dt.
     intervals: np.ndarray | None = None
+    #: What the filters do with late measurements (`[[sensors]] latency`): "reprocess" |
+    #: "retrodict" | "neglect" (DESIGN.md "Late measurements", `core.latency`).
+    late: str = "reprocess"
 
     def __post_init__(self) -> None:
         if not self.state_names:

@@ -9,7 +9,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from ..errors import FusionlogError
-from .architectures.registry import STATE_ARCHITECTURES, parse_arch
+from .architectures.registry import STATE_ARCHITECTURES, definition, parse_arch
+from .latency import late_refusal
 from .model import System
 
 #: The five architectures of the paper's Table I, in its column order.
@@ -21,13 +22,24 @@ __all__ = [
     "check_architectures",
     "known_arch",
     "parse_arch",
+    "parse_arch_of",
 ]
 
 
+def parse_arch_of(arch: str, system: System) -> tuple[str, str | None]:
+    """`parse_arch` on the system's sensors, and refused (ValueError) where the system's late
+    sensors give the architecture no meaning or no plan (`core.latency.late_refusal`)."""
+    out = parse_arch(arch, [s.name for s in system.sensors])
+    why = late_refusal(system, definition(out[0]).locals, arch)
+    if why is not None:
+        raise ValueError(why)
+    return out
+
+
 def known_arch(arch: str, system: System) -> bool:
-    """Whether `arch` names an architecture of this system (`parse_arch` accepts it)."""
+    """Whether `arch` names an architecture of this system (`parse_arch_of` accepts it)."""
     try:
-        parse_arch(arch, [s.name for s in system.sensors])
+        parse_arch_of(arch, system)
     except ValueError:
         return False
     return True
@@ -39,7 +51,7 @@ def check_architectures(names: Sequence[str], system: System, where: str) -> lis
     command and the Python API make."""
     for a in names:
         try:
-            parse_arch(a, [s.name for s in system.sensors])
+            parse_arch_of(a, system)
         except ValueError as e:
             raise FusionlogError(f"{where}: {e}") from e
     return list(dict.fromkeys(names))

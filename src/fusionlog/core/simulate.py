@@ -92,10 +92,12 @@ def chunked(
     seed: int,
     run_offset: int,
     runs: int,
+    stream: tuple[int, ...] = (),
 ) -> tuple[np.ndarray, ...]:
     """Runs [run_offset, run_offset + runs) of a chunked Monte Carlo draw, for either kind.
 
-    Chunk c of chunk_runs(steps) runs has its own stream, child c of the seed's SeedSequence;
+    Chunk c of chunk_runs(steps) runs has its own stream, child c of the seed's SeedSequence
+    (spawn key (c, *stream): another `stream` draws apart from, and without moving, the first);
     draw(rng, size) returns arrays whose first axis is the chunk's `size` runs. Each wanted
     chunk is drawn whole and sliced, so a run's numbers never depend on the caller's blocks.
     """
@@ -105,7 +107,7 @@ def chunked(
     first, last = run_offset // size, (run_offset + runs - 1) // size
     parts = []
     for c in range(first, last + 1):
-        rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(c,)))
+        rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(c, *stream)))
         lo = max(run_offset - c * size, 0)
         hi = min(run_offset + runs - c * size, size)
         parts.append([a[lo:hi] for a in draw(rng, size)])

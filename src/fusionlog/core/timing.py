@@ -57,6 +57,14 @@ class SensorTiming:
     period: float | None = None
     offset: float = 0.0
     dropout: float = 0.0
+    #: Delay (s) from taking a measurement to its arrival at the filters, (min, max): fixed
+    #: when equal, else uniform per measurement in [min, max] (DESIGN.md "Late measurements").
+    latency: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def late(self) -> bool:
+        """Whether this sensor's measurements may arrive after they are taken."""
+        return self.latency[1] > 0.0
 
     @property
     def default(self) -> bool:

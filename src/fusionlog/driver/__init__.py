@@ -1,12 +1,14 @@
 """The estimation driver, above the math of `core`: a block of runs through the architectures
-(`estimate_block`) with the plans kept across blocks (`PlanCache`, and `KeptPlans` between two
-stages of one command), each passed explicitly by the caller."""
+(`estimate_block`) with the plans kept across blocks (`PlanCache`, `KeptPlans` between two
+stages of one command, `JobPlans` across the jobs of a process), each passed explicitly by the
+caller."""
 
 from .block import Block, conditional_sums, estimate_block
-from .plans import KeptPlans, PlanCache, pattern_record
+from .plans import JobPlans, KeptPlans, PlanCache, pattern_record
 
 __all__ = [
     "Block",
+    "JobPlans",
     "KeptPlans",
     "PlanCache",
     "conditional_sums",

@@ -58,6 +58,7 @@ def estimate_block(
     workspace: Any = None,
     keep: bool = True,
     run_offset: int = 0,
+    arrivals: np.ndarray | None = None,
 ) -> Block:
     """Estimate a block of runs with each architecture in `archs`.
 
@@ -76,7 +77,8 @@ def estimate_block(
     A nonlinear system (`System.linear` false) has no plans: its architectures run with EKF or
     UKF local filters (`core.nonlinear`), every run with its own covariances, and there is no
     exact analysis (`expected` None); `run_offset` (the block's first run) names runs in its
-    errors.
+    errors. `arrivals` (runs, K+1, S): when the block's readings arrived, where delays differ
+    per run (default: the cache's of these runs, `PlanCache.arrivals`).
     """
     if cache is None:
         cache = PlanCache.of(system, times, R, steps=z.shape[1] - 1)
@@ -89,7 +91,7 @@ def estimate_block(
             ((a, Estimate(t.mean, t.cov)) for a, t in lanes), None, truth, workspace, keep
         )
     fast = None
-    if cache.one_run and expected_of is None and not reference_paths():
+    if cache.one_run and expected_of is None and cache.late is None and not reference_paths():
         from fusionlog.core.architectures.replay import replay_estimates  # a replay's path
 
         fast = replay_estimates(cache.system, archs, z, cache.criterion)
@@ -98,7 +100,7 @@ def estimate_block(
         cache.patterns.append(np.packbits(pattern).tobytes())
         results = fast
     else:
-        plans, pattern = cache.block_plans(archs, z)
+        plans, pattern = cache.block_plans(archs, z, run_offset, arrivals)
         results = {a: run_plan(plan, z) for a, plan in plans.items()}
     block = _reduced(results.items(), pattern, truth, workspace, keep)
     if expected_of is not None:

@@ -14,6 +14,8 @@ import dataclasses
 import hashlib
 import json
 import pickle
+import threading
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -22,9 +24,10 @@ import numpy as np
 from fusionlog.core.architectures import HistoryNodes, Plan, build_plan, shared_pattern
 from fusionlog.core.architectures import registry as _registry
 from fusionlog.core.architectures.registry import group_by_history
+from fusionlog.core.latency import LateModel
 from fusionlog.core.model import System
 
-__all__ = ["KeptPlans", "PlanCache", "pattern_record"]
+__all__ = ["JobPlans", "KeptPlans", "PlanCache", "pattern_record"]
 
 
 @dataclass
@@ -78,6 +81,27 @@ class PlanCache:
     one_run: bool = False
     #: per-run plans shared with another stage of the same command (`KeptPlans`)
     kept: KeptPlans | None = field(default=None, repr=False)
+    #: the instants (K+1,) in seconds on which late measurements arrive (None: `times`, else
+    #: k dt; `core.latency`)
+    clock: np.ndarray | None = field(default=None, repr=False)
+    _late: LateModel | None | str = field(default="unset", repr=False)
+    #: when each reading arrived, (runs, K+1, S) s, for delays that differ per run (a
+    #: latency range): the log's runs from run 0 (`block_plans` cuts a block's)
+    arrivals: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def late(self) -> LateModel | None:
+        """The late sensors' arrivals and stacked model (None: every sensor on time)."""
+        if isinstance(self._late, str):
+            clock = self.clock if self.clock is not None else self.times
+            self._late = LateModel.of(self.system, self.steps, clock)
+        return self._late
+
+    def _build(self, arch: str, present: np.ndarray | None, **kw) -> Plan:
+        """`build_plan` of `arch` for the mask `present`, through the late model if any."""
+        if self.late is not None:
+            return self.late.build(build_plan, arch, present, criterion=self.criterion, **kw)
+        return build_plan(self.system, arch, self.steps, present, self.criterion, **kw)
 
     def __post_init__(self) -> None:
         if self.criterion is None:
@@ -113,15 +137,31 @@ class PlanCache:
         plan = self.plans.get(key)
         if plan is None:
             mask = None if pattern.all() else pattern
-            plan = self.plans[key] = build_plan(self.system, arch, self.steps, mask, self.criterion)
+            plan = self.plans[key] = self._build(arch, mask)
         return plan
 
     def block_plans(
-        self, archs: Sequence[str], z: np.ndarray
+        self,
+        archs: Sequence[str],
+        z: np.ndarray,
+        run_offset: int = 0,
+        arrivals: np.ndarray | None = None,
     ) -> tuple[dict[str, Plan], np.ndarray | None]:
-        """Each architecture's plan for the block z (runs, K+1, m) and its shared pattern (None
-        when the runs differ: plans built per run, on history nodes, which the estimates and
-        the exact analysis both take); the pattern is recorded for `provenance`."""
+        """Each architecture's plan for the block z (runs, K+1, m) of the runs from
+        `run_offset` and its shared pattern (None when the runs differ: plans built per run,
+        on history nodes, which the estimates and the exact analysis both take); the pattern
+        is recorded for `provenance`. `arrivals` (runs, K+1, S): when the block's readings
+        arrived (default: `arrivals` of the runs from `run_offset`), where delays differ."""
+        late = self.late
+        if late is not None and late.per_run:  # random delays: each run its own arrivals
+            self.patterns.append(None)
+            arr = arrivals
+            if arr is None and self.arrivals is not None:
+                arr = self.arrivals[run_offset : run_offset + z.shape[0]]
+            present = ~np.isnan(z)
+            return {
+                a: self._build(a, present, arrival=arr, history_nodes=True) for a in archs
+            }, None
         pattern = shared_pattern(z)
         self.patterns.append(None if pattern is None else np.packbits(pattern).tobytes())
         if pattern is not None:
@@ -133,17 +173,9 @@ class PlanCache:
         for a in archs:
             plan = None if kept is None else kept.get(a)
             if plan is None:
-                if isinstance(groups, str):
+                if isinstance(groups, str) and self.late is None:
                     groups = group_by_history(present)
-                plan = build_plan(
-                    self.system,
-                    a,
-                    self.steps,
-                    present,
-                    self.criterion,
-                    history_nodes=True,
-                    groups=groups,
-                )
+                plan = self._build(a, present, history_nodes=True, groups=groups)
                 if kept is not None:
                     kept[a] = plan
             plans[a] = plan
@@ -154,6 +186,34 @@ class PlanCache:
         mask shared by every run of every block as JSON, or "per-run" (a block's runs differed,
         two blocks differed, or there was no block)."""
         return pattern_record(self.patterns, (self.steps + 1, self.system.m))
+
+
+class JobPlans:
+    """The plan caches of the jobs whose blocks one process computes (a sweep's points, a
+    distributed run), by job token, the least recently used dropped beyond `size`: a job's
+    blocks after the first do not compile again. Whoever runs the blocks owns one and passes
+    it to each (`stages.distributed`'s executors: one in this process, one on each Dask
+    worker). Thread-safe: a Dask worker may run tasks in threads."""
+
+    def __init__(self, size: int = 8) -> None:
+        self.size = size
+        self._caches: OrderedDict[str, PlanCache] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def of(self, token: str, system: System, times: np.ndarray | None = None) -> PlanCache:
+        """The plan cache of job `token` (its `system` on the instants `times`), made on first
+        use."""
+        with self._lock:
+            c = self._caches.get(token)
+            if c is not None:
+                self._caches.move_to_end(token)
+                return c
+        c = PlanCache.of(system, times)
+        with self._lock:
+            c = self._caches.setdefault(token, c)
+            while len(self._caches) > self.size:
+                self._caches.popitem(last=False)
+        return c
 
 
 def pattern_record(patterns: Sequence[bytes | None], shape: tuple[int, int]) -> dict[str, str]:

@@ -178,14 +178,14 @@ def scenario_from_metadata(meta: Mapping[str, str], source: str) -> Scenario:
         kind = meta.get("kind") or _recorded_kind(own)
         if kind not in KINDS:
             raise ValueError(f"unknown kind {kind!r}")
-        sc = _PARSERS[own](doc, source, text, None)
+        # validated when it ran: rebuilt as recorded, without the value checks (`toml.Ctx`)
+        sc = _PARSERS[own](doc, source, text, None, recorded=True)
         if own == "replay":
             sc = _with_recorded_R(sc, meta, source)
         if sc.kind != kind:
             raise ValueError(f"kind {kind!r} but the TOML is a {sc.kind} scenario")
-        return scenario_with(
-            sc, runs=int(meta["runs"]), steps=int(meta["steps"]), seed=int(meta["seed"])
-        )
+        runs, steps, seed = (int(meta[k]) for k in ("runs", "steps", "seed"))
+        return scenario_with(sc, runs=runs, steps=steps, seed=seed, recorded=True)
     except (KeyError, ValueError, TypeError) as e:
         raise FusionlogError(f"{source}: unreadable ({e})") from e
 

@@ -73,11 +73,17 @@ def is_identity_doc(doc: Mapping[str, Any] | None) -> bool:
 
 
 def identity_from_doc(
-    doc: dict[str, Any], file: str, source: str, path: str | None, *, model: bool = False
+    doc: dict[str, Any],
+    file: str,
+    source: str,
+    path: str | None,
+    *,
+    model: bool = False,
+    recorded: bool = False,
 ) -> IdentityScenario:
     """An identity scenario from a parsed TOML document; with ``model`` (``estimate --model``)
     [scenario] and its keys are optional: classes, prior, sets and sensors are what is used."""
-    ctx = Ctx(file)
+    ctx = Ctx(file, recorded)
     if not is_identity_doc(doc):
         raise ctx.err("identity", "missing required section [identity]: not an identity scenario")
     toml.check_keys(ctx, doc, "(top level)", _TOP_KEYS, what="section")

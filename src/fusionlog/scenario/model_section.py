@@ -6,7 +6,8 @@ interval (irregular instants, `core.timing`).
               axes (N independent axes, state per axis [p, v]);
               kind = "continuous" with A, Qc (F = expm(A dt), Q by Van Loan's method);
               or explicit F, Q and optionally G (default identity), for dt only.
-    [[sensors]] period, offset (s), dropout (probability): see `core.timing`.
+    [[sensors]] period, offset (s), dropout (probability), latency (s, `.latency`): see
+    `core.timing`.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ __all__ = [
 #: Values of [model].kind.
 MODEL_KINDS: tuple[str, ...] = ("constant-velocity", "continuous")
 MODEL_KEYS = ("kind", "n0", "axes", "A", "Qc", "F", "Q", "G")
-TIMING_KEYS = ("period", "offset", "dropout")
+TIMING_KEYS = ("period", "offset", "dropout", "latency")
 
 #: F, Q, G, state names, dt, and the continuous model (A, Qc) or None.
 Model = tuple[np.ndarray, np.ndarray, np.ndarray | None, tuple[str, ...], float, Any]
@@ -189,7 +190,9 @@ def sensor_timing(ctx: Ctx, t: dict[str, Any], where: str, dt: float) -> SensorT
     dropout = toml.number(ctx, t.get("dropout", 0.0), f"{where}.dropout")
     if not 0.0 <= dropout < 1.0:
         raise ctx.err(f"{where}.dropout", f"must be in [0, 1), got {toml.fmt(dropout)}")
-    return SensorTiming(period, offset, dropout)
+    from .latency import sensor_latency
+
+    return SensorTiming(period, offset, dropout, sensor_latency(ctx, t, where))
 
 
 def _in_range(ctx: Ctx, value: float, key: str) -> None:
@@ -218,6 +221,8 @@ def check_schedule(
     """The sensors' timing on a horizon of `steps` dt: the instants fit in memory and a log's
     uint32 step index (counted before anything is built), every sensor measures at least
     once, and irregular instants have a model that can be discretised for any interval."""
+    if ctx.recorded:  # a record's schedule was checked when it ran (`Ctx`)
+        return
     timings = tuple(s.timing for s in system.sensors)
     counts = instant_counts(system.dt, steps, timings)
     horizon = toml.fmt(steps * system.dt)

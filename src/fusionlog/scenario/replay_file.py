@@ -288,11 +288,12 @@ def _covariance(ctx: Ctx, t: dict[str, Any], where: str, m: int) -> tuple[str | 
 
 
 def replay_from_doc(
-    doc: dict[str, Any], file: str, source: str, path: str | None
+    doc: dict[str, Any], file: str, source: str, path: str | None, *, recorded: bool = False
 ) -> ReplayScenario:
     """A replay scenario from a parsed TOML document (`file` names it in errors; sources are
-    relative to the folder of `path`, or of `file` when there is no path)."""
-    ctx = Ctx(file)
+    relative to the folder of `path`, or of `file` when there is no path; `recorded`: the
+    record of a sensors file, `Ctx`)."""
+    ctx = Ctx(file, recorded)
     base = Path(path if path is not None else file).parent
     toml.check_keys(ctx, doc, "(top level)", _TOP_KEYS, what="section")
     sc = toml.table(ctx, doc, "scenario", required=True)

@@ -212,11 +212,13 @@ def scenario_with(
     steps: int | None = None,
     seed: int | None = None,
     flag: str = "--",
+    recorded: bool = False,
 ) -> Scenario:
     """A copy with the given Monte Carlo settings replaced (None keeps the scenario's value).
     Errors name an override as `flag` + its name: "--runs" for the CLI's options, "runs" for
-    the Python API's arguments (flag="")."""
-    ctx = Ctx(scenario.path if scenario.path is not None else "<scenario>")
+    the Python API's arguments (flag=""). `recorded`: the settings a sensors file records
+    (`toml.Ctx`: the horizon was checked when it ran)."""
+    ctx = Ctx(scenario.path if scenario.path is not None else "<scenario>", recorded)
     changes: dict[str, int] = {}
     if runs is not None:
         changes["runs"] = toml.integer(ctx, runs, f"{flag}runs", minimum=1)

@@ -37,14 +37,16 @@ from typing import Any
 
 import numpy as np
 
+from fusionlog.core.latency import system_refusal
 from fusionlog.core.model import Prior, System
 from fusionlog.core.models import SensorModel
-from fusionlog.core.names import STATE_ARCHITECTURES, parse_arch
+from fusionlog.core.names import STATE_ARCHITECTURES, known_arch, parse_arch_of
 from fusionlog.core.timing import Schedule, SensorTiming
 
 from . import estimate_keys, toml, trajectory
 from . import nonlinear_syntax as nonlinear
 from . import sensors as sensor_tables
+from .latency import LATE_POLICIES, late_section, latency_dict
 from .model_section import (
     MODEL_KINDS,
     check_schedule,
@@ -160,13 +162,15 @@ def system_to_dict(system: System) -> dict[str, Any]:
         d["estimate"] = nonlinear.estimate_dict(system)
     if system.ci_criterion != "trace":
         d.setdefault("estimate", {})["ci_criterion"] = system.ci_criterion
+    if system.late != LATE_POLICIES[0]:
+        d.setdefault("estimate", {})["late"] = system.late
     return d
 
 
 def _timing_dict(t: SensorTiming) -> dict[str, float]:
     """The timing keys that differ from their defaults."""
     d = {"offset": t.offset, "dropout": t.dropout}
-    d = {k: float(v) for k, v in d.items() if v != 0.0}
+    d = {k: float(v) for k, v in d.items() if v != 0.0} | latency_dict(t.latency)
     return d if t.period is None else {"period": float(t.period)} | d
 
 
@@ -193,10 +197,12 @@ def system_from_dict(d: dict[str, Any], source: str = "<system dict>") -> System
 # Documents
 
 
-def state_from_doc(doc: dict[str, Any], file: str, source: str, path: str | None) -> StateScenario:
+def state_from_doc(
+    doc: dict[str, Any], file: str, source: str, path: str | None, *, recorded: bool = False
+) -> StateScenario:
     """A state scenario from a parsed TOML document; `file` names it in errors, `source` is the
-    text as written (recorded in the sensors file)."""
-    ctx = Ctx(file)
+    text as written (recorded in the sensors file); `recorded`: that record (`Ctx`)."""
+    ctx = Ctx(file, recorded)
     toml.check_keys(ctx, doc, "(top level)", _TOP_KEYS, what="section")
     sc = toml.table(ctx, doc, "scenario", required=True)
     toml.check_keys(ctx, sc, "scenario", _SCENARIO_KEYS)
@@ -312,8 +318,11 @@ def _system(ctx: Ctx, doc: dict[str, Any], sc: dict[str, Any], *, need_truth: bo
         filter=filt,
         ukf=ukf,
         ci_criterion=criterion,
+        late=late_section(ctx, doc),
     )
     nonlinear.check_nonlinear(ctx, system, bool(cross_R))
+    if (why := system_refusal(system)) is not None:
+        raise ctx.err(*why)
     check_determined(ctx, system)
     return system
 
@@ -423,7 +432,7 @@ def correlations_section(
             C = C.T
         Ra, Rb = sensors[key[0]].R, sensors[key[1]].R
         joint = np.block([[Ra, C], [C.T, Rb]])
-        why = toml.not_definite(joint, strict=True)
+        why = None if ctx.recorded else toml.not_definite(joint, strict=True)
         if why is not None:
             raise ctx.err(
                 f"{where}.cov",
@@ -431,7 +440,7 @@ def correlations_section(
             )
         first[key] = k
         cross[key] = toml.readonly(np.array(C))
-    if len(cross) > 1:
+    if len(cross) > 1 and not ctx.recorded:
         # Pairs are checked above; several correlations can still conflict with each other.
         probe = System(F=np.zeros((1, 1)), Q=np.zeros((1, 1)), sensors=sensors, cross_R=cross)
         why = toml.not_definite(probe.R, strict=True)
@@ -445,14 +454,12 @@ def correlations_section(
 
 
 def architectures_section(ctx: Ctx, doc: dict[str, Any], system: System) -> tuple[str, ...]:
-    names = tuple(s.name for s in system.sensors)
-    return toml.architectures(
-        ctx,
-        doc,
-        STATE_ARCHITECTURES,
-        lambda a: parse_arch(a, names),
-        ("filter", "ukf", "ci_criterion"),
-    )
+    def check(a: str) -> tuple[str, str | None]:
+        return parse_arch_of(a, system)
+
+    # late sensors: by default the architectures that take them
+    default = tuple(a for a in STATE_ARCHITECTURES if known_arch(a, system))
+    return toml.architectures(ctx, doc, default, check, ("filter", "ukf", "ci_criterion", "late"))
 
 
 def evaluate_section(ctx: Ctx, doc: dict[str, Any]) -> tuple[float, int, bool]:

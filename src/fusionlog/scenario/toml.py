@@ -29,10 +29,15 @@ SYM_RTOL = 1e-12
 
 
 class Ctx:
-    """Where errors are reported: the file (or source) name."""
+    """Where errors are reported: the file (or source) name. `recorded`: the document is the
+    record of a scenario that was validated when it was run (a sensors file's
+    ``fusionlog.scenario``): it is rebuilt as written, its structure and types still checked
+    (a damaged or foreign record is refused), but not the value checks it passed then
+    (definiteness of its covariances, the schedule's budget), which cannot fail for it."""
 
-    def __init__(self, file: str) -> None:
+    def __init__(self, file: str, recorded: bool = False) -> None:
         self.file = file
+        self.recorded = recorded
 
     def err(self, where: str, reason: str) -> ValidationError:
         msg = f"{self.file}: {where}: {reason}"
@@ -241,7 +246,7 @@ def covariance_checks(ctx: Ctx, A: np.ndarray, where: str, *, strict: bool) -> n
     if asym > SYM_RTOL * float(np.max(np.abs(A))):
         raise ctx.err(where, f"not symmetric (max |{label} - {label}^T| = {asym:.3g})")
     A = 0.5 * A + 0.5 * A.T  # not (A + A^T) / 2: entries near 1e308 would overflow
-    why = not_definite(A, strict=strict)
+    why = None if ctx.recorded else not_definite(A, strict=strict)
     if why is not None:
         kind = "positive definite" if strict else "positive semidefinite"
         raise ctx.err(where, f"not {kind} {why}")

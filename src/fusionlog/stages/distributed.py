@@ -27,6 +27,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
+from fusionlog.driver import JobPlans
 from fusionlog.errors import FusionlogError
 
 from .cluster import WorkerWatch, check_address, probe_scheduler
@@ -35,8 +36,12 @@ from .worker_signals import FORK, forking
 
 __all__ = ["DaskExecutor", "Executor", "LocalExecutor", "Task", "default_workers", "executor"]
 
-#: A task: a module-level function (pickled by reference) and its arguments.
+#: A task: a module-level function (pickled by reference) and its arguments; the executor adds
+#: the plan caches of the process that runs it (`plans=`, a `driver.JobPlans`: one for this
+#: process, one on each Dask worker), so a job's blocks after the first do not recompile.
 Task = tuple[Callable[..., Any], tuple[Any, ...]]
+#: The name of the Dask worker plugin that keeps a worker's plan caches (`_WorkerPlans`).
+PLANS_PLUGIN = "fusionlog-plans"
 
 #: Tasks in flight per worker: one running, the next ones queued on it, so that a worker never
 #: waits for the client between two tasks.
@@ -78,6 +83,9 @@ class Executor:
     #: how many tasks run at once, and what runs them (printed by the commands)
     workers: int = 1
     description: str = "in this process"
+    #: the plan caches of this process: its tasks' (`LocalExecutor`), and what the caller
+    #: computes here itself (a distributed run's sample runs)
+    plans: JobPlans
 
     def __enter__(self) -> Executor:
         return self
@@ -96,9 +104,12 @@ class Executor:
 class LocalExecutor(Executor):
     """Every task in this process, one after the other (--workers 0; --exact-only by default)."""
 
+    def __init__(self) -> None:
+        self.plans = JobPlans()
+
     def map(self, tasks: Sequence[Task], desc: str) -> Iterator[Any]:
         for fn, args in progress(tasks, len(tasks), desc):
-            yield fn(*args)
+            yield fn(*args, plans=self.plans)
 
 
 class DaskExecutor(Executor):
@@ -117,6 +128,7 @@ class DaskExecutor(Executor):
         self._cluster: Any = None
         self._client: Any = None
         self._closing: threading.Thread | None = None
+        self.plans = JobPlans()
 
     def __enter__(self) -> DaskExecutor:
         try:
@@ -154,6 +166,7 @@ class DaskExecutor(Executor):
                     self.description += f" (--workers {self._n} capped at the {n} CPUs)"
             else:
                 self._client = self._connect(Client, self._address, self._timeout)
+            self._client.register_plugin(_worker_plans(), name=PLANS_PLUGIN)
             self.workers = self._wait_for_workers()
         except BaseException:
             self.__exit__(None, None, None)
@@ -247,7 +260,7 @@ class _OrderedResults:
     def _submit_more(self) -> None:
         while self._submitted < len(self._tasks) and self._submitted - self._yielded < self._window:
             fn, args = self._tasks[self._submitted]
-            fut = self._client.submit(fn, *args, pure=False)
+            fut = self._client.submit(on_worker, fn, *args, pure=False)
             self._futures[self._submitted] = fut
             self._index[fut.key] = self._submitted
             self._pending.add(fut)
@@ -284,6 +297,25 @@ class _OrderedResults:
             futures = list(self._futures.values())
             self._futures.clear()
             self._client.cancel(futures)
+
+
+def on_worker(fn: Callable[..., Any], *args: Any) -> Any:
+    """A task on a Dask worker, given that worker's plan caches (`Task`)."""
+    from distributed import get_worker
+
+    return fn(*args, plans=get_worker().plugins[PLANS_PLUGIN].plans)
+
+
+def _worker_plans() -> Any:
+    """The worker plugin that gives each Dask worker a `JobPlans` of its own (a class made
+    here: Dask is imported only when a cluster is used)."""
+    from distributed import WorkerPlugin
+
+    class _WorkerPlans(WorkerPlugin):
+        def setup(self, worker: Any) -> None:
+            self.plans = JobPlans()
+
+    return _WorkerPlans()
 
 
 def _reason(e: BaseException) -> str:

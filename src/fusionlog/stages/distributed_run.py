@@ -36,7 +36,7 @@ from fusionlog.scenario import Scenario
 
 from .common import provenance
 from .distributed import CONNECT_TIMEOUT, executor
-from .evaluator import StateEvaluator
+from .evaluator import SensorLog, StateEvaluator
 from .kinds import kind_of
 from .montecarlo import (
     Job,
@@ -125,7 +125,7 @@ def run_distributed(
             ex.map([(block_sums, (job, off, n)) for off, n in remote], "run")
         ) as results:
             # the sample runs here while the workers start on the rest
-            x, z, est, pattern = block_estimates(job, 0, local)
+            x, z, est, pattern = block_estimates(job, 0, local, plans=ex.plans)
             patterns.add(None if pattern is None else np.packbits(pattern).tobytes())
             for s in results:
                 fold(totals, s, conditional, trajectory)
@@ -141,7 +141,8 @@ def run_distributed(
             **pattern_record(sorted(patterns, key=repr), (sc.instants, sc.system.m)),
         )
         system = sc.system.on_times(sc.times)
-        ev = StateEvaluator(sc, archs, system, system, sc.runs, sc.times, prov, source=sc.name)
+        log = SensorLog(arrivals=kind.arrivals(sc, 0, local))  # late sample runs' arrivals
+        ev = StateEvaluator(sc, archs, system, system, sc.runs, sc.times, prov, log, sc.name)
         readings = {sensor_topic(s.name): z[..., sl] for s, sl in zip(
             system.sensors, system.sensor_slices, strict=True)}  # fmt: skip
         ev.add(0, x, {estimates_topic(a): (e.mean, e.cov) for a, e in est.items()}, readings)

@@ -52,6 +52,7 @@ def estimate_to(
     filter_name: str | None = None,
     block: int | None = None,
     command: str = "fusionlog estimate",
+    late: str | None = None,
     sensors_name: str | None = None,
     recorded: Scenario | None = None,
     sensors_sha256: str | None = None,
@@ -61,19 +62,20 @@ def estimate_to(
     /estimates/<ARCH>, one message per step per block of runs. `recorded` is the scenario
     recorded in the sensors file and `sensors_sha256` its digest, when the caller (`run`, which
     wrote it) has them: each is then not read again. `filter_name` (--filter) sets the local
-    filter of a state model. `kept` (`run`): per-run plans the evaluation takes next."""
+    filter of a state model, `late` (--late) its policy for late measurements. `kept` (`run`):
+    per-run plans the evaluation takes next."""
     digest = None if sensors_sha256 else Digest(Path(sensors_path))
     mf = McapFile(sensors_path)
     if recorded is None:
         recorded = scenario_from_file(mf)
     kind = kind_of(_kind_name(recorded, model_path))
     model = kind.model(mf, recorded, model_path)
-    if filter_name is not None:
+    if filter_name is not None or late is not None:
         from fusionlog.scenario import system_to_dict
 
-        from .state_kind import with_filter
+        from .state_kind import with_filter, with_late
 
-        system = with_filter(model.system, filter_name)
+        system = with_late(with_filter(model.system, filter_name), late)
         model = model._replace(system=system, json=json.dumps(system_to_dict(system)))
     system = model.system
     topics = kind.check_sensor_topics(mf, system)
@@ -150,6 +152,7 @@ def run_estimate(
     force: bool = False,
     block: int | None = None,
     command: str = "fusionlog estimate",
+    late: str | None = None,
 ) -> EstimateResult:
     """Estimate `sensors_path` into the estimates file `out` (committed only when complete)."""
     out = Path(out)
@@ -164,6 +167,7 @@ def run_estimate(
                 filter_name=filter_name,
                 block=block,
                 command=command,
+                late=late,
             )
         outs.commit()
     res.path = out

@@ -127,6 +127,10 @@ class Kind(ABC):
         [readings (1, w, m) per sensor]), or None (the whole run at once, `simulate`)."""
         return None
 
+    def arrivals(self, scenario: Scenario, run_offset: int, runs: int) -> np.ndarray | None:
+        """When each reading of the runs arrives, (runs, K+1, S) seconds; None: on time."""
+        return None
+
     @abstractmethod
     def model(self, sensors: McapFile, recorded: Scenario | None, model_path: Path | None) -> Model:
         """The filter's model: the recorded scenario's system, or the ``--model`` file's."""

@@ -10,8 +10,10 @@ the client merges them in block order, so the merged sums, and every number made
 not depend on how many workers there were or which finished first.
 
 Nothing here imports Dask: the functions are plain, picklable by reference, and run the same
-in a worker process, a worker thread or this process. A worker keeps the systems and plans of
-the jobs it has seen (``_CACHE``), so the blocks after the first of a job do not recompile.
+in a worker process, a worker thread or this process. Whoever runs them passes the plan caches
+of the jobs it has seen (`plans`, a `driver.JobPlans`: the executors of `.distributed` keep
+one in this process and one on each Dask worker), so the blocks after the first of a job do not
+recompile; a call without one compiles afresh.
 """
 
 from __future__ import annotations
@@ -20,7 +22,6 @@ import functools
 import sys
 import threading
 import time
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -28,7 +29,8 @@ from typing import Any, TypeVar
 import numpy as np
 
 from fusionlog.core.architectures import Estimate
-from fusionlog.driver import PlanCache, estimate_block
+from fusionlog.core.latency import random_delays
+from fusionlog.driver import JobPlans, PlanCache, estimate_block
 from fusionlog.errors import NumericalError
 from fusionlog.memory import keep_freed_memory
 from fusionlog.scenario import NonlinearScenario, Scenario
@@ -50,9 +52,6 @@ __all__ = [
 ]
 
 T = TypeVar("T")
-
-#: Jobs whose compiled systems and plans a worker keeps (least recently used dropped first).
-CACHED_JOBS = 8
 
 
 @dataclass(frozen=True)
@@ -88,7 +87,6 @@ class BlockSums:
     trajectory: dict[str, Any] | None = None
 
 
-_CACHE: OrderedDict[str, PlanCache] = OrderedDict()
 _LOCK = threading.Lock()
 #: Scratch arrays of the metric sums, one set per thread (a `dask worker` may run several
 #: tasks at once in threads; a workspace must not be shared between them).
@@ -155,50 +153,42 @@ def blocks(scenario: Scenario, requested: int | None = None) -> list[tuple[int, 
     return [(off, min(size, M - off)) for off in range(0, M, size)]
 
 
-def _plans(job: Job) -> PlanCache:
-    """The job's plan cache in this process (its system on the scenario's instants)."""
-    with _LOCK:
-        c = _CACHE.get(job.token)
-        if c is not None:
-            _CACHE.move_to_end(job.token)
-            return c
+def _plans(job: Job, plans: JobPlans | None) -> PlanCache:
+    """The job's plan cache among `plans` (its system on the scenario's instants)."""
     sc = job.scenario
-    c = PlanCache.of(sc.system, sc.times)
-    with _LOCK:
-        c = _CACHE.setdefault(job.token, c)
-        while len(_CACHE) > CACHED_JOBS:
-            _CACHE.popitem(last=False)
-    return c
+    return (JobPlans() if plans is None else plans).of(job.token, sc.system, sc.times)
 
 
-def _simulated(job: Job, run_offset: int, runs: int) -> tuple[np.ndarray, np.ndarray]:
-    """Truth (runs, K+1, n) and stacked readings (runs, K+1, m; NaN where absent) of runs
-    [run_offset, run_offset + runs), simulated with the kind's hook (those `run` writes)."""
+def _simulated(job: Job, run_offset: int, runs: int) -> tuple[np.ndarray, np.ndarray, Any]:
+    """Truth (runs, K+1, n), stacked readings (runs, K+1, m; NaN where absent) and when they
+    arrived (None: on time) of runs [run_offset, run_offset + runs), simulated with the
+    kind's hooks (those `run` writes)."""
     sc = job.scenario
-    x, zs = kind_of(sc.kind).simulate(sc, run_offset, runs)
-    return x, np.concatenate(zs, axis=-1)
+    kind = kind_of(sc.kind)
+    x, zs = kind.simulate(sc, run_offset, runs)
+    return x, np.concatenate(zs, axis=-1), kind.arrivals(sc, run_offset, runs)
 
 
 @_one_blas_thread
 def block_estimates(
-    job: Job, run_offset: int, runs: int
+    job: Job, run_offset: int, runs: int, plans: JobPlans | None = None
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Estimate], np.ndarray | None]:
     """Truth, the stacked readings, each architecture's estimates and the shared measurement
     pattern (None when runs differ) of a block: `estimate_block`, as the estimate stage."""
-    x, z = _simulated(job, run_offset, runs)
-    c = _plans(job)
-    block = estimate_block(c.system, job.archs, z, cache=c)
+    x, z, arrivals = _simulated(job, run_offset, runs)
+    c = _plans(job, plans)
+    block = estimate_block(c.system, job.archs, z, cache=c, arrivals=arrivals)
     return x, z, block.estimates, block.pattern
 
 
 @_one_blas_thread
-def block_sums(job: Job, run_offset: int, runs: int) -> BlockSums:
+def block_sums(job: Job, run_offset: int, runs: int, plans: JobPlans | None = None) -> BlockSums:
     """The metric sums of one block of runs (the task a worker runs): `estimate_block` with
     the truth, the estimates dropped once reduced (and, for a conditional job, its runs'
     exact sums given their patterns)."""
     t0 = time.perf_counter()
-    x, z = _simulated(job, run_offset, runs)
-    c = _plans(job)
+    x, z, arrivals = _simulated(job, run_offset, runs)
+    c = _plans(job, plans)
     ws = getattr(_LOCAL, "workspace", None)
     if ws is None:
         from fusionlog.core.metrics import MetricsWorkspace
@@ -208,8 +198,9 @@ def block_sums(job: Job, run_offset: int, runs: int) -> BlockSums:
     sc = job.scenario
     keep = sc.trajectory is not None  # the APE/RPE need the means, reduced here
     block = estimate_block(
-        c.system, job.archs, z, truth=x, expected_of=expected_of, cache=c, workspace=ws, keep=keep
-    )
+        c.system, job.archs, z, truth=x, expected_of=expected_of, cache=c, workspace=ws,
+        keep=keep, arrivals=arrivals,
+    )  # fmt: skip
     key = None if block.pattern is None else np.packbits(block.pattern).tobytes()
     assert block.sums is not None
     traj = None
@@ -249,6 +240,8 @@ def exact_mask(scenario: Scenario) -> tuple[bool, np.ndarray | None]:
     system = scenario.system
     if not system.linear or any(s.timing.dropout > 0 for s in system.sensors):
         return False, None
+    if random_delays(system):  # what arrives when differs per run, as with dropouts
+        return False, None
     measures = scenario.schedule.measures
     if measures.all():
         return True, None
@@ -272,7 +265,7 @@ def expected_overall(ex: Any) -> dict[str, float | None]:
 
 
 @_one_blas_thread
-def point_expected(job: Job) -> dict[str, dict[str, Any] | None]:
+def point_expected(job: Job, plans: JobPlans | None = None) -> dict[str, dict[str, Any] | None]:
     """The exact expected MSE, ANEES and DM of every architecture of a scenario, and its
     bound check under "bound" (`core.bound.bound_summary`); None where there is no exact
     analysis: runs with different measurement patterns."""
@@ -283,7 +276,7 @@ def point_expected(job: Job) -> dict[str, dict[str, Any] | None]:
         return dict.fromkeys(job.archs)
     from fusionlog.core.bound import bound_summary
 
-    c = _plans(job)
+    c = _plans(job, plans)
     out: dict[str, dict[str, Any] | None] = {}
     for a in job.archs:
         ex = analyse(c.plan(a, mask), c.system)

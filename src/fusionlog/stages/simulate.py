@@ -50,8 +50,11 @@ def simulate_to(
         measures = np.ones((K + 1, len(topics)), dtype=bool)
     w.add_metadata(SCENARIO_META, scenario_metadata(scenario, kind.system_fields(scenario)))
     w.add_metadata(PROVENANCE_META, provenance(command, scenario.seed))
+    late_sensors = kind.arrivals(scenario, 0, 1) is not None
+    if late_sensors:  # late sensors: the schema says arrival
+        w.declare_arrival()
     every = list(range(len(topics)))
-    blocks = kind.simulate_blocks(scenario, time_block())
+    blocks = None if late_sensors else kind.simulate_blocks(scenario, time_block())
     for k0, k1, x, z in blocks or ():  # one long run in blocks of time (every sensor, always)
         for k in range(k0, k1):
             t = float(times[k])
@@ -68,11 +71,19 @@ def simulate_to(
     for off in progress(offsets, len(offsets), "simulate"):
         runs = min(B, M - off)
         x, z = kind.simulate(scenario, off, runs)
+        # late sensors: when each reading arrives (one value where every run's is the same)
+        arrival = kind.arrivals(scenario, off, runs)
+        late = [] if arrival is None else [j for j, s in enumerate(scenario.system.sensors)
+                                           if s.timing.late]  # fmt: skip
         for k in range(K + 1):
             t = float(times[k])
             w.write_values(TRUTH, k, t, off, x[:, k])
             for j in every if everywhere else np.flatnonzero(measures[k]).tolist():
-                w.write_values(topics[j], k, t, off, z[j][:, k])
+                a = None
+                if j in late:
+                    a = arrival[:, k, j]  # type: ignore[index]
+                    a = a[:1] if (a == a[0]).all() else a
+                w.write_values(topics[j], k, t, off, z[j][:, k], arrival=a)
         messages += (K + 1) + int(measures.sum())
     return messages
 

@@ -18,6 +18,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from fusionlog.core.architectures.long_log import steady_log
+from fusionlog.core.latency import is_late
 from fusionlog.core.model import System
 from fusionlog.core.names import check_architectures
 from fusionlog.core.reference import reference_paths
@@ -61,6 +62,36 @@ def with_filter(system: Any, name: str | None, where: str = "--filter") -> Any:
         what = repr(name) if isinstance(name, str) else f"{name!r} ({type(name).__name__})"
         raise FusionlogError(f"{where}: unknown filter {what} (known: {', '.join(FILTERS)})")
     return dataclasses.replace(system, filter=name)
+
+
+def with_late(system: Any, late: str | None, where: str = "--late") -> Any:
+    """The system with its policy for late measurements set by ``--late`` (None: as
+    recorded), refused in one line where its late sensors cannot take it."""
+    if late is None:
+        return system
+    from fusionlog.core.latency import LATE_POLICIES, system_refusal
+
+    if not isinstance(system, System):
+        raise FusionlogError(f"{where}: only state scenarios have late measurements")
+    if late not in LATE_POLICIES:
+        raise FusionlogError(
+            f"{where}: unknown policy {late!r} (known: {', '.join(LATE_POLICIES)})"
+        )
+    system = dataclasses.replace(system, late=late)
+    why = system_refusal(system)
+    if why is not None:
+        raise FusionlogError(f"{where}: {why[1]}")
+    return system
+
+
+def scenario_with_late(sc: Scenario, late: str | None, archs: Sequence[str] = ()) -> Scenario:
+    """The scenario with ``--late`` applied to its system (`with_late`), the architectures
+    that will run (`archs`, else the scenario's) checked against it."""
+    if late is None:
+        return sc
+    system = with_late(sc.system, late)
+    check_architectures(list(archs) or sc.architectures, system, f"--late {late}")
+    return dataclasses.replace(sc, system=system)
 
 
 def step_writers(
@@ -129,6 +160,11 @@ class StateKind(Kind):
         blocks = one_run_blocks(system, sched.steps, scenario.seed, block)
         return ((k0, k1, x, [z[..., sl] for sl in system.sensor_slices]) for k0, k1, x, z in blocks)
 
+    def arrivals(self, scenario: Scenario, run_offset: int, runs: int) -> np.ndarray | None:
+        from fusionlog.core.latency import draw_arrivals
+
+        return draw_arrivals(scenario.system, scenario.times, scenario.seed, run_offset, runs)
+
     def model(self, sensors: McapFile, recorded: Scenario | None, model_path: Path | None) -> Model:
         if model_path is None:
             recorded = self.recorded(sensors, recorded)
@@ -161,6 +197,7 @@ class StateKind(Kind):
         topics = [sensor_topic(s.name) for s in system.sensors]
         system = with_message_covariances(system.on_times(sensors.times()), sensors)
         plans = PlanCache(system, steps, times=sensors.times(), one_run=runs == 1, kept=kept)
+        plans.arrivals = recorded_arrivals(plans, sensors, topics, runs)
         return _StateEstimator(plans, runs, archs, topics)
 
     def evaluator(
@@ -200,6 +237,24 @@ class StateKind(Kind):
         write_evaluation(file, evaluation)
 
 
+def recorded_arrivals(
+    plans: PlanCache, sensors: McapFile, topics: list[str], runs: int
+) -> np.ndarray | None:
+    """When each reading of the log arrived, (runs, K+1, S) s (its messages' arrival field;
+    on time where a topic has none), where the cache's delays differ per run; else None."""
+    late = plans.late
+    if late is None or not late.per_run:
+        return None
+    from fusionlog.io.mcap.arrival import read_arrivals
+
+    K1 = plans.steps + 1
+    got = read_arrivals(sensors.path, topics, runs, K1)
+    times = sensors.times()
+    return np.stack(
+        [a if a is not None else np.broadcast_to(times, (runs, K1)) for a in got.values()], -1
+    )
+
+
 def _sensor_log(sc: Scenario, filter_sys: System, sens: McapFile) -> SensorLog:
     """Whether the sensors log has the truth, and each sensor's scheduled instants where
     availability says something: a replayed recording, or sensors with their own timing."""
@@ -211,7 +266,11 @@ def _sensor_log(sc: Scenario, filter_sys: System, sens: McapFile) -> SensorLog:
             s.name: sens.topic_steps(t) for s, t in zip(filter_sys.sensors, topics, strict=True)
         }
     truth = sens.metadata.get("fusionlog.scenario", {}).get("replay_truth")
-    return SensorLog(TRUTH in sens.topics, scheduled, json.loads(truth) if truth else None)
+    late = PlanCache(filter_sys, sens.steps() - 1, clock=sens.times())
+    arrivals = recorded_arrivals(late, sens, topics, sens.runs())
+    return SensorLog(
+        TRUTH in sens.topics, scheduled, json.loads(truth) if truth else None, arrivals
+    )
 
 
 class _StateEstimator(Estimator):
@@ -228,7 +287,9 @@ class _StateEstimator(Estimator):
         if not self.plans.system.linear:  # EKF/UKF: each instant computed as it is written
             self.plans.patterns.append(None)  # per-run covariances (provenance)
             return step_writers(self.plans, self.archs, z, run_offset)
-        block = estimate_block(self.plans.system, self.archs, z, cache=self.plans)
+        block = estimate_block(
+            self.plans.system, self.archs, z, cache=self.plans, run_offset=run_offset
+        )
         return {
             a: _estimate_writer(e.mean, e.cov, e.shared_cov) for a, e in block.estimates.items()
         }
@@ -242,6 +303,8 @@ class _StateEstimator(Estimator):
         plans, B = self.plans, time_block()
         system = plans.system
         if plans.steps + 1 <= B or system.Rs is not None or reference_paths():
+            return None
+        if is_late(system):  # late readings (issue 30): the whole run
             return None
         log = steady_log(system, self.archs, plans.steps, plans.criterion)
         if log is None:

@@ -17,11 +17,12 @@ yet gathered enough information for a covariance to exist, its information vecto
 
 Modules: `plan` (the plan types), `definition` (what an architecture is: its local filters
 and fusion rule), `registry` (the registered definitions, `register`, `build_plan`), `rules`
-(the paper's fusion rules as functions of the locals' covariances), `executor` (`run_plan`),
+(the paper's fusion rules as functions of the locals' covariances, each written once), `ici`
+(ICI's definition), `executor` (`run_plan`),
 `estimates` (`estimate`: one architecture on some runs, no cache; a block of runs with the
 plan cache is the driver's, `fusionlog.driver.estimate_block`), the builders by family:
-`filters` (the Kalman-filter machinery), `single` (CKF, SKF), `hkf`, `track_to_track` with
-`readouts` (MSC, MSC-GMF, CI, AVG, and `build_rule` for any registered rule), `fbs`; and
+`filters` (the Kalman-filter machinery), `single` (CKF, SKF), `hkf`, `track_to_track` (the
+local filters and `build_rule`, which compiles every registered rule), `fbs`; and
 `replay` with `replay_filters`: one run of a recorded log estimated without plans (the same
 numbers to rounding, no maps for the exact analysis), which `estimate` and the driver take
 for one run.

@@ -17,13 +17,17 @@ with P (..., S, n, n) the locals' covariances, J (..., S n, S n) their joint err
 intersection's cost ("trace" or "det"). The weights C (..., n, S n) depend on covariances only,
 never on the measured values, so every rule here is linear in the data and has the exact
 analysis (the plans' readout O = C, `core.exact`). The backends apply it: the linear plans and
-their exact analysis (`track_to_track.build_rule`), the one-run replay path and its exact
-analysis (`replay`, `core.exact_replay`), the EKF/UKF lanes (`core.nonlinear`).
+their exact analysis (`track_to_track.build_rule`, shared and per run), the one-run replay path
+and its exact analysis (`replay`, `core.exact_replay`), the EKF/UKF lanes (`core.nonlinear`).
 
-The paper's rules keep plan builders of their own (`build`), which also cover local filters
-still in information form (no prior) and the per-run batch kernels; a rule registered without
-one gets the generic builder, whose fused estimate is undefined (NaN) while a local filter has
-no mean yet.
+Local filters started without a prior run in information form until their information is
+invertible. A rule that can fuse them then (`information`: the paper's, `rules`) is also called
+as rule(P, J, criterion, forms=F, found=D), F (S,) the locals' forms: where F[j],
+P[..., j, :, :] is local j's information matrix Y_j and its state the information vector
+y_j = Y_j x + g_j, J the covariance of the generalised errors g, and C weighs the states
+[s_1; ...; s_S]; D a dict into which the rule may put its weights on the locals as "omega",
+batch + (S,), which the plan keeps (`Plan.omega`). For any other rule the fused estimate is
+undefined (NaN) while a local filter has no mean yet.
 """
 
 from __future__ import annotations
@@ -38,8 +42,9 @@ from .plan import BuildRequest, Plan
 #: The kinds of filters an architecture runs.
 LOCALS = ("centralised", "single", "hierarchical", "smoother", "per-sensor")
 
-#: A fusion rule: (P (..., S, n, n), J (..., S n, S n) or None, criterion) -> (C, P_fused).
-Rule = Callable[[np.ndarray, "np.ndarray | None", str], tuple[np.ndarray, np.ndarray]]
+#: A fusion rule: (P (..., S, n, n), J (..., S n, S n) or None, criterion) -> (C, P_fused);
+#: with `Architecture.information` also (..., forms=F (S,), found=D).
+Rule = Callable[..., tuple[np.ndarray, np.ndarray]]
 
 
 @dataclass(frozen=True)
@@ -47,9 +52,10 @@ class Architecture:
     """A registered architecture (`registry.register`).
 
     `name` is what the CLI, topics and summaries use; `locals` one of `LOCALS`; `rule` and
-    `joint` (whether the rule reads J) for ``per-sensor``; `build` a plan builder of its own
-    (required for the other kinds); `takes_sensor` for ``SKF:<sensor>``; `min_sensors` the
-    fewest sensors it fuses; `default` whether a
+    `joint` (whether the rule reads J) for ``per-sensor``; `information` whether the rule also
+    fuses locals still in information form (module docstring); `build` a plan builder of its
+    own for the other kinds (a rule's plan is `track_to_track.build_rule`'s); `takes_sensor`
+    for ``SKF:<sensor>``; `min_sensors` the fewest sensors it fuses; `default` whether a
     scenario without an `[estimate] architectures` list runs it; `color` its colour in every
     recording (None: one from a hash of the name)."""
 
@@ -58,6 +64,7 @@ class Architecture:
     locals: str
     rule: Rule | None = None
     joint: bool = False
+    information: bool = False
     build: Callable[[BuildRequest], Plan] | None = None
     takes_sensor: bool = False
     min_sensors: int = 0
@@ -71,6 +78,8 @@ class Architecture:
             raise ValueError(f"architecture {self.name}: locals {self.locals!r} not in {LOCALS}")
         if (self.locals == "per-sensor") != (self.rule is not None):
             raise ValueError(f"architecture {self.name}: a rule exactly for per-sensor locals")
+        if self.build is not None and self.rule is not None:
+            raise ValueError(f"architecture {self.name}: a rule is compiled by build_rule")
         if self.rule is None and self.build is None:
             raise ValueError(f"architecture {self.name}: {self.locals} needs a plan builder")
 

@@ -23,7 +23,7 @@ from .hkf import build_hkf
 from .ici import ICI
 from .plan import BuildRequest, HistoryNodes, Plan
 from .single import build_ckf, build_skf
-from .track_to_track import build_avg, build_ci, build_msc, build_msc_gmf, build_rule
+from .track_to_track import build_rule
 
 #: Registered definitions by name, in the order of the default `[estimate] architectures`
 #: list: the paper's Table I, then covariance intersection, the smoother and the plain
@@ -79,7 +79,7 @@ for _a in (
         "per-sensor",
         rule=rules.msc_gmf,
         joint=True,
-        build=build_msc_gmf,
+        information=True,
         default=True,
         color=(44, 160, 44),
     ),
@@ -88,7 +88,7 @@ for _a in (
         "local KFs, Millman's formula, eqs. (32)-(34)",
         "per-sensor",
         rule=rules.msc,
-        build=build_msc,
+        information=True,
         default=True,
         color=(214, 39, 40),
     ),
@@ -106,7 +106,7 @@ for _a in (
         "local KFs, covariance intersection",
         "per-sensor",
         rule=rules.ci,
-        build=build_ci,
+        information=True,
         default=True,
         color=(140, 86, 75),
     ),
@@ -124,7 +124,7 @@ for _a in (
         "per-sensor",
         rule=rules.avg,
         joint=True,
-        build=build_avg,
+        information=True,
         default=True,
     ),
     ICI,

@@ -1,17 +1,14 @@
-"""Track-to-track fusion: local KFs without feedback, one per sensor, and a fusion rule applied to
-their estimates at every step (the readout x_hat = O s, P of the plan):
-
-* MSC      Millman's formula assuming independent local errors, eqs. (32)-(34);
-* MSC-GMF  the generalised Millman formula with the exact cross-covariances, eqs. (6)-(7), (35);
-* CI       covariance intersection ("safe fusion", Gustafsson-Hendeby);
-* AVG      the plain average of the local means with the covariance it really has, eq. (4).
+"""Track-to-track fusion: local KFs without feedback, one per sensor, and a registered fusion rule
+(`definition.Rule`: MSC, MSC-GMF, CI, AVG in `rules`, ICI, ...) applied to their estimates at
+every step, as the plan's readout x_hat = O s, P.
 
 The local filters' joint error covariance follows eq. (35), extended by K_i R_ij K_j^T for
 correlated sensor noise and by information-form errors for filters started without a prior.
-The local filters run as one stack (`KalmanStack` on `Rows.per_sensor`); the fusion rules, which
-do not feed back, are evaluated for all steps together after the recursion (`readouts`). A
-per-run plan takes the same rules written with the batch kernels (`mm`, `solve`, ...) below:
-numpy's stacked products in `readouts` would cost a microsecond per run and step.
+The local filters run as one stack (`KalmanStack` on `Rows.per_sensor`). On a shared mask the
+rule, which does not feed back, is applied to all computed steps together after the recursion
+(one call per combination of the locals' forms); per run it is applied at every step as the
+locals advance, to the runs' (or history nodes') batch: keeping every step's J would cost more
+memory than the plan itself.
 """
 
 from __future__ import annotations
@@ -22,22 +19,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import NumericalError
-from ..fusion import gmf_weight_matrix
 from ..linalg import (
     all_finite,
     apply_shared,
     bc,
     buffer,
-    inv_or_nan,
     lanes,
     lanes_copy,
-    lanes_empty,
     mm,
     mT,
     require_finite,
-    solve_spd_or_flag,
-    spd_inv,
-    stack_cols,
     stack_diag,
     stack_matrices,
     stack_rows,
@@ -48,16 +39,6 @@ from ..linalg import (
 from .definition import Architecture
 from .filters import KalmanStack, Rows, Steady, fill
 from .plan import BlockDiagonal, BuildRequest, Plan, StepMap
-from .readouts import (
-    avg_readouts,
-    ci_readouts,
-    gmf_readouts,
-    local_infos,
-    msc_readouts,
-    require_fused,
-    set_readouts,
-    signs,
-)
 
 
 @dataclass
@@ -65,15 +46,14 @@ class LocalHistory:
     """The local filters' recursion: the plan's steps (readouts O, P still to be set) and,
     after each computed step (L of them; the steps after repeat the last), the locals' forms
     (L, S) (True: information form), their matrices (covariance, or information in information
-    form), their joint error covariance J of eq. (35) (when asked for), and their readouts
-    x_j = O_j s_j. With a per-step readout (`local_filters`), the matrices, J and the local
-    readouts are handed to it and not kept (empty lists)."""
+    form) and their joint error covariance J of eq. (35) (when asked for). With a per-step
+    readout (`local_filters`), the matrices and J are handed to it and not kept (empty
+    lists)."""
 
     steps: list[StepMap]
     forms: np.ndarray
     matrices: list[np.ndarray]
     joints: list[np.ndarray]
-    readouts: list[np.ndarray]
     s0: np.ndarray
     D0: np.ndarray
 
@@ -91,8 +71,8 @@ class LocalHistory:
 #: A fusion rule applied at every step as the local filters advance (the per-run path, where
 #: keeping every step's matrices for a rule over all steps would cost more memory than the
 #: plan itself): (step map to complete with O and P, the locals' forms (S,), their matrices,
-#: J of eq. (35) or None, their readouts O_j).
-StepReadout = Callable[[StepMap, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray], None]
+#: J of eq. (35) or None).
+StepReadout = Callable[[StepMap, np.ndarray, np.ndarray, np.ndarray | None], None]
 
 
 def local_filters(
@@ -120,7 +100,7 @@ def local_filters(
     Gam_cov = D_cov = stack_rows(locs.I)  # and D_j = I
     GQG_cov = mm(mm(Gam_cov, GQG), mT(Gam_cov))
     steps: list[StepMap] = []
-    forms, mats, joints, readouts = [], [], [], []
+    forms, mats, joints = [], [], []
     steady = Steady(present, system)
     K1 = request.horizon
     for k in range(K1):
@@ -161,16 +141,15 @@ def local_filters(
         if readout is not None:
             if joint and not all_finite(J):
                 require_finite(J, "the local filters' joint error covariance")
-            readout(step, locs.info, locs.mat, J if joint else None, st.O)
+            readout(step, locs.info, locs.mat, J if joint else None)
         else:
             mats.append(locs.mat)
             joints.append(J)
-            readouts.append(st.O)
         if not locs.any_info and steady.reached(J if joint else locs.mat):
             fill(steps, K1)
             break
     request.step = None  # the readouts process every step at once
-    return LocalHistory(steps, np.stack(forms), mats, joints, readouts, locs.s0, locs.D0)
+    return LocalHistory(steps, np.stack(forms), mats, joints, locs.s0, locs.D0)
 
 
 def _diag_congruence(A: np.ndarray, J: np.ndarray) -> np.ndarray:
@@ -205,20 +184,11 @@ def _rows_congruence(L: np.ndarray, R: np.ndarray) -> np.ndarray:
     return unlanes(out.reshape((S * n, S * n) + L.shape[:-3]))
 
 
-def _plan(request: BuildRequest, hist: LocalHistory, omega: np.ndarray | None = None) -> Plan:
-    batch = request.batch
-    plan = Plan(request.name, hist.s0, hist.steps, per_run=bool(batch), D0=hist.D0, omega=omega)
+def _plan(request: BuildRequest, hist: LocalHistory, omega: np.ndarray | None) -> Plan:
+    batch = bool(request.batch)
+    plan = Plan(request.name, hist.s0, hist.steps, per_run=batch, D0=hist.D0, omega=omega)
     plan.nodes = request.node_index
     return plan
-
-
-def build_msc(request: BuildRequest) -> Plan:
-    """Millman's formula on the local estimates, eqs. (32)-(34)."""
-    if request.batch:
-        return _plan(request, local_filters(request, joint=False, readout=_msc_step))
-    hist = local_filters(request, joint=False)
-    msc_readouts(hist.computed, hist.forms, hist.mats)
-    return _plan(request, hist)
 
 
 def _checked_joints(hist: LocalHistory) -> None:
@@ -229,233 +199,109 @@ def _checked_joints(hist: LocalHistory) -> None:
     )
 
 
-def build_msc_gmf(request: BuildRequest) -> Plan:
-    """The generalised Millman formula with the exact cross-covariances, eqs. (6)-(7), (35)."""
-    if request.batch:
-        step = GmfStep(request.system.n, request.present if request.nodes is None else None)
-        return _plan(request, local_filters(request, joint=True, readout=step))
-    hist = local_filters(request, joint=True)
-    _checked_joints(hist)
-    gmf_readouts(hist.computed, hist.forms, hist.joints, request.system.n)
-    return _plan(request, hist)
-
-
-def build_avg(request: BuildRequest) -> Plan:
-    """The plain average of the local means and its true covariance, eq. (4)."""
-    if request.batch:
-        return _plan(request, local_filters(request, joint=True, readout=_avg_step))
-    hist = local_filters(request, joint=True)
-    _checked_joints(hist)
-    avg_readouts(hist.computed, hist.forms, hist.joints, hist.readouts, request.batch)
-    return _plan(request, hist)
-
-
-def build_ci(request: BuildRequest) -> Plan:
-    """Covariance intersection of the local estimates, every step's weights in one go
-    (`readouts.ci_readouts` takes all steps as one batch; on history nodes, see `_ci_nodes`)."""
-    hist = local_filters(request, joint=False)
-    if request.nodes is not None:
-        return _plan(request, hist, _ci_nodes(request, hist))
-    omega = ci_readouts(hist.steps, hist.forms, hist.mats, request.batch, request.criterion)
-    return _plan(request, hist, omega)
-
-
 def build_rule(request: BuildRequest, arch: Architecture) -> Plan:
-    """A registered rule (`definition.Rule`) on the local filters, as the plan's readouts: at
-    every step where every local has a mean, O = C and P of rule(P_j, J, criterion); NaN
-    where a local is still in information form (no prior, too few measurements yet). Per run,
-    the rule is applied at every step as the locals advance, to the runs' (or history nodes')
-    batch."""
-    rule, criterion, n = arch.rule, request.criterion, request.system.n
-    assert rule is not None
-    what = f"the fusion rule of {arch.name}"
+    """The registered rule of `arch` (`definition.Rule`) on the local filters, as the plan's
+    readouts: at every step O = C and P of the rule on the locals' matrices and J; where a
+    local is still in information form, the rule's information form (`arch.information`) or
+    NaN. Shared: the computed steps in one call per combination of forms. Per run: at every
+    step as the locals advance, on the runs' (or history nodes') batch."""
+    n = request.system.n
+    fuse = _applied(arch, request.criterion)
+    omegas: list[np.ndarray | None] = []  # each computed step's, when the rule has some
     if request.batch:
 
-        def readout(step: StepMap, form, mats, J, local_O) -> None:
-            S = form.shape[0]
-            if form.any():
-                step.O = np.full(mats.shape[:-3] + (n, S * n), np.nan)
-                step.P = np.full(mats.shape[:-3] + (n, n), np.nan)
-                return
-            step.O, step.P = rule(np.asarray(mats), J, criterion)
-            _require_fused(form, step.P, what)
+        def readout(step: StepMap, form: np.ndarray, mats: np.ndarray, J) -> None:
+            found: dict[str, np.ndarray] = {}
+            step.O, step.P = fuse(form, mats, J, found)
+            _require_fused(form[None], step.P[None], arch.name, per_step=False)
+            omegas.append(found.get("omega"))
 
-        return _plan(request, local_filters(request, joint=arch.joint, readout=readout))
+        hist = local_filters(request, joint=arch.joint, readout=readout)
+        return _plan(request, hist, _omega(request, hist, omegas))
     hist = local_filters(request, joint=arch.joint)
     if arch.joint:
         _checked_joints(hist)
     mats, (L, S) = hist.mats, hist.forms.shape
-    O, P = np.full((L, n, S * n), np.nan), np.full((L, n, n), np.nan)
-    ok = ~hist.forms.any(axis=1)
-    if ok.any():
-        J = np.stack(hist.joints)[ok] if arch.joint else None
-        O[ok], P[ok] = rule(mats[ok], J, criterion)
-    require_fused(hist.forms, P, what)
-    set_readouts(hist.computed, O, P)
-    return _plan(request, hist)
-
-
-def _ci_nodes(request: BuildRequest, hist: LocalHistory) -> np.ndarray:
-    """`ci_readouts` on history nodes: the steps' nodes (a different number at every step)
-    put one after the other into a single batch per form of the locals, so that the weights
-    of all of them are still one `ci_omegas` call; the readouts are then handed back to the
-    steps, and the weights to the runs (M, K+1, S). Each problem is solved on its own, so
-    a node gets its runs' numbers; at 20 % dropouts there are 73 % as many nodes as
-    run-steps (56 % at 10 %), and the local filters run on them too."""
-    nodes = request.nodes
-    sizes = [len(m) for m in hist.matrices]
-    S = hist.forms.shape[1]
-    om_nodes: list[np.ndarray | None] = [None] * len(sizes)
+    joints = np.stack(hist.joints) if arch.joint else None
+    O, P = np.empty((L, n, S * n)), np.empty((L, n, n))
+    omegas = [None] * L
     for form in np.unique(hist.forms, axis=0):
-        ks = [k for k in range(len(sizes)) if (hist.forms[k] == form).all()]
-        n = hist.matrices[0].shape[-1]
-        mats = lanes_empty((sum(sizes[k] for k in ks), S), n, n)  # the kernels' layout
-        at = 0
-        for k in ks:
-            mats[at : at + sizes[k]] = hist.matrices[k]
-            at += sizes[k]
-        holder = [StepMap(None, None, None, None)]
-        om = ci_readouts(holder, form[None], mats[None], mats.shape[:1], request.criterion)
-        cut = np.cumsum([sizes[k] for k in ks])[:-1]
-        pieces = zip(
-            ks,
-            np.split(holder[0].O, cut),
-            np.split(holder[0].P, cut),
-            np.split(om[:, 0], cut),
-            strict=True,
-        )
-        for k, O, P, w in pieces:
-            hist.steps[k].O, hist.steps[k].P = O, P
-            om_nodes[k] = w
-    M = len(nodes.index[0])
-    omega = np.empty((M, len(sizes), S))
-    for k, w in enumerate(om_nodes):
-        omega[:, k] = w[nodes.index[k]]
+        ks = np.flatnonzero((hist.forms == form).all(axis=1))
+        found: dict[str, np.ndarray] = {}
+        try:
+            O[ks], P[ks] = fuse(form, mats[ks], None if joints is None else joints[ks], found)
+        except NumericalError:  # name the step: the first that fails on its own
+            for k in ks:
+                request.step = int(k)
+                fuse(form, mats[k], None if joints is None else joints[k], {})
+            raise
+        finally:
+            request.step = None
+        if "omega" in found:
+            for i, k in enumerate(ks):
+                omegas[k] = found["omega"][i]
+    _require_fused(hist.forms, P, arch.name)
+    for st, Ok, Pk in zip(hist.computed, O, P, strict=True):
+        st.O, st.P = Ok, Pk
+    return _plan(request, hist, _omega(request, hist, omegas))
+
+
+def _omega(
+    request: BuildRequest, hist: LocalHistory, omegas: list[np.ndarray | None]
+) -> np.ndarray | None:
+    """`Plan.omega`, batch + (K+1, S), from each computed step's weights (None where the rule
+    gave none: NaN), the steps after the computed ones repeating the last; per run on
+    history nodes, each run's node's."""
+    if all(w is None for w in omegas):
+        return None
+    K1, S = request.horizon, hist.forms.shape[1]
+    nodes = request.node_index
+    batch = request.batch if nodes is None else (len(nodes[0]),)
+    omega = np.full(batch + (K1, S), np.nan)
+    for k in range(K1):
+        w = omegas[min(k, len(omegas) - 1)]
+        if w is not None:
+            omega[..., k, :] = w if nodes is None else w[nodes[k]]
     return omega
 
 
-# ---------------------------------------------------------------------------------------------
-# The fusion rules of `readouts` for per-run plans, one step at a time as the local filters
-# advance (`StepReadout`), with the batch kernels. The shared path keeps `readouts`.
+def _applied(arch: Architecture, criterion: str) -> Callable[..., tuple[np.ndarray, np.ndarray]]:
+    """(forms (S,), the locals' matrices, J, found) -> (C, P) of the rule of `arch` on that
+    batch: its information form where a local has one, NaN where the rule has none; a C that
+    is the same for the whole batch (a broadcast) kept once."""
+    rule = arch.rule
+    assert rule is not None
 
-
-def _msc_step(
-    step: StepMap, form: np.ndarray, mats: np.ndarray, J: None, local_O: np.ndarray
-) -> None:
-    """`readouts.msc_readouts`: P^-1 = sum_j Y_j, x = P sum_j W_j s_j."""
-    Ys, Ws = (a[0] for a in local_infos(form[None], mats[None]))
-    Y = Ys[..., 0, :, :]
-    for j in range(1, Ys.shape[-3]):
-        Y = Y + Ys[..., j, :, :]
-    require_finite(Y, "the fused information sum_j P_j^-1")
-    P = inv_or_nan(Y)
-    _require_fused(form, P, "Millman's formula")
-    step.O, step.P = stack_cols(mm(P[..., None, :, :], Ws)), P
-
-
-def _require_fused(form: np.ndarray, P: np.ndarray, rule: str) -> None:
-    """`readouts.require_fused` for one step."""
-    if not form.any() and not all_finite(P):
-        raise NumericalError(
-            f"{rule} gives no estimate although every local filter has one (their "
-            "informations are beyond the float range)"
-        )
-
-
-def _avg_step(
-    step: StepMap, form: np.ndarray, mats: np.ndarray, J: np.ndarray, local_O: np.ndarray
-) -> None:
-    """`readouts.avg_readouts`: equal weights I/S on the local means, P = M_sigma J M_sigma^T.
-    O stays shared by the runs while every local's readout is (a mean: O_j = I)."""
-    S, n = form.shape[0], local_O.shape[-1]
-    O = stack_cols(local_O) / S
-    Msig = mm(O, signs(tuple(form.tolist()), n))
-    step.O, step.P = O, sym(mm(mm(Msig, J), mT(Msig)))
-
-
-@dataclass
-class GmfStep:
-    """`readouts.gmf_readouts`. With every local in mean form, the constrained least squares
-    of eqs. (5)-(7) has the closed form C = (E^T J^-1 E)^-1 E^T J^-1 (E = [I; ...; I]) when J
-    is positive definite: one Cholesky solve per run. Where J is (nearly) singular (two locals
-    with the same error: the paper's identical sensors share the prior's velocity error until
-    their gains differ), and at steps with a local in information form, the minimum-norm KKT
-    solution of the shared path, `gmf_weight_matrix`, once per distinct measurement history
-    (runs with the same history so far have the same J, to the last bit)."""
-
-    n: int
-    present: np.ndarray | None  # (M, K+1, m) for runs not grouped by history, else None
-    k: int = 0
-
-    def __call__(
-        self, step: StepMap, form: np.ndarray, mats: np.ndarray, J: np.ndarray, local_O
-    ) -> None:
-        n = self.n
-        history = None if self.present is None else self.present[:, : self.k + 1]
-        self.k += 1
-        if form.any():
-            sign = signs(tuple(form.tolist()), n)
-            D = bc(step.D, J.shape[:-2] + step.D.shape[-2:])
-            step.O, step.P = _per_history(
-                lambda Js, D: _gmf_each(Js, n, D), history, mm(mm(sign, J), sign), D
+    def fuse(form: np.ndarray, mats: np.ndarray, J: np.ndarray | None, found: dict):
+        if arch.information:
+            C, P = rule(mats, J, criterion, forms=form, found=found)
+        elif not form.any():
+            C, P = rule(mats, J, criterion)
+        else:
+            S, n = mats.shape[-3], mats.shape[-1]
+            return (
+                np.full(mats.shape[:-3] + (n, S * n), np.nan),
+                np.full(mats.shape[:-3] + (n, n), np.nan),
             )
-            return
-        S = J.shape[-1] // n
-        E = np.tile(np.eye(n), (S, 1))
-        X, ok = solve_spd_or_flag(J, E, GMF_PIVOT_RTOL)  # J^-1 E
-        big = np.abs(X).max(axis=(-2, -1)) * np.abs(J).max(axis=(-2, -1))
-        ok &= big < GMF_MAX_GROWTH
-        if not ok.all():
-            X[~ok] = E  # placeholders, replaced below
-        W = X[..., :n, :]
-        for i in range(1, S):
-            W = W + X[..., i * n : (i + 1) * n, :]
-        C = mm(spd_inv(W), mT(X))
-        P = sym(mm(mm(C, J), mT(C)))
-        ok &= np.isfinite(P).all(axis=(-2, -1))  # e.g. subnormal noise variances
-        if not ok.all():
-            bad = np.flatnonzero(~ok)
-            runs = None if history is None else history[bad]
-            C[bad], P[bad] = _per_history(lambda Js: _gmf_each(Js, n), runs, J[bad])
-        step.O, step.P = C, P
+        while C.ndim > 2 and C.strides[0] == 0:  # the same weights for every problem
+            C = C[0]
+        return C, P
+
+    return fuse
 
 
-#: A Cholesky pivot of J below this times its diagonal entry, or |J^-1 E| |J| beyond
-#: GMF_MAX_GROWTH, sends a GMF problem to the least-squares solution of the shared path:
-#: the closed form would amplify rounding by about that much, and where J is singular to
-#: working precision the weights are not unique (least squares takes the smallest). The
-#: paper's example stays at pivots above 1e-3 and growths below 200.
-GMF_PIVOT_RTOL = 1e-6
-GMF_MAX_GROWTH = 1e6
-#: At most this many GMF problems are solved one by one (below).
-GMF_ONE_BY_ONE = 256
-
-
-def _gmf_each(J: np.ndarray, n: int, D: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """`gmf_weight_matrix` for a batch of J (and D), each solved on its own as the shared path
-    solves its one J (lstsq, SVD): near a singular J the weights are not unique and the
-    batched pseudo-inverse picks other ones, differing in the means by ~1e-10. Many problems
-    go through the batched call."""
-    if len(J) > GMF_ONE_BY_ONE:
-        return gmf_weight_matrix(J, n, D)
-    outs = [gmf_weight_matrix(J[i], n, None if D is None else D[i]) for i in range(len(J))]
-    C = np.stack([o[0] for o in outs]) if outs else np.empty(J.shape[:1] + (n, J.shape[-1]))
-    P = np.stack([o[1] for o in outs]) if outs else np.empty(J.shape[:1] + (n, n))
-    return C, P
-
-
-def _per_history(
-    rule: Callable[..., tuple[np.ndarray, np.ndarray]],
-    history: np.ndarray | None,
-    *args: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """rule(*args) for a batch of runs, computed once per distinct measurement history
-    (history: (runs, steps so far, m) presence masks) and handed to every run that has it;
-    rule(*args) itself for history nodes (history None), distinct already."""
-    if history is None:
-        return rule(*args)
-    keys = np.packbits(history.reshape(len(history), -1), axis=1)
-    keys = np.ascontiguousarray(keys).view(np.dtype((np.void, keys.shape[1]))).ravel()
-    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-    outs = rule(*(a[first] for a in args))
-    return tuple(o[inverse] for o in outs)
+def _require_fused(forms: np.ndarray, P: np.ndarray, name: str, per_step: bool = True) -> None:
+    """Refuse a fused covariance P ((L,) + batch + (n, n)) that is undefined at a step where
+    every local filter has an estimate of its own (forms (L, S) all False): the rule has an
+    answer there, so NaN means its numbers left the float range. `per_step`: the message names
+    the step (else the one being built names itself)."""
+    if all_finite(P):
+        return
+    every = ~forms.any(axis=1)
+    bad = every & ~np.isfinite(P).reshape(len(P), -1).all(axis=1)
+    if bad.any():
+        step = f"step {int(np.argmax(bad))}: " if per_step else ""
+        raise NumericalError(
+            f"{step}the fusion rule of {name} gives no estimate although every local filter "
+            "has one (their informations are beyond the float range)"
+        )

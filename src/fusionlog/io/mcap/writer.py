@@ -29,6 +29,7 @@ from mcap.reader import SeekingReader
 
 from fusionlog.errors import OutputError
 
+from .arrival import arrival_field
 from .bookkeeping import FirstTimes, StepSet
 from .chunks import one_line
 from .layout import LAYOUT_META, Layout
@@ -117,6 +118,8 @@ class McapWriter:
         self.name = str(name)
         self._sink = Sink(file, self.name)
         self._schemas: dict[str, foxglove.Schema] = {}
+        #: whether the schema declares the Block's ``arrival`` (`declare_arrival`)
+        self._arrival_schema = False
         self._topic_states: dict[str, _TopicState] = {}
         self._messages = 0
         self._block_offset, self._block_runs = -1, 0  # block of runs being written
@@ -304,7 +307,9 @@ class McapWriter:
         schema = self._schemas.get(schema_name)
         if schema is None:
             schema = foxglove.Schema(
-                name=schema_name, encoding="protobuf", data=file_descriptor_set()
+                name=schema_name,
+                encoding="protobuf",
+                data=file_descriptor_set(self._arrival_schema),
             )
             self._schemas[schema_name] = schema
         channel = foxglove.Channel(
@@ -356,6 +361,7 @@ class McapWriter:
         dim: int,
         p1: bytes | memoryview,
         p2: bytes | memoryview,
+        p3: bytes = b"",
     ) -> None:
         # The hot path: a few dict/set operations and one bytes join per message; everything
         # that only changes per step, per topic or per block is cached.
@@ -379,10 +385,17 @@ class McapWriter:
             first.add(step)
         if st.mid_key != (run_offset, runs, len(p2)):
             st.set_mid(run_offset, runs, len(p2))
-        st.log(b"".join((self._head, st.mid, p1, st.mid2, p2)), self._t_ns)
+        st.log(b"".join((self._head, st.mid, p1, st.mid2, p2, p3)), self._t_ns)
         self._messages += 1
         if self._sink.alert:  # a write failed or a signal came during this message
             self._fail()
+
+    def declare_arrival(self) -> None:
+        """Declare the Block's ``arrival`` field in the file's schema (a sensors file of late
+        sensors), before the first message; other files keep the schema without it."""
+        if self._schemas:
+            raise RuntimeError("declare_arrival: a schema is already written")
+        self._arrival_schema = True
 
     def write_values(
         self,
@@ -392,9 +405,11 @@ class McapWriter:
         run_offset: int,
         values: np.ndarray,
         covariance: np.ndarray | None = None,
+        arrival: np.ndarray | float | None = None,
     ) -> None:
         """Write one ``fusionlog.Block``: ``values`` (runs, dim) at ``step`` for a block of runs,
-        with the optional per-message measurement ``covariance`` (runs, dim, dim)."""
+        with the optional per-message measurement ``covariance`` (runs, dim, dim) and the
+        optional ``arrival`` time of the readings (s; one value, or (runs,))."""
         if type(values) is not np.ndarray or values.dtype != _F8:
             values = np.asarray(values, dtype=_F8)
         shape = values.shape
@@ -406,8 +421,17 @@ class McapWriter:
             if c.shape != (shape[0], shape[1], shape[1]):
                 raise ValueError(f"covariance must have shape {(shape[0], shape[1], shape[1])}")
             p2 = c.tobytes()
+        p3 = b""
+        if arrival is not None:
+            if np.size(arrival) not in (1, shape[0]):
+                raise ValueError(f"arrival must have one value or {shape[0]}")
+            if not self._arrival_schema:
+                raise ValueError("arrival: call declare_arrival before the first message")
+            p3 = arrival_field(arrival)
         # tobytes() is C order whatever the strides, so no ascontiguousarray copy is needed.
-        self._write(topic, VALUES, step, time, run_offset, shape[0], shape[1], values.tobytes(), p2)
+        self._write(
+            topic, VALUES, step, time, run_offset, shape[0], shape[1], values.tobytes(), p2, p3
+        )
 
     def write_estimate(
         self,

@@ -79,7 +79,7 @@ class ExactPart(Part):
             self.conditional = {}
             return
         z = np.concatenate([block.sensors[t] for t in self.topics], axis=-1)
-        plans, _ = self.plans.block_plans(self.known, z)
+        plans, _ = self.plans.block_plans(self.known, z, block.off)
         self._merge_expected(conditional_sums(plans, self.truth, z.shape[0]))
 
     def merge(self, other: Elsewhere) -> None:

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from fusionlog.core.evaluation import Evaluation
+from fusionlog.core.latency import is_late
 from fusionlog.core.model import System
 from fusionlog.core.names import known_arch
 from fusionlog.driver import KeptPlans, PlanCache
@@ -49,6 +50,8 @@ class SensorLog:
     #: a replay's truth: {"states": [names], "matched": N, "unmatched": N} (instants with and
     #: without a truth sample); its states may be some of the state's (partial truth)
     truth: dict[str, Any] | None = None
+    #: when each reading arrived, (runs, K+1, S) s, where the delays differ per run
+    arrivals: np.ndarray | None = None
 
 
 class StateEvaluator(Evaluator):
@@ -86,7 +89,10 @@ class StateEvaluator(Evaluator):
         log = log or SensorLog()
         self.has_truth = log.has_truth
         recorded = sc.replay is not None
-        plans = PlanCache(filter_sys, self.K, kept=kept)
+        plans = PlanCache(filter_sys, self.K, kept=kept, clock=self.times)
+        plans.arrivals = log.arrivals
+        #: the policy for late measurements where some sensor is late (summary.json "late")
+        self.late = filter_sys.late if is_late(filter_sys) else None
         known = [a for a in self.archs if known_arch(a, filter_sys)]
         names = list(sc.state_names)
         truthed = (
@@ -194,6 +200,8 @@ class StateEvaluator(Evaluator):
 
         if self.M != 1 or self.K + 1 <= time_block() or reference_paths():
             return None
+        if self.late is not None:  # late readings (issue 30): the whole run
+            return None
         parts = {MetricsPart, ExactPart, SamplesPart, NisPart, BoundPart}
         if not {type(p) for p in self.parts} <= parts:
             return None
@@ -255,6 +263,8 @@ class StateEvaluator(Evaluator):
     def _finish(self) -> Finished:
         archs: dict[str, dict[str, Any]] = {}
         summary = {**self._head(), "architectures": archs}
+        if self.late is not None:
+            summary["late"] = self.late
         into = Finished(summary, archs, metric_runs=self.metrics.runs_of())
         into.fields.update(
             plane=None, availability={}, measured={}, nis=None, innovations=None, pcrb=None

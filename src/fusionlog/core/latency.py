@@ -1,0 +1,318 @@
+"""Late measurements: each policy as an ordinary plan on the measurements as they were taken.
+
+A measurement of sensor j taken at instant i arrives at t_i + latency_j; the estimate at the
+output instant t_k may use only what has arrived by then (DESIGN.md "Late measurements"). Let
+a(j, i) be the first instant k with t_k >= t_i + latency_j and l = a - i its lag (in instants).
+
+*Reprocess* (the filter rewinds to a late measurement's time and refilters everything that
+has arrived, in measurement-time order) gives at k the Kalman estimate of x_k from exactly the
+arrived set {(j, i): a(j, i) <= k}. That estimate is a Kalman filter on the *stacked state*
+X_k = [x_k; x_{k-1}; ...; x_{k-W}] (W the largest lag; X_k = F~ X_{k-1} + [w; 0; ...]) whose
+measurement at k is what arrives at k: the reading of sensor j taken l instants ago is
+H_j x_{k-l} + v, a row of H~ on the l-th block of X_k (the fixed-lag augmentation of
+Anderson and Moore, "Optimal Filtering", 1979, ch. 7; Bar-Shalom, Chen, Mallick 2004, sec. 2,
+note that reprocessing is optimal). Each reading arrives once, so the stacked model's noise is
+white, and its filter is exactly the rewind-and-refilter estimate, with a bounded history: W
+instants of state.
+
+*Neglect* drops a measurement older than the filter's last update (the newest measurement
+time processed): processing the rest in arrival order is processing them in time order, so
+neglect is reprocessing of the accepted measurements.
+
+Both are filters on the stacked model fed with the readings as they arrive, i.e. linear maps
+of the measurements as taken once the plan keeps the W last readings in its internal state:
+
+    s_k = [s~_k; z_k; z_{k-1}; ...; z_{k-W+1}],    s~_k = T~ s~_{k-1} + U~ z~_k,
+
+z~_k (what arrives at k) being a selection of z_k and the kept readings. So the executor, the
+per-run and history-node paths and the exact analysis (`core.exact`: the joint moments of the
+true state and s_k) take it as any other plan, the truth being the scenario's own model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .architectures import Plan, definition, parse_arch
+from .latency_stacked import fused_plan, stacked_system, wrap
+from .model import System
+
+__all__ = [
+    "LATE_POLICIES",
+    "LateModel",
+    "arrival_steps",
+    "draw_arrivals",
+    "is_late",
+    "random_delays",
+    "late_refusal",
+    "stacked_system",
+    "system_refusal",
+]
+
+#: [estimate] late: the first is the default.
+LATE_POLICIES = ("reprocess", "retrodict", "neglect")
+
+#: Policies whose plans exist.
+BUILT_POLICIES = ("reprocess", "neglect", "retrodict")
+
+
+def is_late(system: System) -> bool:
+    """Whether some sensor's measurements arrive after they are taken."""
+    return any(s.timing.late for s in system.sensors)
+
+
+def random_delays(system: System) -> bool:
+    """Whether some sensor's delays are drawn per measurement (a latency range): the runs then
+    differ in what arrives when, like dropouts in what is measured."""
+    return any(s.timing.latency[0] != s.timing.latency[1] for s in system.sensors)
+
+
+def system_refusal(system: System) -> tuple[str, str] | None:
+    """(key, reason) why a system's late sensors cannot be estimated, or None."""
+    if not is_late(system):
+        return None
+    lat = [s.timing.latency for s in system.sensors]
+    late = [j for j, (lo, hi) in enumerate(lat) if hi > 0]
+    if system.late not in BUILT_POLICIES:
+        return ("estimate.late", f"{system.late!r} with late sensors is not available yet")
+    if not system.linear:
+        return (
+            f"sensors[{late[0]}].latency",
+            "late measurements need linear sensors and motion (the EKF/UKF lanes do not "
+            "rewind yet)",
+        )
+    if system.prior is None:
+        return (
+            "prior",
+            "missing: reprocessing late measurements runs the filter on the state stacked "
+            "over the latency window, which starts from [prior] (mean, cov)",
+        )
+    if system.late == "retrodict":
+        Fs = [system.F] if system.Fs is None else list(system.Fs)
+        if not all(abs(np.linalg.det(F)) >= 1e-300 for F in Fs):
+            return (
+                "estimate.late",
+                "retrodict predicts backwards through F^-1, and F is singular",
+            )
+    for i, j in system.cross_R:
+        if lat[i] != lat[j]:
+            return (
+                "correlations",
+                f"sensors {system.sensors[i].name!r} and {system.sensors[j].name!r} are "
+                "correlated but arrive with different latencies: their readings of one "
+                "instant would be fused apart, as if independent",
+            )
+    return None
+
+
+def late_refusal(system: System, locals_kind: str, arch: str) -> str | None:
+    """Why architecture `arch` (its `Architecture.locals`) has no meaning or no plan with the
+    system's late sensors, or None."""
+    if not is_late(system):
+        return None
+    if locals_kind == "smoother":
+        return (
+            f"architecture {arch}: a fixed-interval smoother uses every measurement of the run "
+            "whenever it arrives: a latency has no meaning there"
+        )
+    if system.late == "retrodict" and locals_kind not in ("centralised", "single"):
+        return (
+            f"architecture {arch}: retrodiction (Bar-Shalom's Al1) is built for one filter "
+            "(CKF, SKF); with hierarchical or track-to-track filters use reprocess or neglect"
+        )
+    return None
+
+
+#: The delays' random stream (`core.simulate.chunked`): apart from the truth and readings'.
+DELAY_STREAM = (30,)
+
+
+def draw_arrivals(
+    system: System, times: np.ndarray, seed: int, run_offset: int, runs: int
+) -> np.ndarray | None:
+    """When each measurement of runs [run_offset, +runs) arrives, (runs, K+1, S) seconds: t_i
+    + latency, a delay uniform in [min, max] drawn from the seed where the sensor's latency
+    is a range (runs independent of the caller's blocks); None when every sensor is on time."""
+    if not is_late(system):
+        return None
+    from .simulate import chunked
+
+    lat = np.array([s.timing.latency for s in system.sensors])  # (S, 2)
+    K1 = len(times)
+    out = np.repeat((times[:, None] + lat[None, :, 0])[None], runs, axis=0)
+    rand = lat[:, 1] > lat[:, 0]
+    if rand.any():
+
+        def draw(rng: np.random.Generator, size: int) -> tuple[np.ndarray]:
+            return (rng.random((size, K1, int(rand.sum()))),)
+
+        (u,) = chunked(draw, K1 - 1, seed, run_offset, runs, stream=DELAY_STREAM)
+        out[..., rand] += u * (lat[rand, 1] - lat[rand, 0])
+    return out
+
+
+def arrival_steps(times: np.ndarray, arrival: np.ndarray) -> np.ndarray:
+    """The first instant index k with t_k >= arrival (seconds; compared in whole nanoseconds,
+    the resolution of a log's time); len(times) where a measurement never arrives within the
+    horizon (or NaN: none taken)."""
+    tk = np.round(np.asarray(times, float) * 1e9)
+    a = np.round(np.asarray(arrival, float) * 1e9)
+    out = np.searchsorted(tk, np.where(np.isnan(a), np.inf, a), side="left")
+    return out.astype(np.intp)
+
+
+@dataclass
+class LateModel:
+    """The late sensors of one model on one horizon: when each measurement arrives, and the
+    plans of the stacked model wrapped as plans on the measurements as taken.
+
+    `arrive` (K+1, S): the instant index at which the measurement sensor j takes at instant
+    i arrives (K+1: never, within the horizon) with fixed latencies; `lags[j]`: the lags its
+    readings may arrive with; `times` the instants (s); `per_run`: the delays differ from run
+    to run (a latency range), so the arrivals come with each block's data (`build`).
+    """
+
+    system: System
+    steps: int
+    arrive: np.ndarray
+    lags: list[np.ndarray]
+    times: np.ndarray
+    per_run: bool = False
+    stacked: System = field(init=False, repr=False)
+    #: (m~, 3): for each component of the stacked measurement, its sensor, lag and component
+    #: of z (eq. 30)
+    slots: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.stacked = stacked_system(self.system, self.lags)
+        rows = []
+        for j, (sl, lj) in enumerate(zip(self.system.sensor_slices, self.lags, strict=True)):
+            for lag in lj:
+                rows += [(j, int(lag), o) for o in range(sl.start, sl.stop)]
+        self.slots = np.array(rows, dtype=np.intp).reshape(-1, 3)
+
+    @classmethod
+    def of(cls, system: System, steps: int, times: np.ndarray | None) -> LateModel | None:
+        """The late model of `system` on the instants `times` (default k dt), or None when no
+        sensor is late (the plans are then the plain ones, bit for bit)."""
+        if not is_late(system):
+            return None
+        times = np.arange(steps + 1) * system.dt if times is None else np.asarray(times, float)
+        lat = np.array([s.timing.latency for s in system.sensors])  # (S, 2)
+        arrive = arrival_steps(times, times[:, None] + lat[None, :, 0])
+        last = arrival_steps(times, times[:, None] + lat[None, :, 1])  # the latest arrival
+        K1 = steps + 1
+        lags = []
+        for j in range(len(system.sensors)):
+            got = arrive[:, j] < K1
+            i = np.arange(K1)[got]
+            # every lag between the earliest and the latest arrival (within the horizon)
+            lo, hi = arrive[got, j] - i, np.minimum(last[got, j], K1 - 1) - i
+            spans = [np.arange(a, b + 1) for a, b in zip(lo, hi, strict=True)]
+            lj = np.unique(np.concatenate(spans or [np.zeros(1, np.intp)]))
+            lags.append(lj.astype(np.intp))
+        return cls(system, steps, arrive, lags, times, random_delays(system))
+
+    @property
+    def window(self) -> int:
+        """W: the instants of state the filter keeps beside the current one (its history)."""
+        return max(int(lj.max()) for lj in self.lags)
+
+    def stacked_mask(
+        self, present: np.ndarray, filters: list[list[int]], arrive: np.ndarray | None = None
+    ) -> np.ndarray:
+        """The presence mask of the stacked measurement, batch + (K+1, m~): the reading of
+        slot (j, l) is there at k when sensor j measured that component at k - l, it arrives
+        at k (`arrive`, batch + (K+1, S), default the fixed latencies') and (neglect) it is not
+        older than the last update of the filter that fuses it (`filters`: the sensors each
+        filter fuses)."""
+        K1 = present.shape[-2]
+        arrive = self.arrive if arrive is None else arrive
+        batch = np.broadcast_shapes(present.shape[:-2], arrive.shape[:-2])
+        present = np.broadcast_to(present, batch + present.shape[-2:])
+        took = np.stack(
+            [present[..., sl].any(-1) for sl in self.system.sensor_slices], axis=-1
+        )  # batch + (K+1, S): the sensor measured at i
+        arrive = np.broadcast_to(arrive, took.shape)
+        if self.system.late == "neglect":
+            ok = np.zeros_like(took)
+            for g in filters:
+                ok[..., g] = accepted(took[..., g], arrive[..., g], self.window)
+            took = took & ok
+        j, lag, o = self.slots.T
+        out = np.zeros(present.shape[:-2] + (K1, len(self.slots)), dtype=bool)
+        for k in range(K1):
+            i = k - lag
+            ok = i >= 0
+            ii = np.where(ok, i, 0)
+            here = present[..., ii, o] & took[..., ii, j] & (arrive[..., ii, j] == k)
+            out[..., k, :] = here & ok
+        return out
+
+    def build(
+        self, build, arch: str, present: np.ndarray | None, arrival: np.ndarray | None = None, **kw
+    ) -> Plan:
+        """`arch`'s plan on the measurements as taken: `build(system, arch, steps, mask,
+        **kw)` (`architectures.build_plan`) compiles it on the stacked model, then its maps
+        are wrapped to keep the last W readings (`wrap`). `arrival` (runs, K+1, S): when each
+        reading of the block's runs arrived (s), for delays that differ per run: the plan
+        is then per run."""
+        if self.per_run and arrival is None:
+            raise ValueError("random delays: give the arrival times of the block's readings")
+        K1 = self.steps + 1
+        if present is None:
+            present = np.ones((K1, self.system.m), dtype=bool)
+        kw.pop("groups", None)  # the stacked mask groups the runs by its own histories
+        names = [s.name for s in self.system.sensors]
+        base, sensor = parse_arch(arch, names)
+        S = len(names)
+        locals_kind = definition(base).locals
+        if sensor is not None:  # one filter on one sensor
+            filters = [[names.index(sensor)]]
+        elif locals_kind == "per-sensor":  # a local filter per sensor
+            filters = [[j] for j in range(S)]
+        else:  # one filter (or a centre) fusing every sensor
+            filters = [list(range(S))]
+        arrive = None if arrival is None else arrival_steps(self.times, arrival)
+        if arrive is not None:  # the readings' own lags must be among the model's
+            for j, lj in enumerate(self.lags):
+                a = arrive[..., j]
+                lag = (a - np.arange(K1))[a < K1]
+                if not np.isin(lag, lj).all():
+                    raise ValueError(
+                        f"sensor {names[j]}: a reading arrives outside its latency range"
+                    )
+        if self.system.late == "retrodict":
+            from .retrodict import retrodict_plan
+
+            arr = self.arrive if arrive is None else arrive
+            plan = retrodict_plan(self.system, arch, present, arr, filters[0], self.window)
+            return plan
+        mask = self.stacked_mask(present, filters, arrive)
+        if locals_kind == "per-sensor":  # the rule on the locals' current blocks
+            criterion = kw.get("criterion", "trace")
+            nodes = kw.get("history_nodes", False)
+            n = self.system.n
+            inner = fused_plan(self.stacked, base, mask, criterion, n, nodes)
+        else:
+            inner = build(self.stacked, arch, self.steps, mask, **kw)
+        return wrap(inner, self.slots, self.system.m, self.window, self.system.n)
+
+
+def accepted(took: np.ndarray, arrive: np.ndarray, W: int) -> np.ndarray:
+    """Neglect's rule: which measurements (batch + (K+1, S)) the filter takes, in arrival
+    order (measurement-time order within an arrival instant): those not older than the
+    newest measurement time it has taken before."""
+    K1 = took.shape[-2]
+    out = np.zeros_like(took)
+    newest = np.full(took.shape[:-2], -1, dtype=np.intp)
+    for k in range(K1):
+        lo = max(0, k - W)
+        i = np.arange(lo, k + 1)
+        ok = took[..., lo : k + 1, :] & (arrive[..., lo : k + 1, :] == k)
+        ok &= i[:, None] >= newest[..., None, None]
+        out[..., lo : k + 1, :] |= ok
+        newest = np.maximum(newest, np.where(ok.any(-1), i, -1).max(-1))
+    return out
