@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench bench-quick lint golden docs clean
+.PHONY: run test walkthroughs bench bench-quick lint golden docs clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -37,6 +37,11 @@ test: $(STAMP)
 	$(BIN)/pytest
 	$(BIN)/python tests/other_kernels.py $(NUMERIC)
 	FUSIONLOG_REFERENCE_PATHS=1 $(BIN)/pytest -p no:cacheprovider $(REFERENCE)
+
+# The documentation's walk-throughs on the shared real logs that take minutes (identify on evo's
+# bag); `make test` skips them to stay within a few minutes on 2 cores.
+walkthroughs: $(STAMP)
+	FUSIONLOG_WALKTHROUGHS=1 $(BIN)/pytest -p no:cacheprovider tests/test_identify.py -k walkthrough
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py

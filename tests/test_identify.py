@@ -11,6 +11,9 @@ against a Monte Carlo run with the identified values as the truth (within 4 SE).
 from __future__ import annotations
 
 import json
+import os
+import re
+import shlex
 import textwrap
 from pathlib import Path
 
@@ -70,11 +73,15 @@ def scenario(tmp_path: Path, name: str = "two.toml", **kw) -> Path:
 # -- the likelihood against independent computations -------------------------------------------
 
 
-def dense_loglik(system, times, z) -> float:
+def dense_loglik(system, times, z, truth_rows=None) -> float:
     """log N(z; H mu, H Sigma H' + R) of each run's present readings, the states x_0..x_K
     stacked into one Gaussian vector: mean F_k..F_1 m0, covariances from x_k = F_k x_{k-1}
-    + w_k (cov(x_i, x_j) = F_j..F_{i+1} var(x_i) for j > i), summed over the runs."""
+    + w_k (cov(x_i, x_j) = F_j..F_{i+1} var(x_i) for j > i), summed over the runs. With
+    `truth_rows`, z's last columns are those states themselves (rows of the identity, no
+    noise): the joint density of readings and truth."""
     s = system.on_times(times)
+    if truth_rows is not None:
+        s = _WithTruth(s, truth_rows)
     n, K1 = s.n, len(times)
     means, var = [s.prior.mean], [s.prior.cov]
     for k in range(1, K1):
@@ -119,6 +126,60 @@ def test_loglik_equals_the_dense_normal_density_of_the_stacked_readings(tmp_path
     noise = Noise(s.prior.cov[None], Qs[None], np.arange(K), s.R[None, None], np.zeros(K + 1, int))
     want = dense_loglik(sc.system, sim.times, z)
     assert loglik(s, z, noise)[0] == pytest.approx(want, rel=1e-10, abs=1e-9)
+
+
+class _WithTruth:
+    """A system whose readings are followed by the states `rows` themselves (no noise)."""
+
+    def __init__(self, system, rows):
+        self._s = system
+        self.H = np.vstack([system.H, np.eye(system.n)[rows]])
+        self.m = self.H.shape[0]
+
+    def R_at(self, k):
+        R = np.zeros((self.m, self.m))
+        R[: self._s.m, : self._s.m] = self._s.R_at(k)
+        return R
+
+    def __getattr__(self, name):
+        return getattr(self._s, name)
+
+
+def _noise_of(systems, K):
+    """The candidates' `Noise`, each model on its instants: its Q per interval and R per
+    instant (no sharing assumed)."""
+    P0 = np.array([s.prior.cov for s in systems])
+    Q = np.array([[s.GQG_at(k) for k in range(1, K + 1)] for s in systems])
+    R = np.array([[s.R_at(k) for k in range(K + 1)] for s in systems])
+    return Noise(P0, Q, np.arange(K), R, np.arange(K + 1))
+
+
+def test_the_one_run_loglik_of_several_candidates_equals_the_dense_density(tmp_path):
+    """One recorded run (the one-run path of a replayed log): a sensor at half rate with an
+    offset (irregular instants), dropouts, correlated sensors, three candidate noise models
+    at once; alone and with a truth of the position only, lost at some instants (the joint
+    density of readings and truth)."""
+    extra = '[[correlations]]\nsensors = ["s1", "s2"]\ncov = [[{c}]]'
+    kw = dict(steps=12, runs=1, s2_extra="period = 2.0\noffset = 0.5\ndropout = 0.3",
+              s1_extra="dropout = 0.2")  # fmt: skip
+    sim = fl.simulate(fl.load(scenario(tmp_path, extra=extra.format(c=0.3), **kw)), seed=5)
+    z = sim.stacked(sim.scenario.system)
+    assert np.isnan(z).any() and len(sim.times) > 13 and z.shape[0] == 1
+    cands = [(0.5, 2.0, 0.3, 0.3), (1.7, 0.4, 0.05, -0.2), (0.2, 3.0, 1.2, 0.0)]
+    models = [fl.load(scenario(tmp_path, f"c{i}.toml", r1=a, r2=b, n0=q, extra=extra.format(c=c),
+                               **kw)).system for i, (a, b, q, c) in enumerate(cands)]  # fmt: skip
+    systems = [sim.on_instants(m) for m in models]
+    K = len(sim.times) - 1
+    got = loglik(systems[0], z, _noise_of(systems, K))
+    want = [dense_loglik(m, sim.times, z) for m in models]
+    assert got == pytest.approx(want, rel=1e-10)
+    truth = sim.truth[..., :1].copy()
+    truth[0, [0, 3, 4, 9]] = np.nan
+    rows = np.array([0])
+    got = loglik(systems[0], z, _noise_of(systems, K), truth, rows)
+    both = np.concatenate([z, truth], axis=-1)
+    want = [dense_loglik(m, sim.times, both, rows) for m in models]
+    assert got == pytest.approx(want, rel=1e-10)
 
 
 def test_identified_loglik_is_the_dense_density_at_the_identified_values(tmp_path):
@@ -330,6 +391,12 @@ def test_bad_input_is_one_line(tmp_path):
     refused("--param", "model.n0", "--with-truth", tmp_path / "missing.mcap",
             fragments=["missing.mcap"])  # fmt: skip
     one_line_error(cli("identify", p, "-o", out), "--param")  # click: required
+    # no [prior]: the filters start from no information there (no diffuse likelihood)
+    text = p.read_text()
+    prior = text[text.index("[prior]") : text.index("[[sensors]]")]
+    p.write_text(text.replace(prior, "") + '\n[truth]\ninitial_mean = [0.0, 1.0]\n'
+                 "initial_cov = [[4.0, 0.0], [0.0, 1.0]]\n")  # fmt: skip
+    refused("--param", "sensors.s1.R", fragments=[str(p), "needs a [prior]", "diffuse"])
 
 
 def test_a_sensor_whose_readings_are_all_lost_is_not_identifiable(tmp_path):
@@ -408,6 +475,23 @@ def test_one_entry_of_a_matrix_is_a_parameter_and_written_back_in_its_matrix(tmp
     assert "# per axis" in out.read_text()
 
 
+def test_a_likelihood_without_a_maximum_is_refused(tmp_path):
+    """s2's readings are s1's, copied: with R1 = R2 = their cross-covariance the difference
+    of the two has variance 0, which it has, so the likelihood grows without bound towards
+    that singular R; what the optimiser stops at is no maximum, and is refused (one line
+    naming a parameter), not reported with standard errors."""
+    extra = '[[correlations]]\nsensors = ["s1", "s2"]\ncov = [[0.0]]'
+    sc = fl.load(scenario(tmp_path, runs=20, r1=1.0, r2=1.0, extra=extra))
+    sim = fl.simulate(sc, seed=1)
+    sim.measurements["s2"] = sim.measurements["s1"].copy()
+    keys = ["sensors.s1.R", "sensors.s2.R", "correlations.0.cov"]
+    with pytest.raises(fl.FusionlogError) as err:
+        fl.identify(sc, sim, keys, cost=False)
+    msg = str(err.value)
+    assert "\n" not in msg and any(msg.startswith(f"--param {k}: not identifiable") for k in keys)
+    assert "not a maximum" in msg or "flat" in msg, msg
+
+
 def test_a_cross_covariance_of_sensors_that_never_measure_together_is_refused(tmp_path):
     """s1 at even seconds, s2 at odd ones: their cross-covariance never enters a reading's
     density (it acts only between readings of one instant), refused before optimising."""
@@ -424,6 +508,7 @@ def test_a_cross_covariance_of_sensors_that_never_measure_together_is_refused(tm
 # -- recorded logs --------------------------------------------------------------------------------
 
 REPO = Path(__file__).resolve().parents[1]
+DOC = REPO / "docs" / "tutorials" / "identify.md"
 
 
 def test_a_replay_identifies_from_its_recordings_and_the_tuned_file_reads_them(tmp_path):
@@ -462,6 +547,77 @@ def test_evo_bag_the_two_slam_systems_cross_covariance_is_refused(tmp_path):
         "--param correlations.0.cov",
         "not identifiable",
     )
+
+
+def _commands(doc: str) -> list[tuple[str, str]]:
+    """(command, the output shown) of each console block of the page's evo section."""
+    out = []
+    for block in re.findall(r"```console\n(.*?)```", doc[doc.index("## A recorded log") :], re.S):
+        lines = block.splitlines()
+        cmd, i = lines[0][2:], 1
+        while cmd.endswith("\\"):
+            cmd, i = cmd[:-1] + " " + lines[i].strip(), i + 1
+        out.append((cmd, "\n".join(lines[i:])))
+    return out
+
+
+_PARAM = re.compile(r"^  (\S+)\s+(\S+)  \+- (\S+)  \(given \S+\)$", re.M)
+
+
+@pytest.mark.skipif(not EVO_BAG.exists(), reason="evo's ROS_example.bag is not available")
+@pytest.mark.skipif(
+    os.environ.get("FUSIONLOG_WALKTHROUGHS") != "1",
+    reason="about 6 CPU-minutes (two identifications on 13,801 instants): `make walkthroughs`",
+)
+def test_the_evo_walkthrough(tmp_path, monkeypatch):
+    """docs/tutorials/identify.md on evo's bag (its commands, marked skip there for their
+    time): the values it shows are those identified (within 0.1 of their standard error:
+    the optimiser's stopping point, not the page's rounding), the tables of `fusionlog run`
+    are what it prints. Independent of the code: with the truth, each diagonal R entry is
+    the mean square of the track's distance from the motion capture on that axis, up to what
+    the readings without a truth sample (6 % of ORB-SLAM's, 7 % of S-PTAM's) move it; the
+    fused track with the identified R is no worse than the better system alone (it was
+    worse before); the innovations are not white (the drift)."""
+    doc = DOC.read_text()
+    toml_text = re.search(r"```toml\n(# evo_example.toml\n.*?)```", doc, re.S).group(1)
+    (tmp_path / "evo_example.toml").write_text(toml_text)
+    (tmp_path / "ROS_example.bag").symlink_to(EVO_BAG)
+    monkeypatch.chdir(tmp_path)
+    printed = {}
+    for cmd, shown in _commands(doc):
+        res = ok(*shlex.split(cmd)[1:])
+        printed[cmd] = res.stdout
+        if " identify " in cmd:
+            got = {k: (float(v), float(se)) for k, v, se in _PARAM.findall(res.stdout)}
+            want = {k: (float(v), float(se)) for k, v, se in _PARAM.findall(shown)}
+            assert want and set(got) == set(want), cmd
+            for k, (v, se) in want.items():
+                assert abs(got[k][0] - v) <= 0.1 * se, (cmd, k, got[k], v)
+                assert got[k][1] == pytest.approx(se, rel=0.05), (cmd, k)
+            assert re.findall(r"p = (\S+)", res.stdout) == ["0", "0"]  # neither is white
+        else:  # the rows of the tables
+            for line in shown.splitlines():
+                if line.startswith(("CKF", "SKF", "  ")) and "%" in line:
+                    assert line in res.stdout.splitlines(), (cmd, line)
+    sc = fl.load("evo_example.toml")
+    sim = fl.simulate(sc)
+    report = json.loads(Path("evo_report_truth.json").read_text())["parameters"]
+    for name, rows in (("orb", [0, 2, 4]), ("sptam", [0, 2, 4])):
+        z, t = sim.measurements[name][0], sim.truth[0][:, rows]
+        both = np.isfinite(z).all(axis=1) & np.isfinite(t).all(axis=1)
+        assert 0.9 < both.sum() / np.isfinite(z).all(axis=1).sum() < 0.95
+        mean_square = ((z[both] - t[both]) ** 2).mean(axis=0)
+        for j in range(3):
+            got = report[f"sensors.{name}.R.{j}.{j}"]["value"]
+            assert got == pytest.approx(mean_square[j], rel=0.1), (name, j)
+    mse = {}
+    for out in ("before", "after"):
+        arch = json.loads(Path(out, "summary.json").read_text())["architectures"]
+        mse[out] = {a: e["mse"] for a, e in arch.items()}
+    assert mse["before"]["CKF"] > mse["before"]["SKF:orb"]
+    # S-PTAM's R is 5e4 times ORB-SLAM's or more: its weight moves the fused MSE by ~1e-5
+    assert mse["after"]["CKF"] <= mse["after"]["SKF:orb"] * (1 + 1e-4)
+    assert mse["after"]["CKF"] < mse["before"]["CKF"]
 
 
 EVO_REPLAY = """

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .architectures.estimates import shared_pattern
+from .likelihood_one import loglik_one_run
 from .linalg import mT, sym
 from .model import System
 
@@ -88,6 +89,19 @@ def loglik(
     rows = np.arange(system.n) if truth_rows is None else np.asarray(truth_rows, dtype=int)
     M, _, m = z.shape
     C, n = noise.candidates, system.n
+    if M == 1 and system.linear:  # one recorded run: the lean loop of `likelihood_one`
+        truth_rows = rows if truth is not None else None
+        R = noise.R
+        if truth is not None:  # the truth's rows: no noise
+            R = np.zeros(R.shape[:2] + (m, m))
+            R[..., : system.m, : system.m] = noise.R
+        try:
+            return loglik_one_run(
+                system, z[0], noise.P0, noise.Q, noise.q_at, R, noise.r_at,
+                _stacked_H(system, truth_rows), _cholesky,
+            )  # fmt: skip
+        except np.linalg.LinAlgError:  # a singular S: the general path names the candidates
+            pass
     per_run = C * (n + m) ** 2
     B = max(1, min(M, BLOCK_ENTRIES // per_run))
     total = np.zeros(C)

@@ -16,21 +16,21 @@ from typing import Any
 import numpy as np
 
 from fusionlog.core.names import check_architectures
+from fusionlog.core.nis import innovations, ljung_box
 from fusionlog.driver import PlanCache, conditional_sums
 from fusionlog.scenario import Scenario
 
 from .montecarlo import expected_overall
+from .simulation import Simulation, blocks_of, estimate_blocks
 
 __all__ = ["cost_of", "format_identification", "whiteness_of"]
 
 
 def cost_of(
-    given: Scenario, tuned: Scenario, sim: Any
+    given: Scenario, tuned: Scenario, sim: Simulation
 ) -> dict[str, dict[str, float | None] | None]:
     """{arch: {"mse_given", "mse_tuned", "anees_given", "anees_tuned"}} for the scenario's
     architectures; None for each where no exact analysis exists (a nonlinear model)."""
-    from fusionlog.api import _blocks
-
     where = f"{given.path or given.name}: architectures"
     archs = check_architectures(list(given.architectures), given.system, where)
     truth = sim.on_instants(tuned.system)
@@ -42,7 +42,7 @@ def cost_of(
     sums: dict[str, dict[str, Any]] = {w: {} for w in models}
     for w, system in models.items():
         cache = PlanCache(system, K)
-        for off, n in _blocks(sim):
+        for off, n in blocks_of(sim):
             plans, _ = cache.block_plans(archs, z[off : off + n])
             for a, acc in conditional_sums(plans, truth, n).items():
                 if a in sums[w]:
@@ -61,22 +61,22 @@ def cost_of(
     return out
 
 
-def whiteness_of(tuned: Scenario, sim: Any) -> dict[str, dict[str, Any]]:
+def whiteness_of(tuned: Scenario, sim: Simulation) -> dict[str, dict[str, Any]]:
     """Per sensor, the Ljung-Box test (`core.nis.ljung_box`) of the tuned CKF's normalised
     innovations of that sensor's readings (empty for a nonlinear model)."""
-    from fusionlog.api import estimate
-    from fusionlog.core.nis import innovations, ljung_box
-
     system = sim.on_instants(tuned.system)
     if not system.linear:
         return {}
-    est = estimate(tuned, sim, ["CKF"])["CKF"]
+    blocks = estimate_blocks(tuned.system, sim, ["CKF"])[0]["CKF"]
     z = sim.stacked(system)
     out = {}
     for s, sl in zip(system.sensors, system.sensor_slices, strict=True):
         rows = np.arange(system.m)[sl]
-        inn = innovations(system, est.mean, est.cov, z, rows)
-        out[s.name] = ljung_box(inn.normalised)
+        normalised = [
+            innovations(system, est.mean, est.cov, z[off : off + n], rows).normalised
+            for (off, n), est in zip(blocks_of(sim), blocks, strict=True)
+        ]
+        out[s.name] = ljung_box(np.concatenate(normalised))
     return out
 
 

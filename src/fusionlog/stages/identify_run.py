@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -21,16 +20,15 @@ from fusionlog.scenario import Scenario, load_scenario, scenario_from_doc
 from . import identify_params as ip
 from .common import SCENARIO_META, scenario_from_file
 from .identify import Identification, identify
+from .simulation import Simulation, simulation_of
 
 __all__ = ["log_simulation", "run_identify"]
 
 
-def log_simulation(path: Path, sc: Scenario) -> Any:
-    """The runs of a sensors log (`fusionlog simulate` or `import`) as an `api.Simulation`:
+def log_simulation(path: Path, sc: Scenario) -> Simulation:
+    """The runs of a sensors log (`fusionlog simulate` or `import`) as a `Simulation`:
     the readings of `sc`'s sensors by name, the truth where the log has it, each message's
     covariance where a one-run log's messages carry one."""
-    from fusionlog.api import Simulation
-
     mf = McapFile(path)
     recorded = scenario_from_file(mf)
     names = [s.name for s in sc.system.sensors]
@@ -70,8 +68,6 @@ def run_identify(
     scenario simulated with its runs and seed) and write TUNED.toml `out` (the scenario's text
     with the values in place; a replay's sources made relative to `out`'s folder) and REPORT
     `report`: all or nothing."""
-    from fusionlog.api import simulate
-
     targets = [Path(out)] + ([Path(report)] if report else [])
     inputs = [Path(scenario)] + ([Path(sensors)] if sensors else [])
     with Outputs(targets, force=force, inputs=inputs) as outs:
@@ -81,7 +77,7 @@ def run_identify(
         if sensors is not None:
             sim = log_simulation(Path(sensors), sc)
         else:
-            sim = simulate(sc)
+            sim = simulation_of(sc, None, None, None)
         result = identify(sc, sim, params, with_truth=with_truth)
         text = result.toml
         if sc.replay is not None:
