@@ -64,14 +64,7 @@ def _draw(
         z = system.h(x) + v
         if not system.linear:  # a bearing read with its noise is still in (-pi, pi]
             z = system.residual(z, np.zeros(z.shape[-1]))
-    for what, a in (("the true state", x), ("the measurement", z)):
-        if not np.isfinite(a).all():
-            # Non-finite values would be read as missing measurements downstream: refuse them.
-            finite = np.isfinite(a).all(axis=(0, 2))
-            raise NumericalError(
-                f"simulation: {what} overflows at step {int(np.argmin(finite))} "
-                "(beyond the float range, about 1.8e308)"
-            )
+    _require_finite(x, z)
     dropout = np.array([s.timing.dropout for s in system.sensors])
     if measures is not None or dropout.any():
         present = np.ones((R, steps + 1, len(system.sensors)), dtype=bool)
@@ -84,6 +77,18 @@ def _draw(
         for j, sl in enumerate(system.sensor_slices):
             z[:, :, sl][~present[:, :, j]] = np.nan
     return x, z
+
+
+def _require_finite(x: np.ndarray, z: np.ndarray, k0: int = 0) -> None:
+    """Non-finite values would be read as missing measurements downstream: refuse them, naming
+    the first step (x, z: (runs, w, .) of the instants from k0)."""
+    for what, a in (("the true state", x), ("the measurement", z)):
+        if not np.isfinite(a).all():
+            finite = np.isfinite(a).all(axis=(0, 2))
+            raise NumericalError(
+                f"simulation: {what} overflows at step {k0 + int(np.argmin(finite))} "
+                "(beyond the float range, about 1.8e308)"
+            )
 
 
 def chunked(
@@ -171,11 +176,5 @@ def one_run_blocks(
             for k in range(first, k1):
                 x_prev = x[:, k - k0] = system.propagate(x_prev, k) + w[:, k - first]
             z = system.h(x) + rng_v.standard_normal((1, k1 - k0, m)) @ LR
-        for what, arr in (("the true state", x), ("the measurement", z)):
-            if not np.isfinite(arr).all():
-                finite = np.isfinite(arr).all(axis=(0, 2))
-                raise NumericalError(
-                    f"simulation: {what} overflows at step {k0 + int(np.argmin(finite))} "
-                    "(beyond the float range, about 1.8e308)"
-                )
+        _require_finite(x, z, k0)
         yield k0, k1, x, z
