@@ -130,40 +130,95 @@ def test_replay_blueprint_tabs() -> None:
     assert nis_views == ["NIS of pos (grey: χ² band)", "NIS of vel (grey: χ² band)"]
 
 
-def test_a_long_log_keeps_the_states_and_decimates_the_overview(recording, monkeypatch) -> None:
-    """Above OVERVIEW_POINTS instants the overview series keep every n-th value, the first
-    run's estimates, truth and readings every value, and the recording says which."""
+def test_a_long_log_keeps_each_buckets_extremes_and_mean(recording, monkeypatch) -> None:
+    """Above DECIMATE_ABOVE instants every series (metrics, NIS, innovations, bands, the first
+    run's states and readings, APE/RPE) is three points per bucket of instants, at its first,
+    middle and last instant: the bucket's finite minimum and maximum in the order they come,
+    and its mean between them, checked here against the full recording of the same log;
+    the recording says so, and `[evaluate] full_resolution = true` keeps every instant."""
     import json
 
-    from fusionlog.io.rrd import decimation as dec
+    from fusionlog.core import decimate
 
     small = recording.parent.parent
-    monkeypatch.setattr(dec, "OVERVIEW_POINTS", 40)
+    monkeypatch.setattr(decimate, "DECIMATE_ABOVE", 40)
+    monkeypatch.setattr(decimate, "BUCKETS", 10)
     ok("run", small / "small.toml", "--out-dir", small / "long", "--force")
-    rec = read_recording(small / "long" / "evaluation.rrd")
-    full, short = rec["series"], read_recording(recording)["series"]
-    for key in ("runs/0/x/CKF/mean", "runs/0/x/measured/pos", "runs/0/x/truth"):
-        np.testing.assert_array_equal(np.isfinite(full[key]), np.isfinite(short[key]), key)
+    rec, full = read_recording(small / "long" / "evaluation.rrd"), read_recording(recording)
+    instants = len(full["steps"])
+    assert instants == 300 and np.array_equal(full["steps"], np.arange(300))
+    b = 30  # ceil(300 / 10) instants per bucket
     prop = rec["properties"]["decimation"]
-    instants = len(short["runs/0/x/CKF/mean"])  # 200 position and 100 velocity instants
-    n = -(-instants // 40)
-    assert prop["instants"] == str(instants) == "300" and f"every {n}th" in prop["decimated"]
-    for key in ("metrics/nis/CKF/pos", "innovations/pos/z0/CKF", "runs/0/x/CKF/upper"):
-        n_full, n_dec = np.isfinite(short[key]).sum(), np.isfinite(full[key]).sum()
-        assert n_dec == -(-n_full // n), (key, n_full, n_dec)
-    assert "every instant" in prop["full_resolution"]
-    assert json.loads(rec["properties"]["summary"]["json"])["scenario"] == "small"
+    assert prop["instants"] == "300" and prop["bucket"] == str(b)
+    starts = np.arange(0, instants, b)
+    assert np.array_equal(rec["steps"], np.stack([starts, starts + 14, starts + 29], 1).ravel())
+    checked = 0
+    for key, v in full["series"].items():
+        got = rec["series"][key].reshape(-1, 3)
+        for j, a in enumerate(starts):
+            bucket = v[a : a + b]
+            bucket = bucket[np.isfinite(bucket)]
+            if not len(bucket):
+                assert np.isnan(got[j]).all(), (key, j)
+                continue
+            lo, hi = bucket.min(), bucket.max()
+            first_lo = (
+                np.flatnonzero(v[a : a + b] == lo)[0] <= np.flatnonzero(v[a : a + b] == hi)[0]
+            )
+            assert tuple(got[j, [0, 2]]) == ((lo, hi) if first_lo else (hi, lo)), (key, j)
+            assert got[j, 1] == pytest.approx(bucket.mean(), rel=1e-12, abs=1e-300), (key, j)
+            checked += 1
+    assert checked > 500  # 76 series of 10 buckets
+    for key in ("runs/0/x/CKF/mean", "runs/0/x/measured/pos", "metrics/nis/CKF/pos"):
+        assert key in rec["series"]
+    assert json.loads(rec["properties"]["summary"]["json"]) == json.loads(
+        read_recording(recording)["properties"]["summary"]["json"]
+    )
+    text = (
+        (small / "small.toml")
+        .read_text()
+        .replace("[estimate]", "[evaluate]\nfull_resolution = true\n[estimate]")
+    )
+    (small / "full.toml").write_text(text)
+    ok("run", small / "full.toml", "--out-dir", small / "full", "--force")
+    kept = read_recording(small / "full" / "evaluation.rrd")
+    assert "decimation" not in kept["properties"]
+    for key, v in full["series"].items():
+        np.testing.assert_array_equal(kept["series"][key], v, err_msg=key)
 
 
-def test_decimation_strides() -> None:
-    from fusionlog.io.rrd.decimation import decimation
+def test_decimation_keeps_each_buckets_min_and_max_whatever_the_blocks() -> None:
+    """`core.decimate` fed in blocks of any size gives the same points as fed at once, each
+    bucket's min, mean and max (NaN left out, NaN for an empty bucket) computed here."""
+    from fusionlog.core.decimate import Decimator, bucket_size, point_steps
 
-    assert decimation(100_000, 10) == (None, {})
-    stride, prop = decimation(1_000_000, 10)
-    assert stride("metrics/nis/CKF/gps") == 10 and stride("runs/0/x/CKF/upper") == 10
-    assert stride("runs/0/x/CKF/mean") == 1 and stride("runs/0/x/measured/gps") == 1
-    stride, _ = decimation(1_000_000, 40)  # 4e7 values: every 4th
-    assert stride("runs/0/x/truth") == 4
+    rng = np.random.default_rng(5)
+    v = rng.normal(size=(1003, 2))
+    v[rng.random(1003) < 0.2, 0] = np.nan
+    v[70:105, 1] = np.nan  # bucket 7 (70..79) empty in column 1
+    b = 10
+    whole = Decimator(b)
+    whole.add(v)
+    pieces = Decimator(b)
+    for a in range(0, 1003, 97):
+        pieces.add(v[a : a + 97])
+    out = whole.result()
+    np.testing.assert_array_equal(pieces.result(), out)
+    assert out.shape == (3 * 101, 2)
+    steps = point_steps(1003, b)
+    assert steps[-3:].tolist() == [1000, 1001, 1002] and steps[:3].tolist() == [0, 4, 9]
+    for j in range(101):
+        for c in range(2):
+            seg = v[j * b : (j + 1) * b, c]
+            fin = seg[np.isfinite(seg)]
+            pts = out[3 * j : 3 * j + 3, c]
+            if not len(fin):
+                assert np.isnan(pts).all()
+                continue
+            assert {pts[0], pts[2]} == {fin.min(), fin.max()}
+            assert pts[1] == pytest.approx(fin.mean(), rel=1e-12)
+    assert bucket_size(30_000) == 1 and bucket_size(10**6) == 100
+    assert bucket_size(10**6, full_resolution=True) == 1
 
 
 def test_each_sensor_has_one_colour_in_every_view(recording) -> None:

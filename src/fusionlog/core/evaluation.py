@@ -63,6 +63,15 @@ class Evaluation:
     #: the trajectory metrics' recording (`stages.trajectory_eval.TrajectoryPart.recording`):
     #: position state names and indices, APE and RPE over time, run 0's aligned positions
     trajectory: dict[str, Any] | None = None
+    #: a long log's series decimated (`core.decimate`): the instant of each point (`times` is
+    #: then each point's time) and the recording's ``decimation`` property; None: every instant
+    steps: np.ndarray | None = None
+    decimation: dict[str, str] | None = None
+    #: `[evaluate] full_resolution`: the recording keeps every instant of a long log
+    full_resolution: bool = False
+    #: a decimated log's sample-run bands {run: {arch: (lower, upper)}} (K+1, n) each,
+    #: decimated as drawn (`core.decimate.with_derived`); None: mean ∓ 2 std
+    bands: dict[int, dict[str, tuple[np.ndarray, np.ndarray]]] | None = None
 
     @property
     def architectures(self) -> list[str]:

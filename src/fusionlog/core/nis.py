@@ -25,7 +25,7 @@ import numpy as np
 from .linalg import mT, overflow_is_inf, sym
 from .model import System
 
-__all__ = ["Innovations", "innovations", "ljung_box", "whiteness"]
+__all__ = ["Innovations", "WhitenessSums", "innovations", "ljung_box", "whiteness"]
 
 
 @dataclass
@@ -137,6 +137,12 @@ def whiteness(normalised: np.ndarray, lags: int = 10) -> dict[str, float]:
             if den <= 0:
                 continue
             rhos += [float(seq[:-lag] @ seq[lag:]) / den for lag in range(1, lags + 1)]
+    return _whiteness(rhos, n_min, lags)
+
+
+def _whiteness(rhos: list[float], n_min: int | None, lags: int) -> dict[str, float]:
+    """`whiteness`'s record of the autocorrelations `rhos` of sequences of `n_min` values or
+    more: the largest |rho|, the band +-1.96/sqrt(n_min), the share inside it."""
     if not rhos:
         return {"lags": lags, "max_abs_autocorr": float("nan"), "bound": float("nan"),
                 "fraction_inside": float("nan")}  # fmt: skip
@@ -189,3 +195,62 @@ def ljung_box(normalised: np.ndarray, lags: int = LJUNG_BOX_LAGS) -> dict[str, f
         q += float((N[use] * (N[use] + 2) * rho**2 / (N[use] - h)).sum())
     dof = L * int(len(N))
     return {"lags": L, "q": q, "dof": dof, "p": float(chi2.sf(q, dof))}
+
+
+class WhitenessSums:
+    """`whiteness` of one run's normalised innovations (w, r) handed over block by block (a
+    long log in blocks of time): per component the sums that the autocorrelation about the
+    sequence's mean expands into, sum_i (a_i - mu)(a_{i+l} - mu) = C_l - mu (S - tail_l)
+    - mu (S - head_l) + (N - l) mu^2 with C_l = sum_i a_i a_{i+l}, S = sum a, head_l / tail_l
+    the sums of the first / last l values; the last `lags` values carried into the next block
+    for the products that straddle it."""
+
+    def __init__(self, r: int, lags: int = 10) -> None:
+        self.lags = lags
+        self.N = np.zeros(r, dtype=np.int64)
+        self.S = np.zeros(r)
+        self.S2 = np.zeros(r)
+        self.C = np.zeros((r, lags))
+        self.head: list[np.ndarray] = [np.zeros(0)] * r
+        self.tail: list[np.ndarray] = [np.zeros(0)] * r
+
+    def add(self, normalised: np.ndarray) -> None:
+        L = self.lags
+        for i in range(normalised.shape[-1]):
+            seq = normalised[:, i]
+            seq = seq[np.isfinite(seq)]
+            if not len(seq):
+                continue
+            ext = np.concatenate([self.tail[i], seq])
+            t = len(self.tail[i])
+            for lag in range(1, L + 1):  # the products a_j a_{j+lag} with j + lag in this block
+                lo = max(t - lag, 0)
+                self.C[i, lag - 1] += float(ext[lo : len(ext) - lag] @ ext[lo + lag :])
+            self.N[i] += len(seq)
+            self.S[i] += float(seq.sum())
+            self.S2[i] += float(seq @ seq)
+            if len(self.head[i]) < L:
+                self.head[i] = np.concatenate([self.head[i], seq])[:L]
+            self.tail[i] = ext[-L:]
+
+    def result(self) -> dict[str, float]:
+        """What `whiteness` gives of the whole sequences."""
+        L, rhos, n_min = self.lags, [], None
+        for i in range(len(self.N)):
+            N = int(self.N[i])
+            if N < L + 2:
+                continue
+            n_min = N if n_min is None else min(n_min, N)
+            mu = self.S[i] / N
+            den = self.S2[i] - N * mu * mu
+            if den <= 0:
+                continue
+            for lag in range(1, L + 1):
+                num = (
+                    self.C[i, lag - 1]
+                    - mu * (self.S[i] - self.tail[i][L - lag :].sum())
+                    - mu * (self.S[i] - self.head[i][:lag].sum())
+                    + (N - lag) * mu * mu
+                )
+                rhos.append(num / den)
+        return _whiteness(rhos, n_min, L)

@@ -9,7 +9,7 @@ SEED_CHUNK runs and about CHUNK_RUN_STEPS run-steps, so that long horizons stay 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -64,14 +64,7 @@ def _draw(
         z = system.h(x) + v
         if not system.linear:  # a bearing read with its noise is still in (-pi, pi]
             z = system.residual(z, np.zeros(z.shape[-1]))
-    for what, a in (("the true state", x), ("the measurement", z)):
-        if not np.isfinite(a).all():
-            # Non-finite values would be read as missing measurements downstream: refuse them.
-            finite = np.isfinite(a).all(axis=(0, 2))
-            raise NumericalError(
-                f"simulation: {what} overflows at step {int(np.argmin(finite))} "
-                "(beyond the float range, about 1.8e308)"
-            )
+    _require_finite(x, z)
     dropout = np.array([s.timing.dropout for s in system.sensors])
     if measures is not None or dropout.any():
         present = np.ones((R, steps + 1, len(system.sensors)), dtype=bool)
@@ -84,6 +77,18 @@ def _draw(
         for j, sl in enumerate(system.sensor_slices):
             z[:, :, sl][~present[:, :, j]] = np.nan
     return x, z
+
+
+def _require_finite(x: np.ndarray, z: np.ndarray, k0: int = 0) -> None:
+    """Non-finite values would be read as missing measurements downstream: refuse them, naming
+    the first step (x, z: (runs, w, .) of the instants from k0)."""
+    for what, a in (("the true state", x), ("the measurement", z)):
+        if not np.isfinite(a).all():
+            finite = np.isfinite(a).all(axis=(0, 2))
+            raise NumericalError(
+                f"simulation: {what} overflows at step {k0 + int(np.argmin(finite))} "
+                "(beyond the float range, about 1.8e308)"
+            )
 
 
 def chunked(
@@ -133,3 +138,43 @@ def simulate(
         return _draw(system, steps, rng, size, measures)
 
     return chunked(draw, steps, seed, run_offset, runs)
+
+
+def one_run_blocks(
+    system: System, steps: int, seed: int, block: int
+) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
+    """The truth and measurements of run 0 (`simulate(system, steps, seed, 0, 1)`: the same
+    numbers) in blocks of `block` instants, (k0, k1, x (1, w, n), z (1, w, m)), for a
+    time-invariant linear model without timing or dropouts (issue 34: a 10^6-instant log in
+    bounded memory). The stream's draw order is x0, every w, every v (`_draw`), so w is drawn
+    block by block from one generator while a second one, advanced past x0 and every w, draws
+    v block by block: nothing of the length of the log is kept."""
+    n, m = system.n, system.m
+    q = system.Q.shape[0]
+    size = chunk_runs(steps)  # the runs drawn together from the stream: run 0's values first
+
+    def stream() -> np.random.Generator:
+        return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0,)))
+
+    rng, rng_v = stream(), stream()
+    init = system.truth_initial
+    G = system.G if system.G is not None else np.eye(n)
+    LQ, LR = psd_sqrt(system.Q).T, psd_sqrt(system.R).T
+    skip = size * n + size * steps * q  # x0 of every run of the chunk, then w
+    for a in range(0, skip, 1 << 20):
+        rng_v.standard_normal(min(1 << 20, skip - a))
+    with np.errstate(over="ignore", invalid="ignore"):
+        x_prev = init.mean + rng.standard_normal((size, n))[:1] @ psd_sqrt(init.cov).T
+    for k0 in range(0, steps + 1, block):
+        k1 = min(k0 + block, steps + 1)
+        first = max(k0, 1)  # the first instant of the block reached by a transition
+        with np.errstate(over="ignore", invalid="ignore"):
+            w = rng.standard_normal((1, k1 - first, q)) @ LQ @ G.T
+            x = np.empty((1, k1 - k0, n))
+            if k0 == 0:
+                x[:, 0] = x_prev
+            for k in range(first, k1):
+                x_prev = x[:, k - k0] = system.propagate(x_prev, k) + w[:, k - first]
+            z = system.h(x) + rng_v.standard_normal((1, k1 - k0, m)) @ LR
+        _require_finite(x, z, k0)
+        yield k0, k1, x, z

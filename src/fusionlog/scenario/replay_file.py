@@ -51,6 +51,7 @@ from .state_file import (
     check_determined,
     correlations_section,
     evaluate_section,
+    full_resolution_of,
     prior_section,
 )
 from .toml import Ctx
@@ -420,6 +421,7 @@ def replay_from_doc(
         confidence=confidence,
         sample_runs=min(sample_runs, 1),
         plane_view=plane_view,
+        full_resolution=full_resolution_of(ctx, doc),
         source=source,
         path=path,
         replay=Replay(tuple(streams), truth, truth_states, match, max_diff_ns),

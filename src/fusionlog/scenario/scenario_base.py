@@ -72,6 +72,8 @@ class Scenario:
     confidence: float = DEFAULT_CONFIDENCE
     sample_runs: int = DEFAULT_SAMPLE_RUNS
     plane_view: bool = False  # a 2-D view of the state plane (n = 2): estimates and ellipses
+    #: a long log's recorded series at every instant (default: decimated, `core.decimate`)
+    full_resolution: bool = False
     source: str = ""  # the TOML text as loaded (overrides are not written back into it)
     path: str | None = None
     #: a replay's recorded data (`replay_file.Replay`, a ReplayScenario's); None: simulated

@@ -120,7 +120,7 @@ _SCENARIO_KEYS = ("name", "description", "steps", "runs", "seed", "dt", "state_n
 _PRIOR_KEYS = ("mean", "cov")
 _TRUTH_KEYS = ("initial_mean", "initial_cov")
 _CORRELATION_KEYS = ("sensors", "cov")
-_EVALUATE_KEYS = ("confidence", "sample_runs", "plane_view", *trajectory.KEYS)
+_EVALUATE_KEYS = ("confidence", "sample_runs", "plane_view", "full_resolution", *trajectory.KEYS)
 
 
 def system_to_dict(system: System) -> dict[str, Any]:
@@ -223,6 +223,7 @@ def state_from_doc(
         confidence=confidence,
         sample_runs=sample_runs,
         plane_view=plane_view,
+        full_resolution=full_resolution_of(ctx, doc),
         source=source,
         path=path,
         trajectory=trajectory.trajectory_section(ctx, doc, system.state_names),
@@ -478,3 +479,14 @@ def evaluate_section(ctx: Ctx, doc: dict[str, Any]) -> tuple[float, int, bool]:
             "evaluate.plane_view", f"expected true or false, got {toml.tname(plane_view)}"
         )
     return confidence, sample_runs, plane_view
+
+
+def full_resolution_of(ctx: Ctx, doc: dict[str, Any]) -> bool:
+    """``[evaluate] full_resolution``: the recording's series at every instant of a long log
+    (default false: a few 10^4 points per series, `core.decimate`)."""
+    value = (toml.table(ctx, doc, "evaluate", required=False) or {}).get("full_resolution", False)
+    if not isinstance(value, bool):
+        raise ctx.err(
+            "evaluate.full_resolution", f"expected true or false, got {toml.tname(value)}"
+        )
+    return value

@@ -63,10 +63,16 @@ class NisAccumulator:
         self.white: dict[tuple[str, str], list[np.ndarray]] = {key: [] for key in self.sum}
         self.kept = 0
 
-    def add(self, z: np.ndarray, estimates: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
-        """One block: the stacked readings z (runs, K+1, m) and each architecture's estimates."""
+    def add(
+        self,
+        z: np.ndarray,
+        estimates: dict[str, tuple[np.ndarray, np.ndarray]],
+        forward: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> None:
+        """One block: the stacked readings z (runs, K+1, m) and each architecture's estimates
+        (`forward`: the centralised KF's, a smoother's forward filter, when the caller has
+        them; else computed here)."""
         keep = max(0, WHITENESS_RUNS - self.kept)
-        forward = None
         for a in self.archs:
             kind = definition(a).locals
             mean, cov = estimates[a]

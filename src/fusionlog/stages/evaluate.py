@@ -10,6 +10,7 @@ import numpy as np
 
 from fusionlog.core.linalg import not_a_covariance
 from fusionlog.driver import KeptPlans
+from fusionlog.driver.long_log import time_block
 from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import TRUTH
@@ -65,6 +66,21 @@ def evaluate_into(
     M = sens.runs()
     B = ev.block_runs(block)
     truth = [TRUTH] if TRUTH in sens.topics else []  # a recorded log may have none
+    long = ev.time_windows() if M == 1 else None
+    if long is not None:  # a long one-run log in blocks of time (stages/evaluator/long_*)
+        T = time_block()
+        read = truth + list(ev.sensor_topics)
+        windows = zip(
+            sens.iter_time_blocks(read, T) if read else _nothing(est.steps(), T),
+            est.iter_time_blocks(ev.topics, T),
+            strict=True,
+        )
+        for (k0, k1, sdata), (_, _, edata) in windows:
+            for topic, e in edata.items():
+                _check_variances(estimates_name or estimates_path, topic, e[1])
+            long.add(k0, k1, sdata.pop(TRUTH, None), edata, sdata)
+        del windows, sdata, edata
+        return _written(long.evaluation(), kind, outs, out, summary_path, prov)
     blocks = zip(
         sens.iter_run_blocks(truth + list(ev.sensor_topics), B),
         est.iter_run_blocks(ev.topics, B),
@@ -84,6 +100,17 @@ def evaluate_into(
     # What the recording draws is in `evaluation`; the accumulators and the open files (a long
     # log's times, twice) are not kept while the recording is encoded, the run's peak.
     del ev, sens, est
+    return _written(evaluation, kind, outs, out, summary_path, prov)
+
+
+def _nothing(instants: int, T: int):
+    """Blocks of time of no topic (a log read for nothing but its estimates)."""
+    for k0 in range(0, instants, T):
+        yield k0, min(k0 + T, instants), {}
+
+
+def _written(evaluation, kind, outs: Outputs, out: Path, summary_path, prov):
+    """Write the evaluation's recording and summary into the outputs; (summary, sensors)."""
     release_freed_memory()
     summary = evaluation.summary
     # The summary is made first: a recording is never committed beside a summary that failed.

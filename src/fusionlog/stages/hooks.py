@@ -60,6 +60,11 @@ class Estimator(ABC):
     def provenance(self) -> dict[str, str]:
         """Fields the estimates' provenance record adds, known once every block is done."""
 
+    def time_windows(self, sensors: McapFile) -> Any:
+        """A one-run log too long for one block: its estimates block of time by block,
+        (k0, k1, {output topic: StepWriter at steps k0..k1-1}), or None (blocks of runs)."""
+        return None
+
 
 class Evaluator(ABC):
     """Accumulates a kind's metrics block by block and writes its recording."""
@@ -72,6 +77,11 @@ class Evaluator(ABC):
     @abstractmethod
     def block_runs(self, requested: int | None) -> int:
         """Runs per block."""
+
+    def time_windows(self) -> Any:
+        """A one-run log evaluated in blocks of time: an object with ``add(k0, k1, truth,
+        estimates)`` and ``evaluation()``, or None (blocks of runs)."""
+        return None
 
     @abstractmethod
     def add(self, off: int, truth: Array, estimates: Topics, sensors: Readings = None) -> None:
@@ -111,6 +121,11 @@ class Kind(ABC):
         self, scenario: Scenario, run_offset: int, runs: int
     ) -> tuple[np.ndarray, list[np.ndarray]]:
         """Truth (runs, K+1, d) and each sensor's readings (runs, K+1, m), in sensor order."""
+
+    def simulate_blocks(self, scenario: Scenario, block: int) -> Any:
+        """A one-run scenario's truth and readings in blocks of time, (k0, k1, truth (1, w, d),
+        [readings (1, w, m) per sensor]), or None (the whole run at once, `simulate`)."""
+        return None
 
     def arrivals(self, scenario: Scenario, run_offset: int, runs: int) -> np.ndarray | None:
         """When each reading of the runs arrives, (runs, K+1, S) seconds; None: on time."""

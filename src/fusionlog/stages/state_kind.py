@@ -17,8 +17,11 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from fusionlog.core.architectures.long_log import steady_log
+from fusionlog.core.latency import is_late
 from fusionlog.core.model import System
 from fusionlog.core.names import check_architectures
+from fusionlog.core.reference import reference_paths
 from fusionlog.core.simulate import simulate
 from fusionlog.driver import KeptPlans, PlanCache, estimate_block
 from fusionlog.errors import FusionlogError, NumericalError
@@ -140,6 +143,22 @@ class StateKind(Kind):
         except NumericalError as e:  # the core names the step; the scenario's file here
             raise NumericalError(f"{scenario.path or scenario.name}: {e}") from None
         return x, [z[..., sl] for sl in system.sensor_slices]
+
+    def simulate_blocks(self, scenario: Scenario, block: int) -> Any:
+        """One run of a time-invariant linear model without timing or dropouts, longer than a
+        block of time: `core.simulate.one_run_blocks` (the numbers of `simulate`)."""
+        from fusionlog.core.simulate import one_run_blocks
+
+        sched, system = scenario.schedule, scenario.system
+        if scenario.runs != 1 or sched.steps + 1 <= block or not sched.measures.all():
+            return None
+        system = system.on_times(sched.times)
+        if not (system.linear and system.time_invariant) or any(
+            s.timing.dropout for s in system.sensors
+        ):
+            return None
+        blocks = one_run_blocks(system, sched.steps, scenario.seed, block)
+        return ((k0, k1, x, [z[..., sl] for sl in system.sensor_slices]) for k0, k1, x, z in blocks)
 
     def arrivals(self, scenario: Scenario, run_offset: int, runs: int) -> np.ndarray | None:
         from fusionlog.core.latency import draw_arrivals
@@ -275,14 +294,41 @@ class _StateEstimator(Estimator):
             a: _estimate_writer(e.mean, e.cov, e.shared_cov) for a, e in block.estimates.items()
         }
 
+    def time_windows(self, sensors: McapFile) -> Any:
+        """A long one-run log of a steady model with every reading present, in blocks of time
+        (`driver.long_log`); None otherwise (a log short enough for one block, per-message R,
+        an irregular or nonlinear model, a reading missing: the whole run at once)."""
+        from fusionlog.driver.long_log import long_estimates, spool_readings, time_block
+
+        plans, B = self.plans, time_block()
+        system = plans.system
+        if plans.steps + 1 <= B or system.Rs is not None or reference_paths():
+            return None
+        if is_late(system):  # late readings (issue 30): the whole run
+            return None
+        log = steady_log(system, self.archs, plans.steps, plans.criterion)
+        if log is None:
+            return None
+        spool = spool_readings(sensors.iter_time_blocks(self.topics, B), self.topics, system.m)
+        if spool is None:
+            return None
+        plans.patterns.append(np.packbits(np.ones((plans.steps + 1, system.m), bool)).tobytes())
+        return (
+            (k0, k1, {a: _estimate_writer(e.mean, e.cov, True, k0) for a, e in out.items()})
+            for k0, k1, out in long_estimates(log, spool, B)
+        )
+
     def provenance(self) -> dict[str, str]:
         # The evaluator's exact analysis needs it: a shared pattern is analysed with the same
         # mask, per-run patterns are not.
         return self.plans.provenance()
 
 
-def _estimate_writer(mean: np.ndarray, cov: np.ndarray, shared: bool) -> StepWriter:
+def _estimate_writer(mean: np.ndarray, cov: np.ndarray, shared: bool, k0: int = 0) -> StepWriter:
+    """Writes step k of a block of runs (mean (runs, w, n)) whose first instant is k0."""
+
     def write(w: McapWriter, topic: str, k: int, t: float, off: int) -> None:
-        w.write_estimate(topic, k, t, off, mean[:, k], cov[k] if shared else cov[:, k])
+        k -= k0
+        w.write_estimate(topic, k + k0, t, off, mean[:, k], cov[k] if shared else cov[:, k])
 
     return write

@@ -108,10 +108,15 @@ def _require_defined(plan: Plan, mean: np.ndarray, cov: np.ndarray) -> None:
 
 
 def _recursion(
-    plan: Plan, z: np.ndarray, s0: np.ndarray | None = None, blocks: bool = True
+    plan: Plan,
+    z: np.ndarray,
+    s0: np.ndarray | None = None,
+    blocks: bool = True,
+    last: list | None = None,
 ) -> np.ndarray:
     """The step recursion s_k = T s_{k-1} + U z_k, x_k = O s_k (and FBS's backward pass); with
-    `blocks`, a long steady tail on few runs in blocks of steps."""
+    `blocks`, a long steady tail on few runs in blocks of steps. `last` (a list) receives the
+    final state s_K (a log in blocks of time carries it into the next block)."""
     M, K1, _ = z.shape
     s0 = plan.s0 if s0 is None else s0
     s = bc(s0, (M, s0.shape[0]))
@@ -140,6 +145,9 @@ def _recursion(
             states.extend(tail[:, j] for j in range(tail.shape[1]))
         else:
             out[:, head:] = tail @ st.O.T
+        s = tail[:, -1]
+    if last is not None:
+        last.append(s)
     if plan.smoother is not None:
         _smooth(plan.smoother, states, z, out, few_runs)
     return out

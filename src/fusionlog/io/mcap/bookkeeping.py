@@ -13,44 +13,50 @@ a set only for steps that come out of order, the same facts take 4-8 bytes per m
 from __future__ import annotations
 
 from array import array
-from bisect import bisect_left
+from bisect import bisect_right
 
 __all__ = ["FirstTimes", "StepSet"]
 
 
 class StepSet:
-    """A set of steps (uint32): those added in increasing order in a packed array, the rest
-    in a set."""
+    """A set of steps (uint32): those added in increasing order as packed ranges [start, end)
+    (a topic that has every step, the usual case, is one range whatever the log's length:
+    memory that does not grow with the instants, issue 34), the rest in a set."""
 
-    __slots__ = ("_ordered", "_other")
+    __slots__ = ("_count", "_ends", "_other", "_starts")
 
     def __init__(self) -> None:
-        self._ordered = array("I")
+        self._starts = array("I")
+        self._ends = array("Q")  # exclusive: a step of 2^32 - 1 ends at 2^32
         self._other: set[int] = set()
+        self._count = 0
 
     def __contains__(self, step: int) -> bool:
-        a = self._ordered
-        if a and step <= a[-1]:
-            i = bisect_left(a, step)
-            if a[i] == step:
+        starts = self._starts
+        if starts and step < self._ends[-1]:
+            i = bisect_right(starts, step) - 1
+            if i >= 0 and step < self._ends[i]:
                 return True
         return step in self._other
 
     def add(self, step: int) -> None:
         """Add a step that is not in the set yet (the caller checks)."""
-        a = self._ordered
-        if not a or step > a[-1]:
-            a.append(step)
+        self._count += 1
+        ends = self._ends
+        if ends and step == ends[-1]:
+            ends[-1] = step + 1
+        elif not ends or step > ends[-1]:
+            self._starts.append(step)
+            ends.append(step + 1)
         else:
             self._other.add(step)
 
     def __len__(self) -> int:
-        return len(self._ordered) + len(self._other)
+        return self._count
 
     def sorted(self) -> list[int]:
-        if not self._other:
-            return self._ordered.tolist()
-        return sorted([*self._ordered, *self._other])
+        ranged = [k for a, b in zip(self._starts, self._ends, strict=True) for k in range(a, b)]
+        return sorted([*ranged, *self._other]) if self._other else ranged
 
 
 class FirstTimes:

@@ -337,8 +337,12 @@ class McapFile:
         return self._get_structure().runs
 
     def times(self) -> np.ndarray:
-        """(K + 1,) time in seconds of each step (first message of that step in the file)."""
-        return self._get_structure().times.copy()
+        """(K + 1,) time in seconds of each step (first message of that step in the file), read
+        only: one array however often it is asked for (8 bytes per instant each copy would
+        cost a 4*10^6-instant log 32 MB)."""
+        t = self._get_structure().times
+        t.flags.writeable = False
+        return t
 
     def time_origin_ns(self) -> int:
         """The clock of the file's messages: log_time - round(time * 1e9) of its first fusionlog
@@ -441,6 +445,32 @@ class McapFile:
             tables.close()
         if expected != total:
             raise asm.bad(f"the requested topics cover runs 0..{expected} of {total}")
+
+    def iter_time_blocks(
+        self, topics: Sequence[str], steps: int
+    ) -> Iterator[tuple[int, int, dict[str, Any]]]:
+        """A one-run file's (k0, k1, {topic: data}) for consecutive windows of `steps` instants
+        (`time_blocks`): the shapes of `iter_run_blocks` with k1 - k0 instants in place of K+1."""
+        from .time_blocks import time_blocks
+
+        names = list(dict.fromkeys(topics))
+        infos = [self._readable(t) for t in names]
+        st = self._get_structure()
+        if st.runs != 1:
+            raise ValueError("blocks of time are read from a one-run log")
+        tidx = {cid: ti for ti, info in enumerate(infos) for cid in info.channel_ids}
+        topic_index = np.zeros(max(tidx) + 1, np.int64)
+        topic_index[list(tidx)] = list(tidx.values())
+        kinds = [i.format.kind for i in infos]  # type: ignore[union-attr]
+        dims = [self.dim_of(t) for t in names]
+        masks = [st.steps_of(t) for t in names]
+        tables = self._tables(set(tidx))
+        try:
+            yield from time_blocks(
+                self.path, tables, names, dims, kinds, topic_index, masks, max(1, steps)
+            )
+        finally:
+            tables.close()
 
     def read_all(self, topics: Sequence[str]) -> dict[str, Any]:
         """All runs of ``topics`` at once (small files, tests); same shapes as iter_run_blocks."""

@@ -127,8 +127,7 @@ def write_replay(
     `sensor_color` gives each sensor's readings the colour they have in the other views."""
     i, j = ij
     rec = w.rec
-    # a long log's paths: every n-th point, as the first run's states (io/rrd/decimation.py)
-    n = w.stride("runs/0/state/arch/mean") if w.stride is not None else 1
+    n = 1  # a long log's samples come decimated (core/decimate.py)
     if 0 in samples:
         truth, est = samples[0]
         t = _strip(np.asarray(truth, dtype=float)[::n, [i, j]])

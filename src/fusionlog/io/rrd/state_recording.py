@@ -46,11 +46,11 @@ from typing import IO, Any
 import numpy as np
 import rerun.blueprint as rrb
 
+from fusionlog.core.decimate import decimate_evaluation
 from fusionlog.core.evaluation import Evaluation
 from fusionlog.core.linalg import overflow_is_inf
 
 from .consistency_views import NisSeries, check_consistency, consistency_views, write_consistency
-from .decimation import decimation
 from .legend import legend_box, place_legend
 from .log_recording import opening_range, plane_states, replay_blueprint, write_replay
 from .plane import check_plane, write_plane
@@ -70,6 +70,7 @@ _SHAPES = {
     "expected_mse": "sn",
     "expected_nees": "s",
     "expected_dm": "s",
+    "mse_minus_ckf": "sn",  # a decimated log's, decimated as drawn (core.decimate)
     "bound": "s",
 }
 _REQUIRED = ("mse", "trace", "nees", "dm")
@@ -144,6 +145,7 @@ def write_evaluation(
     `write_recording` for what each part draws and the errors)."""
     if scenario_name is None:
         scenario_name, seed = ev.summary["scenario"], ev.summary["seed"]
+    ev = decimate_evaluation(ev, CKF)  # a long log: a few 10^4 points per series
     times = np.asarray(ev.times, dtype=float)
     state_names = [str(s) for s in ev.state_names]
     series, nees_bounds, confidence, plane = ev.series, ev.nees_bounds, ev.confidence, ev.plane
@@ -175,24 +177,21 @@ def write_evaluation(
         blueprint = _blueprint(
             state_names, series, samples, plane is not None, extra, timeline, pcrb is not None
         )
-    # a long log: overview series decimated, the first run's states kept (io/rrd/decimation.py)
-    n_full = sum(len(state_names) * (1 + len(est)) for _, est in samples.values())
-    n_full += sum(len(by) for by in (measured or {}).values())
-    stride, decimated = decimation(len(times), n_full)
-    if decimated:
-        properties = {**(properties or {}), "decimation": decimated}
+    axes = None
+    if ev.steps is not None:  # a long log's series, decimated before (core/decimate.py)
+        axes = {"step": ("sequence", np.asarray(ev.steps)), "time": ("duration", times)}
+        properties = {**(properties or {}), "decimation": dict(ev.decimation or {})}
     # A sensor's readings have one colour in every view (its place among the sensors, as in
     # the Sensors tab), not its place among the sensors of one state.
     sensors = dict.fromkeys([*avail, *(s for by in (measured or {}).values() for s in by)])
     sensor_color = {s: class_color(k) for k, s in enumerate(sensors)}
     args = (scenario_name, seed, times, summary, properties, recording_id)
-    with recording_stream(file, blueprint, *args) as w:
-        w.stride = stride
+    with recording_stream(file, blueprint, *args, axes=axes) as w:
         _write_metrics(w, state_names, series, nees_bounds, confidence)
         for i, state in enumerate(state_names if pcrb is not None else []):
             p = entity_path("metrics", "pcrb", "mse", state)
             w.line(p, np.asarray(pcrb, dtype=float)[:, i], "PCRB", BOUND_COLOR, 2.5)
-        _write_sample_runs(w, state_names, samples)
+        _write_sample_runs(w, state_names, samples, ev.bands)
         for i, by_sensor in (measured or {}).items():
             for sensor, v in by_sensor.items():
                 p = entity_path("runs", 0, state_names[i], "measured", sensor)
@@ -260,7 +259,11 @@ def _write_metrics(
         mse = np.asarray(d["mse"], dtype=float)
         for i, state in enumerate(state_names):
             w.line(entity_path("metrics", "mse", state, arch), mse[:, i], arch, col, width)
-            if ckf is not None and arch != CKF:
+            if "mse_minus_ckf" in d:
+                diff = np.asarray(d["mse_minus_ckf"], dtype=float)[:, i]
+                p = entity_path("metrics", "mse_minus_ckf", state, arch)
+                w.line(p, diff, f"{arch} − CKF", col, width)
+            elif ckf is not None and arch != CKF:
                 diff = mse[:, i] - np.asarray(ckf["mse"], dtype=float)[:, i]
                 p = entity_path("metrics", "mse_minus_ckf", state, arch)
                 w.line(p, diff, f"{arch} − CKF", col, width)
@@ -287,8 +290,11 @@ def _write_metrics(
             w.line(p, arr, f"{label} {side}", BOUND_COLOR, 1.5)
 
 
-def _write_sample_runs(w: SeriesWriter, state_names: list[str], sample_runs: SampleRuns) -> None:
-    """Each sample run: the truth, and per architecture the estimate with its ±2σ band."""
+def _write_sample_runs(
+    w: SeriesWriter, state_names: list[str], sample_runs: SampleRuns, bands: Any = None
+) -> None:
+    """Each sample run: the truth, and per architecture the estimate with its ±2σ band (as
+    given in `bands`, a decimated log's, else mean ∓ 2 std)."""
     for m in sorted(sample_runs):
         truth, est = sample_runs[m]
         truth = np.asarray(truth, dtype=float)
@@ -301,8 +307,11 @@ def _write_sample_runs(w: SeriesWriter, state_names: list[str], sample_runs: Sam
                 base = ("runs", m, state, arch)
                 w.line(entity_path(*base, "mean"), mu, arch, col, 2.0)
                 # The band shares the estimate's legend entry (one toggle for both).
-                w.line(entity_path(*base, "upper"), mu + 2 * sd, arch, col, 0.75)
-                w.line(entity_path(*base, "lower"), mu - 2 * sd, arch, col, 0.75)
+                lower, upper = mu - 2 * sd, mu + 2 * sd
+                if bands and arch in bands.get(m, {}):
+                    lower, upper = (np.asarray(v, dtype=float)[:, i] for v in bands[m][arch])
+                w.line(entity_path(*base, "upper"), upper, arch, col, 0.75)
+                w.line(entity_path(*base, "lower"), lower, arch, col, 0.75)
 
 
 @overflow_is_inf  # inf - inf: NaN, drawn as a gap

@@ -28,7 +28,7 @@ import os
 import tempfile
 import threading
 import uuid
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from typing import IO, Any
 
 import numpy as np
@@ -272,19 +272,10 @@ class SeriesWriter:
             )
         self.rec.send_columns(path, indexes=[], columns=self._styles[key], strict=True)
 
-    #: (path -> keep every n-th logged value) for long logs (`io.rrd.decimation`); None: all
-    stride: Callable[[str], int] | None = None
-
     def send(self, path: str, values: np.ndarray) -> None:
-        """One scalar series; steps where it is not finite are not logged (and of a long log's
-        decimated series only every n-th of the others, see `stride`)."""
+        """One scalar series; steps where it is not finite are not logged."""
         values = np.asarray(values, dtype=float)
         keep = np.isfinite(values)
-        n = self.stride(path) if self.stride is not None else 1
-        if n > 1:
-            at = np.flatnonzero(keep)[::n]
-            keep = np.zeros_like(keep)
-            keep[at] = True
         if keep.all():
             indexes = self._full_index
         elif keep.any():

@@ -39,13 +39,22 @@ class MetricsPart(Part):
         self.archs, self.n, self.instants, self.M = list(archs), n, instants, runs
         self.truthed, self.has_truth, self.recorded = truthed, has_truth, recorded
         self.confidence, self.truth_info = confidence, truth_info
-        # the truth metrics' sums (K+1 x n arrays each): none for a log without truth
-        self.accs = (
-            {a: MetricsAccumulator(instants, len(truthed)) for a in self.archs} if has_truth else {}
-        )
-        self.trace = {a: np.zeros(instants) for a in self.archs}
+        self._accumulator = MetricsAccumulator
+        # the truth metrics' sums (K+1 x n arrays each; none for a log without truth) and the
+        # traces, made when the first block comes (`_sums`): a long log evaluated in blocks of
+        # time (`StateEvaluator.time_windows`) never makes them
+        self.accs: dict[str, Any] = {}
+        self.trace: dict[str, np.ndarray] = {}
+
+    def _sums(self) -> None:
+        if not self.trace:
+            self.trace = {a: np.zeros(self.instants) for a in self.archs}
+        for a in self.archs if self.has_truth else ():
+            if a not in self.accs:
+                self.accs[a] = self._accumulator(self.instants, len(self.truthed))
 
     def add(self, block: Block) -> None:
+        self._sums()
         x = block.truth
         for a in self.archs:
             mean, cov = block.estimates[a]
@@ -63,6 +72,7 @@ class MetricsPart(Part):
         return {a: acc.runs for a, acc in self.accs.items()}
 
     def summarise(self, into: Finished) -> None:
+        self._sums()
         series, bounds = {}, None
         for a in self.archs:
             if not self.has_truth:  # a recorded log without truth: what needs none

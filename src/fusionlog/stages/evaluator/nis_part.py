@@ -34,14 +34,29 @@ class NisPart(Part):
     ) -> None:
         self.system, self.M, self.scheduled = system, runs, scheduled
         self.topics, self.confidence, self.recorded = list(sensor_topics), confidence, recorded
-        self.nis = NisAccumulator(system, list(known), instants) if recorded else None
-        self.measured = {s.name: np.zeros(instants) for s in system.sensors}
+        self.known, self.instants = list(known), instants
+        # (K+1) sums per architecture and sensor, made when the first block comes (a long log
+        # evaluated in blocks of time never makes them: `StateEvaluator.time_windows`)
+        self.nis: NisAccumulator | None = None
+        self.measured: dict[str, np.ndarray] = {}
         self.measured_points: dict[int, dict[str, np.ndarray]] = {}
+
+    @property
+    def archs(self) -> list[str]:
+        """The architectures whose NIS is computed (a replay's)."""
+        return self.known if self.recorded else []
+
+    def _sums(self) -> None:
+        if not self.measured:
+            self.measured = {s.name: np.zeros(self.instants) for s in self.system.sensors}
+            if self.recorded:
+                self.nis = NisAccumulator(self.system, self.known, self.instants)
 
     def add(self, block: Block) -> None:
         sensors = block.sensors
         if sensors is None:
             return
+        self._sums()
         fs = self.system
         if self.nis is not None:
             z = np.concatenate([sensors[t] for t in self.topics], axis=-1)
@@ -59,6 +74,7 @@ class NisPart(Part):
             self.measured[s.name] += (~np.isnan(sensors[t]).any(axis=-1)).sum(axis=0)
 
     def summarise(self, into: Finished) -> None:
+        self._sums()
         if self.nis is not None:
             for a, entry in self.nis.summary(self.confidence).items():
                 if a in into.archs:

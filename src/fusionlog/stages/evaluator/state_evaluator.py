@@ -179,18 +179,90 @@ class StateEvaluator(Evaluator):
         """The summary.json dict (also `evaluation().summary`)."""
         return self._finish().summary
 
-    def _finish(self) -> Finished:
-        archs: dict[str, dict[str, Any]] = {}
+    def _head(self) -> dict[str, Any]:
         sc = self.sc
-        summary = {
+        return {
             "scenario": sc.name,
             "seed": sc.seed,
             "runs": self.M,
             "steps": self.K,
             "state_names": list(sc.state_names),
             "confidence": sc.confidence,
-            "architectures": archs,
         }
+
+    def time_windows(self) -> Any:
+        """A `LongEvaluator` for a one-run log longer than a block of time whose evaluation
+        needs nothing of the whole log at once (the Monte Carlo metrics with truth for every
+        state or none, the exact analysis and the NIS of a steady model, the sample run);
+        None otherwise."""
+        from fusionlog.core.reference import reference_paths
+        from fusionlog.driver.long_log import time_block
+
+        if self.M != 1 or self.K + 1 <= time_block() or reference_paths():
+            return None
+        if self.late is not None:  # late readings (issue 30): the whole run
+            return None
+        parts = {MetricsPart, ExactPart, SamplesPart, NisPart, BoundPart}
+        if not {type(p) for p in self.parts} <= parts:
+            return None
+        if any(isinstance(p, BoundPart) and p.sums for p in self.parts):
+            return None  # a Monte Carlo bound (of several runs)
+        if self.has_truth and len(self.metrics.truthed) != self.n:
+            return None
+        return self._long(
+            next((p for p in self.parts if isinstance(p, ExactPart)), None),
+            next((p for p in self.parts if isinstance(p, NisPart)), None),
+        )
+
+    def _long(self, exact: ExactPart | None, nis: NisPart | None) -> Any:
+        from fusionlog.core.architectures.long_log import converged, steady_log
+
+        from .long_evaluator import LongEvaluator, LongSetup
+        from .long_nis import LongNis
+
+        log, expected = None, {}
+        if exact is not None and self.has_truth:
+            if exact.route == "per-run" or exact.mask is not None:
+                return None
+            p = exact.plans
+            log = steady_log(p.system, exact.known, self.K, p.criterion)
+            if log is None:
+                return None
+            for a in exact.known:
+                expected[a] = log.expected(a, exact.truth)
+                if not log.whole and not converged(expected[a], log.c):
+                    return None
+        long_nis = None
+        if nis is not None:
+            from fusionlog.core.architectures import definition
+
+            from ..consistency import _centralised
+
+            forward, ckf = None, _centralised()
+            if any(definition(a).locals == "smoother" for a in nis.archs):
+                forward = steady_log(nis.system, [ckf], self.K)
+                if forward is None:
+                    return None
+            long_nis = LongNis(nis, forward, ckf)
+        sc = self.sc
+        return LongEvaluator(
+            LongSetup(
+                head=self._head(), archs=self.archs, topics=self.topics, times=self.times,
+                n=self.n, confidence=sc.confidence, samples=min(sc.sample_runs, 1),
+                full_resolution=sc.full_resolution, has_truth=self.has_truth,
+                recorded=sc.replay is not None, truth_info=self.metrics.truth_info, log=log,
+                expected=expected, nis=long_nis,
+                fields={
+                    "state_names": tuple(sc.state_names), "confidence": sc.confidence,
+                    "properties": {"scenario": sc.source, "provenance": self.prov},
+                    "sensors": self.sensors, "full_resolution": sc.full_resolution,
+                },
+            )
+        )  # fmt: skip
+
+    def _finish(self) -> Finished:
+        archs: dict[str, dict[str, Any]] = {}
+        summary = {**self._head(), "architectures": archs}
         if self.late is not None:
             summary["late"] = self.late
         into = Finished(summary, archs, metric_runs=self.metrics.runs_of())
@@ -213,5 +285,6 @@ class StateEvaluator(Evaluator):
             confidence=self.sc.confidence,
             properties={"scenario": self.sc.source, "provenance": provenance or self.prov},
             sensors=self.sensors,
+            full_resolution=self.sc.full_resolution,
             **into.fields,
         )

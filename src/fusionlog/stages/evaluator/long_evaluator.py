@@ -1,0 +1,169 @@
+"""A long one-run log evaluated in blocks of time (issue 34), in memory that does not grow with
+its instants.
+
+Per block: each architecture's Monte Carlo metrics of its instants (`MetricsAccumulator` on the
+block: one run's metrics at an instant need no other instant), the exact values of the same
+instants (the short plans of `core.architectures.long_log`, analysed once: the shared plan's
+covariances at each block's instants), the NIS and what else the readings say (`.long_nis`)
+and the first run's truth and estimates; the summary sums over instants (`core.step_sums`) and
+the recording's series are reduced bucket by bucket (`core.decimate`) as the blocks come, so
+neither keeps a (K+1) array. `StateEvaluator.time_windows` says which evaluations go this way:
+one run, truth for every state or none, no part that needs the whole log at once (PCRB,
+trajectory metrics, the state plane); the others take the whole run at once.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fusionlog.core.architectures.long_log import SteadyLog, expected_window
+from fusionlog.core.bound import bound_summary
+from fusionlog.core.decimate import TreeDecimator, bucket_size, note, point_steps, with_derived
+from fusionlog.core.evaluation import Evaluation
+from fusionlog.core.step_sums import StepSums
+from fusionlog.io.rrd.style import CKF
+
+from .long_nis import LongNis
+
+__all__ = ["LongEvaluator", "LongSetup"]
+
+
+@dataclass
+class LongSetup:
+    """What a `LongEvaluator` takes of its `StateEvaluator`: the summary's first fields
+    (`head`), the estimates' topics per architecture, the instants, the truth (`has_truth`:
+    of every state; `recorded`: a replay, whose mean trace is of every instant, `truth_info`
+    its truth record), the exact analysis (`expected[arch]` of the short plans of `log`), the
+    NIS (`nis`), the `Evaluation`'s other fields."""
+
+    head: dict[str, Any]
+    archs: Sequence[str]
+    topics: Sequence[str]
+    times: np.ndarray
+    n: int
+    confidence: float
+    samples: int
+    full_resolution: bool
+    has_truth: bool
+    recorded: bool
+    truth_info: dict[str, Any] | None
+    log: SteadyLog | None
+    expected: dict[str, Any]
+    nis: LongNis | None
+    fields: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def bound(self) -> dict[str, np.ndarray]:
+        """Each exact architecture's bound ratio at the short plans' steps (`Expected.bound`)."""
+        if not hasattr(self, "_bound"):
+            self._bound = {a: np.asarray(ex.bound, dtype=float) for a, ex in self.expected.items()}
+        return self._bound
+
+
+class LongEvaluator:
+    """Blocks of time in (`add`), the finished `Evaluation` out (`evaluation`)."""
+
+    def __init__(self, setup: LongSetup) -> None:
+        self.s = setup
+        self.b = bucket_size(len(setup.times), setup.full_resolution)
+        self.tree = TreeDecimator(self.b)
+        self.sums = {a: StepSums(setup.n) for a in setup.archs}
+        self.traces = {a: np.zeros(2) for a in setup.archs}  # sum and count of finite tr P
+
+    def add(
+        self,
+        k0: int,
+        k1: int,
+        truth: np.ndarray | None,
+        estimates: dict[str, Any],
+        sensors: dict[str, np.ndarray] | None = None,
+    ) -> None:
+        """The block of instants [k0, k1): truth (1, w, n) (None: the log has none), {topic:
+        (mean (1, w, n), cov (w, n, n))}, the readings {topic: (1, w, dim)} the NIS needs."""
+        from fusionlog.core.metrics import MetricsAccumulator
+
+        s = self.s
+        w = k1 - k0
+        idx = s.log.index(k0, k1) if s.log is not None else None
+        series, traces, bounds, sample, by_arch = {}, {}, None, {}, {}
+        for a, t in zip(s.archs, s.topics, strict=True):
+            mean, cov = by_arch[a] = estimates[t]
+            tr = np.trace(cov, axis1=-2, axis2=-1)
+            ok = np.isfinite(tr)
+            self.traces[a] += (tr[ok].sum(), ok.sum())
+            std = np.sqrt(np.clip(np.diagonal(cov, axis1=-2, axis2=-1), 0, None))
+            sample[a] = (mean[0], std)
+            if not s.has_truth:
+                traces[a] = tr
+                continue
+            acc = MetricsAccumulator(w, s.n)
+            acc.add(truth, mean, cov)
+            res = acc.finalize(s.confidence)
+            kw = {}
+            if a in s.expected:
+                ex = expected_window(s.expected[a], idx)
+                kw = {"expected_mse": ex.mse_per_state, "expected_nees": ex.nees,
+                      "expected_dm": ex.dm}  # fmt: skip
+            series[a] = res.series(**kw)
+            if a in s.expected:  # the bound check's ratio, exact (`core.bound`)
+                series[a]["bound"] = s.bound[a][idx]
+            self.sums[a].add(res, **kw)
+            if bounds is None:
+                bounds = (res.nees_lower, res.nees_upper)
+        tree: dict[str, Any] = {"series": series, "nees_bounds": bounds, "traces": traces}
+        if s.samples:
+            x = truth[0] if truth is not None else np.full((w, s.n), np.nan)
+            tree["samples"] = {0: (x, sample)}
+        if s.nis is not None and sensors is not None:
+            tree.update(s.nis.add(k0, k1, sensors, by_arch))
+        self.tree.add(with_derived(tree, CKF))
+
+    def _mean_trace(self, a: str) -> float:
+        total, count = self.traces[a]
+        return float(total / count) if count else float("nan")
+
+    def evaluation(self) -> Evaluation:
+        """The finished evaluation."""
+        s = self.s
+        archs: dict[str, dict[str, Any]] = {}
+        for a in s.archs:
+            if not s.has_truth:  # a recorded log without truth: what needs none
+                archs[a] = {"mean_trace": self._mean_trace(a)}
+                continue
+            archs[a] = self.sums[a].summary()
+            if s.recorded:
+                archs[a]["mean_trace"] = self._mean_trace(a)
+        for a in s.expected:  # the bound check over every instant (`BoundPart`'s)
+            b = bound_summary(s.bound[a])
+            if b is not None and a in archs:
+                archs[a]["bound"] = {**b, "worst_step": s.log.first_instant(b["worst_step"])}
+        summary = {**s.head, "architectures": archs}
+        if s.truth_info is not None and s.has_truth:
+            summary["truth"] = dict(s.truth_info)
+        if s.nis is not None:
+            for a, entry in s.nis.summary().items():
+                archs[a]["nis"] = entry
+        drawn = self.tree.result()
+        K1 = len(s.times)
+        steps = point_steps(K1, self.b)
+        nis = drawn.get("nis") if s.nis is not None and s.nis.archs else None
+        return Evaluation(
+            summary=summary,
+            times=s.times[steps],
+            series=drawn["series"],
+            nees_bounds=drawn["nees_bounds"],
+            samples=drawn.get("samples", {}),
+            traces=None if s.has_truth else drawn["traces"],
+            availability=drawn.get("availability", {}),
+            measured=drawn.get("measured", {}) if nis is not None else {},
+            nis=nis,
+            bands=drawn.get("bands"),
+            innovations=drawn.get("innovations") if nis is not None else None,
+            steps=steps if self.b > 1 else None,
+            decimation=note(K1, self.b) if self.b > 1 else None,
+            **s.fields,
+        )
