@@ -93,10 +93,7 @@ def estimate_to(
     windows = est.time_windows(mf) if M == 1 else None
     for k0, k1, writers in windows or ():  # a long one-run log, in blocks of time
         named = [(estimates_topic(a), write) for a, write in writers.items()]
-        for k in range(k0, k1):
-            t = float(times[k])
-            for topic, write in named:
-                write(w, topic, k, t, 0)
+        _write_steps(w, named, times, k0, k1, 0)
     blocks = mf.iter_run_blocks(topics, B) if windows is None else ()
     for off, _runs, data in progress(blocks, -(-M // B), "estimate"):
         try:
@@ -108,10 +105,7 @@ def estimate_to(
         # The documented order (for each step, for each topic) lets a reader learn every
         # topic from the first messages of the file.
         try:  # nonlinear filters advance as they are written: their failures come here
-            for k in range(K + 1):
-                t = float(times[k])
-                for topic, write in named:
-                    write(w, topic, k, t, off)
+            _write_steps(w, named, times, 0, K + 1, off)
         except NumericalError as e:
             raise NumericalError(f"{sensors_name or sensors_path}: {e}") from None
     # Written last, when what the whole file holds is known (e.g. the measurement pattern).
@@ -129,6 +123,20 @@ def estimate_to(
         ),
     )
     return EstimateResult(Path(sensors_path), archs, M, K)
+
+
+def _write_steps(w: McapWriter, named: list, times: np.ndarray, k0: int, k1: int, off: int) -> None:
+    """The messages of steps k0..k1-1 in the documented order (for each step, for each topic:
+    a reader learns every topic from the file's first messages); one run's at once where every
+    writer gives its column (`McapWriter.write_run_steps`, the same bytes)."""
+    cols = [getattr(write, "column", lambda _: None)(topic) for topic, write in named]
+    if named and all(c is not None for c in cols):
+        w.write_run_steps(k0, times[k0:k1], cols)
+        return
+    for k in range(k0, k1):
+        t = float(times[k])
+        for topic, write in named:
+            write(w, topic, k, t, off)
 
 
 def _infinite_reading(data: dict, off: int) -> str | None:

@@ -10,7 +10,8 @@ import numpy as np
 from fusionlog.driver.long_log import time_block
 from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
-from fusionlog.io.mcap import McapWriter
+from fusionlog.io.mcap import VALUES, McapWriter
+from fusionlog.io.mcap.run_steps import RunColumn
 from fusionlog.io.mcap.topics import TRUTH, sensor_topic
 from fusionlog.scenario import Scenario, check_budget
 
@@ -56,11 +57,9 @@ def simulate_to(
     every = list(range(len(topics)))
     blocks = None if late_sensors else kind.simulate_blocks(scenario, time_block())
     for k0, k1, x, z in blocks or ():  # one long run in blocks of time (every sensor, always)
-        for k in range(k0, k1):
-            t = float(times[k])
-            w.write_values(TRUTH, k, t, 0, x[:, k - k0])
-            for j in every:
-                w.write_values(topics[j], k, t, 0, z[j][:, k - k0])
+        columns = [RunColumn(TRUTH, VALUES, x[0])]
+        columns += [RunColumn(topics[j], VALUES, z[j][0]) for j in every]
+        w.write_run_steps(k0, times[k0:k1], columns)
     if blocks is not None:
         return (K + 1) * (1 + len(topics))
     # the sensors measuring at each instant, made for one instant at a time (a list per

@@ -25,7 +25,8 @@ from fusionlog.core.reference import reference_paths
 from fusionlog.core.simulate import simulate
 from fusionlog.driver import KeptPlans, PlanCache, estimate_block
 from fusionlog.errors import FusionlogError, NumericalError
-from fusionlog.io.mcap import TRUTH, McapFile, McapWriter, arch_of, sensor_topic
+from fusionlog.io.mcap import ESTIMATE, TRUTH, McapFile, McapWriter, arch_of, sensor_topic
+from fusionlog.io.mcap.run_steps import RunColumn
 from fusionlog.io.mcap.topics import ESTIMATES_PREFIX
 from fusionlog.scenario import Scenario, load_model, system_from_dict, system_to_dict
 from fusionlog.scenario.model_section import bytes_per_instant
@@ -324,11 +325,22 @@ class _StateEstimator(Estimator):
         return self.plans.provenance()
 
 
-def _estimate_writer(mean: np.ndarray, cov: np.ndarray, shared: bool, k0: int = 0) -> StepWriter:
-    """Writes step k of a block of runs (mean (runs, w, n)) whose first instant is k0."""
+class _estimate_writer:  # noqa: N801 - a StepWriter, called as the function it replaced
+    """Writes step k of a block of runs (mean (runs, w, n)) whose first instant is k0; a
+    one-run block's steps also as one column at once (`column`)."""
 
-    def write(w: McapWriter, topic: str, k: int, t: float, off: int) -> None:
-        k -= k0
-        w.write_estimate(topic, k + k0, t, off, mean[:, k], cov[k] if shared else cov[:, k])
+    __slots__ = ("mean", "cov", "shared", "k0")
 
-    return write
+    def __init__(self, mean: np.ndarray, cov: np.ndarray, shared: bool, k0: int = 0) -> None:
+        self.mean, self.cov, self.shared, self.k0 = mean, cov, shared, k0
+
+    def __call__(self, w: McapWriter, topic: str, k: int, t: float, off: int) -> None:
+        k -= self.k0
+        cov = self.cov[k] if self.shared else self.cov[:, k]
+        w.write_estimate(topic, k + self.k0, t, off, self.mean[:, k], cov)
+
+    def column(self, topic: str) -> RunColumn | None:
+        """The messages of every step of a one-run block (`McapWriter.write_run_steps`)."""
+        if self.mean.shape[0] != 1:
+            return None
+        return RunColumn(topic, ESTIMATE, self.mean[0], self.cov if self.shared else self.cov[0])

@@ -14,8 +14,11 @@ from __future__ import annotations
 
 from array import array
 from bisect import bisect_right
+from typing import Any
 
-__all__ = ["FirstTimes", "StepSet"]
+from .wire import encode_block_fields, encode_payload2_key
+
+__all__ = ["FirstTimes", "StepSet", "TopicState"]
 
 
 class StepSet:
@@ -51,6 +54,26 @@ class StepSet:
         else:
             self._other.add(step)
 
+    def add_range(self, a: int, b: int) -> int | None:
+        """Add the steps a..b-1; return the first that was in the set already (then none is
+        added), else None. One range appended where they follow the last step, as usual."""
+        ends = self._ends
+        if not ends or a >= ends[-1]:
+            if not any(a <= k < b for k in self._other):
+                if ends and a == ends[-1]:
+                    ends[-1] = b
+                else:
+                    self._starts.append(a)
+                    ends.append(b)
+                self._count += b - a
+                return None
+        for k in range(a, b):
+            if k in self:
+                return k
+        for k in range(a, b):
+            self.add(k)
+        return None
+
     def __len__(self) -> int:
         return self._count
 
@@ -80,9 +103,36 @@ class FirstTimes:
         while ahead and len(dense) in ahead:  # steps that came early, now in sequence
             dense.append(ahead.pop(len(dense)))
 
+    def extend(self, k0: int, times: array) -> None:
+        """setdefault(k0 + i, times[i]) for each i (one append where k0 is the next step)."""
+        if k0 == len(self._dense) and not self._ahead:
+            self._dense.extend(times)
+            return
+        for i, t in enumerate(times):
+            self.setdefault(k0 + i, t)
+
     def __len__(self) -> int:
         return len(self._dense) + len(self._ahead)
 
     def times(self) -> array | None:
         """The times of steps 0..S-1; None when the steps are not exactly those."""
         return None if self._ahead else self._dense
+
+
+class TopicState:
+    """Per-topic writer state: channel number and its log function (payload, log_time in ns;
+    the SDK sets publish_time = log_time), kind, dim and the cached block fields."""
+
+    __slots__ = ("cid", "log", "kind", "dim", "mid_key", "mid", "mid2", "seen")
+
+    def __init__(self, cid: int, log: Any, kind: str, dim: int) -> None:
+        self.cid, self.log, self.kind, self.dim = cid, log, kind, dim
+        self.seen = StepSet()  # its steps in the current block of runs
+        self.mid_key: tuple[int, int, int] | None = None
+        self.mid = self.mid2 = b""
+
+    def set_mid(self, run_offset: int, runs: int, cov_len: int) -> None:
+        """Encode run_offset, runs, dim and the payload keys/lengths (fixed within a block)."""
+        self.mid = encode_block_fields(run_offset, runs, self.dim, runs * self.dim * 8)
+        self.mid2 = encode_payload2_key(cov_len)
+        self.mid_key = (run_offset, runs, cov_len)

@@ -19,6 +19,9 @@ import math
 import operator
 import os
 import struct
+from array import array
+from collections import deque
+from collections.abc import Sequence
 from typing import Any
 
 import foxglove
@@ -30,21 +33,21 @@ from mcap.reader import SeekingReader
 from fusionlog.errors import OutputError
 
 from .arrival import arrival_field
-from .bookkeeping import FirstTimes, StepSet
+from .bookkeeping import FirstTimes, StepSet, TopicState
 from .chunks import one_line
 from .layout import LAYOUT_META, Layout
+from .run_steps import RunColumn, encode_run_steps, log_times
 from .schema import ESTIMATE, ESTIMATE_SCHEMA, SENSOR_SCHEMA, VALUES, file_descriptor_set
 from .sink import SignalGuard, Sink
 from .wire import (
     UINT32_MAX,
-    encode_block_fields,
-    encode_payload2_key,
     encode_step_time,
 )
 
 __all__ = ["McapWriter"]
 
 _F8 = np.dtype("<f8")
+_WINDOW = 4096  # instants encoded at once by write_run_steps (~3 MB for seven estimates)
 _COMPRESSION = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none": None}
 
 
@@ -53,25 +56,6 @@ def _payload(a: np.ndarray) -> bytes | memoryview:
     array's own buffer (joined without a copy of its own; a 10^4-run covariance payload is
     1.3 MB), else a gathered copy (tobytes is C order whatever the strides)."""
     return memoryview(a).cast("B") if a.flags.c_contiguous else a.tobytes()
-
-
-class _TopicState:
-    """Per-topic writer state: channel number and its log function (payload, log_time in ns;
-    the SDK sets publish_time = log_time), kind, dim and the cached block fields."""
-
-    __slots__ = ("cid", "log", "kind", "dim", "mid_key", "mid", "mid2", "seen")
-
-    def __init__(self, cid: int, log: Any, kind: str, dim: int) -> None:
-        self.cid, self.log, self.kind, self.dim = cid, log, kind, dim
-        self.seen = StepSet()  # its steps in the current block of runs
-        self.mid_key: tuple[int, int, int] | None = None
-        self.mid = self.mid2 = b""
-
-    def set_mid(self, run_offset: int, runs: int, cov_len: int) -> None:
-        """Encode run_offset, runs, dim and the payload keys/lengths (fixed within a block)."""
-        self.mid = encode_block_fields(run_offset, runs, self.dim, runs * self.dim * 8)
-        self.mid2 = encode_payload2_key(cov_len)
-        self.mid_key = (run_offset, runs, cov_len)
 
 
 class McapWriter:
@@ -120,7 +104,7 @@ class McapWriter:
         self._schemas: dict[str, foxglove.Schema] = {}
         #: whether the schema declares the Block's ``arrival`` (`declare_arrival`)
         self._arrival_schema = False
-        self._topic_states: dict[str, _TopicState] = {}
+        self._topic_states: dict[str, TopicState] = {}
         self._messages = 0
         self._block_offset, self._block_runs = -1, 0  # block of runs being written
         self._blocks = 0
@@ -294,7 +278,7 @@ class McapWriter:
         if self._sink.alert:
             self._fail()
 
-    def _new_topic(self, topic: str, kind: str, dim: int) -> _TopicState:
+    def _new_topic(self, topic: str, kind: str, dim: int) -> TopicState:
         st = self._topic_states.get(topic)
         if st is not None:
             if st.kind != kind:
@@ -315,7 +299,7 @@ class McapWriter:
         channel = foxglove.Channel(
             topic, schema=schema, message_encoding="protobuf", context=self._ctx
         )
-        st = _TopicState(len(self._topic_states), channel.base.log, kind, dim)
+        st = TopicState(len(self._topic_states), channel.base.log, kind, dim)
         self._topic_states[topic] = st
         return st
 
@@ -451,3 +435,48 @@ class McapWriter:
         if c.shape != (n, n) and c.shape != (runs, n, n):
             raise ValueError(f"cov must have shape ({n}, {n}) or ({runs}, {n}, {n}), got {c.shape}")
         self._write(topic, ESTIMATE, step, time, run_offset, runs, n, _payload(m), _payload(c))
+
+    def write_run_steps(self, k0: int, times: np.ndarray, columns: Sequence[RunColumn]) -> None:
+        """One run's messages at instants k0..k0+w-1 (``times`` (w,) s): for each instant, for
+        each column in order, the message `write_values` (a VALUES column, its covariance
+        optional) or `write_estimate` (an ESTIMATE column: mean and covariance) would write,
+        byte for byte, encoded a window of instants at a time (`.run_steps`: a long one-run
+        log's ~10^7 messages would cost ~5 µs each one by one)."""
+        if self._writer is None:
+            raise RuntimeError("McapWriter is closed")
+        t = np.asarray(times, dtype=float) + 0.0  # + 0.0: -0.0 as 0.0, as `_set_head`
+        w = len(t)
+        if not w or not columns:
+            return
+        if not (np.isfinite(t).all() and (t >= 0).all()):
+            raise ValueError("time must be finite and >= 0")
+        states = []
+        for c in columns:
+            if c.kind == ESTIMATE and c.second is None:
+                raise ValueError(f"{c.topic}: an estimate needs its covariance")
+            d = np.shape(c.first)[-1]
+            st = self._topic_states.get(c.topic)
+            states.append(st if st and (st.kind, st.dim) == (c.kind, d) else
+                          self._new_topic(c.topic, c.kind, d))  # fmt: skip
+        if self._block_offset != 0 or self._block_runs != 1:
+            self._new_block(columns[0].topic, 0, 1)
+        for c, st in zip(columns, states, strict=True):
+            twice = st.seen.add_range(k0, k0 + w)
+            if twice is not None:
+                raise ValueError(f"{c.topic}: step {twice} written twice for runs from 0")
+            self._first_steps.setdefault(c.topic, StepSet()).add_range(k0, k0 + w)
+        self._first_times.extend(k0, array("d", t.tobytes()))
+        self._hstep = -1  # the one-message path's cached head is not these instants'
+        logs, T = [st.log for st in states], len(states)
+        for i in range(0, w, _WINDOW):
+            j = min(w, i + _WINDOW)
+            part = [c._replace(first=c.first[i:j], second=None if c.second is None
+                               else c.second[i:j]) for c in columns]  # fmt: skip
+            buf, bounds = encode_run_steps(k0 + i, t[i:j], part)
+            b = bounds.tolist()
+            msgs = [buf[x:y] for x, y in zip(b[:-1], b[1:], strict=True)]
+            ns = log_times(self._origin, t[i:j], T)
+            deque(map(operator.call, logs * (j - i), msgs, ns), maxlen=0)
+            self._messages += len(msgs)
+            if self._sink.alert:  # a write failed or a signal came during these messages
+                self._fail()
