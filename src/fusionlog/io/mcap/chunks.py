@@ -1,9 +1,10 @@
 """MCAP at the record level: opening the container, reading chunks, checking the CRCs.
 
-This is the only module that uses ``mcap``'s unexported internals (``breakup_chunk``,
-``get_chunk_data_stream``, ``Message.read``, ``MessageIndex.read``, ``ReadDataStream``, the
-record opcodes); they are pinned in pyproject.toml to the mcap versions tested (a keyword of
-these functions has changed name across versions).
+This module and :mod:`.chunk_rows` (its indexed fast path) are the only ones that use
+``mcap``'s unexported internals (``breakup_chunk``, ``get_chunk_data_stream``,
+``Message.read``, ``MessageIndex.read``, ``ReadDataStream``, the record opcodes); they
+are pinned in pyproject.toml to the mcap versions tested (a keyword of these functions has
+changed name across versions).
 
 Why not ``SeekingReader.iter_messages``: with ``log_time_order=False`` mcap 1.6 reads and
 decompresses *every* chunk into its queue before yielding the first message (unbounded

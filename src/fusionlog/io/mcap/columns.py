@@ -17,9 +17,10 @@ from typing import Any
 
 import numpy as np
 
+from .chunk_rows import Rows, message_rows
 from .wire import UINT32_MAX, MessageFormat, WireError, decode_fields, payload_span
 
-__all__ = ["BadMessage", "Table", "Template", "decode_table", "gather"]
+__all__ = ["BadMessage", "Table", "Template", "decode_rows", "decode_table", "gather"]
 
 _F8 = np.dtype("<f8")
 
@@ -153,24 +154,23 @@ class Table:
 
 def decode_table(messages: Sequence[Any], formats: dict[int, MessageFormat]) -> Table | None:
     """Decode the messages (mcap ``Message`` records: channel_id, data) whose channel is in
-    ``formats`` into columns; None if there is none. Raises BadMessage.
+    ``formats`` into columns; None if there is none. Raises BadMessage (`decode_rows`)."""
+    return decode_rows(message_rows([m for m in messages if m.channel_id in formats]), formats)
+
+
+def decode_rows(rows: Rows, formats: dict[int, MessageFormat]) -> Table | None:
+    """Decode the messages of ``rows`` whose channel is in ``formats`` into columns; None if
+    there is none. Raises BadMessage.
 
     Messages shorter than _SMALL are grouped by channel and length and each group decoded at
     once against the template of its first message; the rest, and any message that does not
-    fit its group's template, one by one. The per-message Python work left is three list
-    comprehensions and a map.
+    fit its group's template, one by one. No Python runs per message otherwise.
     """
-    keep = [m for m in messages if m.channel_id in formats]
-    n = len(keep)
+    keep = np.isin(rows.cid, np.fromiter(formats, np.int64, len(formats)))
+    raw, cid, starts, lens = rows.raw, rows.cid[keep], rows.start[keep], rows.length[keep]
+    n = len(cid)
     if not n:
         return None
-    datas = [m.data for m in keep]
-    cid = np.fromiter([m.channel_id for m in keep], np.int64, n)
-    lens = np.fromiter(map(len, datas), np.int64, n)
-    starts = np.zeros(n, np.int64)
-    np.cumsum(lens[:-1], out=starts[1:])
-    raw = b"".join(datas)
-    del keep, datas
     u8 = np.frombuffer(raw, np.uint8)
     # step, run_offset, runs, dim, p1, n1, p2, n2 (payload offsets in raw and byte lengths)
     cols = np.zeros((8, n), np.int64)

@@ -25,8 +25,9 @@ from fusionlog.errors import FusionlogError
 from fusionlog.inputs import check_input
 
 from .blocks import Assembly, Cursor, Window
+from .chunk_rows import Rows, chunk_rows
 from .chunks import Container, linear_batches, open_container, open_error, read_chunk
-from .columns import BadMessage, Table, decode_table, gather
+from .columns import BadMessage, Table, decode_rows, decode_table, gather
 from .layout import LAYOUT_META, Layout
 from .schema import ESTIMATE_SCHEMA, SENSOR_SCHEMA, VALUES
 from .wire import MessageFormat, format_of_schema_record
@@ -146,12 +147,14 @@ class McapFile:
                 if ids is not None and not ids & cids:
                     continue
                 only = cids & ids if sparse and ids is not None else None
-                tab = self._table(read_chunk(f, self.path, index, only), formats)
+                tab = self._table(chunk_rows(f, self.path, index, only), formats)
                 if tab is not None:
                     yield ci, tab
 
-    def _table(self, msgs: list[Any], formats: dict[int, MessageFormat]) -> Table | None:
+    def _table(self, msgs: list[Any] | Rows, formats: dict[int, MessageFormat]) -> Table | None:
         try:
+            if isinstance(msgs, Rows):
+                return decode_rows(msgs, formats)
             return decode_table(msgs, formats)
         except BadMessage as e:
             topic = self._topic_of()[e.channel_id]
