@@ -16,6 +16,10 @@ from array import array
 from bisect import bisect_right
 from typing import Any
 
+import numpy as np
+
+from fusionlog.core.timing import regular_times
+
 from .wire import encode_block_fields, encode_payload2_key
 
 __all__ = ["FirstTimes", "StepSet", "TopicState"]
@@ -83,40 +87,73 @@ class StepSet:
 
 
 class FirstTimes:
-    """step -> time, each step's first time kept (``dict.setdefault``): steps 0..L-1 in a packed
-    array of doubles, steps that came before the ones below them in a dict until those come."""
+    """step -> time, each step's first time kept (``dict.setdefault``): steps 0..L-1 while
+    t_k = k t_1 exactly (a simulation's k dt, which the layout records as ``dt``) as their
+    count and t_1 alone, from the first other time on in a packed array of doubles; steps that
+    came before the ones below them in a dict until those come."""
 
-    __slots__ = ("_dense", "_ahead")
+    __slots__ = ("_dense", "_ahead", "_n", "_dt")
 
     def __init__(self) -> None:
-        self._dense = array("d")
+        self._dense: array | None = None  # None: steps 0.._n-1 at k * _dt
+        self._n = 0
+        self._dt = 0.0
         self._ahead: dict[int, float] = {}
 
+    def _len(self) -> int:
+        return self._n if self._dense is None else len(self._dense)
+
+    def _append(self, t: float) -> None:
+        if self._dense is None:
+            n = self._n
+            if n == 1:
+                self._dt = t
+            if (n == 0 and t == 0.0) or n == 1 or (n > 1 and t == n * self._dt):
+                self._n += 1
+                return
+            self._dense = array("d", [k * self._dt for k in range(n)])
+        self._dense.append(t)
+
     def setdefault(self, step: int, time: float) -> None:
-        dense, ahead = self._dense, self._ahead
-        if step < len(dense):
+        ahead = self._ahead
+        n = self._len()
+        if step < n:
             return
-        if step > len(dense):
+        if step > n:
             ahead.setdefault(step, time)
             return
-        dense.append(ahead.pop(step, time))
-        while ahead and len(dense) in ahead:  # steps that came early, now in sequence
-            dense.append(ahead.pop(len(dense)))
+        self._append(ahead.pop(step, time))
+        while ahead and self._len() in ahead:  # steps that came early, now in sequence
+            self._append(ahead.pop(self._len()))
 
-    def extend(self, k0: int, times: array) -> None:
-        """setdefault(k0 + i, times[i]) for each i (one append where k0 is the next step)."""
-        if k0 == len(self._dense) and not self._ahead:
-            self._dense.extend(times)
+    def extend(self, k0: int, times: np.ndarray) -> None:
+        """setdefault(k0 + i, times[i]) for each i (at once where k0 is the next step)."""
+        if k0 != self._len() or self._ahead:
+            for i, t in enumerate(times.tolist()):
+                self.setdefault(k0 + i, t)
             return
-        for i, t in enumerate(times):
-            self.setdefault(k0 + i, t)
+        head = 2 if self._dense is None else 0  # t_0 and t_1 decide the regular steps
+        for t in times[: max(0, head - self._n)].tolist():
+            self._append(t)
+        rest = times[max(0, head - k0) :]
+        if self._dense is None:
+            n = self._n
+            if np.array_equal(np.arange(n, n + len(rest)) * self._dt, rest):
+                self._n += len(rest)
+                return
+            for t in rest.tolist():  # the first other time makes the array
+                self._append(t)
+            return
+        self._dense.frombytes(np.ascontiguousarray(rest, "<f8").tobytes())
 
     def __len__(self) -> int:
-        return len(self._dense) + len(self._ahead)
+        return self._len() + len(self._ahead)
 
-    def times(self) -> array | None:
+    def times(self) -> np.ndarray | array | None:
         """The times of steps 0..S-1; None when the steps are not exactly those."""
-        return None if self._ahead else self._dense
+        if self._ahead:
+            return None
+        return regular_times(self._n, self._dt) if self._dense is None else self._dense
 
 
 class TopicState:

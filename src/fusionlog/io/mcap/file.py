@@ -466,12 +466,13 @@ class McapFile:
         topic_index[list(tidx)] = list(tidx.values())
         kinds = [i.format.kind for i in infos]  # type: ignore[union-attr]
         dims = [self.dim_of(t) for t in names]
-        masks = [st.steps_of(t) for t in names]
+        masks = [st.steps_of(t) if t in st.sparse else None for t in names]
         tables = self._tables(set(tidx))
         try:
             yield from time_blocks(
-                self.path, tables, names, dims, kinds, topic_index, masks, max(1, steps)
-            )
+                self.path, tables, names, dims, kinds, topic_index, masks, max(1, steps),
+                len(st.times),
+            )  # fmt: skip
         finally:
             tables.close()
 

@@ -20,10 +20,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fusionlog.core.timing import regular_times
+
 __all__ = ["LAYOUT_META", "Layout"]
 
 LAYOUT_META = "fusionlog.layout"
 _FORMAT = "1"
+
+
+def _regular(t: np.ndarray, block: int = 1 << 16) -> bool:
+    """t_k == k t_1 for every k, a block of instants at a time (no array of the log's length)."""
+    return all(
+        np.array_equal(np.arange(a, min(a + block, len(t))) * t[1], t[a : a + block])
+        for a in range(0, len(t), block)
+    )
 
 
 @dataclass(frozen=True)
@@ -61,7 +71,7 @@ class Layout:
         }
         if self.sparse:
             out["sparse"] = json.dumps(self.sparse, sort_keys=True)
-        if len(t) >= 2 and np.array_equal(np.arange(len(t)) * t[1], t):
+        if len(t) >= 2 and _regular(t):
             out["dt"] = repr(float(t[1]))
         else:
             out["times"] = json.dumps([float(x) for x in t])
@@ -77,7 +87,7 @@ class Layout:
             dims = json.loads(meta["topics"])
             sparse = json.loads(meta.get("sparse", "{}"))
             if "dt" in meta:
-                times = np.arange(instants) * float(meta["dt"])
+                times = regular_times(instants, float(meta["dt"]))
             else:
                 times = np.array(json.loads(meta["times"]), dtype=float)
         except (KeyError, TypeError, json.JSONDecodeError) as e:

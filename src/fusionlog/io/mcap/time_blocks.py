@@ -45,21 +45,24 @@ def time_blocks(
     dims: Sequence[int],
     kinds: Sequence[str],
     topic_index: np.ndarray,
-    masks: Sequence[np.ndarray],
+    masks: Sequence[np.ndarray | None],
     steps: int,
+    instants: int,
 ) -> Iterator[tuple[int, int, dict[str, Any]]]:
     """(k0, k1, {topic: data}) for the windows [k0, k1) of `steps` instants of a one-run file
-    whose decoded chunks are `tables` (in file order), `masks[i]` (K+1,) the instants at which
-    topic i has a message. A message out of time order, twice, or missing is a FusionlogError
+    of `instants` instants whose decoded chunks are `tables` (in file order), `masks[i]` (K+1,)
+    the instants at which topic i has a message, None for every instant (nothing of the log's
+    length held for it). A message out of time order, twice, or missing is a FusionlogError
     naming the file (the run reader's checks, per window)."""
-    K1 = len(masks[0]) if masks else 0
+    K1 = instants if names else 0
     dims, kinds = list(dims), list(kinds)
     win = _Window(0, min(steps, K1), dims, kinds)
 
     def flush(w: _Window) -> dict[str, Any]:
         for ti, name in enumerate(names):
-            want = masks[ti][w.k0 : w.k1]
-            if not np.array_equal(w.seen[ti], want):
+            mask = masks[ti]
+            want = True if mask is None else mask[w.k0 : w.k1]
+            if not np.all(w.seen[ti] == want):
                 k = w.k0 + int(np.flatnonzero(w.seen[ti] != want)[0])
                 raise FusionlogError(f"{path}: {name}: step {k} missing or not scheduled")
         return dict(zip(names, w.values, strict=True))

@@ -19,7 +19,6 @@ import math
 import operator
 import os
 import struct
-from array import array
 from collections import deque
 from collections.abc import Sequence
 from typing import Any
@@ -228,7 +227,7 @@ class McapWriter:
         if dense is None:
             return None
         steps = len(dense)
-        times = np.array(dense, dtype=float)
+        times = np.asarray(dense, dtype=float)
         dims = {t: st.dim for t, st in self._topic_states.items()}
         runs = max(0, self._block_offset + self._block_runs)
         sparse = {
@@ -465,7 +464,7 @@ class McapWriter:
             if twice is not None:
                 raise ValueError(f"{c.topic}: step {twice} written twice for runs from 0")
             self._first_steps.setdefault(c.topic, StepSet()).add_range(k0, k0 + w)
-        self._first_times.extend(k0, array("d", t.tobytes()))
+        self._first_times.extend(k0, t)
         self._hstep = -1  # the one-message path's cached head is not these instants'
         logs, T = [st.log for st in states], len(states)
         for i in range(0, w, _WINDOW):
