@@ -142,6 +142,7 @@ def main() -> None:
     for N in args.sizes:
         out = base / f"paper-{N}"
         r = _fusionlog_run([str(PAPER), "--runs", "1", "--steps", str(N - 1)], out)
+        r["load"] = _uptime().split("load average:")[-1].strip()  # at its end
         if per_instant is None:
             per_instant = filterpy_per_instant(out / "sensors.mcap", min(N, args.filterpy_instants))
             measured_on = min(N, args.filterpy_instants)
@@ -171,20 +172,22 @@ def main() -> None:
 
 def _table(results: dict) -> None:
     mb = 1e6
-    print("\n| instants | wall time | peak RSS | evaluation.rrd | estimates.mcap | sensors.mcap"
-          " | FilterPy KF loop (CKF only) |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|")
+    print("\n| instants | wall time | CPU time | peak RSS | evaluation.rrd | estimates.mcap"
+          " | sensors.mcap | FilterPy KF loop (CKF only) |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|")
     for N, r in results["runs"].items():
         s = r["sizes"]
         fp = f"{r['filterpy_seconds']:.1f} s" + (
             " (extrapolated)" if r["filterpy_extrapolated"] else ""
         )
-        print(f"| {N:,} | {r['seconds']:.1f} s | {r['peak_rss'] / 2**30:.2f} GiB | "
+        print(f"| {N:,} | {r['seconds']:.1f} s | {r['cpu_seconds']:.1f} s | "
+              f"{r['peak_rss'] / 2**30:.2f} GiB | "
               f"{s['evaluation.rrd'] / mb:.0f} MB | {s['estimates.mcap'] / mb:.0f} MB | "
               f"{s['sensors.mcap'] / mb:.0f} MB | {fp} |")  # fmt: skip
     if "csv" in results:
         r, s = results["csv"], results["csv"]["sizes"]
-        print(f"| CSV replay | {r['seconds']:.1f} s | {r['peak_rss'] / 2**30:.2f} GiB | "
+        print(f"| CSV replay | {r['seconds']:.1f} s | {r['cpu_seconds']:.1f} s | "
+              f"{r['peak_rss'] / 2**30:.2f} GiB | "
               f"{s['evaluation.rrd'] / mb:.0f} MB | {s['estimates.mcap'] / mb:.0f} MB | "
               f"{s['sensors.mcap'] / mb:.0f} MB | |")  # fmt: skip
     if "peak_ratio_4e6_1e6" in results:

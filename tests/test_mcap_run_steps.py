@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -185,3 +186,23 @@ def test_a_wrong_index_is_not_trusted(tmp_path, damage) -> None:
         indexes[0] = (indexes[1][0], indexes[0][1])
     f, bad = _with_indexes(data, ci, indexes)
     _same(chunk_rows(f, tmp_path, bad), _mcap_messages(data, ci))
+
+
+def test_the_files_and_the_scenario_of_a_log_share_one_array_of_instants(tmp_path) -> None:
+    """A long one-run log's instants k dt are one read-only array for its scenario's schedule
+    and every file written on them, not one each (8 bytes per instant each; issue 34), and
+    sensors measuring at every instant cost no array at all."""
+    from fusionlog.io.mcap import McapFile
+    from fusionlog.scenario import load_scenario
+    from fusionlog.stages.run import run_pipeline
+
+    paper = Path(__file__).resolve().parents[1] / "pipeline" / "ajgl2009.toml"
+    sc = load_scenario(paper, runs=1, steps=3000)
+    run_pipeline(sc, tmp_path, archs=["CKF"], force=True)
+    sens, est = McapFile(tmp_path / "sensors.mcap"), McapFile(tmp_path / "estimates.mcap")
+    times = sc.schedule.times
+    assert sens.times() is times and est.times() is times
+    assert not times.flags.writeable
+    np.testing.assert_array_equal(times, np.arange(3001) * sc.system.dt)
+    assert sc.schedule.measures.shape == (3001, 3) and sc.schedule.measures.all()
+    assert sc.schedule.measures.strides == (0, 0)  # a broadcast True
