@@ -130,7 +130,7 @@ def _write_steps(w: McapWriter, named: list, times: np.ndarray, k0: int, k1: int
     a reader learns every topic from the file's first messages); one run's at once where every
     writer gives its column (`McapWriter.write_run_steps`, the same bytes)."""
     cols = [getattr(write, "column", lambda _: None)(topic) for topic, write in named]
-    if named and all(c is not None for c in cols):
+    if off == 0 and named and all(c is not None for c in cols):  # one run: run 0
         w.write_run_steps(k0, times[k0:k1], cols)
         return
     for k in range(k0, k1):
