@@ -58,14 +58,18 @@ class Spool:
 
 
 def spool_readings(
-    blocks: Iterable[tuple[int, int, dict[str, Any]]], topics: list[str], width: int
+    blocks: Iterable[tuple[int, int, dict[str, Any]]],
+    topics: list[str],
+    width: int,
+    missing: bool = False,
 ) -> Spool | None:
     """The stacked readings z_k of eq. (30) of a log read in blocks of time, spooled; None
-    (nothing kept) when one is missing: the short plans stand only for a complete log."""
+    (nothing kept) when one is missing: the short plans stand only for a complete log
+    (`missing`: kept as NaN, for filters that take each instant as it comes)."""
     spool = Spool(width)
     for k0, _k1, data in blocks:
         z = np.concatenate([data[t][0] for t in topics], axis=-1)
-        if np.isnan(z).any():
+        if not missing and np.isnan(z).any():
             spool.close()
             return None
         spool.write(k0, z)

@@ -305,6 +305,8 @@ class _StateEstimator(Estimator):
             return None
         if is_late(system):  # late readings (issue 30): the whole run
             return None
+        if not system.linear:  # EKF/UKF: their states carried from block to block
+            return self._nonlinear_windows(sensors, B)
         log = steady_log(system, self.archs, plans.steps, plans.criterion)
         if log is None:
             return None
@@ -316,6 +318,29 @@ class _StateEstimator(Estimator):
             (k0, k1, {a: _estimate_writer(e.mean, e.cov, True, k0) for a, e in out.items()})
             for k0, k1, out in long_estimates(log, spool, B)
         )
+
+    def _nonlinear_windows(self, sensors: McapFile, B: int) -> Any:
+        """A long nonlinear one-run log in blocks of time (`core.nonlinear.long_log`), its
+        readings spooled (FBS reads them back in reverse)."""
+        from fusionlog.core.nonlinear.long_log import estimate_blocks
+        from fusionlog.driver.long_log import spool_readings
+
+        plans, topics = self.plans, self.topics
+        blocks = sensors.iter_time_blocks(topics, B)
+        spool = spool_readings(blocks, topics, plans.system.m, missing=True)
+        plans.patterns.append(None)  # per-run covariances (provenance), as the whole run's
+
+        def windows() -> Any:
+            try:
+                got = estimate_blocks(
+                    plans.system, self.archs, lambda a, b: spool.read(a, b)[None], plans.times, B
+                )
+                for k0, k1, out in got:
+                    yield k0, k1, {a: _estimate_writer(m, c, False, k0) for a, (m, c) in out.items()}
+            finally:
+                spool.close()
+
+        return windows()
 
     def provenance(self) -> dict[str, str]:
         # The evaluator's exact analysis needs it: a shared pattern is analysed with the same

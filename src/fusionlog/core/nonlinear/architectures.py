@@ -70,29 +70,44 @@ class _Steps:
     """What every architecture needs of the instants: the intervals, the stacked measurement
     columns of each sensor, and which sensors measure at an instant in some run."""
 
-    def __init__(self, system: System, z: np.ndarray, times: np.ndarray | None, off: int):
+    def __init__(
+        self,
+        system: System,
+        z: np.ndarray,
+        times: np.ndarray | None,
+        off: int,
+        instants: int | None = None,
+    ):
         if times is not None:
             system = system.on_times(np.asarray(times, dtype=float))
-        self.system, self.z, self.off = system, z, off
+        self.system, self.off = system, off
+        #: runs and instants; `instants`: of a log whose readings z come in blocks (`feed`)
+        self.M, self.K1 = z.shape[0], z.shape[1] if instants is None else instants
         # the instants, for messages only: a system already on its instants knows its intervals
-        self.times = _instants(system, z.shape[1]) if times is None else np.asarray(times, float)
+        self.times = _instants(system, self.K1) if times is None else np.asarray(times, float)
         m = self.system.m
         self.cols = [np.arange(m)[sl] for sl in self.system.sensor_slices]
-        some = (~np.isnan(z)).any(axis=0)  # (K+1, m): the column has a reading in some run
-        self.measures = np.stack([some[:, c].any(axis=1) for c in self.cols], axis=1)  # (K+1, S)
         self.ukf = ukf_params(self.system)
         self.work: dict = {}  # the EKF update's temporaries, reused from instant to instant
+        self.feed(0, z)
+
+    def feed(self, k0: int, z: np.ndarray) -> None:
+        """The readings z (M, w, m) of the instants k0..k0+w-1 (a long log's block of time,
+        `core.nonlinear.long_log`; else all of them, k0 = 0), and which sensors measure then."""
+        self.z, self.k0 = z, k0
+        some = (~np.isnan(z)).any(axis=0)  # (w, m): the column has a reading in some run
+        self.measures = np.stack([some[:, c].any(axis=1) for c in self.cols], axis=1)  # (w, S)
 
     def predict(self, k: int, x: np.ndarray, P: np.ndarray):
         return predict(*transition(self.system, k), x, P, self.ukf)
 
     def update(self, k: int, which: list[int], x: np.ndarray, P: np.ndarray):
         """The update at instant k with the sensors `which` that measure then (None: none)."""
-        which = [j for j in which if self.measures[k, j]]
+        which = [j for j in which if self.measures[k - self.k0, j]]
         if not which:
             return None
         model = Stacked(tuple(self.system.sensors[j] for j in which))
-        zk = self.z[:, k, np.concatenate([self.cols[j] for j in which])]
+        zk = self.z[:, k - self.k0, np.concatenate([self.cols[j] for j in which])]
         self._check_ranges(k, which, x, zk)
         return update(model, x, P, zk, self.ukf, self.work)
 
@@ -114,9 +129,8 @@ class _Steps:
             start += s.dim
 
     def start(self) -> tuple[np.ndarray, np.ndarray]:
-        M = self.z.shape[0]
         pr = self.system.prior
-        return np.tile(pr.mean, (M, 1)), np.tile(pr.cov, (M, 1, 1))
+        return np.tile(pr.mean, (self.M, 1)), np.tile(pr.cov, (self.M, 1, 1))
 
 
 def _instants(system: System, K1: int) -> np.ndarray:
@@ -145,15 +159,26 @@ def estimate_steps(
     """`estimate` one instant at a time: (mean (M, n), covariances (M, n, n)) for k = 0..K,
     each computed when asked for (the filters keep one instant in memory, not all; FBS, a
     smoother, all of them)."""
-    names = [s.name for s in system.sensors]
-    base, sensor = parse_arch(arch, names)  # a name no definition has: ValueError
-    kind = definition(base)
+    require_filter(system, arch)
+    return steps_of(_Steps(system, z, times, run_offset), arch)
+
+
+def require_filter(system: System, arch: str) -> None:
+    """An architecture name no definition has: ValueError; a nonlinear model without a local
+    filter: FusionlogError."""
+    definition(parse_arch(arch, [s.name for s in system.sensors])[0])
     if system.filter is None and not system.linear:
         raise FusionlogError(
             'the model is nonlinear and has no local filter: give [estimate] filter = "EKF" or '
             '"UKF", or --filter'
         )
-    st = _Steps(system, z, times, run_offset)
+
+
+def steps_of(st: _Steps, arch: str) -> Steps:
+    """`estimate_steps` of the instants of `st` (whose readings may come in blocks)."""
+    names = [s.name for s in st.system.sensors]
+    base, sensor = parse_arch(arch, names)
+    kind = definition(base)
     if kind.locals == "centralised":
         return _named(_filter(st, list(range(len(names)))), arch)
     if kind.locals == "single":
@@ -191,10 +216,14 @@ def _named(steps: Steps, arch: str) -> Steps:
         yield x, P
 
 
-def _filter(st: _Steps, which: list[int], keep: list | None = None) -> Steps:
-    """One filter on the sensors `which`; with `keep`, each step's (x-, P-, C) is appended."""
-    x, P = st.start()
-    for k in range(st.z.shape[1]):
+def _filter(
+    st: _Steps, which: list[int], keep: list | None = None, first: int = 0, state=None
+) -> Steps:
+    """One filter on the sensors `which`; with `keep`, each step's (x-, P-, C) is appended.
+    From instant `first` on, `state` the estimate (x, P) of the instant before (None: the
+    prior at instant 0)."""
+    x, P = st.start() if state is None else state
+    for k in range(first, st.K1):
         if k:
             x, P, _, C = st.predict(k, x, P)
             if keep is not None:
@@ -214,20 +243,26 @@ def _smoother(st: _Steps, arch: str) -> Steps:
     for k, (x, P) in enumerate(forward):
         out.put(k, x, P)
     tr = out.track()
-    mean, cov = tr.mean, tr.cov
+    rts(tr.mean, tr.cov, keep)
+    for k in range(K1):
+        yield tr.mean[:, k], tr.cov[:, k]
+
+
+def rts(mean: np.ndarray, cov: np.ndarray, keep: list) -> None:
+    """The RTS backward pass in place over instants j = w-2..0 of the forward estimates mean
+    (M, w, n), cov (M, w, n, n), whose last instant is smoothed already; keep[j] the
+    prediction (x-, P-, C) from instant j to j + 1 (module docstring)."""
     for k in range(mean.shape[1] - 2, -1, -1):
         xp, Pp, C = keep[k]  # the prediction from k to k + 1
         G = mT(np.linalg.solve(Pp, mT(C)))
         mean[:, k] += np.einsum("mij,mj->mi", G, mean[:, k + 1] - xp)
         cov[:, k] = sym(cov[:, k] + G @ (cov[:, k + 1] - Pp) @ mT(G))
-    for k in range(K1):
-        yield mean[:, k], cov[:, k]
 
 
 def _hkf(st: _Steps) -> Steps:
     """Eqs. (36)-(40) with EKF/UKF locals restarting from the fused prediction."""
     x, P = st.start()
-    for k in range(st.z.shape[1]):
+    for k in range(st.K1):
         if k:
             x, P, _, _ = st.predict(k, x, P)
         Yp = spd_inv(P, "the predicted covariance")
@@ -247,7 +282,7 @@ def _hkf(st: _Steps) -> Steps:
 
 def _track_to_track(st: _Steps, arch: Architecture) -> Steps:
     """One local filter per sensor, fused at every instant by the architecture's rule."""
-    M, K1 = st.z.shape[:2]
+    M, K1 = st.M, st.K1
     n, S = st.system.n, len(st.system.sensors)
     joint = arch.joint
     x0, P0 = st.start()
