@@ -147,9 +147,9 @@ def one_run_blocks(
     the same numbers) in blocks of `block` instants, (k0, k1, x (1, w, n), z (1, w, m)), for a
     time-invariant model (linear or not: f and h as `_draw` applies them, a bearing wrapped)
     without dropouts, NaN where `measures` (K+1, S) says a sensor does not measure (issue 34:
-    a 10^6-instant log in bounded memory). The stream's draw order is x0, every w, every v (`_draw`), so w is drawn
-    block by block from one generator while a second one, advanced past x0 and every w, draws
-    v block by block: nothing of the length of the log is kept."""
+    a 10^6-instant log in bounded memory). The stream's draw order is x0, every w, every v
+    (`_draw`), so w is drawn block by block from one generator while a second one, advanced
+    past x0 and every w, draws v block by block: nothing of the length of the log is kept."""
     n, m = system.n, system.m
     q = system.Q.shape[0]
     size = chunk_runs(steps)  # the runs drawn together from the stream: run 0's values first

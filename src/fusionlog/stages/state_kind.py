@@ -336,7 +336,7 @@ class _StateEstimator(Estimator):
                     plans.system, self.archs, lambda a, b: spool.read(a, b)[None], plans.times, B
                 )
                 for k0, k1, out in got:
-                    yield k0, k1, {a: _estimate_writer(m, c, False, k0) for a, (m, c) in out.items()}
+                    yield k0, k1, {a: _estimate_writer(*e, False, k0) for a, e in out.items()}
             finally:
                 spool.close()
 

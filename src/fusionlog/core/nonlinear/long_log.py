@@ -23,7 +23,7 @@ import numpy as np
 
 from ..architectures.registry import definition, parse_arch
 from ..model import System
-from .architectures import _named, _Out, _Steps, _filter, require_filter, rts, steps_of
+from .architectures import _filter, _named, _Out, _Steps, require_filter, rts, steps_of
 
 __all__ = ["estimate_blocks"]
 
