@@ -55,6 +55,8 @@ class LongSetup:
     expected: dict[str, Any]
     nis: LongNis | None
     fields: dict[str, Any] = field(default_factory=dict)
+    #: a nonlinear truth's `PcrbPart` (its system and sensor topics), or None
+    pcrb: Any = None
 
     @property
     def bound(self) -> dict[str, np.ndarray]:
@@ -73,6 +75,7 @@ class LongEvaluator:
         self.tree = TreeDecimator(self.b)
         self.sums = {a: StepSums(setup.n) for a in setup.archs}
         self.traces = {a: np.zeros(2) for a in setup.archs}  # sum and count of finite tr P
+        self.pcrb = _LongPcrb(setup.pcrb, setup.times) if setup.pcrb is not None else None
 
     def add(
         self,
@@ -120,6 +123,8 @@ class LongEvaluator:
             tree["samples"] = {0: (x, sample)}
         if s.nis is not None and sensors is not None:
             tree.update(s.nis.add(k0, k1, sensors, by_arch))
+        if self.pcrb is not None:
+            tree["pcrb"] = self.pcrb.add(k0, k1, truth, sensors)
         self.tree.add(with_derived(tree, CKF))
 
     def _mean_trace(self, a: str) -> float:
@@ -142,6 +147,13 @@ class LongEvaluator:
             if b is not None and a in archs:
                 archs[a]["bound"] = {**b, "worst_step": s.log.first_instant(b["worst_step"])}
         summary = {**s.head, "architectures": archs}
+        pcrb = None
+        if self.pcrb is not None:  # no exact analysis beside the Monte Carlo values
+            for entry in archs.values():
+                if "mse" in entry:
+                    entry["expected"] = None
+            summary["pcrb"] = self.pcrb.summary()
+            pcrb = None if summary["pcrb"] is None else "drawn"
         if s.truth_info is not None and s.has_truth:
             summary["truth"] = dict(s.truth_info)
         if s.nis is not None:
@@ -151,6 +163,8 @@ class LongEvaluator:
         K1 = len(s.times)
         steps = point_steps(K1, self.b)
         nis = drawn.get("nis") if s.nis is not None and s.nis.archs else None
+        if pcrb is not None:
+            s.fields["pcrb"] = drawn["pcrb"]
         return Evaluation(
             summary=summary,
             times=s.times[steps],
@@ -167,3 +181,40 @@ class LongEvaluator:
             decimation=note(K1, self.b) if self.b > 1 else None,
             **s.fields,
         )
+
+
+class _LongPcrb:
+    """The posterior Cramer-Rao bound of a long one-run log block by block (`PcrbBlocks`, the
+    recursion carried): each block's diagonal for the recording, the sums over instants for
+    the summary (`pcrb_summary`'s mean over instants); None where a block lacks its readings
+    (as `PcrbPart`)."""
+
+    def __init__(self, part: Any, times: np.ndarray) -> None:
+        from fusionlog.core.nonlinear.pcrb import PcrbBlocks
+
+        self.blocks = PcrbBlocks(part.acc.system, times)
+        self.topics = part.topics
+        self.total: np.ndarray | None = None  # per state, the sum over instants
+        self.count, self.complete = 0, True
+
+    def add(self, k0: int, k1: int, truth: np.ndarray | None, sensors: dict | None) -> np.ndarray:
+        """The block's bound on each state's MSE (w, n) (NaN once the bound is unknown)."""
+        if truth is None or not sensors or any(t not in sensors for t in self.topics):
+            self.complete = False
+        if not self.complete:
+            return np.full((k1 - k0, self.blocks.system.n), np.nan)
+        present = np.stack([~np.isnan(sensors[t]).any(axis=-1) for t in self.topics], axis=-1)
+        diag = np.diagonal(self.blocks.add(k0, truth, present), axis1=-2, axis2=-1).copy()
+        self.total = diag.sum(axis=0) + (self.total if self.total is not None else 0.0)
+        self.count += len(diag)
+        return diag
+
+    def summary(self) -> dict[str, Any] | None:
+        """summary.json's "pcrb" (`core.nonlinear.pcrb_summary`), None when incomplete."""
+        if not self.complete or self.total is None:
+            return None
+        per_state = self.total / self.count
+        return {
+            "mse": float(per_state.sum() / len(per_state)),
+            "mse_per_state": [float(v) for v in per_state],
+        }

@@ -202,7 +202,7 @@ class StateEvaluator(Evaluator):
             return None
         if self.late is not None:  # late readings (issue 30): the whole run
             return None
-        parts = {MetricsPart, ExactPart, SamplesPart, NisPart, BoundPart}
+        parts = {MetricsPart, ExactPart, SamplesPart, NisPart, BoundPart, PcrbPart}
         if not {type(p) for p in self.parts} <= parts:
             return None
         if any(isinstance(p, BoundPart) and p.sums for p in self.parts):
@@ -233,6 +233,8 @@ class StateEvaluator(Evaluator):
                 if not log.whole and not converged(expected[a], log.c):
                     return None
         long_nis = None
+        if nis is not None and nis.archs and not nis.system.linear:
+            return None  # a nonlinear replay's NIS: the whole run
         if nis is not None:
             from fusionlog.core.architectures import definition
 
@@ -244,6 +246,7 @@ class StateEvaluator(Evaluator):
                 if forward is None:
                     return None
             long_nis = LongNis(nis, forward, ckf)
+        pcrb = next((p for p in self.parts if isinstance(p, PcrbPart)), None)
         sc = self.sc
         return LongEvaluator(
             LongSetup(
@@ -251,7 +254,7 @@ class StateEvaluator(Evaluator):
                 n=self.n, confidence=sc.confidence, samples=min(sc.sample_runs, 1),
                 full_resolution=sc.full_resolution, has_truth=self.has_truth,
                 recorded=sc.replay is not None, truth_info=self.metrics.truth_info, log=log,
-                expected=expected, nis=long_nis,
+                expected=expected, nis=long_nis, pcrb=pcrb,
                 fields={
                     "state_names": tuple(sc.state_names), "confidence": sc.confidence,
                     "properties": {"scenario": sc.source, "provenance": self.prov},
