@@ -57,6 +57,8 @@ class LongSetup:
     fields: dict[str, Any] = field(default_factory=dict)
     #: a nonlinear truth's `PcrbPart` (its system and sensor topics), or None
     pcrb: Any = None
+    #: the `TrajectoryPart` (APE/RPE, `.long_trajectory`), or None
+    trajectory: Any = None
 
     @property
     def bound(self) -> dict[str, np.ndarray]:
@@ -76,6 +78,11 @@ class LongEvaluator:
         self.sums = {a: StepSums(setup.n) for a in setup.archs}
         self.traces = {a: np.zeros(2) for a in setup.archs}  # sum and count of finite tr P
         self.pcrb = _LongPcrb(setup.pcrb, setup.times) if setup.pcrb is not None else None
+        self.traj = None
+        if setup.trajectory is not None:
+            from .long_trajectory import LongTrajectory
+
+            self.traj = LongTrajectory(setup.trajectory, setup.archs)
 
     def add(
         self,
@@ -125,6 +132,8 @@ class LongEvaluator:
             tree.update(s.nis.add(k0, k1, sensors, by_arch))
         if self.pcrb is not None:
             tree["pcrb"] = self.pcrb.add(k0, k1, truth, sensors)
+        if self.traj is not None and truth is not None:
+            self.traj.add(k0, k1, truth, {a: by_arch[a][0] for a in s.archs})
         self.tree.add(with_derived(tree, CKF))
 
     def _mean_trace(self, a: str) -> float:
@@ -154,6 +163,11 @@ class LongEvaluator:
                     entry["expected"] = None
             summary["pcrb"] = self.pcrb.summary()
             pcrb = None if summary["pcrb"] is None else "drawn"
+        if self.traj is not None:  # APE/RPE: the second pass over the positions
+            entries, s.fields["trajectory"] = self.traj.finish(self.b)
+            for a, entry in archs.items():
+                if "mse" in entry:
+                    entry |= entries[a]
         if s.truth_info is not None and s.has_truth:
             summary["truth"] = dict(s.truth_info)
         if s.nis is not None:

@@ -202,7 +202,7 @@ class StateEvaluator(Evaluator):
             return None
         if self.late is not None:  # late readings (issue 30): the whole run
             return None
-        parts = {MetricsPart, ExactPart, SamplesPart, NisPart, BoundPart, PcrbPart}
+        parts = {MetricsPart, ExactPart, SamplesPart, NisPart, BoundPart, PcrbPart, TrajectoryPart}
         if not {type(p) for p in self.parts} <= parts:
             return None
         if any(isinstance(p, BoundPart) and p.sums for p in self.parts):
@@ -247,6 +247,7 @@ class StateEvaluator(Evaluator):
                     return None
             long_nis = LongNis(nis, forward, ckf)
         pcrb = next((p for p in self.parts if isinstance(p, PcrbPart)), None)
+        traj = next((p for p in self.parts if isinstance(p, TrajectoryPart)), None)
         sc = self.sc
         return LongEvaluator(
             LongSetup(
@@ -254,7 +255,7 @@ class StateEvaluator(Evaluator):
                 n=self.n, confidence=sc.confidence, samples=min(sc.sample_runs, 1),
                 full_resolution=sc.full_resolution, has_truth=self.has_truth,
                 recorded=sc.replay is not None, truth_info=self.metrics.truth_info, log=log,
-                expected=expected, nis=long_nis, pcrb=pcrb,
+                expected=expected, nis=long_nis, pcrb=pcrb, trajectory=traj,
                 fields={
                     "state_names": tuple(sc.state_names), "confidence": sc.confidence,
                     "properties": {"scenario": sc.source, "provenance": self.prov},
