@@ -59,6 +59,8 @@ class LongSetup:
     pcrb: Any = None
     #: the `TrajectoryPart` (APE/RPE, `.long_trajectory`), or None
     trajectory: Any = None
+    #: the `PlanePart` and the short plans of its inputs (`.views_part.LongPlane`), or None
+    plane: Any = None
 
     @property
     def bound(self) -> dict[str, np.ndarray]:
@@ -83,6 +85,11 @@ class LongEvaluator:
             from .long_trajectory import LongTrajectory
 
             self.traj = LongTrajectory(setup.trajectory, setup.archs)
+        self.plane = None
+        if setup.plane is not None:
+            from .views_part import LongPlane
+
+            self.plane = LongPlane(*setup.plane, point_steps(len(setup.times), self.b))
 
     def add(
         self,
@@ -132,6 +139,9 @@ class LongEvaluator:
             tree.update(s.nis.add(k0, k1, sensors, by_arch))
         if self.pcrb is not None:
             tree["pcrb"] = self.pcrb.add(k0, k1, truth, sensors)
+        if self.plane is not None:
+            x = truth if truth is not None else np.full((1, w, s.n), np.nan)
+            self.plane.add(k0, k1, x, by_arch)
         if self.traj is not None and truth is not None:
             self.traj.add(k0, k1, truth, {a: by_arch[a][0] for a in s.archs})
         self.tree.add(with_derived(tree, CKF))
@@ -163,6 +173,8 @@ class LongEvaluator:
                     entry["expected"] = None
             summary["pcrb"] = self.pcrb.summary()
             pcrb = None if summary["pcrb"] is None else "drawn"
+        if self.plane is not None:
+            s.fields["plane"] = self.plane.result()
         if self.traj is not None:  # APE/RPE: the second pass over the positions
             entries, s.fields["trajectory"] = self.traj.finish(self.b)
             for a, entry in archs.items():

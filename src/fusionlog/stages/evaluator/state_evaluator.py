@@ -203,6 +203,7 @@ class StateEvaluator(Evaluator):
         if self.late is not None:  # late readings (issue 30): the whole run
             return None
         parts = {MetricsPart, ExactPart, SamplesPart, NisPart, BoundPart, PcrbPart, TrajectoryPart}
+        parts |= {PlanePart}
         if not {type(p) for p in self.parts} <= parts:
             return None
         if any(isinstance(p, BoundPart) and p.sums for p in self.parts):
@@ -248,6 +249,14 @@ class StateEvaluator(Evaluator):
             long_nis = LongNis(nis, forward, ckf)
         pcrb = next((p for p in self.parts if isinstance(p, PcrbPart)), None)
         traj = next((p for p in self.parts if isinstance(p, TrajectoryPart)), None)
+        plane = next((p for p in self.parts if isinstance(p, PlanePart)), None)
+        inputs = None
+        if plane is not None:  # the inputs' ellipses: each sensor's SKF's short plans
+            p = plane.plans
+            skf = [f"SKF:{s.name}" for s in p.system.sensors]
+            inputs = steady_log(p.system, skf, self.K, p.criterion)
+            if inputs is None:
+                return None
         sc = self.sc
         return LongEvaluator(
             LongSetup(
@@ -256,6 +265,7 @@ class StateEvaluator(Evaluator):
                 full_resolution=sc.full_resolution, has_truth=self.has_truth,
                 recorded=sc.replay is not None, truth_info=self.metrics.truth_info, log=log,
                 expected=expected, nis=long_nis, pcrb=pcrb, trajectory=traj,
+                plane=(plane, inputs) if plane is not None else None,
                 fields={
                     "state_names": tuple(sc.state_names), "confidence": sc.confidence,
                     "properties": {"scenario": sc.source, "provenance": self.prov},
