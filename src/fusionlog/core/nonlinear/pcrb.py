@@ -39,23 +39,21 @@ class PcrbAccumulator:
 
     def __init__(self, system: System, times: np.ndarray) -> None:
         self.system = system = system.on_times(times)
-        K1, n = len(times), system.n
         self.runs = 0
-        self.info = np.zeros((K1, n, n))  # sum of D_z(k)
         self.linear_motion = system.motion.linear
-        if not self.linear_motion:
-            self.FtQF = np.zeros((K1, n, n))  # at k: sum of F~^T Q^-1 F~ over x_{k-1}
-            self.F = np.zeros((K1, n, n))  # at k: sum of F~
+        # sums of D_z(k) and, at k, of F~^T Q^-1 F~ over x_{k-1} and of F~ (K+1, n, n), made
+        # when the first block comes (a long log in blocks of time never makes them)
+        self.info = self.FtQF = self.F = 0.0
 
     def add(self, truth: np.ndarray, present: np.ndarray) -> None:
         """A block: true states (M, K+1, n) and which sensor measured in which run at which
         instant (M, K+1, S)."""
         self.runs += truth.shape[0]
         sums = _sums(self.system, truth, present, 0, None)
-        self.info += sums[0]
+        self.info = self.info + sums[0]
         if not self.linear_motion:
-            self.FtQF += sums[1]
-            self.F += sums[2]
+            self.FtQF = self.FtQF + sums[1]
+            self.F = self.F + sums[2]
 
     def bound(self) -> np.ndarray:
         """J_k^-1 for every instant (K+1, n, n): the bound on each state's MSE is its diagonal."""
