@@ -50,6 +50,7 @@ __all__ = [
     "align",
     "block_sums",
     "error_statistics",
+    "fit_count",
     "rotation_angles",
     "rpe_pairs",
     "run_trajectory",
@@ -176,16 +177,23 @@ def align_batch(
     eye = np.broadcast_to(np.eye(m), (runs, m, m))
     if mode == "none":
         return eye, np.zeros((runs, m)), np.ones(runs)
-    if n == 0:
-        raise AlignmentError("no matched instant to align")
+    k = fit_count(n, mode, first)
     if mode == "origin":
         return eye, truth[:, 0] - est[:, 0], np.ones(runs)
+    return umeyama_batch(est[:, :k], truth[:, :k], mode == "similarity")
+
+
+def fit_count(n: int, mode: str, first: int | None) -> int:
+    """The matched instants (the first `first` of n) an alignment `mode` other than ``none``
+    is fitted on; AlignmentError where there are too few."""
+    if n == 0:
+        raise AlignmentError("no matched instant to align")
     k = n if first is None else min(first, n)
-    if k < MIN_FIT:
+    if mode != "origin" and k < MIN_FIT:
         raise AlignmentError(
             f"{k} matched instant(s) to fit a {mode} alignment, at least {MIN_FIT} needed"
         )
-    return umeyama_batch(est[:, :k], truth[:, :k], mode == "similarity")
+    return k
 
 
 def align(est: np.ndarray, truth: np.ndarray, mode: str, first: int | None = None) -> Alignment:

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from fusionlog.core.decimate import TreeDecimator
-from fusionlog.core.trajectory import Alignment, AlignmentError, summary_entries
+from fusionlog.core.trajectory import Alignment, AlignmentError, fit_count, summary_entries
 from fusionlog.core.trajectory_blocks import ErrorSums, Moments, RpeTaker, select
 from fusionlog.driver.long_log import Spool
 from fusionlog.errors import FusionlogError
@@ -60,19 +60,13 @@ class LongTrajectory:
 
     def _alignment(self, a: str) -> Alignment:
         """Architecture a's alignment (`core.trajectory.align`'s rules, from the moments)."""
-        mode, n, m = self.s.align, self.seen[a], self.m
+        mode, m = self.s.align, self.m
         if mode == "none":
             return Alignment.identity(m)
-        if n == 0:
-            raise AlignmentError("no matched instant to align")
+        fit_count(self.seen[a], mode, self.s.align_first)  # too few: AlignmentError
         if mode == "origin":
             p0, g0 = self.first[a]
             return Alignment(np.eye(m), g0 - p0, 1.0)
-        k = self.moments[a].n
-        if k < 3:  # `core.trajectory.MIN_FIT`
-            raise AlignmentError(
-                f"{k} matched instant(s) to fit a {mode} alignment, at least 3 needed"
-            )
         return Alignment(*self.moments[a].fit(mode == "similarity"))
 
     def _blocks(self) -> Iterator[tuple[int, int, np.ndarray]]:
