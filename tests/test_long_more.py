@@ -276,12 +276,11 @@ def test_peak_memory_of_a_nonlinear_log_does_not_grow_with_the_instants(
 ) -> None:
     """The Python allocations' peak (tracemalloc) of a whole `run` of the EKF radar scenario
     (FBS: its three forward passes and the smoother; the PCRB and APE/RPE in the evaluation)
-    in blocks of 60 instants, with a
-    recording decimated to 20 buckets per series: twice the instants, the same peak within
-    10 %, and growing by less than one architecture's estimate (mean and covariance, 160
-    bytes) per instant: nothing of the estimates' size is kept (measured: ~40 bytes per
-    instant, the instants' times; the whole run at once: ~180, on a base six times higher, the
-    simulation's chunk of runs)."""
+    in blocks of 60 instants, with a recording decimated to 20 buckets per series: twice the
+    instants, the same peak within 10 %, and growing by less than 100 bytes per instant, below
+    one estimate (mean and covariance: 160 bytes), so that keeping any per-instant array of
+    the estimates' size fails. Measured: 8.41 MB at 500 instants, 8.39 MB at 1000 (the whole
+    run at once: 51.1 and 51.0 MB, the simulation's chunk of runs, drawn whole)."""
     import tracemalloc
 
     from fusionlog.core import decimate
@@ -302,7 +301,7 @@ def test_peak_memory_of_a_nonlinear_log_does_not_grow_with_the_instants(
             tracemalloc.stop()
     assert peaks[2] <= 1.1 * peaks[1], peaks
     n = 4
-    assert (peaks[2] - peaks[1]) / 500 < 8 * (n + n * n), peaks
+    assert (peaks[2] - peaks[1]) / 500 < 100 < 8 * (n + n * n), peaks
 
 
 def test_selection_over_blocks_is_the_sorted_value() -> None:
