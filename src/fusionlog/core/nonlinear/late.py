@@ -73,7 +73,8 @@ def late_steps(m, filters: list[list[int]], arrive: np.ndarray) -> Iterator:
     S = len(st.system.sensors)
     arrive = np.broadcast_to(arrive, (M, K1, S))
     took = np.stack([~np.isnan(z[:, :, c]).all(-1) for c in st.cols], axis=-1)  # (M, K1, S)
-    arrive = np.where(took, arrive, K1)  # nothing taken: nothing arrives
+    used = np.isin(np.arange(S), [j for g in filters for j in g])
+    arrive = np.where(took & used, arrive, K1)  # nothing taken (or fused): nothing arrives
     W = window(arrive)
     policy = st.system.late
     if policy == "neglect":

@@ -34,6 +34,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from ...errors import FusionlogError
+from ..latency import nonlinear_refusal
 from ..linalg import mm, mT, solve, sym
 from .late import select
 from .local import Stacked, transition
@@ -43,10 +44,8 @@ def retrodict_steps(m, arrive: np.ndarray, W: int) -> Iterator:
     """The retrodicting EKF of machine `m` (a single filter: CKF, SKF) at each output instant,
     `arrive` (M, K+1, S) the instant each reading arrives (K+1: never), W the largest lag."""
     st = m.st
-    if st.ukf is not None:
-        raise FusionlogError(
-            "retrodict needs the EKF (core.latency.nonlinear_refusal); use reprocess or neglect"
-        )
+    if (why := nonlinear_refusal(st.system)) is not None:
+        raise FusionlogError(f"{why[0]}: {why[1]}")
     if not hasattr(m, "which"):
         raise FusionlogError("retrodict is built for one filter (CKF, SKF)")
     z = st.z
