@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from cli_helpers import cli, ok, one_line_error
 
+from fusionlog.core.architectures import Estimate
 from fusionlog.core.model import Prior, System
 from fusionlog.core.models import CoordinatedTurn, RangeBearingSensor
 from fusionlog.core.nonlinear import estimate
@@ -402,3 +403,166 @@ def test_a_ukf_with_retrodict_in_the_file_is_refused_on_load(tmp_path):
     f = radar_file(tmp_path, "latency = 2.0", 'late = "retrodict"', '["CKF"]')
     f.write_text(f.read_text().replace('filter = "EKF"', 'filter = "UKF"'))
     one_line_error(cli("simulate", f, "-o", tmp_path / "s.mcap"), str(f), "retrodict needs the EKF")
+
+
+# --------------------------------------------------------------------------------------------
+# A recorded log's delays (arrival = "log_time") with range-bearing readings
+
+NS = 1_000_000_000
+T0 = 1_700_000_000 * NS
+B_DELAYS = [0.12, 0.03, 0.25, 0.04, 0.0, 0.31, 0.07, 0.16, 0.02, 0.09]
+
+
+def write_radar_log(path: Path) -> None:
+    """/a: range-bearing from the origin every 0.1 s, on time; /b: from (900, 100) at 0.05 +
+    0.1 i, logged late by B_DELAYS; a target moving at (12, -4) m/s from (300, 400)."""
+    from mcap.writer import Writer
+
+    rng = np.random.default_rng(4)
+
+    def rb(t: float, at: tuple[float, float]) -> tuple[float, float]:
+        dx, dy = 300 + 12 * t - at[0], 400 - 4 * t - at[1]
+        return float(np.hypot(dx, dy) + 5 * rng.normal()), float(
+            np.arctan2(dy, dx) + 0.03 * rng.normal()
+        )
+
+    msgs = []
+    for i in range(10):
+        s = T0 + i * NS // 10
+        msgs.append((s, s, "/a", rb((s - T0) / NS, (0.0, 0.0))))
+        s = T0 + (i * 100 + 50) * NS // 1000
+        msgs.append((s, s + round(B_DELAYS[i] * NS), "/b", rb((s - T0) / NS, (900.0, 100.0))))
+    schema = {"type": "object"}
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema("Reading", "jsonschema", json.dumps(schema).encode())
+        ch = {t: w.register_channel(t, "json", sid) for t in ("/a", "/b")}
+        for stamp, log, t, (r, b) in sorted(msgs, key=lambda m: m[1]):
+            body = {
+                "header": {"stamp": {"sec": stamp // NS, "nanosec": stamp % NS}},
+                "r": r,
+                "b": b,
+            }
+            w.add_message(ch[t], log_time=log, data=json.dumps(body).encode(), publish_time=log)
+        w.finish()
+
+
+#: The log read with placeholder linear sensors (a replay's sensors are H z); the range-bearing
+#: model comes with `estimate --model` (MODEL), radar b's delays from the imported log.
+REPLAY = """
+[scenario]
+name = "radar_log"
+
+[model]
+kind = "constant-velocity"
+axes = 2
+n0 = 0.5
+
+[prior]
+mean = [300.0, 12.0, 400.0, -4.0]
+cov = [[100.0, 0, 0, 0], [0, 9.0, 0, 0], [0, 0, 100.0, 0], [0, 0, 0, 9.0]]
+
+[[sensors]]
+name = "a"
+H = [[1.0, 0, 0, 0], [0, 0, 1.0, 0]]
+R = [[25.0, 0.0], [0.0, 1e-3]]
+source = "log.mcap"
+topic = "/a"
+values = ["r", "b"]
+time = "header.stamp"
+
+[[sensors]]
+name = "b"
+H = [[1.0, 0, 0, 0], [0, 0, 1.0, 0]]
+R = [[25.0, 0.0], [0.0, 1e-3]]
+source = "log.mcap"
+topic = "/b"
+values = ["r", "b"]
+time = "header.stamp"
+arrival = "log_time"
+
+[estimate]
+architectures = ["CKF"]
+"""
+
+MODEL = """
+[scenario]
+name = "radar_model"
+
+[model]
+kind = "constant-velocity"
+axes = 2
+n0 = 0.5
+
+[prior]
+mean = [300.0, 12.0, 400.0, -4.0]
+cov = [[100.0, 0, 0, 0], [0, 9.0, 0, 0], [0, 0, 100.0, 0], [0, 0, 0, 9.0]]
+
+[[sensors]]
+name = "a"
+kind = "range-bearing"
+position = [0.0, 0.0]
+R = [[25.0, 0.0], [0.0, 1e-3]]
+
+[[sensors]]
+name = "b"
+kind = "range-bearing"
+position = [900.0, 100.0]
+R = [[25.0, 0.0], [0.0, 1e-3]]
+latency = {min = 0.0, max = 0.4}
+
+[estimate]
+filter = "EKF"
+architectures = ["CKF"]
+"""
+
+
+@pytest.mark.parametrize("late", ["reprocess", "neglect", "retrodict"])
+def test_a_recorded_radar_log_s_delays_in_the_ekf(tmp_path, late):
+    """`import` of a log whose radar b is logged late (arrival = "log_time"), `estimate
+    --model` with range-bearing sensors: the recorded arrivals reach the EKF. Reprocess: at
+    each instant of the log the EKF from the prior on exactly the messages logged by then,
+    each at its header stamp; every policy: the API's estimate with those arrivals."""
+    from fusionlog.core.nonlinear import estimate as lanes
+    from fusionlog.io.mcap import McapFile
+    from fusionlog.io.mcap.arrival import read_arrivals
+    from fusionlog.scenario import load_model
+
+    write_radar_log(tmp_path / "log.mcap")
+    (tmp_path / "replay.toml").write_text(REPLAY)
+    model = tmp_path / "model.toml"
+    model.write_text(MODEL.replace('filter = "EKF"', f'filter = "EKF"\nlate = "{late}"'))
+    ok("import", tmp_path / "replay.toml", "-o", tmp_path / "s.mcap")
+    ok("estimate", tmp_path / "s.mcap", "--model", model, "-o", tmp_path / "e.mcap")
+    sens, est = McapFile(tmp_path / "s.mcap"), McapFile(tmp_path / "e.mcap")
+    times = sens.times()
+    ((_, _, data),) = sens.iter_run_blocks(["/sensors/a", "/sensors/b"], 1)
+    ((_, _, (mean, cov)),) = (
+        (o, r, d["/estimates/CKF"]) for o, r, d in est.iter_run_blocks(["/estimates/CKF"], 1)
+    )
+    cov = np.broadcast_to(cov, (1,) + cov.shape[-3:])
+    arrival = read_arrivals(tmp_path / "s.mcap", ["/sensors/b"], 1, len(times))["/sensors/b"]
+    assert np.nanmax(arrival[0] - times) > 0.3  # b's messages arrive up to 310 ms late
+    # dt: the replay's nominal step (default 1 s), which scales n0 as `estimate --model` does
+    system = load_model(model, "state", 1.0).on_times(times)
+    z = np.concatenate([data["/sensors/a"], data["/sensors/b"]], -1)
+    arr = np.stack([np.broadcast_to(times, (1, len(times))), arrival], -1)
+    want = lanes(system, "CKF", z, times, arrival=arr)
+    np.testing.assert_allclose(mean, want.mean, rtol=0, atol=1e-9 * np.abs(want.mean).max())
+    if late != "reprocess":
+        return
+    a, b = system.sensors
+    for k, tk in enumerate(times):
+        x, P = system.prior.mean.copy(), system.prior.cov.copy()
+        for i in range(k + 1):
+            if i:
+                F, Q = system.F_at(i), system.GQG_at(i)
+                x, P = F @ x, F @ P @ F.T + Q
+            got = [(a, z[0, i, :2])]
+            if not np.isnan(arrival[0, i]) and arrival[0, i] <= tk + 1e-9:
+                got.append((b, z[0, i, 2:]))
+            got = [(s, v) for s, v in got if not np.isnan(v).any()]
+            if got:
+                x, P, _ = Filter(system).update(x, P, got)
+        close(Estimate(mean, cov), 0, k, x, P, 1e-9)
