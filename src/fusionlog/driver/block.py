@@ -86,7 +86,13 @@ def estimate_block(
         cache.patterns.append(None)  # the estimates' provenance: per run
         arr = cache.block_arrivals(run_offset, z.shape[0]) if arrivals is None else arrivals
         lanes = (
-            (a, nonlinear_estimate(cache.system, a, z, cache.times, run_offset, arr)) for a in archs
+            (
+                a,
+                nonlinear_estimate(
+                    cache.system, a, z, cache.times, run_offset=run_offset, arrival=arr
+                ),
+            )
+            for a in archs
         )  # one architecture at a time: reduced before the next is computed
         return _reduced(
             ((a, Estimate(t.mean, t.cov)) for a, t in lanes), None, truth, workspace, keep

@@ -141,22 +141,15 @@ def _instants(system: System, K1: int) -> np.ndarray:
     return np.arange(K1) * system.dt
 
 
-def estimate(
-    system: System,
-    arch: str,
-    z: np.ndarray,
-    times: np.ndarray | None,
-    run_offset: int = 0,
-    arrival: np.ndarray | None = None,
-) -> Track:
+def estimate(system: System, arch: str, z: np.ndarray, times: np.ndarray | None, **kw) -> Track:
     """Estimates of every run (z: (M, K+1, m), NaN = absent) with architecture `arch` on the
     instants `times` (K+1,) s (None: `system` is already on its instants, `System.on_times`);
-    `run_offset` (the block's first run) only names runs in errors. Late sensors: `arrival`
-    (M, K+1, S) s, when each reading arrived (default: the sensors' fixed latencies), under
-    the policy `system.late` (`late`)."""
+    `kw`: `estimate_steps`'s run_offset (the block's first run, which only names runs in
+    errors) and, for late sensors, arrival (M, K+1, S) s, when each reading arrived (default:
+    the sensors' fixed latencies), under the policy `system.late` (`late`)."""
     M, K1 = z.shape[:2]
     out = _Out(M, K1, system.n)
-    for k, (x, P) in enumerate(estimate_steps(system, arch, z, times, run_offset, arrival)):
+    for k, (x, P) in enumerate(estimate_steps(system, arch, z, times, **kw)):
         out.put(k, x, P)
     return out.track()
 
