@@ -566,3 +566,21 @@ def test_a_recorded_radar_log_s_delays_in_the_ekf(tmp_path, late):
             if got:
                 x, P, _ = Filter(system).update(x, P, got)
         close(Estimate(mean, cov), 0, k, x, P, 1e-9)
+
+
+def test_bad_arrivals_in_python_name_the_argument():
+    """The lanes' `arrival` argument: random delays need it; its shape and an arrival before
+    the reading was taken are refused in one line naming it."""
+    from fusionlog.errors import FusionlogError
+
+    system = radar_system(False, "EKF", "reprocess", (0.5, 1.5))
+    z = simulate(system, K, 1, 0, M)[1]
+    with pytest.raises(FusionlogError, match=r"^arrival: a sensor's latency is a range"):
+        estimate(system, "CKF", z, TIMES)
+    with pytest.raises(
+        FusionlogError, match=r"^arrival: shape \(4, 13\), expected \(runs, 13, 2\)"
+    ):
+        estimate(system, "CKF", z, TIMES, arrival=np.zeros((M, K + 1)))
+    early = np.broadcast_to(TIMES[None, :, None] - 0.5, (M, K + 1, 2))
+    with pytest.raises(FusionlogError, match=r"^arrival: a reading arrives before it is taken"):
+        estimate(system, "CKF", z, TIMES, arrival=early)
