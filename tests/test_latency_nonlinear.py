@@ -584,3 +584,37 @@ def test_bad_arrivals_in_python_name_the_argument():
     early = np.broadcast_to(TIMES[None, :, None] - 0.5, (M, K + 1, 2))
     with pytest.raises(FusionlogError, match=r"^arrival: a reading arrives before it is taken"):
         estimate(system, "CKF", z, TIMES, arrival=early)
+
+
+@pytest.mark.parametrize("late", ["reprocess", "neglect", "retrodict"])
+@pytest.mark.parametrize("latency", [(2.0, 2.0), (0.5, 3.5)])
+def test_on_a_linear_model_the_lanes_are_the_linear_plans(late, latency):
+    """Linear sensors and motion run through the EKF lanes (whose Jacobians are then exact)
+    give the linear plans' estimates: an independent construction (reprocess and neglect a
+    Kalman filter on the state stacked over the latency window, retrodict Al1 compiled into a
+    plan, `core.latency`), here with lags of several updates and random delays. Tolerance:
+    two exact computations in different orders of 16 well-conditioned steps (cond P < 1e3)."""
+    from fusionlog.core.models import LinearSensor
+    from fusionlog.driver import PlanCache, estimate_block
+
+    F = np.array([[1.0, 1.0], [0.0, 1.0]])
+    Q = 0.16 * np.array([[1 / 3, 1 / 2], [1 / 2, 1.0]])
+    H = np.array([[1.0, 0.0]])
+    s1 = LinearSensor("s1", H, np.array([[1.0]]))
+    s2 = dataclasses.replace(
+        LinearSensor("s2", H, np.array([[0.5]])), timing=SensorTiming(latency=latency)
+    )
+    system = System(F, Q, (s1, s2), Prior(np.array([100.0, -1.0]), np.eye(2)), late=late)
+    K1 = 16
+    times = np.arange(float(K1))
+    z = simulate(system, K1 - 1, 3, 0, M)[1]
+    rng = np.random.default_rng(1)
+    delay = np.stack([np.zeros((M, K1)), rng.uniform(*latency, (M, K1))], -1)
+    arrival = times[None, :, None] + delay
+    got = estimate(dataclasses.replace(system, filter="EKF"), "CKF", z, times, arrival=arrival)
+    cache = PlanCache.of(system, times)
+    cache.arrivals = arrival
+    want = estimate_block(system, ["CKF"], z, cache=cache).estimates["CKF"]
+    np.testing.assert_allclose(got.mean, want.mean, rtol=0, atol=1e-9 * np.abs(want.mean).max())
+    cov = np.broadcast_to(want.cov, got.cov.shape)
+    np.testing.assert_allclose(got.cov, cov, rtol=0, atol=1e-9 * np.abs(cov).max())
