@@ -618,3 +618,18 @@ def test_on_a_linear_model_the_lanes_are_the_linear_plans(late, latency):
     np.testing.assert_allclose(got.mean, want.mean, rtol=0, atol=1e-9 * np.abs(want.mean).max())
     cov = np.broadcast_to(want.cov, got.cov.shape)
     np.testing.assert_allclose(got.cov, cov, rtol=0, atol=1e-9 * np.abs(cov).max())
+
+
+def test_the_stages_read_each_run_s_arrivals_from_the_sensors_file(tmp_path):
+    """Random delays: `simulate` writes each run's arrivals in the sensors file, `estimate`
+    reads them back for the EKF lanes: the stages' summary is `run`'s, number for number."""
+    f = radar_file(tmp_path, "latency = {min = 0.5, max = 3.0}", 'late = "reprocess"', ARCHS)
+    ok("run", f, "--runs", "50", "--out-dir", tmp_path / "run")
+    ok("simulate", f, "--runs", "50", "-o", tmp_path / "s.mcap")
+    ok("estimate", tmp_path / "s.mcap", "-o", tmp_path / "e.mcap")
+    ok("evaluate", tmp_path / "s.mcap", tmp_path / "e.mcap", "-o", tmp_path / "e.rrd",
+       "--summary", tmp_path / "e.json")  # fmt: skip
+    run = json.loads((tmp_path / "run" / "summary.json").read_text())["architectures"]
+    staged = json.loads((tmp_path / "e.json").read_text())["architectures"]
+    for a in json.loads(ARCHS):
+        assert staged[a]["mse"] == pytest.approx(run[a]["mse"], rel=1e-12)
