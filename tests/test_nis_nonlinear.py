@@ -280,8 +280,26 @@ R = [[25.0, 0.0], [0.0, 1e-3]]
 """
         for s, at in zip("ab", RADARS, strict=True)
     )
-    + '\n[estimate]\nfilter = "EKF"\narchitectures = ["CKF", "MSC"]\n'
+    + '\n[estimate]\nfilter = "EKF"\n'
 )
+
+
+def radar_log(tmp_path):
+    """`import` of the radar log (no truth) and `estimate --model` (range-bearing, EKF)."""
+    write_log(tmp_path / "log.mcap")
+    (tmp_path / "replay.toml").write_text(REPLAY)
+    (tmp_path / "model.toml").write_text(MODEL)
+    ok("import", tmp_path / "replay.toml", "-o", tmp_path / "s.mcap")
+    ok("estimate", tmp_path / "s.mcap", "--model", tmp_path / "model.toml", "--arch", "CKF",
+       "--arch", "MSC", "-o", tmp_path / "e.mcap")  # fmt: skip
+    return tmp_path
+
+
+def evaluated(folder, name: str) -> dict:
+    """`evaluate` of the log's readings and estimates: summary.json as written."""
+    ok("evaluate", folder / "s.mcap", folder / "e.mcap", "-o", folder / f"{name}.rrd",
+       "--summary", folder / name, "--force")  # fmt: skip
+    return json.loads((folder / name).read_text())
 
 
 def test_a_truth_free_radar_log_evaluates_with_its_nis(tmp_path):
@@ -292,15 +310,7 @@ def test_a_truth_free_radar_log_evaluates_with_its_nis(tmp_path):
     and whiteness."""
     from fusionlog.io.mcap import McapFile
 
-    write_log(tmp_path / "log.mcap")
-    (tmp_path / "replay.toml").write_text(REPLAY)
-    (tmp_path / "model.toml").write_text(MODEL)
-    ok("import", tmp_path / "replay.toml", "-o", tmp_path / "s.mcap")
-    ok("estimate", tmp_path / "s.mcap", "--model", tmp_path / "model.toml",
-       "-o", tmp_path / "e.mcap")  # fmt: skip
-    ok("evaluate", tmp_path / "s.mcap", tmp_path / "e.mcap", "-o", tmp_path / "ev.rrd",
-       "--summary", tmp_path / "summary.json")  # fmt: skip
-    summary = json.loads((tmp_path / "summary.json").read_text())
+    summary = evaluated(radar_log(tmp_path), "summary.json")
     sens, est = McapFile(tmp_path / "s.mcap"), McapFile(tmp_path / "e.mcap")
     times = sens.times()
     ((_, _, data),) = sens.iter_run_blocks(["/sensors/a", "/sensors/b"], 1)
@@ -327,3 +337,22 @@ def test_a_truth_free_radar_log_evaluates_with_its_nis(tmp_path):
             np.testing.assert_allclose(got["mean"], np.nanmean(nis), rtol=1e-9)
             assert np.isfinite(got["whiteness_max_abs_autocorr"])
             assert got["whiteness_bound"] == pytest.approx(1.96 / np.sqrt(N_READ), rel=1e-12)
+
+
+def test_in_blocks_of_time_the_nis_is_that_of_the_whole_log(tmp_path, monkeypatch):
+    """The same log evaluated in blocks of 8 instants (4 readings of each radar a block, fewer
+    than the whiteness's 10 lags): every NIS entry, whiteness too, that of the whole log (the
+    blocks change only the order of roundings; the whiteness's lagged sums expand the
+    autocorrelation about the mean, O(1) values: 1e-12)."""
+    folder = radar_log(tmp_path)
+    whole = evaluated(folder, "whole.json")
+    monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", "8")
+    blocks = evaluated(folder, "blocks.json")
+    for arch in ("CKF", "MSC"):
+        a, b = whole["architectures"][arch]["nis"], blocks["architectures"][arch]["nis"]
+        assert a.keys() == b.keys() == {"a", "b"}
+        for name in a:
+            assert a[name].keys() == b[name].keys()
+            for key, value in a[name].items():
+                assert np.isfinite(value), (arch, name, key)
+                assert b[name][key] == pytest.approx(value, rel=1e-12, abs=1e-12), (arch, key)

@@ -287,7 +287,10 @@ class WhitenessSums:
             t = len(self.tail[i])
             for lag in range(1, L + 1):  # the products a_j a_{j+lag} with j + lag in this block
                 lo = max(t - lag, 0)
-                self.C[i, lag - 1] += float(ext[lo : len(ext) - lag] @ ext[lo + lag :])
+                # no pair yet (fewer than lag + 1 values so far): ext[lo : negative] would
+                # count from the end
+                hi = max(len(ext) - lag, lo)
+                self.C[i, lag - 1] += float(ext[lo:hi] @ ext[lo + lag : hi + lag])
             self.N[i] += len(seq)
             self.S[i] += float(seq.sum())
             self.S2[i] += float(seq @ seq)
