@@ -117,11 +117,6 @@ def late_refusal(system: System, locals_kind: str, arch: str) -> str | None:
             f"architecture {arch}: a fixed-interval smoother uses every measurement of the run "
             "whenever it arrives: a latency has no meaning there"
         )
-    if system.late == "retrodict" and locals_kind not in ("centralised", "single"):
-        return (
-            f"architecture {arch}: retrodiction (Bar-Shalom's Al1) is built for one filter "
-            "(CKF, SKF); with hierarchical or track-to-track filters use reprocess or neglect"
-        )
     return None
 
 
@@ -285,11 +280,13 @@ class LateModel:
                         f"sensor {names[j]}: a reading arrives outside its latency range"
                     )
         if self.system.late == "retrodict":
-            from .retrodict import retrodict_plan
+            from .retrodict_fused import late_retrodict_plan
 
             arr = self.arrive if arrive is None else arrive
-            plan = retrodict_plan(self.system, arch, present, arr, filters[0], self.window)
-            return plan
+            criterion = kw.get("criterion", "trace")
+            return late_retrodict_plan(
+                self.system, arch, base, present, arr, filters, self.window, criterion
+            )
         mask = self.stacked_mask(present, filters, arrive)
         if locals_kind == "per-sensor":  # the rule on the locals' current blocks
             criterion = kw.get("criterion", "trace")
