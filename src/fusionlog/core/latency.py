@@ -285,7 +285,7 @@ class LateModel:
             arr = self.arrive if arrive is None else arrive
             criterion = kw.get("criterion", "trace")
             return late_retrodict_plan(
-                self.system, arch, base, present, arr, filters, self.window, criterion
+                self.system, arch, base, present, arr, filters, self.lags, criterion
             )
         mask = self.stacked_mask(present, filters, arrive)
         if locals_kind == "per-sensor":  # the rule on the locals' current blocks

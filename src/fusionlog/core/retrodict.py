@@ -231,9 +231,12 @@ def _keep_window(sx, sP, sval, b: int, base: int, trans: _Transitions) -> None:
     """Keep the stored estimates a later OOSM can need (taken at b or later): those from b on,
     and the newest older one moved to b by prediction (no update between: the same equivalent
     measurement), so that every one sits in the plan's window. In place, per run."""
+    rb = b - base
+    if rb >= sval.shape[1]:  # W = 0: no reading is ever out of sequence, none is kept
+        sval[:] = False
+        return
     if b < 0:
         return
-    rb = b - base
     has = sval[:, : rb + 1].any(axis=1)
     older = np.flatnonzero(has)
     tb = _last_valid(sval[older, : rb + 1])
@@ -266,6 +269,8 @@ def retrodict_maps(
         cols[system.sensor_slices[j]] = True
     key = np.concatenate([pres[..., cols].reshape(M, -1), arr[..., sensors].reshape(M, -1)], 1)
     _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    if len(first) == M:  # every run its own pattern (random delays): no copy to gather them
+        return _batch(system, np.ascontiguousarray(pres), arr, sensors, W, trans), True
     maps = _batch(system, pres[first], arr[first], sensors, W, trans)
     inverse = inverse.ravel()
     return [tuple(f[inverse] for f in mk) for mk in maps], True

@@ -46,16 +46,19 @@ def late_retrodict_plan(
     present: np.ndarray,
     arrive: np.ndarray,
     filters: list[list[int]],
-    W: int,
+    lags: list[np.ndarray],
     criterion: str = "trace",
 ) -> Plan:
     """Architecture `arch` (registered as `base`) retrodicting its late readings: one filter on
-    `filters[0]` (CKF, SKF), the hierarchical centre, or one local per sensor and the rule."""
+    `filters[0]` (CKF, SKF), the hierarchical centre, or one local per sensor and the rule.
+    `lags[j]`: the lags sensor j's readings arrive with; each filter keeps the window of its
+    own sensors' largest lag."""
     locals_kind = definition(base).locals
+    if locals_kind == "per-sensor":
+        return _fused(system, arch, base, present, arrive, lags, criterion)
+    W = max(int(lags[j].max()) for j in filters[0])
     if locals_kind == "hierarchical":
         return retrodict_plan(independent_noise(system), arch, present, arrive, filters[0], W)
-    if locals_kind == "per-sensor":
-        return _fused(system, arch, base, present, arrive, W, criterion)
     return retrodict_plan(system, arch, present, arrive, filters[0], W)
 
 
@@ -65,16 +68,21 @@ def _fused(
     base: str,
     present: np.ndarray,
     arrive: np.ndarray,
-    W: int,
+    lags: list[np.ndarray],
     criterion: str,
 ) -> Plan:
-    """The locals (one retrodicting filter per sensor) and the rule as one plan: state [the
-    locals' estimates and stored estimates; the last W readings, shared]."""
+    """The locals (one retrodicting filter per sensor, local j keeping the window W_j of its
+    sensor's largest lag) and the rule as one plan: state [the locals' estimates and stored
+    estimates; the last W = max W_j readings, shared]."""
     n, m = system.n, system.m
     S = len(system.sensors)
-    nb, B = n * (W + 2), W * m
-    dC = S * nb + B
-    locs = [retrodict_maps(system, present, arrive, [j], W) for j in range(S)]
+    Ws = [int(lj.max()) for lj in lags]
+    W = max(Ws)
+    nbs = [n * (Wj + 2) for Wj in Ws]
+    at = np.concatenate([[0], np.cumsum(nbs)])  # local j's rows: at[j]:at[j+1]
+    B = W * m
+    dC = int(at[-1]) + B
+    locs = [retrodict_maps(system, present, arrive, [j], Ws[j]) for j in range(S)]
     per_run = any(pr for _, pr in locs)
     if per_run:  # every local's maps per run
         M = max(mk[0][0].shape[0] for mk, pr in locs if pr)
@@ -97,13 +105,14 @@ def _fused(
         U = np.zeros(batch + (dC, m))
         Ol = np.zeros(batch + (S * n, dC))
         for j, (Tj, Uj, Oj, _) in enumerate(maps):
-            rows = slice(j * nb, (j + 1) * nb)
+            nb, rows, buf = nbs[j], slice(at[j], at[j + 1]), at[-1]
             T[..., rows, rows] = Tj[..., :nb, :nb]
-            T[..., rows, S * nb :] = Tj[..., :nb, nb:]
+            T[..., rows, buf : buf + Ws[j] * m] = Tj[..., :nb, nb:]  # its newest W_j readings
             U[..., rows, :] = Uj[..., :nb, :]
             Ol[..., j * n : (j + 1) * n, rows] = Oj[..., :, :nb]
-        T[..., S * nb :, S * nb :] = maps[0][0][..., nb:, nb:]  # the readings' shift
-        U[..., S * nb :, :] = maps[0][1][..., nb:, :]
+        widest = maps[Ws.index(W)]  # the readings' shift
+        T[..., at[-1] :, at[-1] :] = widest[0][..., nbs[Ws.index(W)] :, nbs[Ws.index(W)] :]
+        U[..., at[-1] :, :] = widest[1][..., nbs[Ws.index(W)] :, :]
         Ploc = np.stack([mp[3] for mp in maps], axis=-3)  # batch + (S, n, n)
         J = None
         if arch_def.joint:
@@ -116,7 +125,7 @@ def _fused(
         steps.append(StepMap(T, U, C @ Ol, Pf, np.zeros(batch + (dC, n))))
     s0 = np.zeros(dC)
     for j in range(S):
-        s0[j * nb : j * nb + n] = prior.mean
+        s0[at[j] : at[j] + n] = prior.mean
     omega = None
     if any(w is not None for w in omegas):
         omega = np.stack([np.broadcast_to(w, batch + (S,)) for w in omegas], axis=-2)
