@@ -173,6 +173,10 @@ def test_retrodict_exact_equals_monte_carlo_in_every_architecture(tmp_path, lats
         for key in ("mse", "anees"):
             gap = abs(s[key] - s["expected"][key])
             assert gap <= 4 * s["stderr"][key], (a, key, s[key], s["expected"][key])
+    # MSC-GMF and AVG report C J C^T: with the locals' joint error covariance J right, that is
+    # their true error covariance (the exact analysis's, `core.moments`) at every instant
+    for a in ("MSC-GMF", "AVG"):
+        assert summary["architectures"][a]["bound"]["worst"] == pytest.approx(1, abs=1e-8)
 
 
 def test_retrodict_with_zero_latency_changes_no_number(tmp_path):

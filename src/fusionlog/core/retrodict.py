@@ -89,8 +89,9 @@ class _Transitions:
     def gathered(self, a: np.ndarray, b: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
         """F, Q from a[r] to b[r] for every run r, (R, n, n) each (one lookup per distinct pair)."""
         b = np.broadcast_to(b, a.shape)
-        pairs, inv = np.unique(np.stack([a, b], axis=1), axis=0, return_inverse=True)
-        got = [self(p, q) for p, q in pairs]
+        wide = int(max(a.max(initial=0), b.max(initial=0))) + 1
+        keys, inv = np.unique(a * wide + b, return_inverse=True)  # the pairs as numbers
+        got = [self(p, q) for p, q in zip(keys // wide, keys % wide, strict=True)]
         inv = inv.ravel()
         return np.stack([g[0] for g in got])[inv], np.stack([g[1] for g in got])[inv]
 

@@ -110,15 +110,17 @@ def _fused(
             T[..., rows, buf : buf + Ws[j] * m] = Tj[..., :nb, nb:]  # its newest W_j readings
             U[..., rows, :] = Uj[..., :nb, :]
             Ol[..., j * n : (j + 1) * n, rows] = Oj[..., :, :nb]
-        widest = maps[Ws.index(W)]  # the readings' shift
-        T[..., at[-1] :, at[-1] :] = widest[0][..., nbs[Ws.index(W)] :, nbs[Ws.index(W)] :]
-        U[..., at[-1] :, :] = widest[1][..., nbs[Ws.index(W)] :, :]
+        wide = Ws.index(W)  # a local that keeps all W readings: their shift
+        nw, buf = nbs[wide], at[-1]
+        T[..., buf:, buf:] = maps[wide][0][..., nw:, nw:]
+        U[..., buf:, :] = maps[wide][1][..., nw:, :]
         Ploc = np.stack([mp[3] for mp in maps], axis=-3)  # batch + (S, n, n)
         J = None
         if arch_def.joint:
             cov = _moments(system, k, T, U, H, cov, prior.cov)
-            E = np.concatenate([np.broadcast_to(np.tile(np.eye(n), (S, 1)), Ol.shape[:-1] + (n,)),
-                                -Ol], axis=-1)  # fmt: skip
+            E = np.zeros(batch + (S * n, n + dC))  # e_j = x_k - O_j s_j
+            E[..., :n] = np.tile(np.eye(n), (S, 1))
+            E[..., n:] = -Ol
             J = sym(E @ cov @ mT(E))
         C, Pf, w = _rule(arch_def, Ploc, J, criterion)
         omegas.append(w)
