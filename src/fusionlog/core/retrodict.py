@@ -89,6 +89,9 @@ class _Transitions:
     def gathered(self, a: np.ndarray, b: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
         """F, Q from a[r] to b[r] for every run r, (R, n, n) each (one lookup per distinct pair)."""
         b = np.broadcast_to(b, a.shape)
+        if (a == a.flat[0]).all() and (b == b.flat[0]).all():  # one pair (e.g. one pattern)
+            F, Q = self(a.flat[0], b.flat[0])
+            return np.broadcast_to(F, a.shape + F.shape), np.broadcast_to(Q, a.shape + Q.shape)
         wide = int(max(a.max(initial=0), b.max(initial=0))) + 1
         keys, inv = np.unique(a * wide + b, return_inverse=True)  # the pairs as numbers
         got = [self(p, q) for p, q in zip(keys // wide, keys % wide, strict=True)]
@@ -162,7 +165,8 @@ def _batch(
     assert prior is not None
     M, K1 = present.shape[:2]
     L = W + 2
-    eye = np.eye(n)
+    eye, eye_m = np.eye(n), np.eye(m)
+    R0 = system.R if system.Rs is None else None  # the property builds it on every call
     P = np.broadcast_to(prior.cov, (M, n, n)).copy()
     tau = np.zeros(M, dtype=np.intp)  # the instant of each run's estimate
     sP = np.zeros((M, L, n, n))
@@ -187,8 +191,8 @@ def _batch(
                 continue
             z = np.zeros((m, D))  # the rows of u that are z_i
             c0 = d if i == k else lay.buffered(k - 1 - i).start
-            z[:, c0 : c0 + m] = np.eye(m)
-            Hm, Rm = _masked(H, system.R_at(i), cm)
+            z[:, c0 : c0 + m] = eye_m
+            Hm, Rm = _masked(H, system.R_at(i) if R0 is None else R0, cm)
             ins = np.flatnonzero(g & (i >= tau))  # in sequence: predict to i, Joseph update
             if len(ins):
                 F, Q = trans.gathered(tau[ins], i)
@@ -216,9 +220,9 @@ def _batch(
             r = W + 1 - q  # instant k - q
             rows[:, lay.stored(q)] = sx[:, r] * sval[:, r, None, None]
         if W:
-            rows[:, lay.buffered(0), d:] = np.eye(m)
+            rows[:, lay.buffered(0), d:] = eye_m
             for q in range(1, W):
-                rows[:, lay.buffered(q), lay.buffered(q - 1)] = np.eye(m)
+                rows[:, lay.buffered(q), lay.buffered(q - 1)] = eye_m
         Fo, Qo = trans.gathered(tau, k)
         O = np.zeros((M, n, d))
         O[:, :, :n] = Fo
