@@ -191,3 +191,17 @@ def test_retrodict_with_zero_latency_changes_no_number(tmp_path):
         out[p.stem] = json.loads((tmp_path / p.stem / "summary.json").read_text())
     out["a"]["scenario"] = "b"
     assert out["a"] == out["b"]
+
+
+def test_joint_covariance_of_retrodicting_locals_with_correlated_sensors(tmp_path):
+    """s1 and s2 correlated (same latency): the locals' joint error covariance J carries
+    K_1 R_12 K_2^T through the retrodictions; MSC-GMF's and AVG's C J C^T are then their true
+    error covariance (the exact analysis's), which without the cross term they would not be."""
+    path = scenario(tmp_path, latencies=(2.0, 2.0, None), late="retrodict",
+                    archs=("MSC-GMF", "AVG"), runs=50, steps=8)  # fmt: skip
+    with path.open("a") as f:
+        f.write('\n[[correlations]]\nsensors = ["s1", "s2"]\ncov = [[0.6]]\n')
+    sim = fl.simulate(path)
+    summary = fl.evaluate(path, sim, fl.estimate(path, sim)).summary
+    for a in ("MSC-GMF", "AVG"):
+        assert summary["architectures"][a]["bound"]["worst"] == pytest.approx(1, abs=1e-8)
