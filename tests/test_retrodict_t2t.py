@@ -205,3 +205,17 @@ def test_joint_covariance_of_retrodicting_locals_with_correlated_sensors(tmp_pat
     summary = fl.evaluate(path, sim, fl.estimate(path, sim)).summary
     for a in ("MSC-GMF", "AVG"):
         assert summary["architectures"][a]["bound"]["worst"] == pytest.approx(1, abs=1e-8)
+
+
+def test_retrodicting_locals_do_not_depend_on_the_blocks_of_runs(tmp_path):
+    """Random delays: each block of runs builds its runs' retrodicting locals (and their joint
+    covariance) from its own arrivals; the summary is that of one block."""
+    path = scenario(tmp_path, latencies=RANDOM, late="retrodict", runs=40,
+                    archs=("HKF", "MSC-GMF", "CI"))  # fmt: skip
+    ok("run", path, "--out-dir", tmp_path / "a")
+    ok("run", path, "--out-dir", tmp_path / "b", "--block-runs", "7")
+    a, b = (json.loads((tmp_path / d / "summary.json").read_text()) for d in ("a", "b"))
+    for arch, s in a["architectures"].items():
+        t = b["architectures"][arch]
+        assert t["mse"] == pytest.approx(s["mse"], rel=1e-9)
+        assert t["expected"]["mse"] == pytest.approx(s["expected"]["mse"], rel=1e-9)
