@@ -58,7 +58,7 @@ def ci_two(a, b):
     ).x  # fmt: skip
     # the bounded search stops short of a vertex: take it where it is the minimum
     best = min((0.0, 1.0, w), key=lambda w: np.trace(fused(w)[1]))
-    return fused(best)
+    return (*fused(best), best)
 
 
 @pytest.mark.parametrize("lats", [(None, 3.0, 1.0), RANDOM])
@@ -78,22 +78,31 @@ def test_msc_fuses_locals_each_retrodicting_its_own_readings(tmp_path, lats):
             np.testing.assert_allclose(est.cov[run, k], P, rtol=1e-9, atol=1e-12)
 
 
-@pytest.mark.parametrize("lats", [(2.0, 3.0), ("{ min = 1.0, max = 3.0 }", None)])
-def test_ci_fuses_locals_each_retrodicting_its_own_readings(tmp_path, lats):
-    R = (1.0, 0.5)
+@pytest.mark.parametrize(
+    "lats, R, interior",
+    [((1.0, 3.0), (4.0, 0.01), False), (("{ min = 1.0, max = 3.0 }", None), (0.02, 2.0), True)],
+)
+def test_ci_fuses_locals_each_retrodicting_its_own_readings(tmp_path, lats, R, interior):
+    """The weight moves from one local to the other as the late one's readings arrive (first
+    case), and is strictly between them at some instants (second)."""
     path = scenario(tmp_path, latencies=lats, R=R, late="retrodict", archs=("CI",), runs=3)
     sim = fl.simulate(path)
     est = fl.estimate(path, sim, ["CI"])["CI"]
     K = len(sim.times) - 1
+    weights = []
     for run in range(3):
         z = [sim.measurements[f"s{j + 1}"][run, :, 0] for j in range(2)]
         arrive = arrivals(sim, run, 2)
         locs = [local_al1(z, arrive, K, R, j) for j in range(2)]
         for k in range(K + 1):
-            x, P = ci_two(locs[0][k], locs[1][k])
+            x, P, w = ci_two(locs[0][k], locs[1][k])
+            weights.append(w)
             # the weight is found to ~1e-9 by both searches: the mean (~100) to ~1e-7
             np.testing.assert_allclose(est.mean[run, k], x, rtol=0, atol=1e-6)
             np.testing.assert_allclose(est.cov[run, k], P, rtol=1e-6, atol=1e-9)
+    w = np.array(weights)
+    assert interior or ((w == 0).any() and (w == 1).any())
+    assert ((0.01 < w) & (w < 0.99)).any() == interior
 
 
 def hkf_al1(z, arrive, K, R, W=4):
