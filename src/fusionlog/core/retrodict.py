@@ -226,7 +226,8 @@ def _batch(
         Fo, Qo = trans.gathered(tau, k)
         O = np.zeros((M, n, d))
         O[:, :, :n] = Fo
-        out.append((rows[:, :, :d], rows[:, :, d:], O, sym(Fo @ P @ mT(Fo)) + Qo))
+        T, U = np.ascontiguousarray(rows[:, :, :d]), np.ascontiguousarray(rows[:, :, d:])
+        out.append((T, U, O, sym(Fo @ P @ mT(Fo)) + Qo))
         sP[:, :-1], sval[:, :-1] = sP[:, 1:], sval[:, 1:]  # to step k+1's instants
         sval[:, -1] = False
     return out
