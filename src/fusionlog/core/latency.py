@@ -125,7 +125,19 @@ def late_refusal(system: System, locals_kind: str, arch: str) -> str | None:
             f"architecture {arch}: a fixed-interval smoother uses every measurement of the run "
             "whenever it arrives: a latency has no meaning there"
         )
+    # The linear plans retrodict in every filter (`core.retrodict_fused`: HKF's centre, the
+    # track-to-track locals); the EKF lanes (`core.nonlinear.retrodict`) in one filter only.
+    if system.late == "retrodict" and not system.linear and locals_kind not in SINGLE_FILTER:
+        return (
+            f"architecture {arch}: retrodict on a nonlinear model (Al1 with the EKF's "
+            "Jacobians) is built for one filter (CKF, SKF); with hierarchical or "
+            "track-to-track filters use reprocess or neglect"
+        )
     return None
+
+
+#: The architectures that run one filter on their sensors.
+SINGLE_FILTER = ("centralised", "single")
 
 
 #: The delays' random stream (`core.simulate.chunked`): apart from the truth and readings'.
