@@ -17,7 +17,7 @@ run: $(STAMP)
 	$(BIN)/fusionlog run pipeline/ajgl2009.toml --force
 
 # The numerical modules once more under other OpenBLAS kernels (tests/other_kernels.py).
-NUMERIC := tests/test_exact.py tests/test_exact_per_run.py tests/test_per_run.py \
+NUMERIC := tests/test_retrodict_t2t.py tests/test_exact.py tests/test_exact_per_run.py tests/test_per_run.py \
 	tests/test_architectures.py tests/test_numerics.py tests/test_fusion.py \
 	tests/test_reference_filterpy.py tests/test_metrics.py tests/test_replay_sources.py \
 	tests/test_models.py tests/test_api.py tests/test_nonlinear_core.py \
