@@ -31,9 +31,11 @@ from ...errors import FusionlogError, NumericalError
 from ..architectures.definition import Architecture
 from ..architectures.registry import definition, parse_arch
 from ..kernels import lanes
+from ..latency import is_late, late_refusal
 from ..linalg import NUMERICAL_FAILURES, mT, spd_inv, sym
 from ..model import System
 from ..models.polar import PolarSensor
+from .late import arrival_instants, late_steps
 from .local import Stacked, predict, transition, ukf_params, update
 
 
@@ -70,44 +72,42 @@ class _Steps:
     """What every architecture needs of the instants: the intervals, the stacked measurement
     columns of each sensor, and which sensors measure at an instant in some run."""
 
-    def __init__(
-        self,
-        system: System,
-        z: np.ndarray,
-        times: np.ndarray | None,
-        off: int,
-        instants: int | None = None,
-    ):
+    def __init__(self, system: System, z: np.ndarray, times: np.ndarray | None, off: int):
         if times is not None:
             system = system.on_times(np.asarray(times, dtype=float))
-        self.system, self.off = system, off
-        #: runs and instants; `instants`: of a log whose readings z come in blocks (`feed`)
-        self.M, self.K1 = z.shape[0], z.shape[1] if instants is None else instants
+        self.system, self.z, self.off = system, z, off
         # the instants, for messages only: a system already on its instants knows its intervals
-        self.times = _instants(system, self.K1) if times is None else np.asarray(times, float)
+        self.times = _instants(system, z.shape[1]) if times is None else np.asarray(times, float)
         m = self.system.m
         self.cols = [np.arange(m)[sl] for sl in self.system.sensor_slices]
+        some = (~np.isnan(z)).any(axis=0)  # (K+1, m): the column has a reading in some run
+        self.measures = np.stack([some[:, c].any(axis=1) for c in self.cols], axis=1)  # (K+1, S)
         self.ukf = ukf_params(self.system)
         self.work: dict = {}  # the EKF update's temporaries, reused from instant to instant
-        self.feed(0, z)
-
-    def feed(self, k0: int, z: np.ndarray) -> None:
-        """The readings z (M, w, m) of the instants k0..k0+w-1 (a long log's block of time,
-        `core.nonlinear.long_log`; else all of them, k0 = 0), and which sensors measure then."""
-        self.z, self.k0 = z, k0
-        some = (~np.isnan(z)).any(axis=0)  # (w, m): the column has a reading in some run
-        self.measures = np.stack([some[:, c].any(axis=1) for c in self.cols], axis=1)  # (w, S)
 
     def predict(self, k: int, x: np.ndarray, P: np.ndarray):
         return predict(*transition(self.system, k), x, P, self.ukf)
 
-    def update(self, k: int, which: list[int], x: np.ndarray, P: np.ndarray):
-        """The update at instant k with the sensors `which` that measure then (None: none)."""
-        which = [j for j in which if self.measures[k - self.k0, j]]
+    def update(
+        self,
+        k: int,
+        which: list[int],
+        x: np.ndarray,
+        P: np.ndarray,
+        zk: np.ndarray | None = None,
+    ):
+        """The update at instant k with the sensors `which` that measure then (None: none);
+        `zk` (M, m): the readings of instant k to use (default all of z's: late measurements
+        give only those that have arrived, `late`)."""
+        if zk is None:
+            which = [j for j in which if self.measures[k, j]]
+        else:
+            which = [j for j in which if not np.isnan(zk[:, self.cols[j]]).all()]
         if not which:
             return None
         model = Stacked(tuple(self.system.sensors[j] for j in which))
-        zk = self.z[:, k - self.k0, np.concatenate([self.cols[j] for j in which])]
+        zk = self.z[:, k] if zk is None else zk
+        zk = zk[:, np.concatenate([self.cols[j] for j in which])]
         self._check_ranges(k, which, x, zk)
         return update(model, x, P, zk, self.ukf, self.work)
 
@@ -129,8 +129,9 @@ class _Steps:
             start += s.dim
 
     def start(self) -> tuple[np.ndarray, np.ndarray]:
+        M = self.z.shape[0]
         pr = self.system.prior
-        return np.tile(pr.mean, (self.M, 1)), np.tile(pr.cov, (self.M, 1, 1))
+        return np.tile(pr.mean, (M, 1)), np.tile(pr.cov, (M, 1, 1))
 
 
 def _instants(system: System, K1: int) -> np.ndarray:
@@ -140,54 +141,74 @@ def _instants(system: System, K1: int) -> np.ndarray:
     return np.arange(K1) * system.dt
 
 
-def estimate(
-    system: System, arch: str, z: np.ndarray, times: np.ndarray | None, run_offset: int = 0
-) -> Track:
+def estimate(system: System, arch: str, z: np.ndarray, times: np.ndarray | None, **kw) -> Track:
     """Estimates of every run (z: (M, K+1, m), NaN = absent) with architecture `arch` on the
     instants `times` (K+1,) s (None: `system` is already on its instants, `System.on_times`);
-    `run_offset` (the block's first run) only names runs in errors."""
+    `kw`: `estimate_steps`'s run_offset (the block's first run, which only names runs in
+    errors) and, for late sensors, arrival (M, K+1, S) s, when each reading arrived (default:
+    the sensors' fixed latencies), under the policy `system.late` (`late`)."""
     M, K1 = z.shape[:2]
     out = _Out(M, K1, system.n)
-    for k, (x, P) in enumerate(estimate_steps(system, arch, z, times, run_offset)):
+    for k, (x, P) in enumerate(estimate_steps(system, arch, z, times, **kw)):
         out.put(k, x, P)
     return out.track()
 
 
 def estimate_steps(
-    system: System, arch: str, z: np.ndarray, times: np.ndarray | None, run_offset: int = 0
+    system: System,
+    arch: str,
+    z: np.ndarray,
+    times: np.ndarray | None,
+    run_offset: int = 0,
+    arrival: np.ndarray | None = None,
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """`estimate` one instant at a time: (mean (M, n), covariances (M, n, n)) for k = 0..K,
     each computed when asked for (the filters keep one instant in memory, not all; FBS, a
     smoother, all of them)."""
-    require_filter(system, arch)
-    return steps_of(_Steps(system, z, times, run_offset), arch)
+    names = [s.name for s in system.sensors]
+    kind = require_filter(system, arch)
+    if is_late(system) and (why := late_refusal(system, kind.locals, arch)) is not None:
+        raise FusionlogError(why)
+    st = _Steps(system, z, times, run_offset)
+    if kind.locals == "smoother":
+        return _named(_smoother(st, arch), arch)
+    m = machine_of(st, arch)
+    if is_late(system):
+        if kind.locals == "per-sensor":
+            filters = [[j] for j in range(len(names))]
+        else:
+            filters = [m.which] if isinstance(m, _Filter) else [list(range(len(names)))]
+        arrive = arrival_instants(st.system, st.times, arrival)
+        return _named(late_steps(m, filters, arrive), arch)
+    return _named(_run(m), arch)
 
 
-def require_filter(system: System, arch: str) -> None:
-    """An architecture name no definition has: ValueError; a nonlinear model without a local
-    filter: FusionlogError."""
-    definition(parse_arch(arch, [s.name for s in system.sensors])[0])
+def require_filter(system: System, arch: str) -> Architecture:
+    """The definition of `arch` (a name no definition has: ValueError); a nonlinear model
+    without a local filter: FusionlogError."""
+    kind = definition(parse_arch(arch, [s.name for s in system.sensors])[0])
     if system.filter is None and not system.linear:
         raise FusionlogError(
             'the model is nonlinear and has no local filter: give [estimate] filter = "EKF" or '
             '"UKF", or --filter'
         )
+    return kind
 
 
-def steps_of(st: _Steps, arch: str) -> Steps:
-    """`estimate_steps` of the instants of `st` (whose readings may come in blocks)."""
+def machine_of(st: _Steps, arch: str) -> Machine:
+    """The recursion (`Machine`) of `arch`, a filter (not the smoother) on the instants of
+    `st`: what `estimate_steps` runs, and a long log carries from block to block
+    (`core.nonlinear.long_log`)."""
     names = [s.name for s in st.system.sensors]
     base, sensor = parse_arch(arch, names)
     kind = definition(base)
     if kind.locals == "centralised":
-        return _named(_filter(st, list(range(len(names)))), arch)
+        return _Filter(st, list(range(len(names))))
     if kind.locals == "single":
-        return _named(_filter(st, [names.index(sensor)]), arch)
-    if kind.locals == "smoother":
-        return _named(_smoother(st, arch), arch)
+        return _Filter(st, [names.index(sensor)])
     if kind.locals == "hierarchical":
-        return _named(_hkf(st), arch)
-    return _named(_track_to_track(st, kind), arch)
+        return _Hkf(st)
+    return _TrackToTrack(st, kind)
 
 
 def _named(steps: Steps, arch: str) -> Steps:
@@ -216,22 +237,59 @@ def _named(steps: Steps, arch: str) -> Steps:
         yield x, P
 
 
-def _filter(
-    st: _Steps, which: list[int], keep: list | None = None, first: int = 0, state=None
-) -> Steps:
-    """One filter on the sensors `which`; with `keep`, each step's (x-, P-, C) is appended.
-    From instant `first` on, `state` the estimate (x, P) of the instant before (None: the
-    prior at instant 0)."""
-    x, P = st.start() if state is None else state
-    for k in range(first, st.K1):
+class Machine:
+    """An architecture as a recursion on its state: s_k = step(k, s_{k-1}, z_k) (s_{-1} =
+    `start()`: step 0 only updates), its estimate at k `out(s_k)`; z_k (M, m) the readings it
+    may use at k (NaN: none). Late measurements rerun `step` from a stored state (`late`)."""
+
+    def __init__(self, st: _Steps) -> None:
+        self.st = st
+
+    def start(self):
+        return self.st.start()
+
+    def step(self, k: int, s, zk: np.ndarray):
+        raise NotImplementedError
+
+    def out(self, s) -> tuple[np.ndarray, np.ndarray]:
+        return s
+
+
+class _Filter(Machine):
+    """One filter on the sensors `which`; with `keep`, each step's (x-, P-, C) is appended."""
+
+    def __init__(self, st: _Steps, which: list[int], keep: list | None = None) -> None:
+        super().__init__(st)
+        self.which, self.keep = which, keep
+
+    def step(self, k: int, s, zk: np.ndarray):
+        x, P = s
         if k:
-            x, P, _, C = st.predict(k, x, P)
-            if keep is not None:
-                keep.append((x, P, C))
-        u = st.update(k, which, x, P)
+            x, P, _, C = self.st.predict(k, x, P)
+            if self.keep is not None:
+                self.keep.append((x, P, C))
+        u = self.st.update(k, self.which, x, P, zk)
         if u is not None:
             x, P = u.x, u.P
-        yield x, P
+        return x, P
+
+
+def _run(m: Machine) -> Steps:
+    """The machine on every reading as it is taken (no sensor late)."""
+    s = m.start()
+    for k in range(m.st.z.shape[1]):
+        s = m.step(k, s, m.st.z[:, k])
+        yield m.out(s)
+
+
+def _filter_machine(st: _Steps, keep: list | None = None) -> Machine:
+    """The CKF's recursion (FBS's forward filter); with `keep`, each step's (x-, P-, C)."""
+    return _Filter(st, list(range(len(st.system.sensors))), keep)
+
+
+def _filter(st: _Steps, which: list[int], keep: list | None = None) -> Steps:
+    """One filter on the sensors `which`; with `keep`, each step's (x-, P-, C) is appended."""
+    return _run(_Filter(st, which, keep))
 
 
 def _smoother(st: _Steps, arch: str) -> Steps:
@@ -259,37 +317,46 @@ def rts(mean: np.ndarray, cov: np.ndarray, keep: list) -> None:
         cov[:, k] = sym(cov[:, k] + G @ (cov[:, k + 1] - Pp) @ mT(G))
 
 
-def _hkf(st: _Steps) -> Steps:
+class _Hkf(Machine):
     """Eqs. (36)-(40) with EKF/UKF locals restarting from the fused prediction."""
-    x, P = st.start()
-    for k in range(st.K1):
+
+    def step(self, k: int, s, zk: np.ndarray):
+        st, (x, P) = self.st, s
         if k:
             x, P, _, _ = st.predict(k, x, P)
         Yp = spd_inv(P, "the predicted covariance")
         Y, y = Yp.copy(), np.einsum("mij,mj->mi", Yp, x)
         yp = y.copy()
         for j in range(len(st.system.sensors)):
-            u = st.update(k, [j], x, P)
+            u = st.update(k, [j], x, P, zk)
             if u is None:
                 continue
             Yj = spd_inv(u.P, "a local covariance")
             Y += Yj - Yp
             y += np.einsum("mij,mj->mi", Yj, u.x) - yp
         P = spd_inv(Y, "the fused information")
-        x = np.einsum("mij,mj->mi", P, y)
-        yield x, P
+        return np.einsum("mij,mj->mi", P, y), P
 
 
-def _track_to_track(st: _Steps, arch: Architecture) -> Steps:
-    """One local filter per sensor, fused at every instant by the architecture's rule."""
-    M, K1 = st.M, st.K1
-    n, S = st.system.n, len(st.system.sensors)
-    joint = arch.joint
-    x0, P0 = st.start()
-    xs, Ps = [x0] * S, [P0] * S
-    J = np.broadcast_to(P0[:, None, None], (M, S, S, n, n)).copy() if joint else None
-    eye = np.eye(n)
-    for k in range(K1):
+class _TrackToTrack(Machine):
+    """One local filter per sensor, fused at every instant by the architecture's rule; the
+    state is the locals' means, covariances and (for a rule that reads it) joint covariance."""
+
+    def __init__(self, st: _Steps, arch: Architecture) -> None:
+        super().__init__(st)
+        self.arch = arch
+
+    def start(self):
+        st = self.st
+        M, n, S = st.z.shape[0], st.system.n, len(st.system.sensors)
+        x0, P0 = st.start()
+        J = np.broadcast_to(P0[:, None, None], (M, S, S, n, n)).copy() if self.arch.joint else None
+        return [x0] * S, [P0] * S, J
+
+    def step(self, k: int, s, zk: np.ndarray):
+        st, joint = self.st, self.arch.joint
+        xs, Ps, J = list(s[0]), list(s[1]), s[2]
+        M, n, S = st.z.shape[0], st.system.n, len(xs)
         if k:
             pred = [st.predict(k, xs[i], Ps[i]) for i in range(S)]
             xs, Ps = [p[0] for p in pred], [p[1] for p in pred]
@@ -298,9 +365,9 @@ def _track_to_track(st: _Steps, arch: Architecture) -> Steps:
                 motion, dt = transition(st.system, k)
                 Q = motion.Q(dt)
                 J = _congruence(Fs, J) + Q
-        A = np.broadcast_to(eye, (M, S, n, n)).copy()
+        A = np.broadcast_to(np.eye(n), (M, S, n, n)).copy()
         for i in range(S):
-            u = st.update(k, [i], xs[i], Ps[i])
+            u = st.update(k, [i], xs[i], Ps[i], zk)
             if u is not None:
                 xs[i], Ps[i] = u.x, u.P
                 A[:, i] -= u.K @ u.H
@@ -308,7 +375,11 @@ def _track_to_track(st: _Steps, arch: Architecture) -> Steps:
             J = _congruence(A, J)
             for i in range(S):
                 J[:, i, i] = Ps[i]  # the local's own covariance (equal for the EKF)
-        yield _fuse(arch, np.stack(xs, 1), np.stack(Ps, 1), J, st.system.ci_criterion)
+        return xs, Ps, J
+
+    def out(self, s) -> tuple[np.ndarray, np.ndarray]:
+        xs, Ps, J = s
+        return _fuse(self.arch, np.stack(xs, 1), np.stack(Ps, 1), J, self.st.system.ci_criterion)
 
 
 def _congruence(T: np.ndarray, J: np.ndarray) -> np.ndarray:

@@ -1,9 +1,10 @@
 """A long one-run log of a nonlinear model (EKF/UKF local filters) estimated in blocks of time
 (issue 34), in memory that does not grow with its instants.
 
-The filters (CKF, SKF, HKF and the track-to-track architectures, `.architectures`) compute
-each instant from the instant before only: each keeps its state from block to block, its
-readings fed one block at a time (`_Steps.feed`), so a block's estimates are the whole run's.
+The filters (CKF, SKF, HKF and the track-to-track architectures, `.architectures`) are
+recursions on their state (`Machine`: s_k = step(k, s_{k-1}, z_k)): each keeps its state from
+block to block and takes a block's readings instant by instant, so a block's estimates are
+the whole run's.
 
 FBS, the extended / unscented RTS smoother, needs the instants after. Its forward filter is
 *recomputed*, not written to disk: a first sweep keeps the filter's estimate (x, P) at the end
@@ -21,9 +22,17 @@ from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 
-from ..architectures.registry import definition, parse_arch
 from ..model import System
-from .architectures import _filter, _named, _Out, _Steps, require_filter, rts, steps_of
+from .architectures import (
+    Machine,
+    _filter_machine,
+    _named,
+    _Out,
+    _Steps,
+    machine_of,
+    require_filter,
+    rts,
+)
 
 __all__ = ["estimate_blocks"]
 
@@ -42,31 +51,38 @@ def estimate_blocks(
     of a one-run log on the instants `times` (K+1,) s, in order (`estimate_steps`' numbers)."""
     K1 = len(times)
     edges = [(k0, min(k0 + block, K1)) for k0 in range(0, K1, block)]
-    names = [s.name for s in system.sensors]
-    gens: dict[str, tuple[_Steps, Iterator]] = {}
+    z0 = read(*edges[0])
+    held = {"k0": 0, "z": z0}  # the block the filters read
+    gens: dict[str, Iterator] = {}
     smoothers: dict[str, _Smoother] = {}
     for a in archs:
-        require_filter(system, a)
-        if definition(parse_arch(a, names)[0]).locals == "smoother":
+        if require_filter(system, a).locals == "smoother":
             smoothers[a] = _Smoother(system, a, times, edges, read)
         else:
-            st = _Steps(system, read(*edges[0]), times, 0, K1)
-            gens[a] = (st, steps_of(st, a))
+            m = machine_of(_Steps(system, z0, times, 0), a)
+            gens[a] = _named(_fed(m, K1, held), a)
     for b, (k0, k1) in enumerate(edges):
-        z = read(k0, k1)
+        held.update(k0=k0, z=read(k0, k1))
         out = {}
         for a in archs:
             if a in smoothers:
                 out[a] = smoothers[a].block(b)
                 continue
-            st, gen = gens[a]
-            st.feed(k0, z)
             got = _Out(1, k1 - k0, system.n)
             for j in range(k1 - k0):
-                got.put(j, *next(gen))
+                got.put(j, *next(gens[a]))
             tr = got.track()
             out[a] = (tr.mean, tr.cov)
         yield k0, k1, out
+
+
+def _fed(m: Machine, K1: int, held: dict, first: int = 0, state=None):
+    """The machine over the instants first..K1-1 from `state` (None: its start), instant k's
+    readings from the block `held` holds ({"k0", "z" (1, w, m)}) when k is asked for."""
+    s = m.start() if state is None else state
+    for k in range(first, K1):
+        s = m.step(k, s, held["z"][:, k - held["k0"]])
+        yield m.out(s)
 
 
 class _Smoother:
@@ -82,15 +98,16 @@ class _Smoother:
         read: Reader,
     ) -> None:
         self.arch, self.edges, self.read = arch, edges, read
-        self.st = _Steps(system, read(*edges[0]), times, 0, len(times))
-        self.which = list(range(len(system.sensors)))
+        self.st = _Steps(system, read(*edges[0]), times, 0)
+        self.K1 = len(times)
+        self.held: dict = {}
         # the forward filter's estimate before each block (None: the prior, at instant 0)
         self.starts: list = []
         state = None
-        forward = _named(_filter(self.st, self.which), arch)
+        forward = _named(_fed(_filter_machine(self.st), self.K1, self.held), arch)
         for k0, k1 in edges:
             self.starts.append(state)
-            self.st.feed(k0, read(k0, k1))
+            self.held.update(k0=k0, z=read(k0, k1))
             for _ in range(k1 - k0):
                 state = next(forward)
         # the smoothed estimate at the first instant after each block (None: the last block)
@@ -106,10 +123,11 @@ class _Smoother:
         the smoothed estimate after it (the prediction into that instant recomputed too)."""
         k0, k1 = self.edges[b]
         st, w, after = self.st, k1 - k0, self.after[b]
-        st.feed(k0, self.read(k0, k1))
+        self.held.update(k0=k0, z=self.read(k0, k1))
         keep: list = []
-        forward = _named(_filter(st, self.which, keep, k0, self.starts[b]), self.arch)
-        out = _Out(st.M, w + (after is not None), st.system.n)
+        m = _filter_machine(st, keep)
+        forward = _named(_fed(m, self.K1, self.held, k0, self.starts[b]), self.arch)
+        out = _Out(st.z.shape[0], w + (after is not None), st.system.n)
         for j in range(w):
             x, P = next(forward)
             out.put(j, x, P)

@@ -234,8 +234,6 @@ class StateEvaluator(Evaluator):
                 if not log.whole and not converged(expected[a], log.c):
                     return None
         long_nis = None
-        if nis is not None and nis.archs and not nis.system.linear:
-            return None  # a nonlinear replay's NIS: the whole run
         if nis is not None:
             from fusionlog.core.architectures import definition
 
