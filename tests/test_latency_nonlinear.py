@@ -459,7 +459,7 @@ def test_run_of_a_radar_scenario_with_a_late_radar(tmp_path, latency, late):
     on-time one and radar1's alone (SKF, its first sensor, on time: unchanged); the PCRB of
     the on-time readings stays beside them (it bounds any estimator using readings taken by
     t_k)."""
-    archs = '["CKF", "SKF"]' if late == "retrodict" else ARCHS
+    archs = '["CKF", "HKF", "MSC", "SKF"]' if late == "retrodict" else ARCHS
     on = radar_file(tmp_path, "", "", archs, "on")
     f = radar_file(tmp_path, latency, f'late = "{late}"', archs)
     ok("run", on, "--out-dir", tmp_path / "on")
@@ -471,6 +471,7 @@ def test_run_of_a_radar_scenario_with_a_late_radar(tmp_path, latency, late):
     mse_on = {a: v["mse"] for a, v in s_on["architectures"].items()}
     assert mse["SKF"] == pytest.approx(mse_on["SKF"], rel=1e-12)
     assert mse_on["CKF"] < mse["CKF"] < mse["SKF"]
+    assert mse_on["HKF"] < mse["HKF"] < mse["SKF"]  # retrodicting HKF too
     assert s["pcrb"] == s_on["pcrb"]
 
 
