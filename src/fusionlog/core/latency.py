@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .architectures import Plan, definition, parse_arch
+from .latency_corr import conditions_of, correlated_refusal, with_conditions
 from .latency_stacked import fused_plan, stacked_system, wrap
 from .model import System
 
@@ -96,14 +97,6 @@ def system_refusal(system: System) -> tuple[str, str] | None:
                 "estimate.late",
                 "retrodict predicts backwards through F^-1, and F is singular",
             )
-    for i, j in system.cross_R:
-        if lat[i] != lat[j]:
-            return (
-                "correlations",
-                f"sensors {system.sensors[i].name!r} and {system.sensors[j].name!r} are "
-                "correlated but arrive with different latencies: their readings of one "
-                "instant would be fused apart, as if independent",
-            )
     return None
 
 
@@ -122,7 +115,7 @@ def late_refusal(system: System, locals_kind: str, arch: str) -> str | None:
             f"architecture {arch}: retrodiction (Bar-Shalom's Al1) is built for one filter "
             "(CKF, SKF); with hierarchical or track-to-track filters use reprocess or neglect"
         )
-    return None
+    return correlated_refusal(system, locals_kind, arch)
 
 
 #: The delays' random stream (`core.simulate.chunked`): apart from the truth and readings'.
@@ -180,6 +173,8 @@ class LateModel:
     lags: list[np.ndarray]
     times: np.ndarray
     per_run: bool = False
+    #: (K+1, S): the latest instant each reading may arrive at (None: `arrive`)
+    last: np.ndarray | None = field(default=None, repr=False)
     stacked: System = field(init=False, repr=False)
     #: (m~, 3): for each component of the stacked measurement, its sensor, lag and component
     #: of z (eq. 30)
@@ -213,7 +208,13 @@ class LateModel:
             spans = [np.arange(a, b + 1) for a, b in zip(lo, hi, strict=True)]
             lj = np.unique(np.concatenate(spans or [np.zeros(1, np.intp)]))
             lags.append(lj.astype(np.intp))
-        return cls(system, steps, arrive, lags, times, random_delays(system))
+        return cls(system, steps, arrive, lags, times, random_delays(system), last)
+
+    def centre_model(self) -> tuple | None:
+        """The decorrelated stacked model of the centre (`_centre_model`), made once."""
+        if not hasattr(self, "_centre"):
+            self._centre = _centre_model(self)
+        return self._centre
 
     @property
     def window(self) -> int:
@@ -221,13 +222,19 @@ class LateModel:
         return max(int(lj.max()) for lj in self.lags)
 
     def stacked_mask(
-        self, present: np.ndarray, filters: list[list[int]], arrive: np.ndarray | None = None
+        self,
+        present: np.ndarray,
+        filters: list[list[int]],
+        arrive: np.ndarray | None = None,
+        centre: tuple | None = None,
     ) -> np.ndarray:
         """The presence mask of the stacked measurement, batch + (K+1, m~): the reading of
         slot (j, l) is there at k when sensor j measured that component at k - l, it arrives
         at k (`arrive`, batch + (K+1, S), default the fixed latencies') and (neglect) it is not
         older than the last update of the filter that fuses it (`filters`: the sensors each
-        filter fuses)."""
+        filter fuses). `centre` (`centre_model`): the slots of the model with decorrelated
+        readings, each there when its condition is the set of its instant's readings taken
+        before it."""
         K1 = present.shape[-2]
         arrive = self.arrive if arrive is None else arrive
         batch = np.broadcast_shapes(present.shape[:-2], arrive.shape[:-2])
@@ -241,13 +248,20 @@ class LateModel:
             for g in filters:
                 ok[..., g] = accepted(took[..., g], arrive[..., g], self.window)
             took = took & ok
-        j, lag, o = self.slots.T
-        out = np.zeros(present.shape[:-2] + (K1, len(self.slots)), dtype=bool)
+        slots = self.slots if centre is None else centre[1]
+        j, lag, o = slots[:, :3].T
+        if centre is not None:
+            cond = centre[3]
+            cond.check_whole(present)
+            code = cond.codes(took, arrive)
+        out = np.zeros(present.shape[:-2] + (K1, len(slots)), dtype=bool)
         for k in range(K1):
             i = k - lag
             ok = i >= 0
             ii = np.where(ok, i, 0)
             here = present[..., ii, o] & took[..., ii, j] & (arrive[..., ii, j] == k)
+            if centre is not None:
+                here &= code[..., ii, j] == slots[:, 3]
             out[..., k, :] = here & ok
         return out
 
@@ -290,7 +304,12 @@ class LateModel:
             arr = self.arrive if arrive is None else arrive
             plan = retrodict_plan(self.system, arch, present, arr, filters[0], self.window)
             return plan
-        mask = self.stacked_mask(present, filters, arrive)
+        centre = self.centre_model() if locals_kind == "centralised" else None
+        mask = self.stacked_mask(present, filters, arrive, centre)
+        if centre is not None:  # correlated readings of one instant arriving apart
+            inner = build(centre[0], arch, self.steps, mask, **kw)
+            m, W, n = self.system.m, self.window, self.system.n
+            return wrap(inner, centre[1], m, W, n, centre[2])
         if locals_kind == "per-sensor":  # the rule on the locals' current blocks
             criterion = kw.get("criterion", "trace")
             nodes = kw.get("history_nodes", False)
@@ -299,6 +318,18 @@ class LateModel:
         else:
             inner = build(self.stacked, arch, self.steps, mask, **kw)
         return wrap(inner, self.slots, self.system.m, self.window, self.system.n)
+
+
+def _centre_model(model: LateModel) -> tuple | None:
+    """(stacked system, slots, coefficients, conditions) of the one filter fusing every
+    sensor where correlated readings of one instant may arrive apart (`core.latency_corr`),
+    else None (the plain stacked model is exact)."""
+    last = model.arrive if model.last is None else model.last
+    S = len(model.system.sensors)
+    cond = conditions_of(model.system, model.arrive, last, list(range(S)))
+    if cond is None:
+        return None
+    return (*with_conditions(model.stacked, cond, model.lags, model.slots), cond)
 
 
 def accepted(took: np.ndarray, arrive: np.ndarray, W: int) -> np.ndarray:
