@@ -169,3 +169,82 @@ def test_what_has_no_plan_with_correlated_readings_arriving_apart(tmp_path, late
     # the same sensors with one latency: their readings of an instant arrive together
     same = scenario(tmp_path, latencies=(2.0, 2.0, 2.0), late=late, archs=(arch,), name="same")
     ok("run", same, "--out-dir", tmp_path / "s")
+
+
+# ---- the steady shortcut with late sensors: fixed latencies reach a steady state -------------
+
+
+def kf_steps(x, P, zs, Rs, steps):
+    """`steps` instants of predict + update with independent position readings zs[t] (a list
+    per instant), from (x, P) at the instant before."""
+    for zt in zs[:steps]:
+        x, P = F @ x, F @ P @ F.T + Q
+        for z, r in zip(zt, Rs, strict=True):
+            S = P[0, 0] + r
+            K = P[:, 0] / S
+            x = x + K * (z - x[0])
+            P = P - np.outer(K, P[0])
+    return x, P
+
+
+@pytest.mark.parametrize("arch", ["CKF", "MSC"])
+def test_a_long_horizon_with_a_late_sensor_equals_the_filter_without_shortcut(tmp_path, arch):
+    """s3 two instants late over 3000 instants: the plan repeats its steady step (a few dozen
+    distinct maps, not 3001), and its estimates equal a filter written here that has no
+    shortcut (per instant: the KF on every sensor to k - 2, then s1 and s2 alone to k; MSC:
+    Millman's formula on the three local KFs, s3's predicted from k - 2)."""
+    from fusionlog.driver import PlanCache
+
+    K, lag = 3000, 2
+    path = tmp_path / "long.toml"
+    path.write_text(
+        scenario(tmp_path, latencies=(None, None, 2.0), runs=1, steps=K, archs=(arch,))
+        .read_text()
+        .split("[[correlations]]")[0]  # independent sensors: MSC's Millman is their rule
+        + f'[estimate]\narchitectures = ["{arch}"]\n'
+    )
+    sim = fl.simulate(path)
+    est = fl.estimate(path, sim, [arch])[arch]
+    z = np.stack([sim.measurements[f"s{j + 1}"][0, :, 0] for j in range(3)], axis=-1)
+    x0, P0 = np.array([100.0, -1.0]), np.eye(2)
+    R = R_DIAG
+
+    def first(sensors):  # the filter at instant 0 and each instant after, on `sensors`
+        x, P = x0, P0
+        for j in sensors:
+            S = P[0, 0] + R[j]
+            Kg = P[:, 0] / S
+            x, P = x + Kg * (z[0, j] - x[0]), P - np.outer(Kg, P[0])
+        out = [(x, P)]
+        for k in range(1, K + 1):
+            x, P = kf_steps(x, P, [z[k, list(sensors)]], [R[j] for j in sensors], 1)
+            out.append((x, P))
+        return out
+
+    if arch == "CKF":
+        full, on_time = first((0, 1, 2)), first((0, 1))
+        for k in range(K + 1):
+            if k < lag:  # nothing of s3 has arrived yet
+                x, P = on_time[k]
+            else:
+                rows = [z[i, :2] for i in range(k - lag + 1, k + 1)]
+                x, P = kf_steps(*full[k - lag], rows, R[:2], lag)
+            np.testing.assert_allclose(est.mean[0, k], x, rtol=1e-9, atol=1e-9)
+            np.testing.assert_allclose(est.cov[0, k], P, rtol=1e-9, atol=1e-12)
+    else:
+        loc1, loc2, loc3 = first((0,)), first((1,)), first((2,))
+        for k in range(K + 1):
+            x3, P3 = x0, P0
+            if k >= lag:
+                x3, P3 = loc3[k - lag]
+            for _ in range(min(k, lag)):
+                x3, P3 = F @ x3, F @ P3 @ F.T + Q
+            info = sum(np.linalg.inv(P) for _, P in (loc1[k], loc2[k], (x3, P3)))
+            P = np.linalg.inv(info)
+            x = P @ sum(np.linalg.solve(Pj, xj) for xj, Pj in (loc1[k], loc2[k], (x3, P3)))
+            np.testing.assert_allclose(est.mean[0, k], x, rtol=1e-9, atol=1e-9)
+            np.testing.assert_allclose(est.cov[0, k], P, rtol=1e-9, atol=1e-12)
+    # the plan's memory: its distinct step maps stop growing once the shortcut triggers
+    system = fl.load(path).system
+    plan = PlanCache(system, K, clock=sim.times).plan(arch)
+    assert len({id(st) for st in plan.steps}) < 200

@@ -205,7 +205,8 @@ class LateModel:
             i = np.arange(K1)[got]
             # every lag between the earliest and the latest arrival (within the horizon)
             lo, hi = arrive[got, j] - i, np.minimum(last[got, j], K1 - 1) - i
-            spans = [np.arange(a, b + 1) for a, b in zip(lo, hi, strict=True)]
+            pairs = np.unique(lo.astype(np.int64) * (K1 + 1) + hi)  # few distinct spans
+            spans = [np.arange(p // (K1 + 1), p % (K1 + 1) + 1) for p in pairs.tolist()]
             lj = np.unique(np.concatenate(spans or [np.zeros(1, np.intp)]))
             lags.append(lj.astype(np.intp))
         return cls(system, steps, arrive, lags, times, random_delays(system), last)
@@ -255,14 +256,13 @@ class LateModel:
             cond.check_whole(present)
             code = cond.codes(took, arrive)
         out = np.zeros(present.shape[:-2] + (K1, len(slots)), dtype=bool)
-        for k in range(K1):
-            i = k - lag
-            ok = i >= 0
-            ii = np.where(ok, i, 0)
-            here = present[..., ii, o] & took[..., ii, j] & (arrive[..., ii, j] == k)
+        for c, (jc, lc, oc) in enumerate(zip(j, lag, o, strict=True)):  # slot c, over every k
+            i = slice(0, max(K1 - lc, 0))  # the readings taken at i = k - lag, k >= lag
+            here = present[..., i, oc] & took[..., i, jc]
+            here &= arrive[..., i, jc] == np.arange(lc, K1)
             if centre is not None:
-                here &= code[..., ii, j] == slots[:, 3]
-            out[..., k, :] = here & ok
+                here &= code[..., i, jc] == slots[c, 3]
+            out[..., lc:, c] = here
         return out
 
     def build(

@@ -347,18 +347,28 @@ class Steady:
     covariance state after step k equals the one after step k-1 (to rounding, 1e-15 relative),
     every later step's map is the same as step k's: the plan repeats it instead of recomputing
     10^5 identical gains.
+
+    The same holds when the mask shared by the runs is the same row at every instant from
+    `tail` on (late sensors with fixed latencies: past the latency window the same lags arrive
+    at every instant, `core.latency`): step k >= tail with the covariance state of step k - 1
+    maps like every later step. The caller then says which step it asks about (`k`).
     """
 
     def __init__(self, present: np.ndarray, system: System):
         self.enabled = present.ndim == 2 and bool(present.all()) and system.time_invariant
         self.prev: np.ndarray | None = None
+        self.tail = 0 if self.enabled else None
+        if not self.enabled and present.ndim == 2 and system.time_invariant:
+            same = (present == present[-1]).all(-1)  # rows equal to the last one
+            tail = len(same) - int(np.argmin(same[::-1])) if not same.all() else 0
+            self.tail = tail if tail < len(same) - 2 else None
 
-    def reached(self, *mats: np.ndarray) -> bool:
-        if not self.enabled:
+    def reached(self, *mats: np.ndarray, k: int | None = None) -> bool:
+        if not self.enabled and (self.tail is None or k is None):
             return False
         cur = mats[0].ravel() if len(mats) == 1 else np.concatenate([m.ravel() for m in mats])
         prev, self.prev = self.prev, cur
-        if prev is None:
+        if prev is None or (k is not None and k < self.tail):
             return False
         if cur.size <= 16:
             # A step's few numbers compare faster in Python than through numpy's calls, with
