@@ -18,6 +18,7 @@ import pytest
 from cli_helpers import cli, ok, one_line_error
 
 import fusionlog as fl
+from fusionlog.core.reference import reference_paths
 
 F = np.array([[1.0, 1.0], [0.0, 1.0]])
 Q = 0.16 * np.array([[1 / 3, 1 / 2], [1 / 2, 1.0]])
@@ -198,7 +199,7 @@ def test_a_long_horizon_with_a_late_sensor_equals_the_filter_without_shortcut(tm
     K, lag = 3000, 2
     path = tmp_path / "long.toml"
     path.write_text(
-        scenario(tmp_path, latencies=(None, None, 2.0), runs=1, steps=K, archs=(arch,))
+        scenario(tmp_path, latencies=(None, None, 2.0), runs=2, steps=K, archs=(arch,))
         .read_text()
         .split("[[correlations]]")[0]  # independent sensors: MSC's Millman is their rule
         + f'[estimate]\narchitectures = ["{arch}"]\n'
@@ -248,3 +249,38 @@ def test_a_long_horizon_with_a_late_sensor_equals_the_filter_without_shortcut(tm
     system = fl.load(path).system
     plan = PlanCache(system, K, clock=sim.times).plan(arch)
     assert len({id(st) for st in plan.steps}) < 200
+
+
+# ---- one run without plans: the replay path on the stacked model -----------------------------
+
+
+@pytest.mark.skipif(reference_paths(), reason="FUSIONLOG_REFERENCE_PATHS forces the plans")
+@pytest.mark.parametrize("late", ["reprocess", "neglect"])
+@pytest.mark.parametrize("lats", [RANDOM, FIXED[1]])
+def test_one_run_builds_no_plan_and_equals_the_plans(tmp_path, monkeypatch, late, lats):
+    """One run with correlated late sensors (random delays; fixed ones with s1 dropping a
+    reading in three, so no steady state) builds no plan, and its estimates equal the plans'
+    (FUSIONLOG_REFERENCE_PATHS=1) to what rounding can move a Kalman filter of a few dozen
+    steps by (1e-9 of the scale)."""
+    from fusionlog.driver import plans
+
+    archs = ["CKF", "HKF", "SKF:s3"]
+    path = scenario(tmp_path, latencies=lats, late=late, runs=1, steps=60, archs=archs)
+    path.write_text(path.read_text().replace('name = "s1"\n', 'name = "s1"\ndropout = 0.3\n'))
+    sim = fl.simulate(path)
+    assert np.isnan(sim.measurements["s1"]).any()
+
+    def no_plans(*args, **kwargs):
+        raise AssertionError("a plan was built for one run")
+
+    with monkeypatch.context() as mp:
+        mp.setattr(plans, "build_plan", no_plans)
+        fast = fl.estimate(path, sim, archs)
+    monkeypatch.setenv("FUSIONLOG_REFERENCE_PATHS", "1")
+    slow = fl.estimate(path, sim, archs)
+    for a in archs:
+        scale = np.abs(slow[a].mean).max()
+        np.testing.assert_allclose(fast[a].mean, slow[a].mean, rtol=1e-9, atol=1e-9 * scale)
+        cov = np.broadcast_to(slow[a].cov, (1,) + slow[a].cov.shape[-3:])
+        got = np.broadcast_to(fast[a].cov, cov.shape)
+        np.testing.assert_allclose(got, cov, rtol=1e-9, atol=1e-9 * np.abs(cov).max())

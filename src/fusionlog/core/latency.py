@@ -265,6 +265,32 @@ class LateModel:
             out[..., lc:, c] = here
         return out
 
+    def filters_of(self, arch: str) -> tuple[str, str, list[list[int]]]:
+        """`arch`'s base name, kind of locals and the sensors each of its filters fuses."""
+        names = [s.name for s in self.system.sensors]
+        base, sensor = parse_arch(arch, names)
+        locals_kind = definition(base).locals
+        if sensor is not None:  # one filter on one sensor
+            return base, locals_kind, [[names.index(sensor)]]
+        if locals_kind == "per-sensor":  # a local filter per sensor
+            return base, locals_kind, [[j] for j in range(len(names))]
+        return base, locals_kind, [list(range(len(names)))]  # one filter (or a centre)
+
+    def arrivals_of(self, arrival: np.ndarray | None) -> np.ndarray | None:
+        """The arrival instants of readings that arrived at `arrival` (runs, K+1, S) s (None:
+        the fixed latencies'), checked against the model's lags."""
+        if arrival is None:
+            return None
+        K1 = self.steps + 1
+        arrive = arrival_steps(self.times, arrival)
+        for j, lj in enumerate(self.lags):  # the readings' own lags must be among the model's
+            a = arrive[..., j]
+            lag = (a - np.arange(K1))[a < K1]
+            if not np.isin(lag, lj).all():
+                name = self.system.sensors[j].name
+                raise ValueError(f"sensor {name}: a reading arrives outside its latency range")
+        return arrive
+
     def build(
         self, build, arch: str, present: np.ndarray | None, arrival: np.ndarray | None = None, **kw
     ) -> Plan:
@@ -279,25 +305,8 @@ class LateModel:
         if present is None:
             present = np.ones((K1, self.system.m), dtype=bool)
         kw.pop("groups", None)  # the stacked mask groups the runs by its own histories
-        names = [s.name for s in self.system.sensors]
-        base, sensor = parse_arch(arch, names)
-        S = len(names)
-        locals_kind = definition(base).locals
-        if sensor is not None:  # one filter on one sensor
-            filters = [[names.index(sensor)]]
-        elif locals_kind == "per-sensor":  # a local filter per sensor
-            filters = [[j] for j in range(S)]
-        else:  # one filter (or a centre) fusing every sensor
-            filters = [list(range(S))]
-        arrive = None if arrival is None else arrival_steps(self.times, arrival)
-        if arrive is not None:  # the readings' own lags must be among the model's
-            for j, lj in enumerate(self.lags):
-                a = arrive[..., j]
-                lag = (a - np.arange(K1))[a < K1]
-                if not np.isin(lag, lj).all():
-                    raise ValueError(
-                        f"sensor {names[j]}: a reading arrives outside its latency range"
-                    )
+        base, locals_kind, filters = self.filters_of(arch)
+        arrive = self.arrivals_of(arrival)
         if self.system.late == "retrodict":
             from .retrodict import retrodict_plan
 
