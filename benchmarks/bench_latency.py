@@ -46,6 +46,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--random", action="store_true")
     ap.add_argument("--horizons", type=str, default="")
+    ap.add_argument("--archs", type=str, default="CKF,HKF,MSC")
     args = ap.parse_args()
     if args.horizons:
         horizons(args)
@@ -128,7 +129,7 @@ def horizons(args) -> None:
     for K in (int(k) for k in args.horizons.split(",")):
         times = np.arange(K + 1) * system.dt
         z = 100 + rng.normal(size=(args.runs, K + 1, system.m))
-        for arch in ("CKF", "HKF", "MSC"):
+        for arch in args.archs.split(","):
             cache = PlanCache(system, K, clock=times)
             t0 = time.perf_counter()
             plan = cache.plan(arch)
