@@ -75,15 +75,10 @@ def system_refusal(system: System) -> tuple[str, str] | None:
     if not is_late(system):
         return None
     lat = [s.timing.latency for s in system.sensors]
-    late = [j for j, (lo, hi) in enumerate(lat) if hi > 0]
     if system.late not in BUILT_POLICIES:
         return ("estimate.late", f"{system.late!r} with late sensors is not available yet")
     if not system.linear:
-        return (
-            f"sensors[{late[0]}].latency",
-            "late measurements need linear sensors and motion (the EKF/UKF lanes do not "
-            "rewind yet)",
-        )
+        return nonlinear_refusal(system)
     if system.prior is None:
         return (
             "prior",
@@ -97,6 +92,19 @@ def system_refusal(system: System) -> tuple[str, str] | None:
                 "estimate.late",
                 "retrodict predicts backwards through F^-1, and F is singular",
             )
+    return None
+
+
+def nonlinear_refusal(system: System) -> tuple[str, str] | None:
+    """(key, reason) why the EKF/UKF lanes cannot take a system's late sensors
+    (`core.nonlinear.late`), or None."""
+    if system.late == "retrodict" and system.filter == "UKF":
+        return (
+            "estimate.late",
+            "retrodict needs the EKF: Al1 linearises the motion and the sensors at the "
+            "retrodicted state, which the UKF never samples (its sigma points are drawn about "
+            'the forward predictions); use reprocess or neglect, or filter = "EKF"',
+        )
     return None
 
 

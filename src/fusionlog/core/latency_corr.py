@@ -200,6 +200,8 @@ def correlated_refusal(system: System, locals_kind: str, arch: str) -> str | Non
     (module docstring); HKF believes the sensors independent on time as late; a single
     sensor's filter and the locals of a rule that does not read their joint error covariance
     fuse one sensor each, so nothing correlated meets in a filter."""
+    if not system.linear:  # the EKF/UKF lanes rerun an instant with all its arrived readings
+        return None  # (`core.nonlinear.late`): no stacked model, their own refusals
     lat = [s.timing.latency for s in system.sensors]
     apart = [
         (i, j)

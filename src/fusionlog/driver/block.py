@@ -84,8 +84,15 @@ def estimate_block(
         cache = PlanCache.of(system, times, R, steps=z.shape[1] - 1)
     if not cache.system.linear:  # EKF/UKF: no plans, every run has its own linearisation
         cache.patterns.append(None)  # the estimates' provenance: per run
+        arr = cache.block_arrivals(run_offset, z.shape[0]) if arrivals is None else arrivals
         lanes = (
-            (a, nonlinear_estimate(cache.system, a, z, cache.times, run_offset)) for a in archs
+            (
+                a,
+                nonlinear_estimate(
+                    cache.system, a, z, cache.times, run_offset=run_offset, arrival=arr
+                ),
+            )
+            for a in archs
         )  # one architecture at a time: reduced before the next is computed
         return _reduced(
             ((a, Estimate(t.mean, t.cov)) for a, t in lanes), None, truth, workspace, keep
@@ -99,9 +106,8 @@ def estimate_block(
     elif cache.one_run and expected_of is None and not reference_paths():
         from fusionlog.core.latency_replay import late_replay_estimates  # late readings
 
-        if arrivals is None and late.per_run and cache.arrivals is not None:
-            arrivals = cache.arrivals[run_offset : run_offset + z.shape[0]]
-        fast = late_replay_estimates(late, archs, z, arrivals, cache.criterion)
+        arr = cache.block_arrivals(run_offset, z.shape[0]) if arrivals is None else arrivals
+        fast = late_replay_estimates(late, archs, z, arr if late.per_run else None, cache.criterion)
     if fast is not None:  # one run, no exact analysis: no plans
         pattern = shared_pattern(z)
         if late is not None and late.per_run:  # as the plans record it: per run
