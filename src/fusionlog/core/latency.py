@@ -74,7 +74,6 @@ def system_refusal(system: System) -> tuple[str, str] | None:
     """(key, reason) why a system's late sensors cannot be estimated, or None."""
     if not is_late(system):
         return None
-    lat = [s.timing.latency for s in system.sensors]
     if system.late not in BUILT_POLICIES:
         return ("estimate.late", f"{system.late!r} with late sensors is not available yet")
     if not system.linear:
