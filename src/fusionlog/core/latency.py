@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .architectures import Plan, definition, parse_arch
+from .architectures.filters import constant_tail
 from .latency_corr import conditions_of, correlated_refusal, with_conditions
 from .latency_stacked import fused_plan, stacked_system, wrap
 from .model import System
@@ -322,17 +323,18 @@ class LateModel:
             return plan
         centre = self.centre_model() if locals_kind == "centralised" else None
         mask = self.stacked_mask(present, filters, arrive, centre)
-        if centre is not None:  # correlated readings of one instant arriving apart
-            inner = build(centre[0], arch, self.steps, mask, **kw)
-            m, W, n = self.system.m, self.window, self.system.n
-            return wrap(inner, centre[1], m, W, n, centre[2])
-        if locals_kind == "per-sensor":  # the rule on the locals' current blocks
-            criterion = kw.get("criterion", "trace")
-            nodes = kw.get("history_nodes", False)
-            n = self.system.n
-            inner = fused_plan(self.stacked, base, mask, criterion, n, nodes)
-        else:
-            inner = build(self.stacked, arch, self.steps, mask, **kw)
+        with constant_tail():  # past the window the mask repeats: the steady shortcut applies
+            if centre is not None:  # correlated readings of one instant arriving apart
+                inner = build(centre[0], arch, self.steps, mask, **kw)
+                m, W, n = self.system.m, self.window, self.system.n
+                return wrap(inner, centre[1], m, W, n, centre[2])
+            if locals_kind == "per-sensor":  # the rule on the locals' current blocks
+                criterion = kw.get("criterion", "trace")
+                nodes = kw.get("history_nodes", False)
+                n = self.system.n
+                inner = fused_plan(self.stacked, base, mask, criterion, n, nodes)
+            else:
+                inner = build(self.stacked, arch, self.steps, mask, **kw)
         return wrap(inner, self.slots, self.system.m, self.window, self.system.n)
 
 
