@@ -118,12 +118,19 @@ def late_refusal(system: System, locals_kind: str, arch: str) -> str | None:
             f"architecture {arch}: a fixed-interval smoother uses every measurement of the run "
             "whenever it arrives: a latency has no meaning there"
         )
-    if system.late == "retrodict" and locals_kind not in ("centralised", "single"):
+    # The linear plans retrodict in every filter (`core.retrodict_fused`: HKF's centre, the
+    # track-to-track locals); the EKF lanes (`core.nonlinear.retrodict`) in one filter only.
+    if system.late == "retrodict" and not system.linear and locals_kind not in SINGLE_FILTER:
         return (
-            f"architecture {arch}: retrodiction (Bar-Shalom's Al1) is built for one filter "
-            "(CKF, SKF); with hierarchical or track-to-track filters use reprocess or neglect"
+            f"architecture {arch}: retrodict on a nonlinear model (Al1 with the EKF's "
+            "Jacobians) is built for one filter (CKF, SKF); with hierarchical or "
+            "track-to-track filters use reprocess or neglect"
         )
     return correlated_refusal(system, locals_kind, arch)
+
+
+#: The architectures that run one filter on their sensors.
+SINGLE_FILTER = ("centralised", "single")
 
 
 #: The delays' random stream (`core.simulate.chunked`): apart from the truth and readings'.
@@ -316,11 +323,13 @@ class LateModel:
         base, locals_kind, filters = self.filters_of(arch)
         arrive = self.arrivals_of(arrival)
         if self.system.late == "retrodict":
-            from .retrodict import retrodict_plan
+            from .retrodict_fused import late_retrodict_plan
 
             arr = self.arrive if arrive is None else arrive
-            plan = retrodict_plan(self.system, arch, present, arr, filters[0], self.window)
-            return plan
+            criterion = kw.get("criterion", "trace")
+            return late_retrodict_plan(
+                self.system, arch, base, present, arr, filters, self.lags, criterion
+            )
         centre = self.centre_model() if locals_kind == "centralised" else None
         mask = self.stacked_mask(present, filters, arrive, centre)
         with constant_tail():  # past the window the mask repeats: the steady shortcut applies
