@@ -285,6 +285,25 @@ def test_neglect_is_the_event_driven_filter_that_drops_older_readings(filt, arch
     assert dropped >= 3  # the delays make neglect drop readings (else no test)
 
 
+def algorithm_a(f: Filter, x, P, last, Pk1, sensor, zd):
+    """Bar-Shalom 2002's Algorithm A for a reading zd of the instant before the last update
+    (one interval), whose H, S, innovation are `last` and prior covariance Pk1; linear motion,
+    the sensor's Jacobian at the retrodicted state."""
+    F, Q = f.s.motion.F(1.0), f.s.motion.Q(1.0)
+    Fi = np.linalg.inv(F)
+    H, S, nu = last
+    SiH = np.linalg.solve(S, H)
+    xd = Fi @ (x - Q @ H.T @ np.linalg.solve(S, nu))
+    Pxv = Q - Pk1 @ H.T @ SiH @ Q
+    Pvv = Q - Q @ H.T @ SiH @ Q
+    Pd = Fi @ (P + Pvv - Pxv - Pxv.T) @ Fi.T
+    Hd = sensor.jacobian(xd)
+    Sd = Hd @ Pd @ Hd.T + sensor.R
+    Pxz = (P - Pxv) @ Fi.T @ Hd.T
+    Wg = np.linalg.solve(Sd, Pxz.T).T
+    return x + Wg @ sensor.residual(zd, sensor.h(xd)), P - Wg @ Pxz.T
+
+
 def test_retrodict_with_a_one_update_lag_is_algorithm_a():
     """Radar 'a' on time, 'b' 1.5 s late: each 'b' reading taken at t_d arrives at t_d + 2,
     after one update ('a' at t_d + 1) beyond the stored estimate at t_d: Bar-Shalom 2002's
@@ -296,26 +315,13 @@ def test_retrodict_with_a_one_update_lag_is_algorithm_a():
     arrival[..., 1] = TIMES + 1.5
     est = estimate(system, "CKF", z, TIMES, arrival=arrival)
     f = Filter(system)
-    F, Q = system.motion.F(1.0), system.motion.Q(1.0)
-    Fi = np.linalg.inv(F)
     a, b = system.sensors
     for r in range(M):
         x, P = system.prior.mean.copy(), system.prior.cov.copy()
         conds, last, Pk1 = [], None, None
         for k in range(K + 1):
             if k >= 2:  # b's reading of d = k - 2 against the update at k - 1 (lag one)
-                H, S, nu = last
-                SiH = np.linalg.solve(S, H)
-                xd = Fi @ (x - Q @ H.T @ np.linalg.solve(S, nu))
-                Pxv = Q - Pk1 @ H.T @ SiH @ Q
-                Pvv = Q - Q @ H.T @ SiH @ Q
-                Pd = Fi @ (P + Pvv - Pxv - Pxv.T) @ Fi.T
-                Hd = b.jacobian(xd)
-                Sd = Hd @ Pd @ Hd.T + b.R
-                Pxz = (P - Pxv) @ Fi.T @ Hd.T
-                Wg = np.linalg.solve(Sd, Pxz.T).T
-                x = x + Wg @ b.residual(z[r, k - 2, 2:], b.h(xd))
-                P = P - Wg @ Pxz.T
+                x, P = algorithm_a(f, x, P, last, Pk1, b, z[r, k - 2, 2:])
             if k:
                 x, P = f.predict(x, P)
             Pk1 = P
@@ -323,6 +329,90 @@ def test_retrodict_with_a_one_update_lag_is_algorithm_a():
             x, P, last = f.update(x, P, [(a, z[r, k, :2])])
             tol = 1e3 * max(conds) * EPS
             close(est, r, k, x, P, tol)
+
+
+def alternating_arrivals(system):
+    """Both radars late by 1.5 s (arriving two instants on) at every other instant, 'a' at the
+    instants of one parity and 'b' at the other's, the parity swapped from run to run: each
+    local's late reading lags one update of its own (the on-time reading after it)."""
+    system = dataclasses.replace(
+        system,
+        sensors=tuple(
+            dataclasses.replace(s, timing=SensorTiming(latency=(0.0, 1.5))) for s in system.sensors
+        ),
+    )
+    late = (np.arange(K + 1)[None, :, None] + np.arange(M)[:, None, None] + [0, 1]) % 2 == 0
+    return system, TIMES[None, :, None] + 1.5 * late, late
+
+
+def test_retrodicting_locals_are_algorithm_a_each_fused_by_msc():
+    """MSC with retrodicting EKF locals: each local is its own EKF on its radar whose late
+    readings (one update behind) go through Algorithm A with the Jacobian at the retrodicted
+    state, and Millman's formula (32)-(34) fuses them at each instant: P = (sum P_j^-1)^-1,
+    x = P sum P_j^-1 x_j. Tolerance as in the one-filter test (cond P(k|k-1) x eps, amplified)
+    and the fusion's cond(P_j)."""
+    system, arrival, late = alternating_arrivals(radar_system(False, "EKF", "retrodict"))
+    z = simulate(system, K, 13, 0, M)[1]
+    assert not np.isnan(z).any()
+    est = estimate(system, "MSC", z, TIMES, arrival=arrival)
+    f = Filter(system)
+    retrodicted = 0
+    for r in range(M):
+        locs = []
+        for j, s in enumerate(system.sensors):
+            zj = z[r, :, system.sensor_slices[j]]
+            x, P = system.prior.mean.copy(), system.prior.cov.copy()
+            tau, last, Pk1, out, conds = 0, None, None, [], []
+            for k in range(K + 1):
+                if k >= 2 and late[r, k - 2, j]:  # the reading of k - 2 arrives
+                    assert tau == k - 1
+                    x, P = algorithm_a(f, x, P, last, Pk1, s, zj[k - 2])
+                    retrodicted += 1
+                if not late[r, k, j]:  # on time: predict from the last update, update
+                    for _ in range(k - tau):
+                        x, P = f.predict(x, P)
+                    Pk1, tau = P, k
+                    conds.append(np.linalg.cond(P))
+                    x, P, last = f.update(x, P, [(s, zj[k])])
+                xo, Po = x, P
+                for _ in range(k - tau):
+                    xo, Po = f.predict(xo, Po)
+                out.append((xo, Po))
+            locs.append((out, max(conds)))
+        for k in range(K + 1):
+            Ys = [np.linalg.inv(o[k][1]) for o, _ in locs]
+            Pf = np.linalg.inv(sum(Ys))
+            xf = Pf @ sum(Y @ o[k][0] for Y, (o, _) in zip(Ys, locs, strict=True))
+            cond = max(c for _, c in locs) * max(np.linalg.cond(o[k][1]) for o, _ in locs)
+            close(est, r, k, xf, Pf, 1e3 * cond * EPS)
+    assert retrodicted >= M * K // 2 - M  # the late readings went through Algorithm A
+
+
+@pytest.mark.parametrize("arch", ["HKF", "MSC", "CI", "ICI", "EI"])
+def test_retrodict_at_zero_delay_gives_the_on_time_numbers_bit_for_bit(arch):
+    """Retrodicting HKF and track-to-track locals whose readings all arrive when taken: each
+    step is the on-time one, to the bit."""
+    on = radar_system(True, "EKF", "retrodict", (0.0, 0.0))
+    z = simulate(on, K, 2, 0, M)[1]
+    ref = estimate(on, arch, z, TIMES)
+    system, _, _ = alternating_arrivals(on)
+    arrival = np.broadcast_to(TIMES[None, :, None], (M, K + 1, 2))
+    got = estimate(system, arch, z, TIMES, arrival=arrival)
+    assert np.array_equal(got.mean, ref.mean) and np.array_equal(got.cov, ref.cov)
+
+
+@pytest.mark.parametrize("arch", ["MSC-GMF", "AVG"])
+def test_retrodict_refuses_a_rule_that_reads_the_joint_covariance(arch):
+    """The lanes carry no joint error covariance of retrodicting locals: refused in one line
+    naming the architecture, on a nonlinear model (`late_refusal`, before any work) and on a
+    linear one run through the lanes."""
+    from fusionlog.errors import FusionlogError
+
+    for turn in (True, False):
+        system, arrival, _ = alternating_arrivals(radar_system(turn, "EKF", "retrodict"))
+        z = simulate(system, K, 1, 0, M)[1]
+        with pytest.raises(FusionlogError, match=rf"^architecture {arch}: .*joint error cov"):
+            estimate(system, arch, z, TIMES, arrival=arrival)
 
 
 def test_arrivals_at_the_measurement_times_give_the_on_time_numbers_bit_for_bit():
@@ -369,7 +459,7 @@ def test_run_of_a_radar_scenario_with_a_late_radar(tmp_path, latency, late):
     on-time one and radar1's alone (SKF, its first sensor, on time: unchanged); the PCRB of
     the on-time readings stays beside them (it bounds any estimator using readings taken by
     t_k)."""
-    archs = '["CKF", "SKF"]' if late == "retrodict" else ARCHS
+    archs = '["CKF", "HKF", "MSC", "SKF"]' if late == "retrodict" else ARCHS
     on = radar_file(tmp_path, "", "", archs, "on")
     f = radar_file(tmp_path, latency, f'late = "{late}"', archs)
     ok("run", on, "--out-dir", tmp_path / "on")
@@ -381,6 +471,7 @@ def test_run_of_a_radar_scenario_with_a_late_radar(tmp_path, latency, late):
     mse_on = {a: v["mse"] for a, v in s_on["architectures"].items()}
     assert mse["SKF"] == pytest.approx(mse_on["SKF"], rel=1e-12)
     assert mse_on["CKF"] < mse["CKF"] < mse["SKF"]
+    assert mse_on["HKF"] < mse["HKF"] < mse["SKF"]  # retrodicting HKF too
     assert s["pcrb"] == s_on["pcrb"]
 
 
@@ -388,7 +479,7 @@ def test_run_of_a_radar_scenario_with_a_late_radar(tmp_path, latency, late):
     "edit, args, fragments",
     [
         ('late = "retrodict"\n', ["--filter", "UKF"], ["retrodict needs the EKF"]),
-        ('late = "retrodict"\n', ["--arch", "HKF"], ["HKF", "retrodict"]),
+        ('late = "retrodict"\n', ["--arch", "MSC-GMF"], ["MSC-GMF", "joint error covariance"]),
         ("", ["--late", "later"], ["--late", "'later' is not one of"]),
         ('late = "reprocess"\n', ["--arch", "FBS"], ["FBS", "smoother"]),
     ],
@@ -615,6 +706,38 @@ def test_on_a_linear_model_the_lanes_are_the_linear_plans(late, latency):
     cache = PlanCache.of(system, times)
     cache.arrivals = arrival
     want = estimate_block(system, ["CKF"], z, cache=cache).estimates["CKF"]
+    np.testing.assert_allclose(got.mean, want.mean, rtol=0, atol=1e-9 * np.abs(want.mean).max())
+    cov = np.broadcast_to(want.cov, got.cov.shape)
+    np.testing.assert_allclose(got.cov, cov, rtol=0, atol=1e-9 * np.abs(cov).max())
+
+
+@pytest.mark.parametrize("arch", ["HKF", "MSC", "CI", "ICI", "EI"])
+def test_on_a_linear_model_retrodicting_hkf_and_locals_are_the_linear_plans(arch):
+    """Both sensors with random delays (lags of several updates, out of order within each
+    local's own sensor): the lanes' retrodicting HKF centre and track-to-track locals, fused
+    by the rule, give the linear plans' (`core.retrodict_fused`: HKF's centre as Al1 on the
+    noise it believes, each local Al1 compiled on its sensor, the rule on their covariances).
+    Tolerance as in the one-filter comparison above (plus the rules' own solves: ICI's and
+    CI's omega found to the optimiser's tolerance from the same covariances, to rounding)."""
+    from fusionlog.core.models import LinearSensor
+    from fusionlog.driver import PlanCache, estimate_block
+
+    F = np.array([[1.0, 1.0], [0.0, 1.0]])
+    Q = 0.16 * np.array([[1 / 3, 1 / 2], [1 / 2, 1.0]])
+    H = np.array([[1.0, 0.0]])
+    lat = SensorTiming(latency=(0.0, 3.5))
+    s1 = dataclasses.replace(LinearSensor("s1", H, np.array([[1.0]])), timing=lat)
+    s2 = dataclasses.replace(LinearSensor("s2", H, np.array([[0.5]])), timing=lat)
+    prior = Prior(np.array([100.0, -1.0]), np.eye(2))
+    system = System(F, Q, (s1, s2), prior, late="retrodict")
+    K1 = 16
+    times = np.arange(float(K1))
+    z = simulate(system, K1 - 1, 3, 0, M)[1]
+    arrival = times[None, :, None] + np.random.default_rng(4).uniform(0.0, 3.5, (M, K1, 2))
+    got = estimate(dataclasses.replace(system, filter="EKF"), arch, z, times, arrival=arrival)
+    cache = PlanCache.of(system, times)
+    cache.arrivals = arrival
+    want = estimate_block(system, [arch], z, cache=cache).estimates[arch]
     np.testing.assert_allclose(got.mean, want.mean, rtol=0, atol=1e-9 * np.abs(want.mean).max())
     cov = np.broadcast_to(want.cov, got.cov.shape)
     np.testing.assert_allclose(got.cov, cov, rtol=0, atol=1e-9 * np.abs(cov).max())

@@ -46,6 +46,7 @@ __all__ = [
     "LateModel",
     "arrival_steps",
     "draw_arrivals",
+    "ekf_retrodict_refusal",
     "is_late",
     "random_delays",
     "late_refusal",
@@ -118,15 +119,23 @@ def late_refusal(system: System, locals_kind: str, arch: str) -> str | None:
             f"architecture {arch}: a fixed-interval smoother uses every measurement of the run "
             "whenever it arrives: a latency has no meaning there"
         )
-    # The linear plans retrodict in every filter (`core.retrodict_fused`: HKF's centre, the
-    # track-to-track locals); the EKF lanes (`core.nonlinear.retrodict`) in one filter only.
-    if system.late == "retrodict" and not system.linear and locals_kind not in SINGLE_FILTER:
-        return (
-            f"architecture {arch}: retrodict on a nonlinear model (Al1 with the EKF's "
-            "Jacobians) is built for one filter (CKF, SKF); with hierarchical or "
-            "track-to-track filters use reprocess or neglect"
-        )
+    # The linear plans retrodict in every filter (`core.retrodict_fused`); the EKF lanes
+    # (`core.nonlinear.retrodict`) in every filter too, but carry no joint covariance there.
+    if system.late == "retrodict" and not system.linear and locals_kind == "per-sensor":
+        return ekf_retrodict_refusal(arch, definition(arch).joint)
     return correlated_refusal(system, locals_kind, arch)
+
+
+def ekf_retrodict_refusal(arch: str, joint: bool) -> str | None:
+    """Why the EKF lanes' retrodicting locals cannot feed track-to-track rule `arch` (`joint`:
+    it reads the locals' joint error covariance), or None."""
+    if not joint:
+        return None
+    return (
+        f"architecture {arch}: retrodict with EKF locals gives no joint error covariance for "
+        "its rule (Al1 correlates each local with the process noise since its stored estimate, "
+        "which the lanes do not carry); use reprocess or neglect, or MSC, CI, ICI or EI"
+    )
 
 
 #: The architectures that run one filter on their sensors.

@@ -31,7 +31,7 @@ from ...errors import FusionlogError, NumericalError
 from ..architectures.definition import Architecture
 from ..architectures.registry import definition, parse_arch
 from ..kernels import lanes
-from ..latency import is_late, late_refusal
+from ..latency import ekf_retrodict_refusal, is_late, late_refusal
 from ..linalg import NUMERICAL_FAILURES, mT, spd_inv, sym
 from ..model import System
 from ..models.polar import PolarSensor
@@ -239,6 +239,15 @@ class Machine:
     def out(self, s) -> tuple[np.ndarray, np.ndarray]:
         return s
 
+    def retrodicting(self) -> list:
+        """Its retrodicting filters (`retrodict.retrodict_steps`): [(sensors, in-order update
+        or None for the stacked EKF update)]."""
+        return [(self.which, None)]
+
+    def combine(self, ests: tuple) -> tuple[np.ndarray, np.ndarray]:
+        """The estimate of its retrodicting filters' estimates (x, P) at an instant."""
+        return ests[0]
+
 
 class _Filter(Machine):
     """One filter on the sensors `which`; with `keep`, each step's (x-, P-, C) is appended."""
@@ -292,12 +301,26 @@ def _smoother(st: _Steps, arch: str) -> Steps:
 
 
 class _Hkf(Machine):
-    """Eqs. (36)-(40) with EKF/UKF locals restarting from the fused prediction."""
+    """Eqs. (36)-(40) with EKF/UKF locals restarting from the fused prediction. Retrodicting,
+    its centre is one filter on every sensor with its own update (`retrodict` docstring)."""
+
+    def __init__(self, st: _Steps) -> None:
+        super().__init__(st)
+        self.which = list(range(len(st.system.sensors)))
+
+    def retrodicting(self) -> list:
+        return [(self.which, self.fuse)]
 
     def step(self, k: int, s, zk: np.ndarray):
         st, (x, P) = self.st, s
         if k:
             x, P, _, _ = st.predict(k, x, P)
+        return self.fuse(k, x, P, zk)
+
+    def fuse(self, k: int, x: np.ndarray, P: np.ndarray, zk: np.ndarray):
+        """The locals' updates of the prediction (x, P) with the readings zk of instant k,
+        fused by the centre (eqs. 36-37)."""
+        st = self.st
         Yp = spd_inv(P, "the predicted covariance")
         Y, y = Yp.copy(), np.einsum("mij,mj->mi", Yp, x)
         yp = y.copy()
@@ -354,6 +377,16 @@ class _TrackToTrack(Machine):
     def out(self, s) -> tuple[np.ndarray, np.ndarray]:
         xs, Ps, J = s
         return _fuse(self.arch, np.stack(xs, 1), np.stack(Ps, 1), J, self.st.system.ci_criterion)
+
+    def retrodicting(self) -> list:
+        """One retrodicting EKF per sensor; a rule that reads the joint covariance refused."""
+        if (why := ekf_retrodict_refusal(self.arch.name, self.arch.joint)) is not None:
+            raise FusionlogError(why)
+        return [([j], None) for j in range(len(self.st.system.sensors))]
+
+    def combine(self, ests: tuple) -> tuple[np.ndarray, np.ndarray]:
+        xs, Ps = np.stack([e[0] for e in ests], 1), np.stack([e[1] for e in ests], 1)
+        return _fuse(self.arch, xs, Ps, None, self.st.system.ci_criterion)
 
 
 def _congruence(T: np.ndarray, J: np.ndarray) -> np.ndarray:

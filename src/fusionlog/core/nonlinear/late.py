@@ -21,7 +21,8 @@ arrived by then (arrival <= t_k) may be used:
   t_k the stored states are predictions, so this is the event-driven filter that predicts
   from its last update to each accepted reading (a reading of the last update's own instant
   that arrives later is fused with that instant's others, the update of that instant redone).
-* *retrodict*: `retrodict` (Bar-Shalom's Al1 with the EKF's Jacobians; one filter).
+* *retrodict*: `retrodict` (Bar-Shalom's Al1 with the EKF's Jacobians, in each filter that
+  fuses the late sensor: the one filter, HKF's centre, each track-to-track local).
 """
 
 from __future__ import annotations

@@ -25,6 +25,21 @@ x(tau|a), P(tau|a) the EKF's prediction of the stored estimate from a to tau. Th
 
 The estimate at an output instant is the filter predicted there from tau. The UKF has no
 retrodiction here (`core.latency.nonlinear_refusal` says why).
+
+Where more than one filter fuses a late sensor (`core.retrodict_fused` for the linear plans):
+
+* *track to track*: each local EKF applies Al1 to its own sensor's late readings, as the one
+  filter does (its own tau, its own stored estimates), and the rule fuses the locals' estimates
+  at every output instant with their reported covariances, as on time; a rule that reads the
+  locals' joint error covariance is refused (`core.latency.ekf_retrodict_refusal`).
+* *HKF*: each local restarts from the fused prediction and hands the centre its equivalent
+  measurement H_j^T R_j^-1 (z_j - h_j(x) + H_j x), information H_j^T R_j^-1 H_j, H_j the
+  Jacobian at the point it restarted from; a late pair is retrodicted by the centre with Al1 in
+  information form, the locals' Jacobians taken at the centre's retrodicted state x(d|tau) (the
+  state every local restarts from at d). As H^T (H P H^T + R)^-1 = (I + H^T R^-1 H P)^-1 H^T
+  R^-1, that is Al1 of one EKF on every sensor with R block-diagonal (the noise HKF believes,
+  eqs. 36-37), and in order the centre's update is that filter's stacked update: HKF
+  retrodicts as that one filter (equal to rounding).
 """
 
 from __future__ import annotations
@@ -41,17 +56,28 @@ from .local import Stacked, transition
 
 
 def retrodict_steps(m, arrive: np.ndarray, W: int) -> Iterator:
-    """The retrodicting EKF of machine `m` (a single filter: CKF, SKF) at each output instant,
-    `arrive` (M, K+1, S) the instant each reading arrives (K+1: never), W the largest lag."""
+    """The retrodicting EKFs of machine `m` at each output instant (module docstring):
+    `m.retrodicting()` gives each of its filters' sensors and in-order update (None: the
+    stacked EKF update), `m.combine` makes the
+    architecture's estimate of theirs; `arrive` (M, K+1, S) the instant each reading arrives
+    (K+1: never), W the largest lag."""
     st = m.st
     if (why := nonlinear_refusal(st.system)) is not None:
         raise FusionlogError(f"{why[0]}: {why[1]}")
-    if not hasattr(m, "which"):
-        raise FusionlogError("retrodict is built for one filter (CKF, SKF)")
+    filters = [filter_steps(st, which, arrive, W, up) for which, up in m.retrodicting()]
+    for ests in zip(*filters, strict=True):
+        yield m.combine(ests)
+
+
+def filter_steps(st, which: list[int], arrive: np.ndarray, W: int, up=None) -> Iterator:
+    """One retrodicting EKF on the sensors `which` at each output instant (x, P); `up(i, x,
+    P, zi)` -> (x, P) its update with the readings zi of instant i in order (None: the stacked
+    EKF update; HKF's centre gives its own, the same to rounding, so that its numbers on
+    time stay its own)."""
     z = st.z
     M, K1 = z.shape[:2]
     col_sensor = np.concatenate([np.full(len(c), j) for j, c in enumerate(st.cols)])
-    mine = np.isin(col_sensor, m.which)
+    mine = np.isin(col_sensor, which)
     arrive_c = np.where(mine, arrive[..., col_sensor], K1)  # other sensors: never
     x, P = st.start()
     tau = np.zeros(M, dtype=np.intp)
@@ -64,11 +90,16 @@ def retrodict_steps(m, arrive: np.ndarray, W: int) -> Iterator:
             inseq, late = here & (i >= tau), here & (i < tau)
             if inseq.any():  # predict to i, update
                 xp, Pp = advance(st, x, P, tau, np.full(M, i), inseq)
-                u = st.update(i, m.which, xp, Pp, np.where(inseq[:, None], zi, np.nan))
-                x, P = select(inseq, (u.x, u.P), (x, P))
+                zs = np.where(inseq[:, None], zi, np.nan)
+                if up is None:
+                    u = st.update(i, which, xp, Pp, zs)
+                    xu, Pu = u.x, u.P
+                else:
+                    xu, Pu = up(i, xp, Pp, zs)
+                x, P = select(inseq, (xu, Pu), (x, P))
                 tau = np.where(inseq, i, tau)
             if late.any():
-                x, P = select(late, al1(st, m.which, x, P, tau, i, zi, stored, has), (x, P))
+                x, P = select(late, al1(st, which, x, P, tau, i, zi, stored, has), (x, P))
             done = inseq | late
             if done.any():  # the estimate at tau, stored at tau
                 for t in np.unique(tau[done]):
