@@ -97,7 +97,7 @@ def build_hkf(request: BuildRequest) -> Plan:
             require_finite(Pp, "the predicted covariance")
             require_finite(P, "the fused covariance")
         steps.append(StepMap(mm(mm(P, Tacc), Tp), mm(P, U), bc(eye, P.shape), P, eye))
-        if steady.reached(P):
+        if steady.reached(P, k=k):
             fill(steps, K1)
             break
     plan = Plan(request.name, front.s0, steps, per_run=bool(batch), D0=front.D0)

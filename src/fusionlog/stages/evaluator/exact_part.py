@@ -60,6 +60,7 @@ class ExactPart(Part):
         runs: int,
         recorded: bool,
         sensor_topics: Sequence[str],
+        has_truth: bool = True,
     ) -> None:
         self.plans, self.known = plans, list(known)
         self.truth, self.mask, per_run = setup
@@ -67,7 +68,9 @@ class ExactPart(Part):
         # per-run patterns: each run's exact values, summed block by block from its plan (the
         # estimator's, rebuilt from the sensor readings)
         self.conditional: dict[str, Any] = {}
-        if self.route == "per-run":
+        # without truth there is no MSE to put the exact values beside (`summarise` keeps
+        # none): a replay whose late readings make its plan per run builds none here
+        if self.route == "per-run" and has_truth:
             self.topics = list(sensor_topics)
             self.conditional = {a: None for a in self.known}
 

@@ -109,7 +109,9 @@ class StateEvaluator(Evaluator):
         sensor_topics = pcrb.topics if pcrb else [sensor_topic(s.name) for s in filter_sys.sensors]
         setup = exact_setup(prov, filter_sys, truth_sys)
         if setup is not None:
-            parts.append(ExactPart(plans, known, setup, runs, recorded, sensor_topics))
+            parts.append(
+                ExactPart(plans, known, setup, runs, recorded, sensor_topics, log.has_truth)
+            )
         # does the reported covariance bound the error: exact where the analysis is, else
         # Monte Carlo (DESIGN.md "Unknown correlation and the bound check")
         exact = known if setup is not None else []
