@@ -284,3 +284,52 @@ def test_one_run_builds_no_plan_and_equals_the_plans(tmp_path, monkeypatch, late
         cov = np.broadcast_to(slow[a].cov, (1,) + slow[a].cov.shape[-3:])
         got = np.broadcast_to(fast[a].cov, cov.shape)
         np.testing.assert_allclose(got, cov, rtol=1e-9, atol=1e-9 * np.abs(cov).max())
+
+
+def test_a_correlated_reading_with_a_component_missing_is_one_error(tmp_path):
+    """Decorrelating a later reading conditions on the whole earlier reading of its instant;
+    a reading with one component missing is refused as an error of the data, not a crash."""
+    text = """
+[scenario]
+name = "partial"
+description = "a two-component reading correlated with a late one"
+steps = 6
+runs = 2
+seed = 3
+dt = 1.0
+state_names = ["position", "velocity"]
+
+[model]
+kind = "constant-velocity"
+n0 = 0.16
+
+[prior]
+mean = [0.0, 1.0]
+cov = [[1.0, 0.0], [0.0, 1.0]]
+
+[[sensors]]
+name = "a"
+H = [[1.0, 0.0], [0.0, 1.0]]
+R = [[1.0, 0.0], [0.0, 1.0]]
+
+[[sensors]]
+name = "b"
+H = [[1.0, 0.0]]
+R = 1.0
+latency = 2.0
+
+[[correlations]]
+sensors = ["a", "b"]
+cov = [[0.4], [0.2]]
+
+[estimate]
+architectures = ["CKF"]
+late = "reprocess"
+"""
+    path = tmp_path / "partial.toml"
+    path.write_text(text)
+    sim = fl.simulate(path)
+    fl.estimate(path, sim, ["CKF"])  # whole readings: estimated
+    sim.measurements["a"][1, 3, 1] = np.nan  # one component of one reading lost
+    with pytest.raises(fl.FusionlogError, match="part of a reading missing"):
+        fl.estimate(path, sim, ["CKF"])

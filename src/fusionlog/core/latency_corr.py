@@ -30,6 +30,7 @@ import dataclasses
 
 import numpy as np
 
+from ..errors import NumericalError
 from .model import System
 from .models import LinearSensor
 
@@ -69,7 +70,8 @@ class Conditions:
         for i in {i for b in self.before for i in b}:
             p = present[..., sl[i]]
             if (p.any(-1) != p.all(-1)).any():
-                raise ValueError(
+                # the data, not the definition: the stage names the file (exit 2, one line)
+                raise NumericalError(
                     f"sensor {self.system.sensors[i].name!r} is correlated with a sensor "
                     "arriving at another instant and has part of a reading missing: "
                     "decorrelating its readings needs the whole reading"
