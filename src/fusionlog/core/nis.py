@@ -224,8 +224,9 @@ class WhitenessSums:
             ext = np.concatenate([self.tail[i], seq])
             t = len(self.tail[i])
             for lag in range(1, L + 1):  # the products a_j a_{j+lag} with j + lag in this block
-                lo = max(t - lag, 0)
-                self.C[i, lag - 1] += float(ext[lo : len(ext) - lag] @ ext[lo + lag :])
+                lo, hi = max(t - lag, 0), len(ext) - lag
+                if hi > lo:  # (a sparse sensor's block may hold fewer values than the lag)
+                    self.C[i, lag - 1] += float(ext[lo:hi] @ ext[lo + lag :])
             self.N[i] += len(seq)
             self.S[i] += float(seq.sum())
             self.S2[i] += float(seq @ seq)

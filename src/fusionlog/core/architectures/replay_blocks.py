@@ -118,13 +118,14 @@ class ReplayBlocks:
         return out
 
     def error_covariances(
-        self, k0: int, k1: int, present: np.ndarray
+        self, k0: int, k1: int, present: np.ndarray, backward=None
     ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Each architecture's true error covariance and reported covariance (w, n, n) at the
         instants k0..k1-1 under the model (`replay.replay_error_covariances`), `present`
-        (w, m) the readings there."""
+        (w, m) the readings there; FBS takes the block's `backward` (its S: the y_b do not
+        matter)."""
         z = np.where(present, 0.0, np.nan)
-        r = self._replay(k0, k1, z)
+        r = self._replay(k0, k1, z, backward)
         with np.errstate(all="ignore"):
             out = r.error_covariances(self.archs, self.bases)
         self._carry(r, k0, k1)
