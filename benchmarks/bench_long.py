@@ -168,13 +168,13 @@ def main() -> None:
     results["filterpy_measured_on"] = measured_on
     if not args.no_csv:
         folder = base / "csv"
-        folder.mkdir(exist_ok=True)
+        folder.mkdir(parents=True, exist_ok=True)
         replay = write_csv_replay(folder, args.csv_rows)
         results["csv"] = _fusionlog_run([str(replay)], folder / "out")
         print("csv", json.dumps(results["csv"]), flush=True)
     if args.irregular_csv:
         folder = base / "csv-irregular"
-        folder.mkdir(exist_ok=True)
+        folder.mkdir(parents=True, exist_ok=True)
         replay = write_csv_replay(folder, args.csv_rows, irregular=True)
         results["csv_irregular"] = _fusionlog_run([str(replay)], folder / "out")
         print("csv_irregular", json.dumps(results["csv_irregular"]), flush=True)
