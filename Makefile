@@ -26,7 +26,8 @@ NUMERIC := tests/test_exact.py tests/test_exact_per_run.py tests/test_per_run.py
 	tests/test_references_linear.py tests/test_references_exact.py tests/test_references_nonlinear.py \
 	tests/test_registry.py tests/test_ici.py tests/test_trajectory.py tests/test_identify.py \
 	tests/test_valid_inputs.py tests/test_api_misuse.py tests/test_bound.py tests/test_ei.py \
-	tests/test_latency.py tests/test_latency_replay.py tests/test_long_logs.py
+	tests/test_latency.py tests/test_latency_replay.py tests/test_long_logs.py \
+	tests/test_long_replay.py
 
 # The goldens and the exactness tests once more with every fast path sent to its plain
 # reference path (core/reference.py; benchmarks/README.md "Fast paths").

@@ -37,9 +37,11 @@ def _robot_partial(folder: Path) -> Path:
     text = ROBOT.read_text()
     data = (ROOT / "pipeline" / "data").resolve()
     for a, b in (
-        ('state_names = ["x", "vx", "y", "vy"]', 'state_names = ["px", "vx", "py", "vy"]'),
+        ('state_names = ["x", "vx", "y", "vy"]',
+         'state_names = ["px", "vx", "py", "vy"]'),
         ('source = "data/', f'source = "{data}/'),
-        ('values = ["x [m]", "y [m]", "vx [m s^-1]", "vy [m s^-1]"]', 'values = ["x [m]", "y [m]"]'),
+        ('values = ["x [m]", "y [m]", "vx [m s^-1]", "vy [m s^-1]"]',
+         'values = ["x [m]", "y [m]"]'),
         ('states = ["x", "y", "vx", "vy"]', 'states = ["px", "py"]'),
         ('architectures = ["CKF", "HKF", "MSC-GMF", "MSC", "SKF:mocap", "CI", "FBS"]',
          f"architectures = {json.dumps(ARCHS)}"),
@@ -135,61 +137,102 @@ def test_blocked_recording_equals_the_whole_replay(robot_runs) -> None:
         np.testing.assert_allclose(b["series"][key], v, rtol=RTOL, atol=1e-12, err_msg=key)
 
 
-def _irregular_csv(folder: Path, rows: int) -> Path:
-    """A CSV log of `rows` irregular instants (5 ms +- 40 %), two position sensors each missing
-    at 10 % of them, a truth of the position alone, and its replay file."""
-    rng = np.random.default_rng(34)
-    t = np.cumsum(np.round(5e6 * (1 + 0.4 * rng.uniform(-1, 1, rows)))).astype(np.int64)
-    v = 0.01 * np.cumsum(rng.normal(size=rows))
-    p = 1.0 + np.cumsum(v) * 0.005
-    a, b = p + rng.normal(size=rows), p + rng.normal(size=rows)
-    a[rng.random(rows) < 0.1] = np.nan
-    b[rng.random(rows) < 0.1] = np.nan
-    lines = (f"{x},{y:.6f},{z:.6f},{q:.9f}" for x, y, z, q in zip(t, a, b, p, strict=True))
-    (folder / "log.csv").write_text("time,a,b,p\n" + "\n".join(lines) + "\n")
-    sensors = "".join(
-        f'[[sensors]]\nname = "{x}"\nsource = "log.csv"\nvalues = ["{x}"]\ntime_unit = "ns"\n'
-        "H = [[1.0, 0.0]]\nR = 1.0\n"
-        for x in "ab"
-    )
-    replay = folder / "replay.toml"
-    replay.write_text(
-        '[scenario]\nname = "irregular"\nstate_names = ["p", "v"]\n'
-        '[model]\nkind = "constant-velocity"\nn0 = 0.5\n'
-        "[prior]\nmean = [1.0, 0.0]\ncov = [[1.0, 0.0], [0.0, 1.0]]\n" + sensors
-        + '[truth]\nsource = "log.csv"\nvalues = ["p"]\nstates = ["p"]\n'
-        'time_unit = "ns"\nmatch = "exact"\n'
-        '[estimate]\narchitectures = ["CKF", "MSC-GMF", "HKF", "FBS"]\n'
-    )  # fmt: skip
-    return replay
+def _varying(rng, K1: int):
+    """A random model (three sensors of sizes 1, 2, 1, the first two correlated) with its F,
+    G Q G' drawn per interval (irregular instants), R scaled per instant (a covariance per
+    message) and a quarter of the readings missing: the system and z (K1, m)."""
+    import dataclasses
+
+    from conftest import random_system
+
+    from fusionlog.core.simulate import simulate
+
+    system = random_system(np.random.default_rng(3), 3, [1, 2, 1], correlated=True)
+    scale = 1 + 0.5 * rng.random(K1 - 1)
+    Fs = np.eye(3) + (system.F - np.eye(3)) * scale[:, None, None]
+    Qs = system.GQG * scale[:, None, None]
+    Rs = system.R * (1 + rng.random(K1))[:, None, None]
+    system = dataclasses.replace(system, Fs=Fs, Qs=Qs, Rs=Rs)
+    _, z = simulate(system, K1 - 1, 4, 0, 1)
+    z = z[0]
+    z[rng.random(z.shape) < 0.25] = np.nan
+    return system, z
 
 
-def test_peak_memory_of_a_replay_does_not_grow_with_the_instants(tmp_path, monkeypatch) -> None:
-    """The Python allocations' peak (tracemalloc: numpy's arrays included) of estimating and
-    evaluating an imported irregular replay with missing readings and a partial truth, in
-    blocks of 1000 instants, the recording decimated to 150 points per series: twice the
-    instants, the same peak within 10 % (the whole log at once: +60 % here)."""
+def _blocked_peak(K1: int, block: int) -> int:
+    """The peak of the Python allocations (tracemalloc) while a log of K1 instants (its system
+    and readings made before) is estimated in blocks of time, FBS's backward pass and the
+    exact analysis's included, each block's results dropped as a writer would."""
     import tracemalloc
 
-    from fusionlog.core import decimate
+    from fusionlog.core.architectures.replay_blocks import ReplayBlocks
+    from fusionlog.core.exact_replay import replay_expected_blocks
+    from fusionlog.driver.long_log import edges, replay_long_estimates, spool_readings
+    from fusionlog.stages.evaluator.long_exact import LongReplayExact
 
-    monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", "1000")
-    monkeypatch.setattr(decimate, "DECIMATE_ABOVE", 500)
-    monkeypatch.setattr(decimate, "BUCKETS", 50)
-    peaks = []
-    for rows in (2_000, 10_000, 20_000):  # the first: what is imported on first use
-        folder = tmp_path / str(rows)
-        folder.mkdir()
-        replay = _irregular_csv(folder, rows)
-        ok("import", replay, "-o", folder / "s.mcap")
-        tracemalloc.start()
-        try:
-            ok("estimate", folder / "s.mcap", "-o", folder / "e.mcap")
-            ok("evaluate", folder / "s.mcap", folder / "e.mcap", "-o", folder / "ev.rrd",
-               "--summary", folder / "summary.json")  # fmt: skip
-            peaks.append(tracemalloc.get_traced_memory()[1])
-        finally:
-            tracemalloc.stop()
-        summary = json.loads((folder / "summary.json").read_text())
-        assert summary["architectures"]["FBS"]["expected"]["mse"] is not None
-    assert peaks[2] <= 1.1 * peaks[1], peaks
+    system, z = _varying(np.random.default_rng(K1), K1)
+    archs = ["CKF", "HKF", "MSC-GMF", "CI", "SKF:s1", "FBS"]
+    mask = ~np.isnan(z)
+    tracemalloc.start()
+    try:
+        cut = ((k0, k1, {"z": (z[None, k0:k1],)}) for k0, k1 in edges(K1, block))
+        spool = spool_readings(((k0, k1, {"z": d["z"][0]}) for k0, k1, d in cut), ["z"], z.shape[1])
+        blocks = ReplayBlocks.of(system, archs, K1 - 1, block)
+        for _k0, _k1, out in replay_long_estimates(blocks, spool, block):
+            assert set(out) == set(archs)
+        exact = replay_expected_blocks(system, system, archs, K1 - 1, block)
+        long = LongReplayExact(exact, mask, system.m, block)
+        for k0, k1 in edges(K1, block):
+            assert set(long.window(k0, k1)) == set(archs)
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def test_peak_memory_of_a_blocked_replay_does_not_grow_with_the_instants() -> None:
+    """Blocks of 300 instants: twice the instants, the same peak within 10 % (the system's
+    per-instant F, Q, R and the readings are the caller's, made before; the whole log at once
+    keeps every instant's gains and covariances: its peak doubles)."""
+    _blocked_peak(600, 300)  # what is imported on first use
+    p1, p2 = _blocked_peak(3_000, 300), _blocked_peak(6_000, 300)
+    assert p2 <= 1.1 * p1, (p1, p2)
+
+
+def test_blocks_equal_the_whole_log_on_a_random_model() -> None:
+    """Correlated sensors of different sizes, F, Q and R varying per instant, a quarter of the
+    readings missing, blocks of 70 instants: every architecture's estimates (`replay_estimates`
+    of the whole log) and exact values with the bound check (`replay_expected`) as whole."""
+    from fusionlog.core.architectures import STATE_ARCHITECTURES
+    from fusionlog.core.architectures.replay import replay_estimates
+    from fusionlog.core.architectures.replay_blocks import ReplayBlocks
+    from fusionlog.core.bound import bound_summary
+    from fusionlog.core.exact_replay import replay_expected, replay_expected_blocks
+    from fusionlog.driver.long_log import Spool, edges, replay_long_estimates
+    from fusionlog.stages.evaluator.long_exact import LongReplayExact
+
+    K1, B = 400, 70
+    system, z = _varying(np.random.default_rng(5), K1)
+    archs = [a for a in STATE_ARCHITECTURES if a != "SKF"] + ["SKF:s1", "SKF:s2", "SKF:s3"]
+    whole = replay_estimates(system, archs, z[None])
+    spool = Spool(z.shape[1])
+    spool.write(0, z)
+    blocks = ReplayBlocks.of(system, archs, K1 - 1, B)
+    for k0, k1, out in replay_long_estimates(blocks, spool, B):
+        for a in archs:
+            w = whole[a]
+            np.testing.assert_allclose(out[a].mean, w.mean[:, k0:k1], rtol=RTOL, atol=1e-12)
+            np.testing.assert_allclose(out[a].cov, w.cov[k0:k1], rtol=RTOL, atol=1e-15)
+    mask = ~np.isnan(z)
+    exact = replay_expected(system, system, archs, mask, K1 - 1)
+    long = LongReplayExact(replay_expected_blocks(system, system, archs, K1 - 1, B), mask, 4, B)
+    for k0, k1 in edges(K1, B):
+        for a, (ex, ratio) in long.window(k0, k1).items():
+            for f in ("mse", "P", "nees", "dm"):
+                got, want = getattr(ex, f), getattr(exact[a], f)[k0:k1]
+                np.testing.assert_allclose(got, want, rtol=RTOL, atol=1e-15, err_msg=f"{a} {f}")
+            np.testing.assert_allclose(ratio, exact[a].bound[k0:k1], rtol=RTOL)
+    for a in archs:
+        want = bound_summary(exact[a].bound)
+        got = long.bound_summary(a)
+        assert got["worst_step"] == want["worst_step"] and got["holds"] == want["holds"], a
+        assert math.isclose(got["worst"], want["worst"], rel_tol=RTOL), a
