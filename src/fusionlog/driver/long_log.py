@@ -71,6 +71,15 @@ class Spool:
         data = self.file.read((k1 - k0) * self.width * 8)
         return np.frombuffer(data, "<f8").reshape(k1 - k0, self.width).copy()
 
+    def present(self, block: int) -> np.ndarray:
+        """Where the spooled rows are not NaN, (rows, width) bool, read back block by block
+        (the readings' measurement pattern: one byte per component and instant)."""
+        rows = self.file.seek(0, 2) // (8 * self.width)
+        out = np.empty((rows, self.width), dtype=bool)
+        for k0, k1 in edges(rows, block):
+            out[k0:k1] = ~np.isnan(self.read(k0, k1))
+        return out
+
     def close(self) -> None:
         self.file.close()
 

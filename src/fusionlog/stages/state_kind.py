@@ -329,7 +329,7 @@ class _StateEstimator(Estimator):
             plans.patterns.append(np.packbits(np.ones((plans.steps + 1, system.m), bool)).tobytes())
             out = long_estimates(log, spool, B)
         else:
-            plans.patterns.append(np.packbits(_present(spool, B)).tobytes())
+            plans.patterns.append(np.packbits(spool.present(B)).tobytes())
             out = replay_long_estimates(blocks, spool, B)
         return (
             (k0, k1, {a: _estimate_writer(e.mean, e.cov, True, k0) for a, e in got.items()})
@@ -340,18 +340,6 @@ class _StateEstimator(Estimator):
         # The evaluator's exact analysis needs it: a shared pattern is analysed with the same
         # mask, per-run patterns are not.
         return self.plans.provenance()
-
-
-def _present(spool: Any, block: int) -> np.ndarray:
-    """The spooled readings' measurement pattern (K+1, m) bool, read back block by block (one
-    byte per component and instant: the estimates' provenance states it)."""
-    from fusionlog.driver.long_log import edges
-
-    size = spool.file.seek(0, 2) // (8 * spool.width)
-    out = np.empty((size, spool.width), dtype=bool)
-    for k0, k1 in edges(size, block):
-        out[k0:k1] = ~np.isnan(spool.read(k0, k1))
-    return out
 
 
 def _estimate_writer(mean: np.ndarray, cov: np.ndarray, shared: bool, k0: int = 0) -> StepWriter:

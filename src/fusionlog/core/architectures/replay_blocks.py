@@ -88,22 +88,24 @@ class ReplayBlocks:
             return None
         return cls(system, archs, steps, criterion or system.ci_criterion, bases)
 
-    def _replay(self, k0: int, k1: int, z: np.ndarray, backward=None) -> _Replay:
+    def _block(self, k0: int, k1: int, z: np.ndarray, backward, what):
+        """what(_Replay of the block from the carried state); the block's last state carried.
+        A numerical failure names the block's instants (no plans to hand it to, as the
+        whole log's path does: its earlier blocks are written)."""
         if k0 != self.next_instant:
             raise ValueError(f"blocks of time in order: {k0} after {self.next_instant}")
         system = system_window(self.system, k0, k1, k0 > 0)
         try:
             with np.errstate(all="ignore"):
                 r = _Replay(system, z, self.need, self.criterion, self.carried, backward)
+                out = what(r)
         except (NumericalError, *NUMERICAL_FAILURES) as e:
             raise NumericalError(f"instants {k0}..{k1 - 1}: {e}") from None
-        self.next_instant = k1
-        return r
-
-    def _carry(self, r: _Replay, k0: int, k1: int) -> None:
         self.carried = r.carried()
         if not all_finite(self.carried.P) or not all_finite(self.carried.x):
             raise NumericalError(f"instants {k0}..{k1 - 1}: a number beyond the float range")
+        self.next_instant = k1
+        return out
 
     def estimates(
         self, k0: int, k1: int, z: np.ndarray, backward: tuple[np.ndarray, np.ndarray] | None
@@ -111,11 +113,7 @@ class ReplayBlocks:
         """Each architecture's estimate (mean (1, w, n), cov (w, n, n)) at the instants
         k0..k1-1 from their readings z (w, m) (NaN: missing) and the state carried from the
         block before; FBS takes the block's (y_b (w, n), S (w, n, n)) of `backward`."""
-        r = self._replay(k0, k1, z, backward)
-        with np.errstate(all="ignore"):
-            out = r.estimates(self.archs, self.bases)
-        self._carry(r, k0, k1)
-        return out
+        return self._block(k0, k1, z, backward, lambda r: r.estimates(self.archs, self.bases))
 
     def error_covariances(
         self, k0: int, k1: int, present: np.ndarray, backward=None
@@ -125,11 +123,9 @@ class ReplayBlocks:
         (w, m) the readings there; FBS takes the block's `backward` (its S: the y_b do not
         matter)."""
         z = np.where(present, 0.0, np.nan)
-        r = self._replay(k0, k1, z, backward)
-        with np.errstate(all="ignore"):
-            out = r.error_covariances(self.archs, self.bases)
-        self._carry(r, k0, k1)
-        return out
+        return self._block(
+            k0, k1, z, backward, lambda r: r.error_covariances(self.archs, self.bases)
+        )
 
     def backward(
         self, k0: int, k1: int, z: np.ndarray, after: tuple | None
