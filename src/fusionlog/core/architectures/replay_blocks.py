@@ -41,15 +41,15 @@ def _transitions(system: System, a: int, b: int) -> tuple[np.ndarray, np.ndarray
 
 def system_window(system: System, k0: int, k1: int, into_first: bool) -> System:
     """The system on the instants k0..k1-1: its per-instant R of those instants, and its F, Q
-    into k0+1..k1-1 (`into_first`: into k0 too, the block's first instant predicted from the
-    one before). A time-invariant system is itself."""
-    if system.Fs is None and system.Qs is None and system.Rs is None:
+    (a nonlinear motion's intervals) into k0+1..k1-1 (`into_first`: into k0 too, the block's
+    first instant predicted from the one before). A time-invariant system is itself."""
+    per_interval = {f: getattr(system, f) for f in ("Fs", "Qs", "intervals")}
+    if all(v is None for v in per_interval.values()) and system.Rs is None:
         return system
     a = k0 - 1 if into_first else k0
-    Fs = system.Fs[a : k1 - 1] if system.Fs is not None else None
-    Qs = system.Qs[a : k1 - 1] if system.Qs is not None else None
+    got = {f: None if v is None else v[a : k1 - 1] for f, v in per_interval.items()}
     Rs = system.Rs[k0:k1] if system.Rs is not None else None
-    return dataclasses.replace(system, Fs=Fs, Qs=Qs, Rs=Rs)
+    return dataclasses.replace(system, Rs=Rs, **got)
 
 
 class ReplayBlocks:
