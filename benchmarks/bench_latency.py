@@ -72,7 +72,7 @@ def main() -> None:
     base: dict[str, tuple[float, float]] = {}
     for late in ("on time", "reprocess", "retrodict", "neglect"):
         system = on_time if late == "on time" else dataclasses.replace(late_sys, late=late)
-        for arch in ("CKF", "SKF:s3") + (("MSC",) if late != "retrodict" else ()):
+        for arch in ("CKF", "SKF:s3", "MSC"):
 
             def estimate(system=system, arch=arch) -> PlanCache:
                 cache = PlanCache(system, K, clock=sim.times)

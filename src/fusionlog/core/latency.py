@@ -44,6 +44,7 @@ __all__ = [
     "LateModel",
     "arrival_steps",
     "draw_arrivals",
+    "ekf_retrodict_refusal",
     "is_late",
     "random_delays",
     "late_refusal",
@@ -74,15 +75,10 @@ def system_refusal(system: System) -> tuple[str, str] | None:
     if not is_late(system):
         return None
     lat = [s.timing.latency for s in system.sensors]
-    late = [j for j, (lo, hi) in enumerate(lat) if hi > 0]
     if system.late not in BUILT_POLICIES:
         return ("estimate.late", f"{system.late!r} with late sensors is not available yet")
     if not system.linear:
-        return (
-            f"sensors[{late[0]}].latency",
-            "late measurements need linear sensors and motion (the EKF/UKF lanes do not "
-            "rewind yet)",
-        )
+        return nonlinear_refusal(system)
     if system.prior is None:
         return (
             "prior",
@@ -107,6 +103,19 @@ def system_refusal(system: System) -> tuple[str, str] | None:
     return None
 
 
+def nonlinear_refusal(system: System) -> tuple[str, str] | None:
+    """(key, reason) why the EKF/UKF lanes cannot take a system's late sensors
+    (`core.nonlinear.late`), or None."""
+    if system.late == "retrodict" and system.filter == "UKF":
+        return (
+            "estimate.late",
+            "retrodict needs the EKF: Al1 linearises the motion and the sensors at the "
+            "retrodicted state, which the UKF never samples (its sigma points are drawn about "
+            'the forward predictions); use reprocess or neglect, or filter = "EKF"',
+        )
+    return None
+
+
 def late_refusal(system: System, locals_kind: str, arch: str) -> str | None:
     """Why architecture `arch` (its `Architecture.locals`) has no meaning or no plan with the
     system's late sensors, or None."""
@@ -117,12 +126,27 @@ def late_refusal(system: System, locals_kind: str, arch: str) -> str | None:
             f"architecture {arch}: a fixed-interval smoother uses every measurement of the run "
             "whenever it arrives: a latency has no meaning there"
         )
-    if system.late == "retrodict" and locals_kind not in ("centralised", "single"):
-        return (
-            f"architecture {arch}: retrodiction (Bar-Shalom's Al1) is built for one filter "
-            "(CKF, SKF); with hierarchical or track-to-track filters use reprocess or neglect"
-        )
+    # The linear plans retrodict in every filter (`core.retrodict_fused`); the EKF lanes
+    # (`core.nonlinear.retrodict`) in every filter too, but carry no joint covariance there.
+    if system.late == "retrodict" and not system.linear and locals_kind == "per-sensor":
+        return ekf_retrodict_refusal(arch, definition(arch).joint)
     return None
+
+
+def ekf_retrodict_refusal(arch: str, joint: bool) -> str | None:
+    """Why the EKF lanes' retrodicting locals cannot feed track-to-track rule `arch` (`joint`:
+    it reads the locals' joint error covariance), or None."""
+    if not joint:
+        return None
+    return (
+        f"architecture {arch}: retrodict with EKF locals gives no joint error covariance for "
+        "its rule (Al1 correlates each local with the process noise since its stored estimate, "
+        "which the lanes do not carry); use reprocess or neglect, or MSC, CI, ICI or EI"
+    )
+
+
+#: The architectures that run one filter on their sensors.
+SINGLE_FILTER = ("centralised", "single")
 
 
 #: The delays' random stream (`core.simulate.chunked`): apart from the truth and readings'.
@@ -285,11 +309,13 @@ class LateModel:
                         f"sensor {names[j]}: a reading arrives outside its latency range"
                     )
         if self.system.late == "retrodict":
-            from .retrodict import retrodict_plan
+            from .retrodict_fused import late_retrodict_plan
 
             arr = self.arrive if arrive is None else arrive
-            plan = retrodict_plan(self.system, arch, present, arr, filters[0], self.window)
-            return plan
+            criterion = kw.get("criterion", "trace")
+            return late_retrodict_plan(
+                self.system, arch, base, present, arr, filters, self.lags, criterion
+            )
         mask = self.stacked_mask(present, filters, arrive)
         if locals_kind == "per-sensor":  # the rule on the locals' current blocks
             criterion = kw.get("criterion", "trace")

@@ -84,8 +84,15 @@ def estimate_block(
         cache = PlanCache.of(system, times, R, steps=z.shape[1] - 1)
     if not cache.system.linear:  # EKF/UKF: no plans, every run has its own linearisation
         cache.patterns.append(None)  # the estimates' provenance: per run
+        arr = cache.block_arrivals(run_offset, z.shape[0]) if arrivals is None else arrivals
         lanes = (
-            (a, nonlinear_estimate(cache.system, a, z, cache.times, run_offset)) for a in archs
+            (
+                a,
+                nonlinear_estimate(
+                    cache.system, a, z, cache.times, run_offset=run_offset, arrival=arr
+                ),
+            )
+            for a in archs
         )  # one architecture at a time: reduced before the next is computed
         return _reduced(
             ((a, Estimate(t.mean, t.cov)) for a, t in lanes), None, truth, workspace, keep

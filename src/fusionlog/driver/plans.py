@@ -97,6 +97,12 @@ class PlanCache:
             self._late = LateModel.of(self.system, self.steps, clock)
         return self._late
 
+    def block_arrivals(self, run_offset: int, runs: int) -> np.ndarray | None:
+        """When the readings of the runs [run_offset, +runs) arrived (`arrivals`), or None."""
+        if self.arrivals is None:
+            return None
+        return self.arrivals[run_offset : run_offset + runs]
+
     def _build(self, arch: str, present: np.ndarray | None, **kw) -> Plan:
         """`build_plan` of `arch` for the mask `present`, through the late model if any."""
         if self.late is not None:

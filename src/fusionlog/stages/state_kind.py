@@ -18,7 +18,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from fusionlog.core.architectures.long_log import steady_log
-from fusionlog.core.latency import is_late
+from fusionlog.core.latency import is_late, random_delays
 from fusionlog.core.model import System
 from fusionlog.core.names import check_architectures
 from fusionlog.core.reference import reference_paths
@@ -106,7 +106,8 @@ def step_writers(
     system, times = plans.system, plans.times  # the system is on the log's instants
 
     def writer(arch: str) -> Any:
-        steps = estimate_steps(system, arch, z, times, run_offset)
+        arrival = plans.block_arrivals(run_offset, z.shape[0])
+        steps = estimate_steps(system, arch, z, times, run_offset, arrival)
 
         def write(w: Any, topic: str, k: int, t: float, off: int) -> None:
             mean, cov = next(steps)
@@ -242,8 +243,7 @@ def recorded_arrivals(
 ) -> np.ndarray | None:
     """When each reading of the log arrived, (runs, K+1, S) s (its messages' arrival field;
     on time where a topic has none), where the cache's delays differ per run; else None."""
-    late = plans.late
-    if late is None or not late.per_run:
+    if not random_delays(plans.system):  # fixed latencies: the model says when
         return None
     from fusionlog.io.mcap.arrival import read_arrivals
 

@@ -61,8 +61,9 @@ class LongNis:
         for a in self.archs:
             mean, cov = estimates[a]
             prev = self.prev.get(a, (None, None))
-            ests[a] = (_cat(prev[0], mean, 1), _cat(prev[1], cov, 0))
-            self.prev[a] = (mean[:, -1:], cov[-1:])
+            # instants on axis -3: shared (K, n, n) or per run (M, K, n, n), as an EKF's may be
+            ests[a] = (_cat(prev[0], mean, 1), _cat(prev[1], cov, -3))
+            self.prev[a] = (mean[:, -1:], cov[..., -1:, :, :])
         fwd = None
         if isinstance(self.forward, ReplayBlocks):  # a replay's forward CKF, carried
             e = self.forward.estimates(k0, k1, z[0], None)[self.ckf]
