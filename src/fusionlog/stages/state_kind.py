@@ -294,29 +294,48 @@ class _StateEstimator(Estimator):
         }
 
     def time_windows(self, sensors: McapFile) -> Any:
-        """A long one-run log of a steady model with every reading present, in blocks of time
-        (`driver.long_log`); None otherwise (a log short enough for one block, per-message R,
-        an irregular or nonlinear model, a reading missing: the whole run at once)."""
-        from fusionlog.driver.long_log import long_estimates, spool_readings, time_block
+        """A long one-run log in blocks of time (`driver.long_log`): a steady model with every
+        reading present through its short plans, a recorded replay (irregular instants,
+        per-message R, missing readings) through the plan-free path carried block to block, a
+        nonlinear model through its EKF/UKF filters carried block to block; None otherwise (a
+        log short enough for one block, late readings, the reference paths: the whole run at
+        once)."""
+        from fusionlog.core.architectures.replay_blocks import ReplayBlocks
+        from fusionlog.driver.long_log import (
+            long_estimates,
+            replay_long_estimates,
+            spool_readings,
+            time_block,
+        )
 
         plans, B = self.plans, time_block()
         system = plans.system
-        if plans.steps + 1 <= B or system.Rs is not None or reference_paths():
+        if plans.steps + 1 <= B or reference_paths():
             return None
         if is_late(system):  # late readings (issue 30): the whole run
             return None
         if not system.linear:  # EKF/UKF: their states carried from block to block
             return self._nonlinear_windows(sensors, B)
-        log = steady_log(system, self.archs, plans.steps, plans.criterion)
-        if log is None:
+        steady = system.Rs is None and system.time_invariant
+        log = steady_log(system, self.archs, plans.steps, plans.criterion) if steady else None
+        blocks = None if log is not None else ReplayBlocks.of(system, self.archs, plans.steps, B)
+        if log is None and blocks is None:
             return None
         spool = spool_readings(sensors.iter_time_blocks(self.topics, B), self.topics, system.m)
-        if spool is None:
-            return None
-        plans.patterns.append(np.packbits(np.ones((plans.steps + 1, system.m), bool)).tobytes())
+        if spool.missing and blocks is None:  # the short plans stand for a complete log
+            blocks = ReplayBlocks.of(system, self.archs, plans.steps, B)
+            if blocks is None:
+                spool.close()
+                return None
+        if blocks is None:
+            plans.patterns.append(np.packbits(np.ones((plans.steps + 1, system.m), bool)).tobytes())
+            out = long_estimates(log, spool, B)
+        else:
+            plans.patterns.append(np.packbits(spool.present(B)).tobytes())
+            out = replay_long_estimates(blocks, spool, B)
         return (
-            (k0, k1, {a: _estimate_writer(e.mean, e.cov, True, k0) for a, e in out.items()})
-            for k0, k1, out in long_estimates(log, spool, B)
+            (k0, k1, {a: _estimate_writer(e.mean, e.cov, True, k0) for a, e in got.items()})
+            for k0, k1, got in out
         )
 
     def _nonlinear_windows(self, sensors: McapFile, B: int) -> Any:
@@ -327,7 +346,7 @@ class _StateEstimator(Estimator):
 
         plans, topics = self.plans, self.topics
         blocks = sensors.iter_time_blocks(topics, B)
-        spool = spool_readings(blocks, topics, plans.system.m, missing=True)
+        spool = spool_readings(blocks, topics, plans.system.m)
         plans.patterns.append(None)  # per-run covariances (provenance), as the whole run's
 
         def windows() -> Any:

@@ -6,7 +6,6 @@ block by block from the plans the block's sensor readings give (NaN = absent).""
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from typing import Any
 
@@ -15,6 +14,7 @@ import numpy as np
 from fusionlog.core.model import System
 from fusionlog.core.routes import exact_route, shared_expected
 from fusionlog.driver import PlanCache, conditional_sums
+from fusionlog.driver.plans import pattern_mask
 
 from .parts import Block, Elsewhere, Finished, Part
 
@@ -43,7 +43,7 @@ def exact_setup(prov: dict[str, str], filter_sys: System, truth_sys: System):
         return None  # no exact analysis of nonlinear models
     if pattern == "per-run":
         return seen, None, True
-    mask = None if pattern == "complete" else np.array(json.loads(pattern), dtype=bool)
+    mask = None if pattern == "complete" else pattern_mask(pattern)
     return seen, mask, False
 
 

@@ -61,6 +61,10 @@ class LongSetup:
     trajectory: Any = None
     #: the `PlanePart` and the short plans of its inputs (`.views_part.LongPlane`), or None
     plane: Any = None
+    #: a recorded replay's exact values block by block (`.long_exact.LongReplayExact`)
+    replay_exact: Any = None
+    #: the states the truth gives where it gives only some (partial truth: metrics over them)
+    truthed: list[int] | None = None
 
     @property
     def bound(self) -> dict[str, np.ndarray]:
@@ -77,7 +81,8 @@ class LongEvaluator:
         self.s = setup
         self.b = bucket_size(len(setup.times), setup.full_resolution)
         self.tree = TreeDecimator(self.b)
-        self.sums = {a: StepSums(setup.n) for a in setup.archs}
+        truthed = setup.n if setup.truthed is None else len(setup.truthed)
+        self.sums = {a: StepSums(truthed) for a in setup.archs}
         self.traces = {a: np.zeros(2) for a in setup.archs}  # sum and count of finite tr P
         self.pcrb = _LongPcrb(setup.pcrb, setup.times) if setup.pcrb is not None else None
         self.traj = None
@@ -106,6 +111,7 @@ class LongEvaluator:
         s = self.s
         w = k1 - k0
         idx = s.log.index(k0, k1) if s.log is not None else None
+        replayed = s.replay_exact.window(k0, k1) if s.replay_exact is not None else {}
         series, traces, bounds, sample, by_arch = {}, {}, None, {}, {}
         for a, t in zip(s.archs, s.topics, strict=True):
             mean, cov = by_arch[a] = estimates[t]
@@ -117,17 +123,28 @@ class LongEvaluator:
             if not s.has_truth:
                 traces[a] = tr
                 continue
-            acc = MetricsAccumulator(w, s.n)
-            acc.add(truth, mean, cov)
+            t = s.truthed
+            acc = MetricsAccumulator(w, s.n if t is None else len(t))
+            acc.add(*((truth, mean, cov) if t is None else _marginal(t, truth, mean, cov)))
             res = acc.finalize(s.confidence)
-            kw = {}
+            kw, ratio = {}, None
             if a in s.expected:
-                ex = expected_window(s.expected[a], idx)
+                ex, ratio = expected_window(s.expected[a], idx), s.bound[a][idx]
+            elif a in replayed:
+                ex, ratio = replayed[a]
+            if ratio is not None:
                 kw = {"expected_mse": ex.mse_per_state, "expected_nees": ex.nees,
                       "expected_dm": ex.dm}  # fmt: skip
-            series[a] = res.series(**kw)
-            if a in s.expected:  # the bound check's ratio, exact (`core.bound`)
-                series[a]["bound"] = s.bound[a][idx]
+                if t is not None:  # the exact NEES and DM are of the whole state: left out
+                    nan = np.full(w, np.nan)
+                    kw = {"expected_mse": ex.mse_per_state[:, t], "expected_nees": nan,
+                          "expected_dm": nan}  # fmt: skip
+            if t is not None:  # (the series without the whole state's NEES and DM)
+                series[a] = _whole_state(res.series(**{k: kw[k] for k in kw if "mse" in k}), t, s.n)
+            else:
+                series[a] = res.series(**kw)
+            if ratio is not None:  # the bound check's ratio, exact (`core.bound`)
+                series[a]["bound"] = ratio
             self.sums[a].add(res, **kw)
             if bounds is None:
                 bounds = (res.nees_lower, res.nees_upper)
@@ -159,12 +176,21 @@ class LongEvaluator:
                 archs[a] = {"mean_trace": self._mean_trace(a)}
                 continue
             archs[a] = self.sums[a].summary()
+            if s.truthed is not None:  # the untruthed states' MSE undefined (null)
+                per_state = [float("nan")] * s.n
+                for j, i in enumerate(s.truthed):
+                    per_state[i] = archs[a]["mse_per_state"][j]
+                archs[a]["mse_per_state"] = per_state
             if s.recorded:
                 archs[a]["mean_trace"] = self._mean_trace(a)
         for a in s.expected:  # the bound check over every instant (`BoundPart`'s)
             b = bound_summary(s.bound[a])
             if b is not None and a in archs:
                 archs[a]["bound"] = {**b, "worst_step": s.log.first_instant(b["worst_step"])}
+        for a in s.replay_exact.bounds if s.replay_exact is not None else ():
+            b = s.replay_exact.bound_summary(a)
+            if b is not None and a in archs:
+                archs[a]["bound"] = b
         summary = {**s.head, "architectures": archs}
         pcrb = None
         if self.pcrb is not None:  # no exact analysis beside the Monte Carlo values
@@ -244,3 +270,18 @@ class _LongPcrb:
             "mse": float(per_state.sum() / len(per_state)),
             "mse_per_state": [float(v) for v in per_state],
         }
+
+
+def _marginal(idx: list[int], x: np.ndarray, mean: np.ndarray, cov: np.ndarray):
+    """Truth, mean and covariance of the truthed states `idx` (a partial truth, `MetricsPart`)."""
+    return x[..., idx], mean[..., idx], cov[..., idx, :][..., :, idx]
+
+
+def _whole_state(series: dict[str, Any], idx: list[int], n: int) -> dict[str, Any]:
+    """A partial truth's series on all n states: NaN for the untruthed states' MSE."""
+    for key in ("mse", "expected_mse"):
+        if key in series:
+            full = np.full((len(series[key]), n), np.nan)
+            full[:, idx] = series[key]
+            series[key] = full
+    return series
