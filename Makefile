@@ -17,7 +17,7 @@ run: $(STAMP)
 	$(BIN)/fusionlog run pipeline/ajgl2009.toml --force
 
 # The numerical modules once more under other OpenBLAS kernels (tests/other_kernels.py).
-NUMERIC := tests/test_exact.py tests/test_exact_per_run.py tests/test_per_run.py \
+NUMERIC := tests/test_retrodict_t2t.py tests/test_exact.py tests/test_exact_per_run.py tests/test_per_run.py \
 	tests/test_architectures.py tests/test_numerics.py tests/test_fusion.py \
 	tests/test_reference_filterpy.py tests/test_metrics.py tests/test_replay_sources.py \
 	tests/test_models.py tests/test_api.py tests/test_nonlinear_core.py \
@@ -26,7 +26,9 @@ NUMERIC := tests/test_exact.py tests/test_exact_per_run.py tests/test_per_run.py
 	tests/test_references_linear.py tests/test_references_exact.py tests/test_references_nonlinear.py \
 	tests/test_registry.py tests/test_ici.py tests/test_trajectory.py tests/test_identify.py \
 	tests/test_valid_inputs.py tests/test_api_misuse.py tests/test_bound.py tests/test_ei.py \
-	tests/test_latency.py tests/test_latency_replay.py tests/test_long_logs.py
+	tests/test_latency.py tests/test_latency_replay.py tests/test_latency_corr.py \
+	tests/test_long_logs.py tests/test_latency_nonlinear.py tests/test_nis_nonlinear.py \
+	tests/test_long_more.py tests/test_long_replay.py
 
 # The goldens and the exactness tests once more with every fast path sent to its plain
 # reference path (core/reference.py; benchmarks/README.md "Fast paths").

@@ -4,6 +4,12 @@ time.
 
     .venv/bin/python benchmarks/bench_latency.py                    # 10^4 runs, 2 s late
     .venv/bin/python benchmarks/bench_latency.py --runs 2000 --latency 5 --repeats 3
+    .venv/bin/python benchmarks/bench_latency.py --horizons 1000,10000,100000 --runs 1
+
+`--horizons`: the plan's memory and time against the horizon K (s3 `--latency` s late,
+fixed): for each K, the plan's distinct arrays (bytes; the steady shortcut repeats one step's
+map, so they stop growing once it triggers), the time to build it and to estimate `--runs`
+runs with it (readings drawn at random: the time does not depend on their values).
 
 Timed, the fastest of `--repeats` (a shared machine only adds time), for each architecture:
 `driver.estimate_block` of the runs with a fresh plan cache (compiling the plan and applying it,
@@ -39,7 +45,12 @@ def main() -> None:
     ap.add_argument("--latency", type=float, default=2.0)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--random", action="store_true")
+    ap.add_argument("--horizons", type=str, default="")
+    ap.add_argument("--archs", type=str, default="CKF,HKF,MSC")
     args = ap.parse_args()
+    if args.horizons:
+        horizons(args)
+        return
 
     import fusionlog as fl
     from fusionlog.core.exact import analyse
@@ -72,7 +83,7 @@ def main() -> None:
     base: dict[str, tuple[float, float]] = {}
     for late in ("on time", "reprocess", "retrodict", "neglect"):
         system = on_time if late == "on time" else dataclasses.replace(late_sys, late=late)
-        for arch in ("CKF", "SKF:s3") + (("MSC",) if late != "retrodict" else ()):
+        for arch in ("CKF", "SKF:s3", "MSC"):
 
             def estimate(system=system, arch=arch) -> PlanCache:
                 cache = PlanCache(system, K, clock=sim.times)
@@ -89,6 +100,44 @@ def main() -> None:
             b = base.get(arch, (np.nan, np.nan))
             figures = (t_est, t_est / b[0], t_ex, t_ex / b[1])
             print(f"{late:10s} {arch:7s} " + " ".join(f"{f:10.3f}" for f in figures))
+
+
+def plan_bytes(plan) -> int:
+    """The bytes of a plan's distinct step arrays (a repeated map counted once)."""
+    seen: dict[int, int] = {}
+    for st in plan.steps:
+        for a in (st.T, st.U, st.O, st.P, st.D):
+            a = getattr(a, "blocks", a)  # a BlockDiagonal's blocks
+            if isinstance(a, np.ndarray):
+                seen[id(a)] = a.nbytes
+    return sum(seen.values())
+
+
+def horizons(args) -> None:
+    import fusionlog as fl
+    from fusionlog.core.timing import SensorTiming
+    from fusionlog.driver import PlanCache, estimate_block
+
+    sc = fl.load(ROOT / "pipeline" / "latency.toml")
+    s3 = dataclasses.replace(
+        sc.system.sensors[2], timing=SensorTiming(latency=(args.latency, args.latency))
+    )
+    system = dataclasses.replace(sc.system, sensors=(*sc.system.sensors[:2], s3))
+    rng = np.random.default_rng(0)
+    print(f"pipeline/latency.toml, s3 {args.latency:g} s late, {args.runs} run(s)")
+    print(f"{'arch':7s} {'K':>8s} {'plan MiB':>9s} {'steps':>7s} {'build s':>8s} {'est. s':>8s}")
+    for K in (int(k) for k in args.horizons.split(",")):
+        times = np.arange(K + 1) * system.dt
+        z = 100 + rng.normal(size=(args.runs, K + 1, system.m))
+        for arch in args.archs.split(","):
+            cache = PlanCache(system, K, clock=times)
+            t0 = time.perf_counter()
+            plan = cache.plan(arch)
+            t_build = time.perf_counter() - t0
+            distinct = len({id(st) for st in plan.steps})
+            t_est = _best(lambda a=arch, c=cache, z=z: estimate_block(system, [a], z, cache=c), 1)
+            mib = plan_bytes(plan) / 2**20
+            print(f"{arch:7s} {K:8d} {mib:9.2f} {distinct:7d} {t_build:8.2f} {t_est:8.2f}")
 
 
 if __name__ == "__main__":

@@ -598,13 +598,17 @@ def test_retrodict_exact_equals_monte_carlo_and_loses_to_reprocessing(tmp_path, 
     assert expected["retrodict"] > expected["reprocess"] * (1 + 1e-6)
 
 
-def test_retrodict_has_no_plan_for_hierarchical_or_track_to_track_filters(tmp_path):
-    path = scenario(tmp_path, latencies=(1.0, None, 2.0), late="retrodict", archs=("MSC",))
-    one_line_error(cli("run", path, "--out-dir", tmp_path / "o"), "MSC", "retrodiction")
-    ok_path = scenario(tmp_path, latencies=(1.0, None, 2.0), archs=("CKF", "HKF"), runs=5,
-                       name="ok")  # fmt: skip
-    res = cli("run", ok_path, "--out-dir", tmp_path / "o", "--late", "retrodict")
-    one_line_error(res, "--late retrodict", "HKF")
+def test_retrodict_runs_in_hierarchical_and_track_to_track_filters(tmp_path):
+    """HKF's centre and the track-to-track locals retrodict (test_retrodict_t2t.py checks
+    their numbers); the smoother still has no meaning with a latency."""
+    path = scenario(tmp_path, latencies=(1.0, None, 2.0), archs=("HKF", "MSC"), runs=5)
+    ok("run", path, "--out-dir", tmp_path / "o", "--late", "retrodict")
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["late"] == "retrodict"
+    assert set(summary["architectures"]) == {"HKF", "MSC"}
+    fbs = scenario(tmp_path, latencies=(1.0, None, 2.0), late="retrodict", archs=("FBS",),
+                   name="fbs")  # fmt: skip
+    one_line_error(cli("run", fbs, "--out-dir", tmp_path / "f"), "FBS", "smoother")
 
 
 def test_random_delays_do_not_depend_on_the_blocks_of_runs(tmp_path):

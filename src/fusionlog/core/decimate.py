@@ -26,6 +26,7 @@ __all__ = [
     "Decimator",
     "TreeDecimator",
     "bucket_size",
+    "plane_at",
     "point_steps",
 ]
 
@@ -180,19 +181,34 @@ def note(instants: int, b: int) -> dict[str, str]:
 
 def decimate_evaluation(ev: Any, reference: str) -> Any:
     """`ev` (`core.evaluation.Evaluation`) with its series decimated where the log is longer
-    than `DECIMATE_ABOVE` instants, unless it asks for full resolution, is decimated already, or
-    draws a state plane (`reference`: the architecture the others' MSE is drawn against, see
-    `with_derived`; kept whole: its ellipses are covariances, whose entries' extremes
-    are none)."""
+    than `DECIMATE_ABOVE` instants, unless it asks for full resolution or is decimated already
+    (`reference`: the architecture the others' MSE is drawn against, see `with_derived`). A
+    state plane is sampled at the points' instants (`plane_at`)."""
     import dataclasses
 
     K1 = len(ev.times)
     b = bucket_size(K1, ev.full_resolution)
-    if b == 1 or ev.steps is not None or ev.plane is not None:
+    if b == 1 or ev.steps is not None:
         return ev
     tree = TreeDecimator(b, K1)
     tree.add(with_derived({f: getattr(ev, f) for f in SERIES_FIELDS}, reference))
     steps = point_steps(K1, b)
     return dataclasses.replace(
-        ev, **tree.result(), times=np.asarray(ev.times)[steps], steps=steps, decimation=note(K1, b)
-    )
+        ev, **tree.result(), times=np.asarray(ev.times)[steps], steps=steps, decimation=note(K1, b),
+        plane=plane_at(ev.plane, steps),
+    )  # fmt: skip
+
+
+def plane_at(plane: dict[str, Any] | None, steps: np.ndarray, k0: int = 0) -> dict | None:
+    """The state plane's truth, sample estimates and ellipses at the instants `steps` (of a
+    block whose first instant is k0): each frame a real state and covariance, not a bucket's
+    extremes (a covariance's entries' extremes are no covariance)."""
+    if plane is None:
+        return None
+    at = np.asarray(steps) - k0
+    return {
+        **plane,
+        "truth": np.asarray(plane["truth"])[at],
+        "estimates": {a: np.asarray(v)[at] for a, v in plane["estimates"].items()},
+        "ellipses": {k: np.asarray(v)[at] for k, v in plane["ellipses"].items()},
+    }

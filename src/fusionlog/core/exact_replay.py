@@ -9,6 +9,10 @@ already compute: zero means, and the error covariances of `replay.replay_error_c
 eq. 35, HKF's own recursion). The NEES and DM follow from them as in the plans' analysis
 (`shared_nees_and_dm`). Anything else (a mismatched truth, what the replay path refuses, a
 reported covariance not positive definite) is left to the plans, which name a failing step.
+
+`ExpectedBlocks`: the same in blocks of time (issue 34), the error covariances' recursions
+carried from block to block (`architectures.replay_blocks`); where a block's reported
+covariance is not positive definite its NEES and DM are NaN there (no plans to hand it to).
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from .architectures.replay import replay_error_covariances
+from .architectures.replay_blocks import ReplayBlocks
 from .exact import Expected, shared_nees_and_dm
 from .model import System
 
@@ -70,3 +75,45 @@ def replay_expected(
         if definite.all() and np.isfinite(nees).all() and np.isfinite(dm).all():
             out[a] = Expected(mse, bias, P, nees, dm)
     return out
+
+
+class ExpectedBlocks:
+    """`replay_expected` block of time by block, in order (`ReplayBlocks.error_covariances`)."""
+
+    def __init__(self, blocks: ReplayBlocks) -> None:
+        self.blocks = blocks
+
+    @property
+    def smoother(self) -> bool:
+        """FBS is among the architectures: `window` needs its backward S (`backward`)."""
+        return self.blocks.smoother
+
+    def backward(self, k0: int, k1: int, present: np.ndarray, after: tuple | None):
+        """FBS's backward pass over the block (`ReplayBlocks.backward`), from the log's end."""
+        return self.blocks.backward(k0, k1, np.where(present, 0.0, np.nan), after)
+
+    def window(self, k0: int, k1: int, present: np.ndarray, backward=None) -> dict[str, Expected]:
+        """Each architecture's `Expected` (w, ...) at the instants k0..k1-1, `present` (w, m)
+        their readings, `backward` FBS's (y_b, S) there."""
+        out = {}
+        for a, (mse, P) in self.blocks.error_covariances(k0, k1, present, backward).items():
+            bias = np.zeros(P.shape[:-1])
+            nees, dm, _ = shared_nees_and_dm(P, bias, mse)
+            out[a] = Expected(mse, bias, P, nees, dm)
+        return out
+
+
+def replay_expected_blocks(
+    model: System,
+    truth: System,
+    archs: Sequence[str],
+    steps: int,
+    block: int,
+    criterion: str | None = None,
+) -> ExpectedBlocks | None:
+    """`ExpectedBlocks` of one run of instants 0..`steps` in blocks of `block` instants where
+    the truth is the model and the replay path takes every architecture; else None."""
+    if not truth_is_model(model, truth, steps):
+        return None
+    blocks = ReplayBlocks.of(model, archs, steps, block, criterion)
+    return None if blocks is None else ExpectedBlocks(blocks)

@@ -36,6 +36,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .architectures import Plan, definition, parse_arch
+from .architectures.filters import constant_tail
+from .latency_corr import conditions_of, correlated_refusal, with_conditions
 from .latency_stacked import fused_plan, stacked_system, wrap
 from .model import System
 
@@ -44,6 +46,7 @@ __all__ = [
     "LateModel",
     "arrival_steps",
     "draw_arrivals",
+    "ekf_retrodict_refusal",
     "is_late",
     "random_delays",
     "late_refusal",
@@ -73,16 +76,10 @@ def system_refusal(system: System) -> tuple[str, str] | None:
     """(key, reason) why a system's late sensors cannot be estimated, or None."""
     if not is_late(system):
         return None
-    lat = [s.timing.latency for s in system.sensors]
-    late = [j for j, (lo, hi) in enumerate(lat) if hi > 0]
     if system.late not in BUILT_POLICIES:
         return ("estimate.late", f"{system.late!r} with late sensors is not available yet")
     if not system.linear:
-        return (
-            f"sensors[{late[0]}].latency",
-            "late measurements need linear sensors and motion (the EKF/UKF lanes do not "
-            "rewind yet)",
-        )
+        return nonlinear_refusal(system)
     if system.prior is None:
         return (
             "prior",
@@ -96,14 +93,19 @@ def system_refusal(system: System) -> tuple[str, str] | None:
                 "estimate.late",
                 "retrodict predicts backwards through F^-1, and F is singular",
             )
-    for i, j in system.cross_R:
-        if lat[i] != lat[j]:
-            return (
-                "correlations",
-                f"sensors {system.sensors[i].name!r} and {system.sensors[j].name!r} are "
-                "correlated but arrive with different latencies: their readings of one "
-                "instant would be fused apart, as if independent",
-            )
+    return None
+
+
+def nonlinear_refusal(system: System) -> tuple[str, str] | None:
+    """(key, reason) why the EKF/UKF lanes cannot take a system's late sensors
+    (`core.nonlinear.late`), or None."""
+    if system.late == "retrodict" and system.filter == "UKF":
+        return (
+            "estimate.late",
+            "retrodict needs the EKF: Al1 linearises the motion and the sensors at the "
+            "retrodicted state, which the UKF never samples (its sigma points are drawn about "
+            'the forward predictions); use reprocess or neglect, or filter = "EKF"',
+        )
     return None
 
 
@@ -117,12 +119,27 @@ def late_refusal(system: System, locals_kind: str, arch: str) -> str | None:
             f"architecture {arch}: a fixed-interval smoother uses every measurement of the run "
             "whenever it arrives: a latency has no meaning there"
         )
-    if system.late == "retrodict" and locals_kind not in ("centralised", "single"):
-        return (
-            f"architecture {arch}: retrodiction (Bar-Shalom's Al1) is built for one filter "
-            "(CKF, SKF); with hierarchical or track-to-track filters use reprocess or neglect"
-        )
-    return None
+    # The linear plans retrodict in every filter (`core.retrodict_fused`); the EKF lanes
+    # (`core.nonlinear.retrodict`) in every filter too, but carry no joint covariance there.
+    if system.late == "retrodict" and not system.linear and locals_kind == "per-sensor":
+        return ekf_retrodict_refusal(arch, definition(arch).joint)
+    return correlated_refusal(system, locals_kind, arch)
+
+
+def ekf_retrodict_refusal(arch: str, joint: bool) -> str | None:
+    """Why the EKF lanes' retrodicting locals cannot feed track-to-track rule `arch` (`joint`:
+    it reads the locals' joint error covariance), or None."""
+    if not joint:
+        return None
+    return (
+        f"architecture {arch}: retrodict with EKF locals gives no joint error covariance for "
+        "its rule (Al1 correlates each local with the process noise since its stored estimate, "
+        "which the lanes do not carry); use reprocess or neglect, or MSC, CI, ICI or EI"
+    )
+
+
+#: The architectures that run one filter on their sensors.
+SINGLE_FILTER = ("centralised", "single")
 
 
 #: The delays' random stream (`core.simulate.chunked`): apart from the truth and readings'.
@@ -180,6 +197,8 @@ class LateModel:
     lags: list[np.ndarray]
     times: np.ndarray
     per_run: bool = False
+    #: (K+1, S): the latest instant each reading may arrive at (None: `arrive`)
+    last: np.ndarray | None = field(default=None, repr=False)
     stacked: System = field(init=False, repr=False)
     #: (m~, 3): for each component of the stacked measurement, its sensor, lag and component
     #: of z (eq. 30)
@@ -210,10 +229,17 @@ class LateModel:
             i = np.arange(K1)[got]
             # every lag between the earliest and the latest arrival (within the horizon)
             lo, hi = arrive[got, j] - i, np.minimum(last[got, j], K1 - 1) - i
-            spans = [np.arange(a, b + 1) for a, b in zip(lo, hi, strict=True)]
+            pairs = np.unique(lo.astype(np.int64) * (K1 + 1) + hi)  # few distinct spans
+            spans = [np.arange(p // (K1 + 1), p % (K1 + 1) + 1) for p in pairs.tolist()]
             lj = np.unique(np.concatenate(spans or [np.zeros(1, np.intp)]))
             lags.append(lj.astype(np.intp))
-        return cls(system, steps, arrive, lags, times, random_delays(system))
+        return cls(system, steps, arrive, lags, times, random_delays(system), last)
+
+    def centre_model(self) -> tuple | None:
+        """The decorrelated stacked model of the centre (`_centre_model`), made once."""
+        if not hasattr(self, "_centre"):
+            self._centre = _centre_model(self)
+        return self._centre
 
     @property
     def window(self) -> int:
@@ -221,13 +247,19 @@ class LateModel:
         return max(int(lj.max()) for lj in self.lags)
 
     def stacked_mask(
-        self, present: np.ndarray, filters: list[list[int]], arrive: np.ndarray | None = None
+        self,
+        present: np.ndarray,
+        filters: list[list[int]],
+        arrive: np.ndarray | None = None,
+        centre: tuple | None = None,
     ) -> np.ndarray:
         """The presence mask of the stacked measurement, batch + (K+1, m~): the reading of
         slot (j, l) is there at k when sensor j measured that component at k - l, it arrives
         at k (`arrive`, batch + (K+1, S), default the fixed latencies') and (neglect) it is not
         older than the last update of the filter that fuses it (`filters`: the sensors each
-        filter fuses)."""
+        filter fuses). `centre` (`centre_model`): the slots of the model with decorrelated
+        readings, each there when its condition is the set of its instant's readings taken
+        before it."""
         K1 = present.shape[-2]
         arrive = self.arrive if arrive is None else arrive
         batch = np.broadcast_shapes(present.shape[:-2], arrive.shape[:-2])
@@ -241,15 +273,47 @@ class LateModel:
             for g in filters:
                 ok[..., g] = accepted(took[..., g], arrive[..., g], self.window)
             took = took & ok
-        j, lag, o = self.slots.T
-        out = np.zeros(present.shape[:-2] + (K1, len(self.slots)), dtype=bool)
-        for k in range(K1):
-            i = k - lag
-            ok = i >= 0
-            ii = np.where(ok, i, 0)
-            here = present[..., ii, o] & took[..., ii, j] & (arrive[..., ii, j] == k)
-            out[..., k, :] = here & ok
+        slots = self.slots if centre is None else centre[1]
+        j, lag, o = slots[:, :3].T
+        if centre is not None:
+            cond = centre[3]
+            cond.check_whole(present)
+            code = cond.codes(took, arrive)
+        out = np.zeros(present.shape[:-2] + (K1, len(slots)), dtype=bool)
+        for c, (jc, lc, oc) in enumerate(zip(j, lag, o, strict=True)):  # slot c, over every k
+            i = slice(0, max(K1 - lc, 0))  # the readings taken at i = k - lag, k >= lag
+            here = present[..., i, oc] & took[..., i, jc]
+            here &= arrive[..., i, jc] == np.arange(lc, K1)
+            if centre is not None:
+                here &= code[..., i, jc] == slots[c, 3]
+            out[..., lc:, c] = here
         return out
+
+    def filters_of(self, arch: str) -> tuple[str, str, list[list[int]]]:
+        """`arch`'s base name, kind of locals and the sensors each of its filters fuses."""
+        names = [s.name for s in self.system.sensors]
+        base, sensor = parse_arch(arch, names)
+        locals_kind = definition(base).locals
+        if sensor is not None:  # one filter on one sensor
+            return base, locals_kind, [[names.index(sensor)]]
+        if locals_kind == "per-sensor":  # a local filter per sensor
+            return base, locals_kind, [[j] for j in range(len(names))]
+        return base, locals_kind, [list(range(len(names)))]  # one filter (or a centre)
+
+    def arrivals_of(self, arrival: np.ndarray | None) -> np.ndarray | None:
+        """The arrival instants of readings that arrived at `arrival` (runs, K+1, S) s (None:
+        the fixed latencies'), checked against the model's lags."""
+        if arrival is None:
+            return None
+        K1 = self.steps + 1
+        arrive = arrival_steps(self.times, arrival)
+        for j, lj in enumerate(self.lags):  # the readings' own lags must be among the model's
+            a = arrive[..., j]
+            lag = (a - np.arange(K1))[a < K1]
+            if not np.isin(lag, lj).all():
+                name = self.system.sensors[j].name
+                raise ValueError(f"sensor {name}: a reading arrives outside its latency range")
+        return arrive
 
     def build(
         self, build, arch: str, present: np.ndarray | None, arrival: np.ndarray | None = None, **kw
@@ -265,40 +329,43 @@ class LateModel:
         if present is None:
             present = np.ones((K1, self.system.m), dtype=bool)
         kw.pop("groups", None)  # the stacked mask groups the runs by its own histories
-        names = [s.name for s in self.system.sensors]
-        base, sensor = parse_arch(arch, names)
-        S = len(names)
-        locals_kind = definition(base).locals
-        if sensor is not None:  # one filter on one sensor
-            filters = [[names.index(sensor)]]
-        elif locals_kind == "per-sensor":  # a local filter per sensor
-            filters = [[j] for j in range(S)]
-        else:  # one filter (or a centre) fusing every sensor
-            filters = [list(range(S))]
-        arrive = None if arrival is None else arrival_steps(self.times, arrival)
-        if arrive is not None:  # the readings' own lags must be among the model's
-            for j, lj in enumerate(self.lags):
-                a = arrive[..., j]
-                lag = (a - np.arange(K1))[a < K1]
-                if not np.isin(lag, lj).all():
-                    raise ValueError(
-                        f"sensor {names[j]}: a reading arrives outside its latency range"
-                    )
+        base, locals_kind, filters = self.filters_of(arch)
+        arrive = self.arrivals_of(arrival)
         if self.system.late == "retrodict":
-            from .retrodict import retrodict_plan
+            from .retrodict_fused import late_retrodict_plan
 
             arr = self.arrive if arrive is None else arrive
-            plan = retrodict_plan(self.system, arch, present, arr, filters[0], self.window)
-            return plan
-        mask = self.stacked_mask(present, filters, arrive)
-        if locals_kind == "per-sensor":  # the rule on the locals' current blocks
             criterion = kw.get("criterion", "trace")
-            nodes = kw.get("history_nodes", False)
-            n = self.system.n
-            inner = fused_plan(self.stacked, base, mask, criterion, n, nodes)
-        else:
-            inner = build(self.stacked, arch, self.steps, mask, **kw)
+            return late_retrodict_plan(
+                self.system, arch, base, present, arr, filters, self.lags, criterion
+            )
+        centre = self.centre_model() if locals_kind == "centralised" else None
+        mask = self.stacked_mask(present, filters, arrive, centre)
+        with constant_tail():  # past the window the mask repeats: the steady shortcut applies
+            if centre is not None:  # correlated readings of one instant arriving apart
+                inner = build(centre[0], arch, self.steps, mask, **kw)
+                m, W, n = self.system.m, self.window, self.system.n
+                return wrap(inner, centre[1], m, W, n, centre[2])
+            if locals_kind == "per-sensor":  # the rule on the locals' current blocks
+                criterion = kw.get("criterion", "trace")
+                nodes = kw.get("history_nodes", False)
+                n = self.system.n
+                inner = fused_plan(self.stacked, base, mask, criterion, n, nodes)
+            else:
+                inner = build(self.stacked, arch, self.steps, mask, **kw)
         return wrap(inner, self.slots, self.system.m, self.window, self.system.n)
+
+
+def _centre_model(model: LateModel) -> tuple | None:
+    """(stacked system, slots, coefficients, conditions) of the one filter fusing every
+    sensor where correlated readings of one instant may arrive apart (`core.latency_corr`),
+    else None (the plain stacked model is exact)."""
+    last = model.arrive if model.last is None else model.last
+    S = len(model.system.sensors)
+    cond = conditions_of(model.system, model.arrive, last, list(range(S)))
+    if cond is None:
+        return None
+    return (*with_conditions(model.stacked, cond, model.lags, model.slots), cond)
 
 
 def accepted(took: np.ndarray, arrive: np.ndarray, W: int) -> np.ndarray:

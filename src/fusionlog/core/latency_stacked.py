@@ -90,16 +90,23 @@ def _dense(A):
     return A.dense() if isinstance(A, BlockDiagonal) else A
 
 
-def wrap(inner: Plan, slots: np.ndarray, m: int, W: int, n: int) -> Plan:
+def wrap(
+    inner: Plan, slots: np.ndarray, m: int, W: int, n: int, coef: np.ndarray | None = None
+) -> Plan:
     """The plan `inner` of the stacked model as a plan on z as taken (see the module's
     docstring): s_k = [s~_k; b_k], b_k = [z_k; ...; z_{k-W+1}], the reading of slot (j, l, o)
     taken from z_k (l = 0) or from block l - 1 of b_{k-1}; x_hat = the first block of
-    the stacked estimate, P its covariance."""
+    the stacked estimate, P its covariance. `coef` (m~, m): each slot's reading as a
+    combination of the readings of its instant (`latency_corr`; default component o)."""
     B = W * m
-    # Sel (m~, m + W m): slot c's column among [z_k, b_{k-1}]
-    col = np.where(slots[:, 1] == 0, slots[:, 2], m + (slots[:, 1] - 1) * m + slots[:, 2])
+    # Sel (m~, m + W m): slot c's columns among [z_k, b_{k-1}] (block l of l m columns)
     Sel = np.zeros((len(slots), m + B))
-    Sel[np.arange(len(slots)), col] = 1.0
+    if coef is None:
+        col = np.where(slots[:, 1] == 0, slots[:, 2], m + (slots[:, 1] - 1) * m + slots[:, 2])
+        Sel[np.arange(len(slots)), col] = 1.0
+    else:
+        cols = slots[:, 1, None] * m + np.arange(m)
+        Sel[np.arange(len(slots))[:, None], cols] = coef
     shift = np.eye(B - m) if B > m else np.zeros((0, 0))
     done: dict[int, StepMap] = {}
 

@@ -24,6 +24,7 @@ import numpy as np
 
 from .linalg import mT, overflow_is_inf, sym
 from .model import System
+from .nonlinear.local import predict
 
 __all__ = ["Innovations", "WhitenessSums", "innovations", "ljung_box", "whiteness"]
 
@@ -68,37 +69,32 @@ def innovations(
 
 def _block(system, mean, cov, z, rows, R, k0: int, k1: int):
     """NIS, degrees of freedom and normalised innovations of the instants k0..k1-1."""
+    if not system.linear:
+        return _extended_block(system, mean, cov, z, rows, R, k0, k1)
     M = z.shape[0]
     n, w = system.n, k1 - k0
     H = system.linear_measurement()[rows]
-    r = len(rows)
     # The predictions x_k^- = F_k x_{k-1}, P_k^- = F_k P F_k' + Q_k (k >= 1), the prior at
     # k = 0 (none without a prior).
     a = max(k0, 1)  # the first instant with a predecessor
-    if system.time_invariant:
-        F = np.broadcast_to(system.F, (k1 - a, n, n))
-        Q = np.broadcast_to(system.GQG, (k1 - a, n, n))
-    else:
-        F = np.array([system.F_at(k) for k in range(a, k1)]).reshape(k1 - a, n, n)
-        Q = np.array([system.GQG_at(k) for k in range(a, k1)]).reshape(k1 - a, n, n)
     xp = np.full((M, w, n), np.nan)
-    xp[:, a - k0 :] = np.einsum("kij,mkj->mki", F, mean[:, a - 1 : k1 - 1])
     Pp = np.full(cov.shape[:-3] + (w, n, n), np.nan)
-    Pp[..., a - k0 :, :, :] = sym(F @ cov[..., a - 1 : k1 - 1, :, :] @ mT(F) + Q)
-    if k0 == 0 and system.prior is not None:
-        xp[:, 0] = system.prior.mean
-        Pp[..., 0, :, :] = system.prior.cov
-    if R is not None:
-        Rk = R
-    elif system.Rs is None:
-        Rk = system.R[np.ix_(rows, rows)]
-    else:
-        Rk = system.Rs[k0:k1][:, rows][:, :, rows]
-    S = sym(H @ Pp @ H.T + Rk)  # ([M,] w, r, r)
+    xp[:, a - k0 :], Pp[..., a - k0 :, :, :] = _linear_prediction(
+        system, mean[:, a - 1 : k1 - 1], cov[..., a - 1 : k1 - 1, :, :], a, k1
+    )
+    _prior(system, xp, Pp, k0)
+    S = sym(H @ Pp @ H.T + _noise(system, rows, R, k0, k1))  # ([M,] w, r, r)
     zr = z[:, k0:k1][:, :, rows]
     present = ~np.isnan(zr)  # (M, w, r)
     usable = np.isfinite(xp).all(axis=-1) & np.isfinite(S).all(axis=(-2, -1))
     nu = np.where(present, np.nan_to_num(zr) - xp @ H.T, 0.0)
+    return _normalised(nu, S, present, usable)
+
+
+def _normalised(nu: np.ndarray, S: np.ndarray, present: np.ndarray, usable: np.ndarray):
+    """NIS, degrees of freedom and S^-1/2 nu of innovations nu ([M,] w, r) (zero where absent)
+    with covariances S, the components `present` (M, w, r), at the instants `usable` (M, w)."""
+    r = nu.shape[-1]
     pf = present.astype(float)
     S = np.where(np.isfinite(S), S, np.eye(r))
     S = S * (pf[..., :, None] * pf[..., None, :]) + np.eye(r) * (1.0 - pf)[..., None, :]
@@ -113,6 +109,72 @@ def _block(system, mean, cov, z, rows, R, k0: int, k1: int):
     nis = np.where(use, (u**2).sum(axis=-1), np.nan)
     dof = np.where(use, present.sum(axis=-1), 0)
     return nis, dof, np.where(use[..., None] & present, u, np.nan)
+
+
+def _linear_prediction(system: System, mean: np.ndarray, cov: np.ndarray, a: int, k1: int):
+    """x_k^- = F_k x_{k-1}, P_k^- = F_k P_{k-1} F_k' + Q_k for k = a..k1-1 from the estimates
+    mean (M, k1-a, n) and cov ([M,] k1-a, n, n) of the instants before them."""
+    n = system.n
+    if system.time_invariant:
+        F = np.broadcast_to(system.F, (k1 - a, n, n))
+        Q = np.broadcast_to(system.GQG, (k1 - a, n, n))
+    else:
+        F = np.array([system.F_at(k) for k in range(a, k1)]).reshape(k1 - a, n, n)
+        Q = np.array([system.GQG_at(k) for k in range(a, k1)]).reshape(k1 - a, n, n)
+    return np.einsum("kij,mkj->mki", F, mean), sym(F @ cov @ mT(F) + Q)
+
+
+def _prior(system: System, xp: np.ndarray, Pp: np.ndarray, k0: int) -> None:
+    """The prediction at k = 0 is the prior (none without one: NaN stays)."""
+    if k0 == 0 and system.prior is not None:
+        xp[:, 0] = system.prior.mean
+        Pp[..., 0, :, :] = system.prior.cov
+
+
+def _noise(system: System, rows: np.ndarray, R: np.ndarray | None, k0: int, k1: int):
+    """R of the components `rows` at the instants k0..k1-1: `R` when given, else the system's
+    (per instant where it varies)."""
+    if R is not None:
+        return R
+    if system.Rs is None:
+        return system.R[np.ix_(rows, rows)]
+    return system.Rs[k0:k1][:, rows][:, :, rows]
+
+
+def _extended_block(system, mean, cov, z, rows, R, k0: int, k1: int):
+    """`_block` of a nonlinear model: the EKF's innovation (Bar-Shalom, Li and Kirubarajan
+    2001, sec. 10.3), nu_k = z_k - h(x_k^-), x_k^- = f(x_{k-1}), P_k^- = F_J P_{k-1} F_J' + Q_k,
+    S_k = H_k P_k^- H_k' + R_k, with F_J and H_k the motion's and the sensors' Jacobians at
+    x_{k-1} and at x_k^- (the lanes' own `local.predict` and the sensor models' h, jacobian
+    and residual: bearings wrapped to (-pi, pi]). For a UKF's estimates this is the same
+    EKF-form innovation of its estimates (the unscented one differs by the curvature the
+    linearisation leaves out, small where the filter's covariance is)."""
+    M, n, w = z.shape[0], system.n, k1 - k0
+    cov = np.broadcast_to(cov, (M,) + cov.shape[-3:])
+    a = max(k0, 1)
+    xp, Pp = np.full((M, w, n), np.nan), np.full((M, w, n, n), np.nan)
+    x0, P0 = mean[:, a - 1 : k1 - 1], cov[:, a - 1 : k1 - 1]
+    with np.errstate(all="ignore"):  # a state on a sensor (r = 0) or overflow: no NIS there
+        if system.motion_model is None:  # linear motion, nonlinear sensors
+            xp[:, a - k0 :], Pp[:, a - k0 :] = _linear_prediction(system, x0, P0, a, k1)
+        else:
+            dts = np.array([system.dt_at(k) for k in range(a, k1)])
+            for dt in np.unique(dts):  # one interval on regular instants
+                at = np.flatnonzero(dts == dt)
+                x, P = x0[:, at].reshape(-1, n), P0[:, at].reshape(-1, n, n)
+                xq, Pq = predict(system.motion_model, float(dt), x, P, None)[:2]
+                xp[:, a - k0 + at] = xq.reshape(M, len(at), n)
+                Pp[:, a - k0 + at] = Pq.reshape(M, len(at), n, n)
+        _prior(system, xp, Pp, k0)
+        H = system.jacobian(xp)[..., rows, :]  # (M, w, r, n)
+        S = sym(H @ Pp @ mT(H) + _noise(system, rows, R, k0, k1))
+        zr = z[:, k0:k1][:, :, rows]
+        present = ~np.isnan(zr)
+        full = np.where(np.isnan(z[:, k0:k1]), 0.0, z[:, k0:k1])
+        nu = np.where(present, system.residual(full, system.h(xp))[..., rows], 0.0)
+    usable = np.isfinite(xp).all(axis=-1) & np.isfinite(S).all(axis=(-2, -1))
+    usable &= np.isfinite(nu).all(axis=-1)
+    return _normalised(np.where(usable[..., None], nu, 0.0), S, present, usable)
 
 
 @overflow_is_inf
@@ -225,7 +287,10 @@ class WhitenessSums:
             t = len(self.tail[i])
             for lag in range(1, L + 1):  # the products a_j a_{j+lag} with j + lag in this block
                 lo = max(t - lag, 0)
-                self.C[i, lag - 1] += float(ext[lo : len(ext) - lag] @ ext[lo + lag :])
+                # no pair yet (fewer than lag + 1 values so far): ext[lo : negative] would
+                # count from the end
+                hi = max(len(ext) - lag, lo)
+                self.C[i, lag - 1] += float(ext[lo:hi] @ ext[lo + lag : hi + lag])
             self.N[i] += len(seq)
             self.S[i] += float(seq.sum())
             self.S2[i] += float(seq @ seq)

@@ -25,9 +25,13 @@ taken at tau_d < t_k, the last update) is fused by
 
 The estimate at an output instant is the filter predicted there. The gains depend only on
 which readings arrive when, so the filter is an affine map of the readings: the plan's state
-is [current estimate; the estimates stored at instants k-W..k; the last W readings], its maps
-computed once per arrival pattern (per run where the delays differ), and the exact analysis
-takes it as any plan.
+is [current estimate; the estimates stored at instants k-W..k; the last W readings], and the
+exact analysis takes it as any plan. Per run (random delays, dropouts) the recursion runs on
+all distinct arrival patterns at once, as a batch: each run's readings of one instant enter
+through the full H with the absent rows zeroed and R's absent rows and columns replaced by the
+identity, which gives them zero gain (S is block diagonal after the permutation to present /
+absent), so one batched solve serves every pattern; the branch (in sequence or Al1) and the
+transitions are taken per run.
 """
 
 from __future__ import annotations
@@ -37,10 +41,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .architectures import Plan, StepMap
-from .linalg import sym
+from .linalg import mT, sym
 from .model import System
 
-__all__ = ["retrodict_plan"]
+__all__ = ["retrodict_maps", "retrodict_plan"]
 
 
 @dataclass
@@ -71,6 +75,7 @@ class _Transitions:
         self.system, self.cache = system, {}
 
     def __call__(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        a, b = int(a), int(b)
         got = self.cache.get((a, b))
         if got is None:
             n = self.system.n
@@ -81,8 +86,64 @@ class _Transitions:
             got = self.cache[a, b] = (F, sym(Q))
         return got
 
+    def gathered(self, a: np.ndarray, b: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
+        """F, Q from a[r] to b[r] for every run r, (R, n, n) each (one lookup per distinct pair)."""
+        b = np.broadcast_to(b, a.shape)
+        if (a == a.flat[0]).all() and (b == b.flat[0]).all():  # one pair (e.g. one pattern)
+            F, Q = self(a.flat[0], b.flat[0])
+            return np.broadcast_to(F, a.shape + F.shape), np.broadcast_to(Q, a.shape + Q.shape)
+        wide = int(max(a.max(initial=0), b.max(initial=0))) + 1
+        keys, inv = np.unique(a * wide + b, return_inverse=True)  # the pairs as numbers
+        got = [self(p, q) for p, q in zip(keys // wide, keys % wide, strict=True)]
+        inv = inv.ravel()
+        return np.stack([g[0] for g in got])[inv], np.stack([g[1] for g in got])[inv]
 
-def _one_run(
+
+def _masked(H: np.ndarray, R: np.ndarray, cm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """H (m, n) and R (m, m) of the components `cm` (R', m) of each run: absent rows of H zero,
+    absent rows and columns of R the identity's (zero gain for them, see the module's
+    docstring)."""
+    Hm = H * cm[:, :, None]
+    Rm = R * (cm[:, :, None] & cm[:, None, :])
+    ar = np.arange(R.shape[0])
+    Rm[:, ar, ar] += ~cm
+    return Hm, Rm
+
+
+def _update(cur, P, Hm, Rm, z):
+    """Joseph update of the expressions `cur` (R', n, D) with covariance P with the readings z
+    (m, D)."""
+    n = P.shape[-1]
+    S = Hm @ P @ mT(Hm) + Rm
+    K = mT(np.linalg.solve(S, Hm @ P))
+    IKH = np.eye(n) - K @ Hm
+    return IKH @ cur + K @ z, sym(IKH @ P @ mT(IKH) + K @ Rm @ mT(K))
+
+
+def _al1(cur, P, Hm, Rm, z, xa, Pa, Fa, Qa, Fkd, Qkd):
+    """Al1 (module docstring) for a batch: the stored estimate xa (expressions), Pa at t_a, F, Q
+    from t_a and from the OOSM's time t_d to the last update t_k."""
+    Pp = sym(Fa @ Pa @ mT(Fa)) + Qa
+    Fdk = np.linalg.inv(Fkd)
+    Ppi = np.linalg.inv(Pp)
+    A = sym(Ppi @ (Pp - P) @ Ppi)  # S*^-1
+    g = Ppi @ (cur - Fa @ xa)  # S*^-1 nu*
+    xd = Fdk @ (cur - Qkd @ g)
+    Pxv = Qkd - Pp @ A @ Qkd
+    Pvv = Qkd - Qkd @ A @ Qkd
+    Pd = sym(Fdk @ (P + Pvv - Pxv - mT(Pxv)) @ mT(Fdk))
+    Sd = Hm @ Pd @ mT(Hm) + Rm
+    Pxz = (P - Pxv) @ mT(Fdk) @ mT(Hm)
+    Wg = mT(np.linalg.solve(Sd, mT(Pxz)))
+    return cur + Wg @ (z - Hm @ xd), sym(P - Wg @ mT(Pxz))
+
+
+def _last_valid(valid: np.ndarray) -> np.ndarray:
+    """Index of the last True of each row (R', L) (each row has one)."""
+    return valid.shape[1] - 1 - np.argmax(valid[:, ::-1], axis=1)
+
+
+def _batch(
     system: System,
     present: np.ndarray,
     arrive: np.ndarray,
@@ -90,110 +151,135 @@ def _one_run(
     W: int,
     trans: _Transitions,
 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-    """(T, U, O, P) of every step for one arrival pattern: `present` (K+1, m), `arrive`
-    (K+1, S) the instant each reading arrives by, the filter on `sensors`."""
+    """(T, U, O, P), each (M, ...), of every step for M arrival patterns at once: `present`
+    (M, K+1, m), `arrive` (M, K+1, S) the instant each reading arrives by, the filter on
+    `sensors`. During step k the stored estimates are kept by instant t = k-1-W+r, r = 0..W+1
+    (`sval`: stored for that run; their expressions `sx` rows over u = [s_{k-1}; z_k])."""
     n, m = system.n, system.m
     lay = _Layout(n, m, W)
     d = lay.d
-    H_all = system.linear_measurement()
+    D = d + m
+    H = system.linear_measurement()
     slices = system.sensor_slices
     prior = system.prior
     assert prior is not None
-    K1 = present.shape[0]
-    P = prior.cov.copy()
-    tau = 0  # the time (instant) of the filter's estimate
-    Pst = {0: P}  # the covariances of the stored estimates, by instant
+    M, K1 = present.shape[:2]
+    L = W + 2
+    eye, eye_m = np.eye(n), np.eye(m)
+    R0 = system.R if system.Rs is None else None  # the property builds it on every call
+    P = np.broadcast_to(prior.cov, (M, n, n)).copy()
+    tau = np.zeros(M, dtype=np.intp)  # the instant of each run's estimate
+    sP = np.zeros((M, L, n, n))
+    sval = np.zeros((M, L), dtype=bool)
     out = []
     for k in range(K1):
-        # expressions: rows over u = [s_{k-1}; z_k]
-        cur = np.zeros((n, d + m))
-        cur[:, :n] = np.eye(n)
-        stored = {}
-        for t in Pst:
-            q = k - 1 - t
-            e = np.zeros((n, d + m))
-            if q < 0:  # k = 0: the prior, the current estimate
-                e[:, :n] = np.eye(n)
-            else:
-                e[:, lay.stored(q)] = np.eye(n)
-            stored[t] = e
-
-        def reading(i: int, comps: np.ndarray, k: int = k) -> np.ndarray:
-            """The rows of u that are the components `comps` of z_i."""
-            e = np.zeros((len(comps), d + m))
-            if i == k:
-                e[np.arange(len(comps)), d + comps] = 1.0
-            else:
-                e[np.arange(len(comps)), lay.buffered(k - 1 - i).start + comps] = 1.0
-            return e
-
-        groups: dict[int, list[int]] = {}
+        base = k - 1 - W
+        cur = np.zeros((M, n, D))
+        cur[:, :, :n] = eye
+        sx = np.zeros((M, L, n, D))
+        for r in range(W + 1):
+            sx[:, r, :, lay.stored(W - r)] = eye
+        if k == 0:  # the prior: instant 0's stored estimate is the current one
+            sx[:, W + 1, :, :n] = eye
+            sP[:, W + 1], sval[:, W + 1] = prior.cov, True
         for i in range(max(0, k - W), k + 1):
+            cm = np.zeros((M, m), dtype=bool)
             for j in sensors:
-                if arrive[i, j] == k and present[i, slices[j]].any():
-                    groups.setdefault(i, []).append(j)
-        for i in sorted(groups):
-            comps = np.concatenate(
-                [np.arange(m)[slices[j]][present[i, slices[j]]] for j in groups[i]]
-            )
-            H, R, z = H_all[comps], system.R_at(i)[np.ix_(comps, comps)], reading(i, comps)
-            if i >= tau:  # in sequence: predict to i, Joseph update
-                F, Q = trans(tau, i)
-                cur, P, tau = F @ cur, sym(F @ P @ F.T) + Q, i
-                S = H @ P @ H.T + R
-                K = np.linalg.solve(S, H @ P).T
-                IKH = np.eye(n) - K @ H
-                cur = IKH @ cur + K @ z
-                P = sym(IKH @ P @ IKH.T + K @ R @ K.T)
-            else:  # out of sequence: Al1 (Algorithm A for a one-update lag)
-                a = max(t for t in Pst if t <= i)
-                Fa, Qa = trans(a, tau)
-                Pp = sym(Fa @ Pst[a] @ Fa.T) + Qa
-                Fkd, Qkd = trans(i, tau)
-                Fdk = np.linalg.inv(Fkd)
-                Ppi = np.linalg.inv(Pp)
-                A = sym(Ppi @ (Pp - P) @ Ppi)  # S*^-1
-                g = Ppi @ (cur - Fa @ stored[a])  # S*^-1 nu*
-                xd = Fdk @ (cur - Qkd @ g)
-                Pxv = Qkd - Pp @ A @ Qkd
-                Pvv = Qkd - Qkd @ A @ Qkd
-                Pd = sym(Fdk @ (P + Pvv - Pxv - Pxv.T) @ Fdk.T)
-                Sd = H @ Pd @ H.T + R
-                Pxz = (P - Pxv) @ Fdk.T @ H.T
-                Wg = np.linalg.solve(Sd, Pxz.T).T
-                cur = cur + Wg @ (z - H @ xd)
-                P = sym(P - Wg @ Pxz.T)
-            Pst[tau], stored[tau] = P, cur
-        Pst = _keep_window(Pst, stored, k + 1 - W, trans)
+                cm[:, slices[j]] = present[:, i, slices[j]] & (arrive[:, i, j] == k)[:, None]
+            g = cm.any(axis=1)
+            if not g.any():
+                continue
+            z = np.zeros((m, D))  # the rows of u that are z_i
+            c0 = d if i == k else lay.buffered(k - 1 - i).start
+            z[:, c0 : c0 + m] = eye_m
+            Hm, Rm = _masked(H, system.R_at(i) if R0 is None else R0, cm)
+            ins = np.flatnonzero(g & (i >= tau))  # in sequence: predict to i, Joseph update
+            if len(ins):
+                F, Q = trans.gathered(tau[ins], i)
+                c, Pp = F @ cur[ins], sym(F @ P[ins] @ mT(F)) + Q
+                cur[ins], P[ins] = _update(c, Pp, Hm[ins], Rm[ins], z)
+                tau[ins] = i
+            oos = np.flatnonzero(g & (i < tau))  # out of sequence: Al1
+            if len(oos):
+                a = _last_valid(sval[oos] & (np.arange(L) <= i - base))
+                t_a, t_k = a + base, tau[oos]
+                Fa, Qa = trans.gathered(t_a, t_k)
+                Fkd, Qkd = trans.gathered(np.full(len(oos), i), t_k)
+                cur[oos], P[oos] = _al1(
+                    cur[oos], P[oos], Hm[oos], Rm[oos], z,
+                    sx[oos, a], sP[oos, a], Fa, Qa, Fkd, Qkd,
+                )  # fmt: skip
+            got = np.flatnonzero(g)
+            r = tau[got] - base
+            sx[got, r], sP[got, r], sval[got, r] = cur[got], P[got], True
+        _keep_window(sx, sP, sval, k + 1 - W, base, trans)
         # the new state: cur, the stored estimates of k-q, the readings z_k..z_{k-W+1}
-        rows = np.zeros((d, d + m))
-        rows[:n] = cur
+        rows = np.zeros((M, d, D))
+        rows[:, :n] = cur
         for q in range(W + 1):
-            if k - q in stored:
-                rows[lay.stored(q)] = stored[k - q]
+            r = W + 1 - q  # instant k - q
+            rows[:, lay.stored(q)] = sx[:, r] * sval[:, r, None, None]
         if W:
-            rows[lay.buffered(0), d:] = np.eye(m)
+            rows[:, lay.buffered(0), d:] = eye_m
             for q in range(1, W):
-                rows[lay.buffered(q), lay.buffered(q - 1)] = np.eye(m)
-        Fo, Qo = trans(tau, k)
-        O = np.zeros((n, d))
-        O[:, :n] = Fo
-        out.append((rows[:, :d], rows[:, d:], O, sym(Fo @ P @ Fo.T) + Qo))
+                rows[:, lay.buffered(q), lay.buffered(q - 1)] = eye_m
+        Fo, Qo = trans.gathered(tau, k)
+        O = np.zeros((M, n, d))
+        O[:, :, :n] = Fo
+        T, U = np.ascontiguousarray(rows[:, :, :d]), np.ascontiguousarray(rows[:, :, d:])
+        out.append((T, U, O, sym(Fo @ P @ mT(Fo)) + Qo))
+        sP[:, :-1], sval[:, :-1] = sP[:, 1:], sval[:, 1:]  # to step k+1's instants
+        sval[:, -1] = False
     return out
 
 
-def _keep_window(Pst: dict, stored: dict, b: int, trans: _Transitions) -> dict:
-    """The stored estimates a later OOSM can need (taken at b or later): those from b on, and
-    the newest older one moved to b by prediction (no update between: the same equivalent
-    measurement), so that every one sits in the plan's window."""
-    older = [t for t in Pst if t <= b]
-    if b < 0 or not older:
-        return Pst
-    tb = max(older)
-    if tb < b:
-        F, Q = trans(tb, b)
-        stored[b], Pst[b] = F @ stored[tb], sym(F @ Pst[tb] @ F.T) + Q
-    return {t: v for t, v in Pst.items() if t >= b}
+def _keep_window(sx, sP, sval, b: int, base: int, trans: _Transitions) -> None:
+    """Keep the stored estimates a later OOSM can need (taken at b or later): those from b on,
+    and the newest older one moved to b by prediction (no update between: the same equivalent
+    measurement), so that every one sits in the plan's window. In place, per run."""
+    rb = b - base
+    if rb >= sval.shape[1]:  # W = 0: no reading is ever out of sequence, none is kept
+        sval[:] = False
+        return
+    if b < 0:
+        return
+    has = sval[:, : rb + 1].any(axis=1)
+    older = np.flatnonzero(has)
+    tb = _last_valid(sval[older, : rb + 1])
+    move = older[tb < rb]
+    if len(move):
+        src = tb[tb < rb]
+        F, Q = trans.gathered(src + base, b)
+        sx[move, rb] = F @ sx[move, src]
+        sP[move, rb] = sym(F @ sP[move, src] @ mT(F)) + Q
+        sval[move, rb] = True
+    sval[:, :rb] = False
+
+
+def retrodict_maps(
+    system: System, present: np.ndarray, arrive: np.ndarray, sensors: list[int], W: int
+) -> tuple[list[tuple[np.ndarray, ...]], bool]:
+    """The (T, U, O, P) of every step of the retrodicting filter on `sensors`, and whether they
+    are per run: `present` (K+1, m) or (M, K+1, m), `arrive` (K+1, S) or (M, K+1, S) the
+    instant each reading arrives by; the recursion runs once on the distinct patterns."""
+    trans = _Transitions(system)
+    if present.ndim == 2 and arrive.ndim == 2:
+        maps = _batch(system, present[None], arrive[None], sensors, W, trans)
+        return [tuple(f[0] for f in mk) for mk in maps], False
+    M = np.broadcast_shapes(present.shape[:-2], arrive.shape[:-2])[0]
+    pres = np.broadcast_to(present, (M,) + present.shape[-2:])
+    arr = np.broadcast_to(arrive, (M,) + arrive.shape[-2:])
+    # only the sensors the filter fuses make its pattern
+    cols = np.zeros(system.m, dtype=bool)
+    for j in sensors:
+        cols[system.sensor_slices[j]] = True
+    key = np.concatenate([pres[..., cols].reshape(M, -1), arr[..., sensors].reshape(M, -1)], 1)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    if len(first) == M:  # every run its own pattern (random delays): no copy to gather them
+        return _batch(system, np.ascontiguousarray(pres), arr, sensors, W, trans), True
+    maps = _batch(system, pres[first], arr[first], sensors, W, trans)
+    inverse = inverse.ravel()
+    return [tuple(f[inverse] for f in mk) for mk in maps], True
 
 
 def retrodict_plan(
@@ -204,31 +290,14 @@ def retrodict_plan(
     sensors: list[int],
     W: int,
 ) -> Plan:
-    """The retrodicting filter on `sensors` as a plan: `present` (K+1, m) or (M, K+1, m),
-    `arrive` (K+1, S) or (M, K+1, S) the instant each reading arrives by; maps shared by all
-    runs, or per run (computed once per distinct pattern)."""
+    """The retrodicting filter on `sensors` as a plan (`retrodict_maps`): maps shared by all
+    runs, or per run."""
     n = system.n
     lay = _Layout(n, system.m, W)
-    trans = _Transitions(system)
     assert system.prior is not None
     s0 = np.zeros(lay.d)
     s0[:n] = system.prior.mean
     s0[lay.stored(0)] = system.prior.mean  # unused: instant 0's stored estimate is cur's
-    if present.ndim == 2 and arrive.ndim == 2:
-        maps = _one_run(system, present, arrive, sensors, W, trans)
-        steps = [StepMap(T, U, O, P, np.zeros((lay.d, n))) for T, U, O, P in maps]
-        per_run = False
-    else:
-        M = np.broadcast_shapes(present.shape[:-2], arrive.shape[:-2])[0]
-        pres = np.broadcast_to(present, (M,) + present.shape[-2:])
-        arr = np.broadcast_to(arrive, (M,) + arrive.shape[-2:])
-        key = np.concatenate([pres.reshape(M, -1), arr.reshape(M, -1)], axis=1)
-        uniq, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-        runs = [_one_run(system, pres[r], arr[r], sensors, W, trans) for r in first]
-        inverse = inverse.ravel()
-        steps = []
-        for k in range(pres.shape[1]):
-            T, U, O, P = (np.stack([r[k][f] for r in runs])[inverse] for f in range(4))
-            steps.append(StepMap(T, U, O, P, np.zeros((M, lay.d, n))))
-        per_run = True
+    maps, per_run = retrodict_maps(system, present, arrive, sensors, W)
+    steps = [StepMap(T, U, O, P, np.zeros(T.shape[:-2] + (lay.d, n))) for T, U, O, P in maps]
     return Plan(name, s0, steps, per_run=per_run, D0=np.zeros((lay.d, n)), complete=False)

@@ -141,14 +141,15 @@ def simulate(
 
 
 def one_run_blocks(
-    system: System, steps: int, seed: int, block: int
+    system: System, steps: int, seed: int, block: int, measures: np.ndarray | None = None
 ) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
-    """The truth and measurements of run 0 (`simulate(system, steps, seed, 0, 1)`: the same
-    numbers) in blocks of `block` instants, (k0, k1, x (1, w, n), z (1, w, m)), for a
-    time-invariant linear model without timing or dropouts (issue 34: a 10^6-instant log in
-    bounded memory). The stream's draw order is x0, every w, every v (`_draw`), so w is drawn
-    block by block from one generator while a second one, advanced past x0 and every w, draws
-    v block by block: nothing of the length of the log is kept."""
+    """The truth and measurements of run 0 (`simulate(system, steps, seed, 0, 1, measures)`:
+    the same numbers) in blocks of `block` instants, (k0, k1, x (1, w, n), z (1, w, m)), for a
+    time-invariant model (linear or not: f and h as `_draw` applies them, a bearing wrapped)
+    without dropouts, NaN where `measures` (K+1, S) says a sensor does not measure (issue 34:
+    a 10^6-instant log in bounded memory). The stream's draw order is x0, every w, every v
+    (`_draw`), so w is drawn block by block from one generator while a second one, advanced
+    past x0 and every w, draws v block by block: nothing of the length of the log is kept."""
     n, m = system.n, system.m
     q = system.Q.shape[0]
     size = chunk_runs(steps)  # the runs drawn together from the stream: run 0's values first
@@ -176,5 +177,10 @@ def one_run_blocks(
             for k in range(first, k1):
                 x_prev = x[:, k - k0] = system.propagate(x_prev, k) + w[:, k - first]
             z = system.h(x) + rng_v.standard_normal((1, k1 - k0, m)) @ LR
+            if not system.linear:  # as `_draw`: a bearing read with its noise in (-pi, pi]
+                z = system.residual(z, np.zeros(m))
         _require_finite(x, z, k0)
+        if measures is not None:
+            for j, sl in enumerate(system.sensor_slices):
+                z[:, ~measures[k0:k1, j], sl] = np.nan
         yield k0, k1, x, z

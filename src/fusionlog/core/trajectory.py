@@ -50,12 +50,15 @@ __all__ = [
     "align",
     "block_sums",
     "error_statistics",
+    "fit_count",
     "rotation_angles",
     "rpe_pairs",
     "run_trajectory",
     "umeyama",
     "umeyama_batch",
+    "umeyama_moments",
     "align_batch",
+    "summary_entries",
 ]
 
 ALIGNMENTS = ("none", "origin", "rigid", "similarity")
@@ -123,6 +126,21 @@ def umeyama_batch(
     dp, dg = est - mu_p[:, None], truth - mu_g[:, None]
     var_p = np.einsum("rij,rij->r", dp, dp) / n
     sigma = np.einsum("rki,rkj->rij", dg, dp) / n
+    return umeyama_moments(mu_p, mu_g, var_p, sigma, n, with_scale)
+
+
+def umeyama_moments(
+    mu_p: np.ndarray,
+    mu_g: np.ndarray,
+    var_p: np.ndarray,
+    sigma: np.ndarray,
+    n: int,
+    with_scale: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`umeyama_batch` from the moments of its N = `n` positions per run: means mu_p, mu_g
+    (R, m), variance var_p (R,), covariance sigma (R, m, m) (eqs. 34-38): what a log handed
+    over in blocks of time accumulates (`core.trajectory_blocks`)."""
+    m = mu_p.shape[-1]
     big = np.flatnonzero(~(np.isfinite(sigma).all(axis=(1, 2)) & np.isfinite(var_p)))
     if big.size:  # positions near the largest double: their moments overflow
         raise AlignmentError("positions too large to fit an alignment (their moments overflow)",
@@ -159,16 +177,23 @@ def align_batch(
     eye = np.broadcast_to(np.eye(m), (runs, m, m))
     if mode == "none":
         return eye, np.zeros((runs, m)), np.ones(runs)
-    if n == 0:
-        raise AlignmentError("no matched instant to align")
+    k = fit_count(n, mode, first)
     if mode == "origin":
         return eye, truth[:, 0] - est[:, 0], np.ones(runs)
+    return umeyama_batch(est[:, :k], truth[:, :k], mode == "similarity")
+
+
+def fit_count(n: int, mode: str, first: int | None) -> int:
+    """The matched instants (the first `first` of n) an alignment `mode` other than ``none``
+    is fitted on; AlignmentError where there are too few."""
+    if n == 0:
+        raise AlignmentError("no matched instant to align")
     k = n if first is None else min(first, n)
-    if k < MIN_FIT:
+    if mode != "origin" and k < MIN_FIT:
         raise AlignmentError(
             f"{k} matched instant(s) to fit a {mode} alignment, at least {MIN_FIT} needed"
         )
-    return umeyama_batch(est[:, :k], truth[:, :k], mode == "similarity")
+    return k
 
 
 def align(est: np.ndarray, truth: np.ndarray, mode: str, first: int | None = None) -> Alignment:
@@ -182,29 +207,9 @@ def rpe_pairs(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Indices (i, j) of the consecutive RPE pairs of a matched sequence: positions (N, m) (the
     aligned estimate, whose path the ``m`` rule follows), times (N,) s (see the module)."""
-    n = positions.shape[0]
-    if unit == "frames":
-        ids = np.arange(0, n, int(delta))
-    elif unit == "m":
-        step = np.zeros(n)
-        if n > 1:
-            step[1:] = np.linalg.norm(np.diff(positions, axis=0), axis=1)
-        taken, path = [0] if n else [], 0.0
-        for k in range(1, n):  # a running sum reset at each instant taken: sequential by nature
-            path += step[k]
-            if path >= delta:
-                taken.append(k)
-                path = 0.0
-        ids = np.array(taken, dtype=int)
-    elif unit == "s":
-        taken, k = [], 0
-        while k < n:
-            taken.append(k)
-            k = int(np.searchsorted(times, times[k] + delta - TIME_TOL, side="left"))
-            k = max(k, taken[-1] + 1)
-        ids = np.array(taken, dtype=int)
-    else:
-        raise ValueError(f"unknown RPE unit {unit!r}")
+    from .trajectory_blocks import RpeTaker  # its home: the rules carried across blocks
+
+    ids = RpeTaker(delta, unit).take(positions, times)
     return ids[:-1], ids[1:]
 
 
@@ -388,23 +393,10 @@ class TrajectorySums:
 
     @overflow_is_inf
     def summary(self) -> tuple[dict[str, Any], dict[str, Any]]:
-        """(ape, rpe) of summary.json (DESIGN.md "Trajectory metrics"). The alignment is that
-        of the one run; over several runs each has its own: null, unless none was applied."""
-        s = self.settings
-        ape: dict[str, Any] = dict(self.ape.result())
-        ape["align"] = s.align
-        a = self.first.alignment if self.first is not None else None
-        if self.runs == 1 and a is not None:
-            ape |= {"rotation": a.rotation.tolist(), "translation": a.translation.tolist(),
-                    "scale": a.scale}  # fmt: skip
-        elif s.align == "none":
-            m = len(s.positions)
-            ape |= {"rotation": np.eye(m).tolist(), "translation": [0.0] * m, "scale": 1.0}
-        else:
-            ape |= {"rotation": None, "translation": None, "scale": None}
-        delta: float = int(s.rpe_delta) if s.rpe_unit == "frames" else float(s.rpe_delta)
-        rpe = {"delta": delta, "unit": s.rpe_unit, "pairs": self.rpe.count} | self.rpe.result()
-        return ape, rpe
+        """(ape, rpe) of summary.json (`summary_entries`)."""
+        a = self.first.alignment if self.first is not None and self.runs == 1 else None
+        return summary_entries(self.settings, self.ape.result(), self.rpe.result(),
+                               self.rpe.count, a)  # fmt: skip
 
     def series(self) -> dict[str, np.ndarray]:
         """APE and RPE over time (K+1,): the mean over the runs matched (paired) at each
@@ -414,6 +406,31 @@ class TrajectorySums:
                 "ape": np.where(self.ape_n > 0, self.ape_at / np.maximum(self.ape_n, 1), np.nan),
                 "rpe": np.where(self.rpe_n > 0, self.rpe_at / np.maximum(self.rpe_n, 1), np.nan),
             }
+
+
+def summary_entries(
+    s: TrajectorySettings,
+    ape_stats: dict[str, float],
+    rpe_stats: dict[str, float],
+    pairs: int,
+    alignment: Alignment | None,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(ape, rpe) of summary.json (DESIGN.md "Trajectory metrics") from the errors' statistics
+    and `alignment`, the one run's (None: over several runs each has its own, null unless
+    none was applied)."""
+    ape: dict[str, Any] = dict(ape_stats)
+    ape["align"] = s.align
+    a = alignment
+    if a is not None:
+        ape |= {"rotation": a.rotation.tolist(), "translation": a.translation.tolist(),
+                "scale": a.scale}  # fmt: skip
+    elif s.align == "none":
+        m = len(s.positions)
+        ape |= {"rotation": np.eye(m).tolist(), "translation": [0.0] * m, "scale": 1.0}
+    else:
+        ape |= {"rotation": None, "translation": None, "scale": None}
+    delta: float = int(s.rpe_delta) if s.rpe_unit == "frames" else float(s.rpe_delta)
+    return ape, {"delta": delta, "unit": s.rpe_unit, "pairs": pairs} | rpe_stats
 
 
 @overflow_is_inf  # positions near 1e308: inf errors, reported as non-finite

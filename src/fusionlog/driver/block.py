@@ -84,20 +84,35 @@ def estimate_block(
         cache = PlanCache.of(system, times, R, steps=z.shape[1] - 1)
     if not cache.system.linear:  # EKF/UKF: no plans, every run has its own linearisation
         cache.patterns.append(None)  # the estimates' provenance: per run
+        arr = cache.block_arrivals(run_offset, z.shape[0]) if arrivals is None else arrivals
         lanes = (
-            (a, nonlinear_estimate(cache.system, a, z, cache.times, run_offset)) for a in archs
+            (
+                a,
+                nonlinear_estimate(
+                    cache.system, a, z, cache.times, run_offset=run_offset, arrival=arr
+                ),
+            )
+            for a in archs
         )  # one architecture at a time: reduced before the next is computed
         return _reduced(
             ((a, Estimate(t.mean, t.cov)) for a, t in lanes), None, truth, workspace, keep
         )
     fast = None
-    if cache.one_run and expected_of is None and cache.late is None and not reference_paths():
+    late = cache.late
+    if cache.one_run and expected_of is None and late is None and not reference_paths():
         from fusionlog.core.architectures.replay import replay_estimates  # a replay's path
 
         fast = replay_estimates(cache.system, archs, z, cache.criterion)
+    elif cache.one_run and expected_of is None and not reference_paths():
+        from fusionlog.core.latency_replay import late_replay_estimates  # late readings
+
+        arr = cache.block_arrivals(run_offset, z.shape[0]) if arrivals is None else arrivals
+        fast = late_replay_estimates(late, archs, z, arr if late.per_run else None, cache.criterion)
     if fast is not None:  # one run, no exact analysis: no plans
         pattern = shared_pattern(z)
-        cache.patterns.append(np.packbits(pattern).tobytes())
+        if late is not None and late.per_run:  # as the plans record it: per run
+            pattern = None
+        cache.patterns.append(None if pattern is None else np.packbits(pattern).tobytes())
         results = fast
     else:
         plans, pattern = cache.block_plans(archs, z, run_offset, arrivals)

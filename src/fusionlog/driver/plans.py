@@ -97,6 +97,12 @@ class PlanCache:
             self._late = LateModel.of(self.system, self.steps, clock)
         return self._late
 
+    def block_arrivals(self, run_offset: int, runs: int) -> np.ndarray | None:
+        """When the readings of the runs [run_offset, +runs) arrived (`arrivals`), or None."""
+        if self.arrivals is None:
+            return None
+        return self.arrivals[run_offset : run_offset + runs]
+
     def _build(self, arch: str, present: np.ndarray | None, **kw) -> Plan:
         """`build_plan` of `arch` for the mask `present`, through the late model if any."""
         if self.late is not None:
@@ -228,4 +234,20 @@ def pattern_record(patterns: Sequence[bytes | None], shape: tuple[int, int]) -> 
     mask = mask.reshape(shape).astype(bool)
     if mask.all():
         return {"measurement_pattern": "complete"}
-    return {"measurement_pattern": json.dumps(mask.astype(int).tolist())}
+    # json.dumps of the whole mask's rows, written a block of rows at a time: a long log's
+    # rows as Python lists would be ~100 bytes per instant (issue 34)
+    rows = mask.astype(int)
+    text = ", ".join(
+        json.dumps(rows[i : i + 4096].tolist())[1:-1] for i in range(0, len(rows), 4096)
+    )
+    return {"measurement_pattern": f"[{text}]"}
+
+
+def pattern_mask(text: str) -> np.ndarray:
+    """The (K+1, m) bool mask of a ``measurement_pattern`` JSON (`pattern_record`), read from
+    its digits (one byte per component and instant, no Python list per row)."""
+    chars = np.frombuffer(text.encode(), dtype=np.uint8)
+    digits = chars[(chars == ord("0")) | (chars == ord("1"))]
+    first = text[1 : text.index("]") + 1]
+    m = first.count("0") + first.count("1")
+    return (digits == ord("1")).reshape(-1, m)

@@ -91,9 +91,12 @@ def estimate_to(
     if SCENARIO_META in mf.metadata:
         w.add_metadata(SCENARIO_META, mf.metadata[SCENARIO_META])
     windows = est.time_windows(mf) if M == 1 else None
-    for k0, k1, writers in windows or ():  # a long one-run log, in blocks of time
-        named = [(estimates_topic(a), write) for a, write in writers.items()]
-        _write_steps(w, named, times, k0, k1, 0)
+    try:  # nonlinear filters fail as their blocks are made: name the file
+        for k0, k1, writers in windows or ():  # a long one-run log, in blocks of time
+            named = [(estimates_topic(a), write) for a, write in writers.items()]
+            _write_steps(w, named, times, k0, k1, 0)
+    except NumericalError as e:
+        raise NumericalError(f"{sensors_name or sensors_path}: {e}") from None
     blocks = mf.iter_run_blocks(topics, B) if windows is None else ()
     for off, _runs, data in progress(blocks, -(-M // B), "estimate"):
         try:

@@ -18,7 +18,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from fusionlog.core.architectures.long_log import steady_log
-from fusionlog.core.latency import is_late
+from fusionlog.core.latency import is_late, random_delays
 from fusionlog.core.model import System
 from fusionlog.core.names import check_architectures
 from fusionlog.core.reference import reference_paths
@@ -107,7 +107,8 @@ def step_writers(
     system, times = plans.system, plans.times  # the system is on the log's instants
 
     def writer(arch: str) -> Any:
-        steps = estimate_steps(system, arch, z, times, run_offset)
+        arrival = plans.block_arrivals(run_offset, z.shape[0])
+        steps = estimate_steps(system, arch, z, times, run_offset, arrival)
 
         def write(w: Any, topic: str, k: int, t: float, off: int) -> None:
             mean, cov = next(steps)
@@ -146,19 +147,18 @@ class StateKind(Kind):
         return x, [z[..., sl] for sl in system.sensor_slices]
 
     def simulate_blocks(self, scenario: Scenario, block: int) -> Any:
-        """One run of a time-invariant linear model without timing or dropouts, longer than a
+        """One run of a time-invariant model (linear or not) without dropouts, longer than a
         block of time: `core.simulate.one_run_blocks` (the numbers of `simulate`)."""
         from fusionlog.core.simulate import one_run_blocks
 
         sched, system = scenario.schedule, scenario.system
-        if scenario.runs != 1 or sched.steps + 1 <= block or not sched.measures.all():
+        if scenario.runs != 1 or sched.steps + 1 <= block:
             return None
         system = system.on_times(sched.times)
-        if not (system.linear and system.time_invariant) or any(
-            s.timing.dropout for s in system.sensors
-        ):
+        if not system.time_invariant or any(s.timing.dropout for s in system.sensors):
             return None
-        blocks = one_run_blocks(system, sched.steps, scenario.seed, block)
+        measures = None if sched.measures.all() else sched.measures
+        blocks = one_run_blocks(system, sched.steps, scenario.seed, block, measures)
         return ((k0, k1, x, [z[..., sl] for sl in system.sensor_slices]) for k0, k1, x, z in blocks)
 
     def arrivals(self, scenario: Scenario, run_offset: int, runs: int) -> np.ndarray | None:
@@ -243,8 +243,7 @@ def recorded_arrivals(
 ) -> np.ndarray | None:
     """When each reading of the log arrived, (runs, K+1, S) s (its messages' arrival field;
     on time where a topic has none), where the cache's delays differ per run; else None."""
-    late = plans.late
-    if late is None or not late.per_run:
+    if not random_delays(plans.system):  # fixed latencies: the model says when
         return None
     from fusionlog.io.mcap.arrival import read_arrivals
 
@@ -296,28 +295,72 @@ class _StateEstimator(Estimator):
         }
 
     def time_windows(self, sensors: McapFile) -> Any:
-        """A long one-run log of a steady model with every reading present, in blocks of time
-        (`driver.long_log`); None otherwise (a log short enough for one block, per-message R,
-        an irregular or nonlinear model, a reading missing: the whole run at once)."""
-        from fusionlog.driver.long_log import long_estimates, spool_readings, time_block
+        """A long one-run log in blocks of time (`driver.long_log`): a steady model with every
+        reading present through its short plans, a recorded replay (irregular instants,
+        per-message R, missing readings) through the plan-free path carried block to block, a
+        nonlinear model through its EKF/UKF filters carried block to block; None otherwise (a
+        log short enough for one block, late readings, the reference paths: the whole run at
+        once)."""
+        from fusionlog.core.architectures.replay_blocks import ReplayBlocks
+        from fusionlog.driver.long_log import (
+            long_estimates,
+            replay_long_estimates,
+            spool_readings,
+            time_block,
+        )
 
         plans, B = self.plans, time_block()
         system = plans.system
-        if plans.steps + 1 <= B or system.Rs is not None or reference_paths():
+        if plans.steps + 1 <= B or reference_paths():
             return None
         if is_late(system):  # late readings (issue 30): the whole run
             return None
-        log = steady_log(system, self.archs, plans.steps, plans.criterion)
-        if log is None:
+        if not system.linear:  # EKF/UKF: their states carried from block to block
+            return self._nonlinear_windows(sensors, B)
+        steady = system.Rs is None and system.time_invariant
+        log = steady_log(system, self.archs, plans.steps, plans.criterion) if steady else None
+        blocks = None if log is not None else ReplayBlocks.of(system, self.archs, plans.steps, B)
+        if log is None and blocks is None:
             return None
         spool = spool_readings(sensors.iter_time_blocks(self.topics, B), self.topics, system.m)
-        if spool is None:
-            return None
-        plans.patterns.append(np.packbits(np.ones((plans.steps + 1, system.m), bool)).tobytes())
+        if spool.missing and blocks is None:  # the short plans stand for a complete log
+            blocks = ReplayBlocks.of(system, self.archs, plans.steps, B)
+            if blocks is None:
+                spool.close()
+                return None
+        if blocks is None:
+            plans.patterns.append(np.packbits(np.ones((plans.steps + 1, system.m), bool)).tobytes())
+            out = long_estimates(log, spool, B)
+        else:
+            plans.patterns.append(np.packbits(spool.present(B)).tobytes())
+            out = replay_long_estimates(blocks, spool, B)
         return (
-            (k0, k1, {a: _estimate_writer(e.mean, e.cov, True, k0) for a, e in out.items()})
-            for k0, k1, out in long_estimates(log, spool, B)
+            (k0, k1, {a: _estimate_writer(e.mean, e.cov, True, k0) for a, e in got.items()})
+            for k0, k1, got in out
         )
+
+    def _nonlinear_windows(self, sensors: McapFile, B: int) -> Any:
+        """A long nonlinear one-run log in blocks of time (`core.nonlinear.long_log`), its
+        readings spooled (FBS reads them back in reverse)."""
+        from fusionlog.core.nonlinear.long_log import estimate_blocks
+        from fusionlog.driver.long_log import spool_readings
+
+        plans, topics = self.plans, self.topics
+        blocks = sensors.iter_time_blocks(topics, B)
+        spool = spool_readings(blocks, topics, plans.system.m)
+        plans.patterns.append(None)  # per-run covariances (provenance), as the whole run's
+
+        def windows() -> Any:
+            try:
+                got = estimate_blocks(
+                    plans.system, self.archs, lambda a, b: spool.read(a, b)[None], plans.times, B
+                )
+                for k0, k1, out in got:
+                    yield k0, k1, {a: _estimate_writer(*e, False, k0) for a, e in out.items()}
+            finally:
+                spool.close()
+
+        return windows()
 
     def provenance(self) -> dict[str, str]:
         # The evaluator's exact analysis needs it: a shared pattern is analysed with the same

@@ -9,6 +9,9 @@ in information form from zero information, exactly, until its information matrix
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field, fields
 from operator import sub
 
@@ -340,6 +343,23 @@ class KalmanStack:
         return step, np.where(w, P, Y), ~switch
 
 
+#: Whether `Steady` also triggers once a shared mask stops changing (`constant_tail`).
+_CONSTANT_TAIL: ContextVar[bool] = ContextVar("constant_tail", default=False)
+
+
+@contextmanager
+def constant_tail() -> Iterator[None]:
+    """Plans built inside take the steady shortcut from the instant their shared mask stops
+    changing (`Steady`): the late sensors' stacked model (`core.latency`), whose mask has only
+    the arriving lags present and repeats past the latency window. Plans of sensors on time
+    keep the rule that wants every measurement present, so their numbers stay bit for bit."""
+    token = _CONSTANT_TAIL.set(True)
+    try:
+        yield
+    finally:
+        _CONSTANT_TAIL.reset(token)
+
+
 class Steady:
     """Detects the steady state of a Riccati recursion so that long horizons reuse one map.
 
@@ -347,18 +367,30 @@ class Steady:
     covariance state after step k equals the one after step k-1 (to rounding, 1e-15 relative),
     every later step's map is the same as step k's: the plan repeats it instead of recomputing
     10^5 identical gains.
+
+    The same holds when the mask shared by the runs is the same row at every instant from
+    `tail` on (late sensors with fixed latencies: past the latency window the same lags arrive
+    at every instant, `core.latency`; only inside `constant_tail`): step k >= tail with the
+    covariance state of step k - 1 maps like every later step. The caller then says which
+    step it asks about (`k`).
     """
 
     def __init__(self, present: np.ndarray, system: System):
         self.enabled = present.ndim == 2 and bool(present.all()) and system.time_invariant
         self.prev: np.ndarray | None = None
+        self.tail = 0 if self.enabled else None
+        tail_ok = _CONSTANT_TAIL.get() and present.ndim == 2 and system.time_invariant
+        if not self.enabled and tail_ok:
+            same = (present == present[-1]).all(-1)  # rows equal to the last one
+            tail = len(same) - int(np.argmin(same[::-1])) if not same.all() else 0
+            self.tail = tail if tail < len(same) - 2 else None
 
-    def reached(self, *mats: np.ndarray) -> bool:
-        if not self.enabled:
+    def reached(self, *mats: np.ndarray, k: int | None = None) -> bool:
+        if not self.enabled and (self.tail is None or k is None):
             return False
         cur = mats[0].ravel() if len(mats) == 1 else np.concatenate([m.ravel() for m in mats])
         prev, self.prev = self.prev, cur
-        if prev is None:
+        if prev is None or (k is not None and k < self.tail):
             return False
         if cur.size <= 16:
             # A step's few numbers compare faster in Python than through numpy's calls, with

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from ..kalman import gain, joseph
@@ -28,6 +30,18 @@ def blockdiag_R(system: System) -> np.ndarray:
     return block_diag([s.R for s in system.sensors])
 
 
+def independent_noise(system: System) -> System:
+    """The system with the noise HKF believes: its sensors' own R, no cross-covariances (the
+    per-instant Rs cut likewise); HKF's late readings are retrodicted on it
+    (`core.retrodict_fused`)."""
+    Rs = None
+    if system.Rs is not None:
+        Rs = np.zeros_like(system.Rs)
+        for sl in system.sensor_slices:
+            Rs[:, sl, sl] = system.Rs[:, sl, sl]
+    return dataclasses.replace(system, cross_R={}, Rs=Rs)
+
+
 def build_hkf(request: BuildRequest) -> Plan:
     """Hierarchical KF with feedback, eqs. (36)-(40).
 
@@ -46,11 +60,7 @@ def build_hkf(request: BuildRequest) -> Plan:
     inv = spd_inv_scaled if wide_range(system) else spd_inv
     # Before a covariance exists (no prior), local equivalent measurements are just
     # H_j^T R_j^-1 H_j: the fused information filter on block-diagonal R is exactly that.
-    Rs = None
-    if system.Rs is not None:  # per instant, without the cross-covariances (as blockdiag_R)
-        Rs = np.zeros_like(system.Rs)
-        for sl in system.sensor_slices:
-            Rs[:, sl, sl] = system.Rs[:, sl, sl]
+    Rs = independent_noise(system).Rs  # per instant, without the cross-covariances
     front = KalmanStack(system, Rows.of(system, np.arange(m), blockdiag_R(system), Rs), batch)
     sensors = Rows.per_sensor(system)
     steps = []
@@ -87,7 +97,7 @@ def build_hkf(request: BuildRequest) -> Plan:
             require_finite(Pp, "the predicted covariance")
             require_finite(P, "the fused covariance")
         steps.append(StepMap(mm(mm(P, Tacc), Tp), mm(P, U), bc(eye, P.shape), P, eye))
-        if steady.reached(P):
+        if steady.reached(P, k=k):
             fill(steps, K1)
             break
     plan = Plan(request.name, front.s0, steps, per_run=bool(batch), D0=front.D0)

@@ -31,6 +31,7 @@ and 3 sensors) peaks below the plans' (~16 kB), and none of it stays after the e
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -46,6 +47,7 @@ from .replay_filters import (
     affine_recursion,
     backward_information,
     backward_means,
+    information,
     joint_recursion,
     masked_rows,
     run_bank,
@@ -152,19 +154,44 @@ def replay_error_covariances(
     return out
 
 
-class _Replay:
-    """The recursions of the architectures `need` on one run's measurements z (K+1, m)."""
+@dataclass
+class Carried:
+    """What the recursions of `_Replay` carry from the last instant of a block of time to the
+    next block (`replay_blocks`): the slots' covariances (C, n, n), every filter's mean (f, n),
+    eq. (35)'s joint J and HKF's error covariance where they were computed (else None)."""
 
-    def __init__(self, system: System, z: np.ndarray, need: set[str], criterion: str) -> None:
+    P: np.ndarray
+    x: np.ndarray
+    J: np.ndarray | None = None
+    E: np.ndarray | None = None
+
+
+class _Replay:
+    """The recursions of the architectures `need` on one run's measurements z (K+1, m); from
+    the prior, or (`start`) from the state carried from the block of time before, the system's
+    Fs, Qs then into every instant of z (the first's too). `backward`: FBS's backward vectors
+    and S at these instants where they come from elsewhere (a block of time)."""
+
+    def __init__(
+        self,
+        system: System,
+        z: np.ndarray,
+        need: set[str],
+        criterion: str,
+        start: Carried | None = None,
+        backward: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> None:
         n, m = system.n, system.m
         K1 = len(z)
         S = len(system.sensors)
         self.system, self.criterion, self.n, self.S, self.K1 = system, criterion, n, S, K1
+        self.start, self.backward = start, backward
         self.present = present = ~np.isnan(z)
         self.z = np.where(present, z, 0.0)
         self.H = system.linear_measurement()
         self.R = system.Rs if system.Rs is not None else np.broadcast_to(system.R, (K1, m, m))
-        K = K1 - 1
+        K = K1 - 1 if start is None else K1
+        self.p0 = K1 - K  # the first instant with a prediction
         self.Fs = system.Fs if system.Fs is not None else np.broadcast_to(system.F, (K, n, n))
         self.Qs = system.Qs if system.Qs is not None else np.broadcast_to(system.GQG, (K, n, n))
         rows = np.zeros((S, m), dtype=bool)
@@ -188,11 +215,20 @@ class _Replay:
             src.extend([carried] * (S + 1))
             carried += 1
         slots = Slots(np.array(use), np.array(src), carried, self.hkf)
+        self.bank_carried = carried
         Hm, Rm = masked_rows(self.H, self.R, present[:, None, :] & slots.use[None])
         self.Hm, self.Rm = Hm, Rm
-        self.bank = run_bank(slots, system.prior.cov, self.Fs, self.Qs, Hm, Rm)
+        P0 = system.prior.cov if start is None else start.P
+        self.bank = run_bank(slots, P0, self.Fs, self.Qs, Hm, Rm, start is not None)
         self.means = self._means()
         self._J: np.ndarray | None = None  # eq. (35), when an architecture needs it
+        self._E: np.ndarray | None = None  # HKF's error covariance, when asked for
+
+    def carried(self) -> Carried:
+        """The state of the last instant, which the next block of time starts from."""
+        J = None if self._J is None else self._J[-1].copy()
+        E = None if self._E is None else self._E[-1].copy()
+        return Carried(self.bank.P[-1][: self.bank_carried].copy(), self.x_last, J, E)
 
     # -- the mean recursions ------------------------------------------------------------------
 
@@ -200,7 +236,9 @@ class _Replay:
         """Every filter's means (K+1, n): x_k = (I - K H) F x_{k-1} + K z_k for the KFs
         (eq. 14), x_k = P (Tacc F x_{k-1} + U z_k) for HKF (eqs. 38-40), all as one stack."""
         b, n, S = self.bank, self.n, self.S
-        F = np.concatenate([np.eye(self.n)[None], self.Fs])  # F of instant 0: none
+        F = self.Fs  # into every instant; the log's instant 0 has none:
+        if self.p0:
+            F = np.concatenate([np.eye(self.n)[None], self.Fs])
         parts: list[tuple[str, int, np.ndarray, np.ndarray]] = []  # name, filters, A, b
         for name, first, count in (("ckf", self.ckf, 1), ("loc", self.loc, S)):
             if first is not None:
@@ -211,10 +249,14 @@ class _Replay:
             M, B = self._hkf_maps()
             parts.append(("hkf", 1, (M @ F)[:, None], np.einsum("kij,kj->ki", B, self.z)[:, None]))
         if not parts:
+            self.x_last = np.zeros((0, n))
             return {}
         x0 = np.broadcast_to(self.system.prior.mean, (sum(p[1] for p in parts), n))
+        if self.start is not None:
+            x0 = self.start.x
         A = np.concatenate([p[2] for p in parts], axis=1)
         X = affine_recursion(A, np.concatenate([p[3] for p in parts], axis=1), x0)
+        self.x_last = X[-1].copy()
         out, at = {}, 0
         for name, count, _, _ in parts:
             out[name] = X[:, at] if name != "loc" else X[:, at : at + count]
@@ -236,11 +278,13 @@ class _Replay:
         sym(M F E_{k-1} F' M' + M Q M' + B R B') from the prior's covariance (no F, no w at
         k = 0), as `joint_recursion` takes it."""
         M, B = self._hkf_maps()
-        A = M.copy()
-        A[1:] = M[1:] @ self.Fs
+        A, p = M.copy(), self.p0
+        A[p:] = M[p:] @ self.Fs
         C = B @ self._masked_R() @ B.swapaxes(-1, -2)
-        C[1:] += M[1:] @ self.Qs @ M[1:].swapaxes(-1, -2)
-        return joint_recursion(A, C, self.system.prior.cov)
+        C[p:] += M[p:] @ self.Qs @ M[p:].swapaxes(-1, -2)
+        E0 = self.system.prior.cov if self.start is None else self.start.E
+        self._E = joint_recursion(A, C, E0)
+        return self._E
 
     # -- the architectures --------------------------------------------------------------------
 
@@ -301,15 +345,16 @@ class _Replay:
         Lam = b.K[:, lo : lo + S].reshape(K1, S * n, -1)
         C = Lam @ self._masked_R() @ Lam.swapaxes(-1, -2)
         # Psi Gam Q Gam' Psi' = [Psi_i Q Psi_j'] and Psi Phi = blockdiag(Psi_j F), block by block
-        C[1:] += (IKH[1:] @ self.Qs[:, None]).reshape(K1 - 1, S * n, n) @ _rows(IKH[1:]).swapaxes(
+        p = self.p0
+        C[p:] += (IKH[p:] @ self.Qs[:, None]).reshape(K1 - p, S * n, n) @ _rows(IKH[p:]).swapaxes(
             -1, -2
         )
         A = np.zeros((K1, S * n, S * n))
         PsiF = IKH.copy()
-        PsiF[1:] = IKH[1:] @ self.Fs[:, None]
+        PsiF[p:] = IKH[p:] @ self.Fs[:, None]
         for j in range(S):
             A[:, j * n : (j + 1) * n, j * n : (j + 1) * n] = PsiF[:, j]
-        J0 = np.tile(self.system.prior.cov, (S, S))
+        J0 = np.tile(self.system.prior.cov, (S, S)) if self.start is None else self.start.J
         self._J = joint_recursion(A, C, J0)
         return self._J
 
@@ -323,11 +368,12 @@ class _Replay:
         """FBS, eqs. (25)-(28): the CKF forward, the backward information filter, and their
         fusion K_s = P S (I + P S)^-1, P_s = (I - K_s) P, x_s = (I - K_s) x + P_s y_b."""
         c = self.ckf
-        Hm, Rm = self.Hm[:, c], self.Rm[:, c]
-        RiH = solve(Rm, Hm, hermitian=True)  # (K+1, m, n): R^-1 H
-        W = Hm.swapaxes(-1, -2) @ RiH
-        L, Smat = backward_information(W, self.Fs, self.Qs)
-        yb = backward_means(L, np.einsum("kmi,km->ki", RiH, self.z))
+        if self.backward is None:
+            W, cz = information(self.Hm[:, c], self.Rm[:, c], self.z)
+            L, Smat = backward_information(W, self.Fs, self.Qs)
+            yb = backward_means(L, cz)
+        else:  # a block of time: the backward pass over the log's end came first
+            yb, Smat = self.backward
         Pf = self.bank.P[:, c]
         eye = np.eye(self.n)
         PS = Pf @ Smat

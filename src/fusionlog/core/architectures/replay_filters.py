@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..linalg import solve
+
 
 def _solve(A: np.ndarray, B: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """np.linalg.solve, into `out` if given (raises LinAlgError where A is singular: `replay`
@@ -77,10 +79,18 @@ def _sym(A: np.ndarray) -> np.ndarray:
 
 
 def run_bank(
-    slots: Slots, P0: np.ndarray, Fs: np.ndarray, Qs: np.ndarray, Hm: np.ndarray, Rm: np.ndarray
+    slots: Slots,
+    P0: np.ndarray,
+    Fs: np.ndarray,
+    Qs: np.ndarray,
+    Hm: np.ndarray,
+    Rm: np.ndarray,
+    predict_first: bool = False,
 ) -> Bank:
     """Step every slot through the instants: Fs, Qs (K, n, n) the transition and process noise
     into instants 1..K, Hm, Rm (K+1, B, m, .) each slot's masked H and R (`masked_rows`).
+    `predict_first` (a block of time after the first, `replay_blocks`): P0 is each carried
+    covariance (C, n, n) of the instant before, and Fs, Qs (K+1, n, n) go into every instant.
 
     Per instant a fixed number of numpy calls on the whole batch of slots, results written
     into the arrays kept (`out=`); the products and sums in the plans' order, so that a slot
@@ -96,14 +106,15 @@ def run_bank(
     Yh_out = np.empty((K1, S + 1, n, n)) if h is not None else None
     # per-instant views made once: indexing a list costs less than indexing an array
     Hs, HTs, Rs = list(Hm), list(Hm.swapaxes(-1, -2)), list(Rm)
-    Fl, FTl, Ql = [None, *Fs], [None, *Fs.swapaxes(-1, -2)], [None, *Qs]
+    pad = [] if predict_first else [None]
+    Fl, FTl, Ql = [*pad, *Fs], [*pad, *Fs.swapaxes(-1, -2)], [*pad, *Qs]
     Pl, KTl, IKHl = list(P_out), list(KT_out), list(IKH_out)
     Yhl = list(Yh_out) if h is not None else None
     identity = bool((src == np.arange(B)).all())
     KH = np.empty((B, n, n))
     Pc = np.array(np.broadcast_to(P0, (C, n, n)))
     for k in range(K1):
-        if k:  # prediction sym(F P F' + G Q G')
+        if k or predict_first:  # prediction sym(F P F' + G Q G')
             A = mm(mm(Fl[k], Pc), FTl[k])
             A += Ql[k]
             Pp = A + A.swapaxes(-1, -2)
@@ -172,18 +183,27 @@ def joint_recursion(A: np.ndarray, C: np.ndarray, J0: np.ndarray) -> np.ndarray:
     return out
 
 
+def information(Hm: np.ndarray, Rm: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The information a reading adds, eq. (25): W = H' R^-1 H (K+1, n, n) and c = H' R^-1 z
+    (K+1, n), from the masked H, R (K+1, m, .) of `masked_rows` and z (K+1, m) (0 where
+    absent: a masked row adds nothing)."""
+    RiH = solve(Rm, Hm, hermitian=True)  # (K+1, m, n): R^-1 H
+    return Hm.swapaxes(-1, -2) @ RiH, np.einsum("kmi,km->ki", RiH, z)
+
+
 def backward_information(
-    W: np.ndarray, Fs: np.ndarray, Qs: np.ndarray
+    W: np.ndarray, Fs: np.ndarray, Qs: np.ndarray, S_end: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """FBS's backward information filter, eqs. (25)-(28) as `fbs.build_fbs`: S_K = 0 and for
     k = K-1..0, S^+ = sym(S_{k+1} + H' R^-1 H at k+1) (W, (K+1, n, n)), L_k = F' (I + S^+ G Q
     G')^-1 (F, G Q G' into instant k+1), S_k = sym(L_k S^+ F). Returns L (K, n, n) and S
-    (K+1, n, n)."""
+    (K+1, n, n). `S_end`: S_K where the instants end before the log's end (a block of time,
+    `replay_blocks`: the S of the block after's first instant), else 0."""
     K1, n = W.shape[0], W.shape[-1]
     eye = np.eye(n)
     L = np.empty((K1 - 1, n, n))
     Smat = np.empty((K1, n, n))
-    Smat[-1] = 0.0
+    Smat[-1] = 0.0 if S_end is None else S_end
     Sk = Smat[-1]
     for k in range(K1 - 2, -1, -1):
         Splus = _sym(Sk + W[k + 1])
@@ -194,11 +214,13 @@ def backward_information(
     return L, Smat
 
 
-def backward_means(L: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """The backward information vectors y_K = 0, y_k = L_k (y_{k+1} + c_{k+1}) with c_k = V_k z_k
-    (K+1, n): (K+1, n)."""
+def backward_means(L: np.ndarray, c: np.ndarray, y_end: np.ndarray | None = None) -> np.ndarray:
+    """The backward information vectors y_K = 0 (`y_end` where the instants end before the
+    log's end), y_k = L_k (y_{k+1} + c_{k+1}) with c_k = V_k z_k (K+1, n): (K+1, n)."""
     K1, n = c.shape
     out = np.zeros((K1, n, 1))
+    if y_end is not None:
+        out[-1, :, 0] = y_end
     cc = c[..., None]
     y = out[-1]
     for k in range(K1 - 2, -1, -1):

@@ -28,7 +28,7 @@ def filter_plan(
         st = kf.step(request.mask(k), k, request.begin(k))
         steps.append(StepMap(st.T, st.U, st.O, st.P, st.D))
         infos.append(kf.mat if kf.any_info else None)
-        if not kf.any_info and steady.reached(kf.mat):
+        if not kf.any_info and steady.reached(kf.mat, k=k):
             fill(steps, K1)
             fill(infos, K1)
             break

@@ -145,7 +145,7 @@ def local_filters(
         else:
             mats.append(locs.mat)
             joints.append(J)
-        if not locs.any_info and steady.reached(J if joint else locs.mat):
+        if not locs.any_info and steady.reached(J if joint else locs.mat, k=k):
             fill(steps, K1)
             break
     request.step = None  # the readouts process every step at once

@@ -1,8 +1,9 @@
 """Filters for nonlinear sensors and motion (DESIGN.md, "Nonlinear sensors and motion"): the EKF
 and UKF local filters batched over runs (`local`), every fusion architecture with them
-(`architectures`), and the posterior Cramér-Rao bound that stands beside the Monte Carlo values
-where no exact analysis exists (`pcrb`). The models themselves (range-bearing sensors, the
-coordinated turn) are components in `core.models`.
+(`architectures`), late sensors under each policy (`late`: reprocess and neglect in every
+architecture, `retrodict`: Al1 in the EKF), and the posterior Cramér-Rao bound that stands
+beside the Monte Carlo values where no exact analysis exists (`pcrb`). The models themselves
+(range-bearing sensors, the coordinated turn) are components in `core.models`.
 """
 
 from .architectures import Track, estimate, estimate_steps

@@ -31,9 +31,11 @@ from ...errors import FusionlogError, NumericalError
 from ..architectures.definition import Architecture
 from ..architectures.registry import definition, parse_arch
 from ..kernels import lanes
+from ..latency import ekf_retrodict_refusal, is_late, late_refusal
 from ..linalg import NUMERICAL_FAILURES, mT, spd_inv, sym
 from ..model import System
 from ..models.polar import PolarSensor
+from .late import arrival_instants, late_steps
 from .local import Stacked, predict, transition, ukf_params, update
 
 
@@ -86,13 +88,26 @@ class _Steps:
     def predict(self, k: int, x: np.ndarray, P: np.ndarray):
         return predict(*transition(self.system, k), x, P, self.ukf)
 
-    def update(self, k: int, which: list[int], x: np.ndarray, P: np.ndarray):
-        """The update at instant k with the sensors `which` that measure then (None: none)."""
-        which = [j for j in which if self.measures[k, j]]
+    def update(
+        self,
+        k: int,
+        which: list[int],
+        x: np.ndarray,
+        P: np.ndarray,
+        zk: np.ndarray | None = None,
+    ):
+        """The update at instant k with the sensors `which` that measure then (None: none);
+        `zk` (M, m): the readings of instant k to use (default all of z's: late measurements
+        give only those that have arrived, `late`)."""
+        if zk is None:
+            which = [j for j in which if self.measures[k, j]]
+        else:
+            which = [j for j in which if not np.isnan(zk[:, self.cols[j]]).all()]
         if not which:
             return None
         model = Stacked(tuple(self.system.sensors[j] for j in which))
-        zk = self.z[:, k, np.concatenate([self.cols[j] for j in which])]
+        zk = self.z[:, k] if zk is None else zk
+        zk = zk[:, np.concatenate([self.cols[j] for j in which])]
         self._check_ranges(k, which, x, zk)
         return update(model, x, P, zk, self.ukf, self.work)
 
@@ -126,43 +141,74 @@ def _instants(system: System, K1: int) -> np.ndarray:
     return np.arange(K1) * system.dt
 
 
-def estimate(
-    system: System, arch: str, z: np.ndarray, times: np.ndarray | None, run_offset: int = 0
-) -> Track:
+def estimate(system: System, arch: str, z: np.ndarray, times: np.ndarray | None, **kw) -> Track:
     """Estimates of every run (z: (M, K+1, m), NaN = absent) with architecture `arch` on the
     instants `times` (K+1,) s (None: `system` is already on its instants, `System.on_times`);
-    `run_offset` (the block's first run) only names runs in errors."""
+    `kw`: `estimate_steps`'s run_offset (the block's first run, which only names runs in
+    errors) and, for late sensors, arrival (M, K+1, S) s, when each reading arrived (default:
+    the sensors' fixed latencies), under the policy `system.late` (`late`)."""
     M, K1 = z.shape[:2]
     out = _Out(M, K1, system.n)
-    for k, (x, P) in enumerate(estimate_steps(system, arch, z, times, run_offset)):
+    for k, (x, P) in enumerate(estimate_steps(system, arch, z, times, **kw)):
         out.put(k, x, P)
     return out.track()
 
 
 def estimate_steps(
-    system: System, arch: str, z: np.ndarray, times: np.ndarray | None, run_offset: int = 0
+    system: System,
+    arch: str,
+    z: np.ndarray,
+    times: np.ndarray | None,
+    run_offset: int = 0,
+    arrival: np.ndarray | None = None,
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """`estimate` one instant at a time: (mean (M, n), covariances (M, n, n)) for k = 0..K,
     each computed when asked for (the filters keep one instant in memory, not all; FBS, a
     smoother, all of them)."""
     names = [s.name for s in system.sensors]
-    base, sensor = parse_arch(arch, names)  # a name no definition has: ValueError
-    kind = definition(base)
+    kind = require_filter(system, arch)
+    if is_late(system) and (why := late_refusal(system, kind.locals, arch)) is not None:
+        raise FusionlogError(why)
+    st = _Steps(system, z, times, run_offset)
+    if kind.locals == "smoother":
+        return _named(_smoother(st, arch), arch)
+    m = machine_of(st, arch)
+    if is_late(system):
+        if kind.locals == "per-sensor":
+            filters = [[j] for j in range(len(names))]
+        else:
+            filters = [m.which] if isinstance(m, _Filter) else [list(range(len(names)))]
+        arrive = arrival_instants(st.system, st.times, arrival)
+        return _named(late_steps(m, filters, arrive), arch)
+    return _named(_run(m), arch)
+
+
+def require_filter(system: System, arch: str) -> Architecture:
+    """The definition of `arch` (a name no definition has: ValueError); a nonlinear model
+    without a local filter: FusionlogError."""
+    kind = definition(parse_arch(arch, [s.name for s in system.sensors])[0])
     if system.filter is None and not system.linear:
         raise FusionlogError(
             'the model is nonlinear and has no local filter: give [estimate] filter = "EKF" or '
             '"UKF", or --filter'
         )
-    st = _Steps(system, z, times, run_offset)
+    return kind
+
+
+def machine_of(st: _Steps, arch: str) -> Machine:
+    """The recursion (`Machine`) of `arch`, a filter (not the smoother) on the instants of
+    `st`: what `estimate_steps` runs, and a long log carries from block to block
+    (`core.nonlinear.long_log`)."""
+    names = [s.name for s in st.system.sensors]
+    base, sensor = parse_arch(arch, names)
+    kind = definition(base)
     if kind.locals == "centralised":
-        return _named(_filter(st, list(range(len(names)))), arch)
+        return _Filter(st, list(range(len(names))))
     if kind.locals == "single":
-        return _named(_filter(st, [names.index(sensor)]), arch)
-    if kind.locals == "smoother":
-        return _named(_smoother(st, arch), arch)
+        return _Filter(st, [names.index(sensor)])
     if kind.locals == "hierarchical":
-        return _named(_hkf(st), arch)
-    return _named(_track_to_track(st, kind), arch)
+        return _Hkf(st)
+    return _TrackToTrack(st, kind)
 
 
 def _named(steps: Steps, arch: str) -> Steps:
@@ -191,18 +237,68 @@ def _named(steps: Steps, arch: str) -> Steps:
         yield x, P
 
 
-def _filter(st: _Steps, which: list[int], keep: list | None = None) -> Steps:
+class Machine:
+    """An architecture as a recursion on its state: s_k = step(k, s_{k-1}, z_k) (s_{-1} =
+    `start()`: step 0 only updates), its estimate at k `out(s_k)`; z_k (M, m) the readings it
+    may use at k (NaN: none). Late measurements rerun `step` from a stored state (`late`)."""
+
+    def __init__(self, st: _Steps) -> None:
+        self.st = st
+
+    def start(self):
+        return self.st.start()
+
+    def step(self, k: int, s, zk: np.ndarray):
+        raise NotImplementedError
+
+    def out(self, s) -> tuple[np.ndarray, np.ndarray]:
+        return s
+
+    def retrodicting(self) -> list:
+        """Its retrodicting filters (`retrodict.retrodict_steps`): [(sensors, in-order update
+        or None for the stacked EKF update)]."""
+        return [(self.which, None)]
+
+    def combine(self, ests: tuple) -> tuple[np.ndarray, np.ndarray]:
+        """The estimate of its retrodicting filters' estimates (x, P) at an instant."""
+        return ests[0]
+
+
+class _Filter(Machine):
     """One filter on the sensors `which`; with `keep`, each step's (x-, P-, C) is appended."""
-    x, P = st.start()
-    for k in range(st.z.shape[1]):
+
+    def __init__(self, st: _Steps, which: list[int], keep: list | None = None) -> None:
+        super().__init__(st)
+        self.which, self.keep = which, keep
+
+    def step(self, k: int, s, zk: np.ndarray):
+        x, P = s
         if k:
-            x, P, _, C = st.predict(k, x, P)
-            if keep is not None:
-                keep.append((x, P, C))
-        u = st.update(k, which, x, P)
+            x, P, _, C = self.st.predict(k, x, P)
+            if self.keep is not None:
+                self.keep.append((x, P, C))
+        u = self.st.update(k, self.which, x, P, zk)
         if u is not None:
             x, P = u.x, u.P
-        yield x, P
+        return x, P
+
+
+def _run(m: Machine) -> Steps:
+    """The machine on every reading as it is taken (no sensor late)."""
+    s = m.start()
+    for k in range(m.st.z.shape[1]):
+        s = m.step(k, s, m.st.z[:, k])
+        yield m.out(s)
+
+
+def _filter_machine(st: _Steps, keep: list | None = None) -> Machine:
+    """The CKF's recursion (FBS's forward filter); with `keep`, each step's (x-, P-, C)."""
+    return _Filter(st, list(range(len(st.system.sensors))), keep)
+
+
+def _filter(st: _Steps, which: list[int], keep: list | None = None) -> Steps:
+    """One filter on the sensors `which`; with `keep`, each step's (x-, P-, C) is appended."""
+    return _run(_Filter(st, which, keep))
 
 
 def _smoother(st: _Steps, arch: str) -> Steps:
@@ -214,47 +310,76 @@ def _smoother(st: _Steps, arch: str) -> Steps:
     for k, (x, P) in enumerate(forward):
         out.put(k, x, P)
     tr = out.track()
-    mean, cov = tr.mean, tr.cov
+    rts(tr.mean, tr.cov, keep)
+    for k in range(K1):
+        yield tr.mean[:, k], tr.cov[:, k]
+
+
+def rts(mean: np.ndarray, cov: np.ndarray, keep: list) -> None:
+    """The RTS backward pass in place over instants j = w-2..0 of the forward estimates mean
+    (M, w, n), cov (M, w, n, n), whose last instant is smoothed already; keep[j] the
+    prediction (x-, P-, C) from instant j to j + 1 (module docstring)."""
     for k in range(mean.shape[1] - 2, -1, -1):
         xp, Pp, C = keep[k]  # the prediction from k to k + 1
         G = mT(np.linalg.solve(Pp, mT(C)))
         mean[:, k] += np.einsum("mij,mj->mi", G, mean[:, k + 1] - xp)
         cov[:, k] = sym(cov[:, k] + G @ (cov[:, k + 1] - Pp) @ mT(G))
-    for k in range(K1):
-        yield mean[:, k], cov[:, k]
 
 
-def _hkf(st: _Steps) -> Steps:
-    """Eqs. (36)-(40) with EKF/UKF locals restarting from the fused prediction."""
-    x, P = st.start()
-    for k in range(st.z.shape[1]):
+class _Hkf(Machine):
+    """Eqs. (36)-(40) with EKF/UKF locals restarting from the fused prediction. Retrodicting,
+    its centre is one filter on every sensor with its own update (`retrodict` docstring)."""
+
+    def __init__(self, st: _Steps) -> None:
+        super().__init__(st)
+        self.which = list(range(len(st.system.sensors)))
+
+    def retrodicting(self) -> list:
+        return [(self.which, self.fuse)]
+
+    def step(self, k: int, s, zk: np.ndarray):
+        st, (x, P) = self.st, s
         if k:
             x, P, _, _ = st.predict(k, x, P)
+        return self.fuse(k, x, P, zk)
+
+    def fuse(self, k: int, x: np.ndarray, P: np.ndarray, zk: np.ndarray):
+        """The locals' updates of the prediction (x, P) with the readings zk of instant k,
+        fused by the centre (eqs. 36-37)."""
+        st = self.st
         Yp = spd_inv(P, "the predicted covariance")
         Y, y = Yp.copy(), np.einsum("mij,mj->mi", Yp, x)
         yp = y.copy()
         for j in range(len(st.system.sensors)):
-            u = st.update(k, [j], x, P)
+            u = st.update(k, [j], x, P, zk)
             if u is None:
                 continue
             Yj = spd_inv(u.P, "a local covariance")
             Y += Yj - Yp
             y += np.einsum("mij,mj->mi", Yj, u.x) - yp
         P = spd_inv(Y, "the fused information")
-        x = np.einsum("mij,mj->mi", P, y)
-        yield x, P
+        return np.einsum("mij,mj->mi", P, y), P
 
 
-def _track_to_track(st: _Steps, arch: Architecture) -> Steps:
-    """One local filter per sensor, fused at every instant by the architecture's rule."""
-    M, K1 = st.z.shape[:2]
-    n, S = st.system.n, len(st.system.sensors)
-    joint = arch.joint
-    x0, P0 = st.start()
-    xs, Ps = [x0] * S, [P0] * S
-    J = np.broadcast_to(P0[:, None, None], (M, S, S, n, n)).copy() if joint else None
-    eye = np.eye(n)
-    for k in range(K1):
+class _TrackToTrack(Machine):
+    """One local filter per sensor, fused at every instant by the architecture's rule; the
+    state is the locals' means, covariances and (for a rule that reads it) joint covariance."""
+
+    def __init__(self, st: _Steps, arch: Architecture) -> None:
+        super().__init__(st)
+        self.arch = arch
+
+    def start(self):
+        st = self.st
+        M, n, S = st.z.shape[0], st.system.n, len(st.system.sensors)
+        x0, P0 = st.start()
+        J = np.broadcast_to(P0[:, None, None], (M, S, S, n, n)).copy() if self.arch.joint else None
+        return [x0] * S, [P0] * S, J
+
+    def step(self, k: int, s, zk: np.ndarray):
+        st, joint = self.st, self.arch.joint
+        xs, Ps, J = list(s[0]), list(s[1]), s[2]
+        M, n, S = st.z.shape[0], st.system.n, len(xs)
         if k:
             pred = [st.predict(k, xs[i], Ps[i]) for i in range(S)]
             xs, Ps = [p[0] for p in pred], [p[1] for p in pred]
@@ -263,9 +388,9 @@ def _track_to_track(st: _Steps, arch: Architecture) -> Steps:
                 motion, dt = transition(st.system, k)
                 Q = motion.Q(dt)
                 J = _congruence(Fs, J) + Q
-        A = np.broadcast_to(eye, (M, S, n, n)).copy()
+        A = np.broadcast_to(np.eye(n), (M, S, n, n)).copy()
         for i in range(S):
-            u = st.update(k, [i], xs[i], Ps[i])
+            u = st.update(k, [i], xs[i], Ps[i], zk)
             if u is not None:
                 xs[i], Ps[i] = u.x, u.P
                 A[:, i] -= u.K @ u.H
@@ -273,7 +398,21 @@ def _track_to_track(st: _Steps, arch: Architecture) -> Steps:
             J = _congruence(A, J)
             for i in range(S):
                 J[:, i, i] = Ps[i]  # the local's own covariance (equal for the EKF)
-        yield _fuse(arch, np.stack(xs, 1), np.stack(Ps, 1), J, st.system.ci_criterion)
+        return xs, Ps, J
+
+    def out(self, s) -> tuple[np.ndarray, np.ndarray]:
+        xs, Ps, J = s
+        return _fuse(self.arch, np.stack(xs, 1), np.stack(Ps, 1), J, self.st.system.ci_criterion)
+
+    def retrodicting(self) -> list:
+        """One retrodicting EKF per sensor; a rule that reads the joint covariance refused."""
+        if (why := ekf_retrodict_refusal(self.arch.name, self.arch.joint)) is not None:
+            raise FusionlogError(why)
+        return [([j], None) for j in range(len(self.st.system.sensors))]
+
+    def combine(self, ests: tuple) -> tuple[np.ndarray, np.ndarray]:
+        xs, Ps = np.stack([e[0] for e in ests], 1), np.stack([e[1] for e in ests], 1)
+        return _fuse(self.arch, xs, Ps, None, self.st.system.ci_criterion)
 
 
 def _congruence(T: np.ndarray, J: np.ndarray) -> np.ndarray:

@@ -39,66 +39,120 @@ class PcrbAccumulator:
 
     def __init__(self, system: System, times: np.ndarray) -> None:
         self.system = system = system.on_times(times)
-        K1, n = len(times), system.n
         self.runs = 0
-        self.info = np.zeros((K1, n, n))  # sum of D_z(k)
         self.linear_motion = system.motion.linear
-        if not self.linear_motion:
-            self.FtQF = np.zeros((K1, n, n))  # at k: sum of F~^T Q^-1 F~ over x_{k-1}
-            self.F = np.zeros((K1, n, n))  # at k: sum of F~
+        # sums of D_z(k) and, at k, of F~^T Q^-1 F~ over x_{k-1} and of F~ (K+1, n, n), made
+        # when the first block comes (a long log in blocks of time never makes them)
+        self.info = self.FtQF = self.F = 0.0
 
     def add(self, truth: np.ndarray, present: np.ndarray) -> None:
         """A block: true states (M, K+1, n) and which sensor measured in which run at which
         instant (M, K+1, S)."""
-        sys = self.system
         self.runs += truth.shape[0]
-        for j, s in enumerate(sys.sensors):
-            H = s.jacobian(truth)  # (M, K+1, m, n)
-            RiH = np.linalg.solve(s.R, H)
-            self.info += np.einsum("mkai,mkaj,mk->kij", H, RiH, present[..., j].astype(float))
+        sums = _sums(self.system, truth, present, 0, None)
+        self.info = self.info + sums[0]
         if not self.linear_motion:
-            for k in range(1, truth.shape[1]):
-                motion, dt = transition(sys, k)
-                F = motion.jacobian(truth[:, k - 1], dt)
-                QiF = np.linalg.solve(motion.Q(dt), F)
-                self.FtQF[k] += np.einsum("mai,maj->ij", F, QiF)
-                self.F[k] += F.sum(axis=0)
+            self.FtQF = self.FtQF + sums[1]
+            self.F = self.F + sums[2]
 
     def bound(self) -> np.ndarray:
         """J_k^-1 for every instant (K+1, n, n): the bound on each state's MSE is its diagonal."""
         M = self.runs
-        Dz = self.info / M
-        out = np.empty_like(Dz)
-        P0 = self.system.truth_initial.cov
+        motion = None if self.linear_motion else (self.FtQF / M, self.F / M)
+        return _recursion(self.system, self.info / M, motion, 0, None)[0]
+
+
+class PcrbBlocks:
+    """The bound of one run handed over in blocks of time, in order (issue 34: a long log in
+    memory that does not grow with its instants): the recursion's state (J, or J^-1 while it is
+    singular) and the last true state carried from block to block; `add` gives the block's
+    bound, the same numbers as `PcrbAccumulator.bound` of the whole run."""
+
+    def __init__(self, system: System, times: np.ndarray) -> None:
+        self.system = system.on_times(times)
+        self.carried: tuple | None = None
+        self.x_last: np.ndarray | None = None  # the true state before the block, (1, n)
+
+    def add(self, k0: int, truth: np.ndarray, present: np.ndarray) -> np.ndarray:
+        """J_k^-1 (w, n, n) at the instants k0..k0+w-1 from their true states (1, w, n) and
+        which sensor measured then (1, w, S)."""
+        info, FtQF, F = _sums(self.system, truth, present, k0, self.x_last)
+        motion = None if self.system.motion.linear else (FtQF, F)
+        out, self.carried = _recursion(self.system, info, motion, k0, self.carried)
+        self.x_last = truth[:, -1]
+        return out
+
+
+def _sums(
+    sys: System, truth: np.ndarray, present: np.ndarray, k0: int, x_before: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Sums over the runs of D_z, F~^T Q^-1 F~ and F~ at the instants k0..k0+w-1 (their true
+    states truth (M, w, n), the states before them x_before (M, n), None at k0 = 0)."""
+    w, n = truth.shape[1], sys.n
+    info = np.zeros((w, n, n))
+    for j, s in enumerate(sys.sensors):
+        H = s.jacobian(truth)  # (M, w, m, n)
+        RiH = np.linalg.solve(s.R, H)
+        info += np.einsum("mkai,mkaj,mk->kij", H, RiH, present[..., j].astype(float))
+    if sys.motion.linear:
+        return info, None, None
+    FtQF, Fsum = np.zeros((w, n, n)), np.zeros((w, n, n))
+    for k in range(max(k0, 1), k0 + w):
+        motion, dt = transition(sys, k)
+        prev = truth[:, k - k0 - 1] if k > k0 else x_before
+        F = motion.jacobian(prev, dt)
+        QiF = np.linalg.solve(motion.Q(dt), F)
+        FtQF[k - k0] += np.einsum("mai,maj->ij", F, QiF)
+        Fsum[k - k0] += F.sum(axis=0)
+    return info, FtQF, Fsum
+
+
+def _recursion(
+    sys: System,
+    Dz: np.ndarray,
+    motion: tuple[np.ndarray, np.ndarray] | None,
+    k0: int,
+    carried: tuple | None,
+) -> tuple[np.ndarray, tuple]:
+    """J_k^-1 (w, n, n) at the instants k0..k0+w-1 from the mean D_z and (nonlinear motion)
+    the means of F~^T Q^-1 F~ and F~ there, and `carried` (J or None, J^-1) of the instant
+    before (None at k0 = 0); returns them and what the next instants carry."""
+    out = np.empty_like(Dz)
+    if carried is None:
+        P0 = sys.truth_initial.cov
         J: np.ndarray | None = None  # None while J^-1 is singular (J infinite somewhere)
         if definite(P0, strict=True):
             J = spd_inv(P0, "the initial covariance") + Dz[0]
             out[0] = spd_inv(J, "the Fisher information")
         else:
             out[0] = _inverse_of_sum(P0, Dz[0])
-        for k in range(1, len(Dz)):
-            motion, dt = transition(self.system, k)
-            Q = motion.Q(dt)
-            if self.linear_motion:
-                F = motion.F(dt)
-                P = sym(Q + F @ out[k - 1] @ F.T)
-                # after a definite bound (J known) the information form as it always was, with
-                # no test; after a singular one, a test: a singular Q keeps a known state known
-                if J is not None or definite(P, strict=True):
-                    J = spd_inv(P, "Q + F J^-1 F'") + Dz[k]
-                    out[k] = spd_inv(J, "the Fisher information")
-                else:
-                    out[k] = _inverse_of_sum(P, Dz[k])
-                continue
-            Qi = spd_inv(Q, "the process noise covariance Q")
-            D12 = -mT(self.F[k] / M) @ Qi
-            D11 = self.FtQF[k] / M
-            if J is not None:
-                J = sym(Qi - mT(D12) @ np.linalg.solve(J + D11, D12)) + Dz[k]
+        first, prev = 1, out[0]
+    else:
+        (J, prev), first = carried, 0
+    for i in range(first, len(Dz)):
+        motion_k, dt = transition(sys, k0 + i)
+        Q = motion_k.Q(dt)
+        if motion is None:
+            F = motion_k.F(dt)
+            P = sym(Q + F @ prev @ F.T)
+            # after a definite bound (J known) the information form as it always was, with
+            # no test; after a singular one, a test: a singular Q keeps a known state known
+            if J is not None or definite(P, strict=True):
+                J = spd_inv(P, "Q + F J^-1 F'") + Dz[i]
+                out[i] = spd_inv(J, "the Fisher information")
             else:
-                J = sym(Qi - mT(D12) @ _inverse_of_sum(out[k - 1], D11) @ D12) + Dz[k]
-            out[k] = spd_inv(J, "the Fisher information")
-        return out
+                out[i] = _inverse_of_sum(P, Dz[i])
+            prev = out[i]
+            continue
+        Qi = spd_inv(Q, "the process noise covariance Q")
+        D12 = -mT(motion[1][i]) @ Qi
+        D11 = motion[0][i]
+        if J is not None:
+            J = sym(Qi - mT(D12) @ np.linalg.solve(J + D11, D12)) + Dz[i]
+        else:
+            J = sym(Qi - mT(D12) @ _inverse_of_sum(prev, D11) @ D12) + Dz[i]
+        out[i] = prev = spd_inv(J, "the Fisher information")
+    return out, (J, prev)
 
 
 def _inverse_of_sum(P: np.ndarray, D: np.ndarray) -> np.ndarray:

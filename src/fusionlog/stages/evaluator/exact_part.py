@@ -6,7 +6,6 @@ block by block from the plans the block's sensor readings give (NaN = absent).""
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from typing import Any
 
@@ -15,6 +14,7 @@ import numpy as np
 from fusionlog.core.model import System
 from fusionlog.core.routes import exact_route, shared_expected
 from fusionlog.driver import PlanCache, conditional_sums
+from fusionlog.driver.plans import pattern_mask
 
 from .parts import Block, Elsewhere, Finished, Part
 
@@ -43,7 +43,7 @@ def exact_setup(prov: dict[str, str], filter_sys: System, truth_sys: System):
         return None  # no exact analysis of nonlinear models
     if pattern == "per-run":
         return seen, None, True
-    mask = None if pattern == "complete" else np.array(json.loads(pattern), dtype=bool)
+    mask = None if pattern == "complete" else pattern_mask(pattern)
     return seen, mask, False
 
 
@@ -60,6 +60,7 @@ class ExactPart(Part):
         runs: int,
         recorded: bool,
         sensor_topics: Sequence[str],
+        has_truth: bool = True,
     ) -> None:
         self.plans, self.known = plans, list(known)
         self.truth, self.mask, per_run = setup
@@ -67,7 +68,9 @@ class ExactPart(Part):
         # per-run patterns: each run's exact values, summed block by block from its plan (the
         # estimator's, rebuilt from the sensor readings)
         self.conditional: dict[str, Any] = {}
-        if self.route == "per-run":
+        # without truth there is no MSE to put the exact values beside (`summarise` keeps
+        # none): a replay whose late readings make its plan per run builds none here
+        if self.route == "per-run" and has_truth:
             self.topics = list(sensor_topics)
             self.conditional = {a: None for a in self.known}
 

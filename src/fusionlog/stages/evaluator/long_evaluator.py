@@ -55,6 +55,16 @@ class LongSetup:
     expected: dict[str, Any]
     nis: LongNis | None
     fields: dict[str, Any] = field(default_factory=dict)
+    #: a nonlinear truth's `PcrbPart` (its system and sensor topics), or None
+    pcrb: Any = None
+    #: the `TrajectoryPart` (APE/RPE, `.long_trajectory`), or None
+    trajectory: Any = None
+    #: the `PlanePart` and the short plans of its inputs (`.views_part.LongPlane`), or None
+    plane: Any = None
+    #: a recorded replay's exact values block by block (`.long_exact.LongReplayExact`)
+    replay_exact: Any = None
+    #: the states the truth gives where it gives only some (partial truth: metrics over them)
+    truthed: list[int] | None = None
 
     @property
     def bound(self) -> dict[str, np.ndarray]:
@@ -71,8 +81,20 @@ class LongEvaluator:
         self.s = setup
         self.b = bucket_size(len(setup.times), setup.full_resolution)
         self.tree = TreeDecimator(self.b)
-        self.sums = {a: StepSums(setup.n) for a in setup.archs}
+        truthed = setup.n if setup.truthed is None else len(setup.truthed)
+        self.sums = {a: StepSums(truthed) for a in setup.archs}
         self.traces = {a: np.zeros(2) for a in setup.archs}  # sum and count of finite tr P
+        self.pcrb = _LongPcrb(setup.pcrb, setup.times) if setup.pcrb is not None else None
+        self.traj = None
+        if setup.trajectory is not None:
+            from .long_trajectory import LongTrajectory
+
+            self.traj = LongTrajectory(setup.trajectory, setup.archs)
+        self.plane = None
+        if setup.plane is not None:
+            from .views_part import LongPlane
+
+            self.plane = LongPlane(*setup.plane, point_steps(len(setup.times), self.b))
 
     def add(
         self,
@@ -89,6 +111,7 @@ class LongEvaluator:
         s = self.s
         w = k1 - k0
         idx = s.log.index(k0, k1) if s.log is not None else None
+        replayed = s.replay_exact.window(k0, k1) if s.replay_exact is not None else {}
         series, traces, bounds, sample, by_arch = {}, {}, None, {}, {}
         for a, t in zip(s.archs, s.topics, strict=True):
             mean, cov = by_arch[a] = estimates[t]
@@ -100,17 +123,28 @@ class LongEvaluator:
             if not s.has_truth:
                 traces[a] = tr
                 continue
-            acc = MetricsAccumulator(w, s.n)
-            acc.add(truth, mean, cov)
+            t = s.truthed
+            acc = MetricsAccumulator(w, s.n if t is None else len(t))
+            acc.add(*((truth, mean, cov) if t is None else _marginal(t, truth, mean, cov)))
             res = acc.finalize(s.confidence)
-            kw = {}
+            kw, ratio = {}, None
             if a in s.expected:
-                ex = expected_window(s.expected[a], idx)
+                ex, ratio = expected_window(s.expected[a], idx), s.bound[a][idx]
+            elif a in replayed:
+                ex, ratio = replayed[a]
+            if ratio is not None:
                 kw = {"expected_mse": ex.mse_per_state, "expected_nees": ex.nees,
                       "expected_dm": ex.dm}  # fmt: skip
-            series[a] = res.series(**kw)
-            if a in s.expected:  # the bound check's ratio, exact (`core.bound`)
-                series[a]["bound"] = s.bound[a][idx]
+                if t is not None:  # the exact NEES and DM are of the whole state: left out
+                    nan = np.full(w, np.nan)
+                    kw = {"expected_mse": ex.mse_per_state[:, t], "expected_nees": nan,
+                          "expected_dm": nan}  # fmt: skip
+            if t is not None:  # (the series without the whole state's NEES and DM)
+                series[a] = _whole_state(res.series(**{k: kw[k] for k in kw if "mse" in k}), t, s.n)
+            else:
+                series[a] = res.series(**kw)
+            if ratio is not None:  # the bound check's ratio, exact (`core.bound`)
+                series[a]["bound"] = ratio
             self.sums[a].add(res, **kw)
             if bounds is None:
                 bounds = (res.nees_lower, res.nees_upper)
@@ -120,6 +154,13 @@ class LongEvaluator:
             tree["samples"] = {0: (x, sample)}
         if s.nis is not None and sensors is not None:
             tree.update(s.nis.add(k0, k1, sensors, by_arch))
+        if self.pcrb is not None:
+            tree["pcrb"] = self.pcrb.add(k0, k1, truth, sensors)
+        if self.plane is not None:
+            x = truth if truth is not None else np.full((1, w, s.n), np.nan)
+            self.plane.add(k0, k1, x, by_arch)
+        if self.traj is not None and truth is not None:
+            self.traj.add(k0, k1, truth, {a: by_arch[a][0] for a in s.archs})
         self.tree.add(with_derived(tree, CKF))
 
     def _mean_trace(self, a: str) -> float:
@@ -135,13 +176,36 @@ class LongEvaluator:
                 archs[a] = {"mean_trace": self._mean_trace(a)}
                 continue
             archs[a] = self.sums[a].summary()
+            if s.truthed is not None:  # the untruthed states' MSE undefined (null)
+                per_state = [float("nan")] * s.n
+                for j, i in enumerate(s.truthed):
+                    per_state[i] = archs[a]["mse_per_state"][j]
+                archs[a]["mse_per_state"] = per_state
             if s.recorded:
                 archs[a]["mean_trace"] = self._mean_trace(a)
         for a in s.expected:  # the bound check over every instant (`BoundPart`'s)
             b = bound_summary(s.bound[a])
             if b is not None and a in archs:
                 archs[a]["bound"] = {**b, "worst_step": s.log.first_instant(b["worst_step"])}
+        for a in s.replay_exact.bounds if s.replay_exact is not None else ():
+            b = s.replay_exact.bound_summary(a)
+            if b is not None and a in archs:
+                archs[a]["bound"] = b
         summary = {**s.head, "architectures": archs}
+        pcrb = None
+        if self.pcrb is not None:  # no exact analysis beside the Monte Carlo values
+            for entry in archs.values():
+                if "mse" in entry:
+                    entry["expected"] = None
+            summary["pcrb"] = self.pcrb.summary()
+            pcrb = None if summary["pcrb"] is None else "drawn"
+        if self.plane is not None:
+            s.fields["plane"] = self.plane.result()
+        if self.traj is not None:  # APE/RPE: the second pass over the positions
+            entries, s.fields["trajectory"] = self.traj.finish(self.b)
+            for a, entry in archs.items():
+                if "mse" in entry:
+                    entry |= entries[a]
         if s.truth_info is not None and s.has_truth:
             summary["truth"] = dict(s.truth_info)
         if s.nis is not None:
@@ -151,6 +215,8 @@ class LongEvaluator:
         K1 = len(s.times)
         steps = point_steps(K1, self.b)
         nis = drawn.get("nis") if s.nis is not None and s.nis.archs else None
+        if pcrb is not None:
+            s.fields["pcrb"] = drawn["pcrb"]
         return Evaluation(
             summary=summary,
             times=s.times[steps],
@@ -167,3 +233,55 @@ class LongEvaluator:
             decimation=note(K1, self.b) if self.b > 1 else None,
             **s.fields,
         )
+
+
+class _LongPcrb:
+    """The posterior Cramer-Rao bound of a long one-run log block by block (`PcrbBlocks`, the
+    recursion carried): each block's diagonal for the recording, the sums over instants for
+    the summary (`pcrb_summary`'s mean over instants); None where a block lacks its readings
+    (as `PcrbPart`)."""
+
+    def __init__(self, part: Any, times: np.ndarray) -> None:
+        from fusionlog.core.nonlinear.pcrb import PcrbBlocks
+
+        self.blocks = PcrbBlocks(part.acc.system, times)
+        self.topics = part.topics
+        self.total: np.ndarray | None = None  # per state, the sum over instants
+        self.count, self.complete = 0, True
+
+    def add(self, k0: int, k1: int, truth: np.ndarray | None, sensors: dict | None) -> np.ndarray:
+        """The block's bound on each state's MSE (w, n) (NaN once the bound is unknown)."""
+        if truth is None or not sensors or any(t not in sensors for t in self.topics):
+            self.complete = False
+        if not self.complete:
+            return np.full((k1 - k0, self.blocks.system.n), np.nan)
+        present = np.stack([~np.isnan(sensors[t]).any(axis=-1) for t in self.topics], axis=-1)
+        diag = np.diagonal(self.blocks.add(k0, truth, present), axis1=-2, axis2=-1).copy()
+        self.total = diag.sum(axis=0) + (self.total if self.total is not None else 0.0)
+        self.count += len(diag)
+        return diag
+
+    def summary(self) -> dict[str, Any] | None:
+        """summary.json's "pcrb" (`core.nonlinear.pcrb_summary`), None when incomplete."""
+        if not self.complete or self.total is None:
+            return None
+        per_state = self.total / self.count
+        return {
+            "mse": float(per_state.sum() / len(per_state)),
+            "mse_per_state": [float(v) for v in per_state],
+        }
+
+
+def _marginal(idx: list[int], x: np.ndarray, mean: np.ndarray, cov: np.ndarray):
+    """Truth, mean and covariance of the truthed states `idx` (a partial truth, `MetricsPart`)."""
+    return x[..., idx], mean[..., idx], cov[..., idx, :][..., :, idx]
+
+
+def _whole_state(series: dict[str, Any], idx: list[int], n: int) -> dict[str, Any]:
+    """A partial truth's series on all n states: NaN for the untruthed states' MSE."""
+    for key in ("mse", "expected_mse"):
+        if key in series:
+            full = np.full((len(series[key]), n), np.nan)
+            full[:, idx] = series[key]
+            series[key] = full
+    return series

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from fusionlog.core.architectures.long_log import SteadyLog
+from fusionlog.core.architectures.replay_blocks import ReplayBlocks, system_window
 from fusionlog.core.nis import WhitenessSums
 
 from ..consistency import NisAccumulator, availability
@@ -31,9 +32,10 @@ def _cat(prev: Any, cur: Any, axis: int) -> Any:
 
 class LongNis:
     """The blocks of one log for `part` (the evaluator's `NisPart`: its system, sensors and
-    schedule); `forward`: the centralised KF's short plans (a smoother's innovations), or None."""
+    schedule); `forward`: the centralised KF's short plans, or a replay's CKF carried block to
+    block (a smoother's innovations), or None."""
 
-    def __init__(self, part: NisPart, forward: SteadyLog | None, ckf: str) -> None:
+    def __init__(self, part: NisPart, forward: SteadyLog | ReplayBlocks | None, ckf: str) -> None:
         self.part, self.forward, self.ckf = part, forward, ckf
         self.archs = part.archs
         self.prev: dict[str, Any] = {}  # each architecture's (mean, cov) of the last instant
@@ -59,15 +61,21 @@ class LongNis:
         for a in self.archs:
             mean, cov = estimates[a]
             prev = self.prev.get(a, (None, None))
-            ests[a] = (_cat(prev[0], mean, 1), _cat(prev[1], cov, 0))
-            self.prev[a] = (mean[:, -1:], cov[-1:])
+            # instants on axis -3: shared (K, n, n) or per run (M, K, n, n), as an EKF's may be
+            ests[a] = (_cat(prev[0], mean, 1), _cat(prev[1], cov, -3))
+            self.prev[a] = (mean[:, -1:], cov[..., -1:, :, :])
         fwd = None
-        if self.forward is not None:
+        if isinstance(self.forward, ReplayBlocks):  # a replay's forward CKF, carried
+            e = self.forward.estimates(k0, k1, z[0], None)[self.ckf]
+            f = (e.mean, e.cov)
+        elif self.forward is not None:
             f = (self.forward.forward(self.ckf, z, k0, None), self.forward.cov(self.ckf, k0, k1))
+        if self.forward is not None:
             prev = self.fprev or (None, None)
             fwd = (_cat(prev[0], f[0], 1), _cat(prev[1], f[1], 0))
             self.fprev = (f[0][:, -1:], f[1][-1:])
-        acc = NisAccumulator(fs, self.archs, k1 - k0 + cut)
+        # the system on the window's instants (a replay's per-message R, irregular intervals)
+        acc = NisAccumulator(system_window(fs, k0 - cut, k1, False), self.archs, k1 - k0 + cut)
         acc.add(_cat(self.zprev, z, 1), ests, forward=fwd)
         self.zprev = z[:, -1:]
         series = acc.series(p.confidence)

@@ -109,7 +109,9 @@ class StateEvaluator(Evaluator):
         sensor_topics = pcrb.topics if pcrb else [sensor_topic(s.name) for s in filter_sys.sensors]
         setup = exact_setup(prov, filter_sys, truth_sys)
         if setup is not None:
-            parts.append(ExactPart(plans, known, setup, runs, recorded, sensor_topics))
+            parts.append(
+                ExactPart(plans, known, setup, runs, recorded, sensor_topics, log.has_truth)
+            )
         # does the reported covariance bound the error: exact where the analysis is, else
         # Monte Carlo (DESIGN.md "Unknown correlation and the bound check")
         exact = known if setup is not None else []
@@ -202,13 +204,12 @@ class StateEvaluator(Evaluator):
             return None
         if self.late is not None:  # late readings (issue 30): the whole run
             return None
-        parts = {MetricsPart, ExactPart, SamplesPart, NisPart, BoundPart}
+        parts = {MetricsPart, ExactPart, SamplesPart, NisPart, BoundPart, PcrbPart, TrajectoryPart}
+        parts |= {PlanePart}
         if not {type(p) for p in self.parts} <= parts:
             return None
         if any(isinstance(p, BoundPart) and p.sums for p in self.parts):
             return None  # a Monte Carlo bound (of several runs)
-        if self.has_truth and len(self.metrics.truthed) != self.n:
-            return None
         return self._long(
             next((p for p in self.parts if isinstance(p, ExactPart)), None),
             next((p for p in self.parts if isinstance(p, NisPart)), None),
@@ -220,17 +221,21 @@ class StateEvaluator(Evaluator):
         from .long_evaluator import LongEvaluator, LongSetup
         from .long_nis import LongNis
 
-        log, expected = None, {}
+        log, expected, replayed = None, {}, None
         if exact is not None and self.has_truth:
-            if exact.route == "per-run" or exact.mask is not None:
+            if exact.route == "per-run":
                 return None
             p = exact.plans
-            log = steady_log(p.system, exact.known, self.K, p.criterion)
-            if log is None:
-                return None
-            for a in exact.known:
+            steady = exact.mask is None and p.system.time_invariant
+            log = steady_log(p.system, exact.known, self.K, p.criterion) if steady else None
+            for a in exact.known if log is not None else ():
                 expected[a] = log.expected(a, exact.truth)
                 if not log.whole and not converged(expected[a], log.c):
+                    log, expected = None, {}
+                    break
+            if log is None:  # a recorded replay: the one-log route in blocks, else the whole
+                replayed = self._replay_exact(exact)
+                if replayed is None:
                     return None
         long_nis = None
         if nis is not None:
@@ -241,9 +246,24 @@ class StateEvaluator(Evaluator):
             forward, ckf = None, _centralised()
             if any(definition(a).locals == "smoother" for a in nis.archs):
                 forward = steady_log(nis.system, [ckf], self.K)
+                if forward is None:  # a replay: its CKF carried block to block
+                    from fusionlog.core.architectures.replay_blocks import ReplayBlocks
+                    from fusionlog.driver.long_log import time_block
+
+                    forward = ReplayBlocks.of(nis.system, [ckf], self.K, time_block())
                 if forward is None:
                     return None
             long_nis = LongNis(nis, forward, ckf)
+        pcrb = next((p for p in self.parts if isinstance(p, PcrbPart)), None)
+        traj = next((p for p in self.parts if isinstance(p, TrajectoryPart)), None)
+        plane = next((p for p in self.parts if isinstance(p, PlanePart)), None)
+        inputs = None
+        if plane is not None:  # the inputs' ellipses: each sensor's SKF's short plans
+            p = plane.plans
+            skf = [f"SKF:{s.name}" for s in p.system.sensors]
+            inputs = steady_log(p.system, skf, self.K, p.criterion)
+            if inputs is None:
+                return None
         sc = self.sc
         return LongEvaluator(
             LongSetup(
@@ -251,7 +271,10 @@ class StateEvaluator(Evaluator):
                 n=self.n, confidence=sc.confidence, samples=min(sc.sample_runs, 1),
                 full_resolution=sc.full_resolution, has_truth=self.has_truth,
                 recorded=sc.replay is not None, truth_info=self.metrics.truth_info, log=log,
-                expected=expected, nis=long_nis,
+                expected=expected, nis=long_nis, pcrb=pcrb, trajectory=traj,
+                plane=(plane, inputs) if plane is not None else None,
+                replay_exact=replayed,
+                truthed=None if len(self.metrics.truthed) == self.n else self.metrics.truthed,
                 fields={
                     "state_names": tuple(sc.state_names), "confidence": sc.confidence,
                     "properties": {"scenario": sc.source, "provenance": self.prov},
@@ -259,6 +282,21 @@ class StateEvaluator(Evaluator):
                 },
             )
         )  # fmt: skip
+
+    def _replay_exact(self, exact: ExactPart) -> Any:
+        """The exact values of a recorded replay in blocks of time (`.long_exact`): the one-log
+        route, where the truth is the filters' model and the replay path takes them; None
+        otherwise."""
+        from fusionlog.core.exact_replay import replay_expected_blocks
+        from fusionlog.driver.long_log import time_block
+
+        from .long_exact import LongReplayExact
+
+        if exact.route != "one-log":
+            return None
+        p, T = exact.plans, time_block()
+        got = replay_expected_blocks(p.system, exact.truth, exact.known, self.K, T, p.criterion)
+        return None if got is None else LongReplayExact(got, exact.mask, p.system.m, T)
 
     def _finish(self) -> Finished:
         archs: dict[str, dict[str, Any]] = {}

@@ -13,7 +13,7 @@ from fusionlog.driver import PlanCache
 
 from .parts import Block, Finished, Part
 
-__all__ = ["PLANE_POINTS", "PlanePart", "SamplesPart"]
+__all__ = ["PLANE_POINTS", "LongPlane", "PlanePart", "SamplesPart"]
 
 #: Sample estimates per architecture drawn in the state-plane view.
 PLANE_POINTS = 300
@@ -61,8 +61,6 @@ class PlanePart(Part):
     def summarise(self, into: Finished) -> None:
         if self.truth is None:
             return
-        from fusionlog.core.metrics import chi2_quantile  # scipy: an evaluation's only
-
         inputs = {
             f"input {s.name}": self.plans.plan(f"SKF:{s.name}").reported_cov
             for s in self.plans.system.sensors
@@ -71,6 +69,56 @@ class PlanePart(Part):
             "truth": self.truth,
             "estimates": self.points,
             "ellipses": {**inputs, **self.cov},
-            # the ellipse of a 2-D Gaussian at the confidence: chi-square with 2 dof
-            "scale": float(np.sqrt(chi2_quantile(self.confidence, 2))),
+            "scale": _scale(self.confidence),
+        }
+
+
+def _scale(confidence: float) -> float:
+    """The ellipse of a 2-D Gaussian at the confidence: chi-square with 2 dof."""
+    from fusionlog.core.metrics import chi2_quantile  # scipy: an evaluation's only
+
+    return float(np.sqrt(chi2_quantile(confidence, 2)))
+
+
+class LongPlane:
+    """`PlanePart`'s view of a long one-run log block by block (issue 34), in memory that does
+    not grow with its instants: its frames at the recording's points' instants `steps` only
+    (`core.decimate.plane_at`: each a real state and covariance), the inputs' ellipses from
+    the short plans of each sensor's SKF (`inputs`, a `SteadyLog`)."""
+
+    def __init__(self, part: PlanePart, inputs: Any, steps: np.ndarray) -> None:
+        self.part, self.inputs, self.steps = part, inputs, steps
+        self.frames: list[dict[str, Any]] = []
+
+    def add(self, k0: int, k1: int, truth: np.ndarray, estimates: dict[str, Any]) -> None:
+        """A block: truth (1, w, 2), {arch: (mean (1, w, 2), cov (w, 2, 2))}."""
+        from fusionlog.core.decimate import plane_at
+
+        at = self.steps[(self.steps >= k0) & (self.steps < k1)]
+        if not len(at):
+            return
+        sensors = self.part.plans.system.sensors
+        ellipses = {f"input {s.name}": self.inputs.cov(f"SKF:{s.name}", k0, k1) for s in sensors}
+        points = {}
+        for a in self.part.archs:
+            mean, cov = estimates[a]
+            points[a] = np.moveaxis(mean[:PLANE_POINTS], 0, 1)
+            ellipses[a] = cov if cov.ndim == 3 else cov[0]
+        plane = {"truth": truth[0], "estimates": points, "ellipses": ellipses}
+        self.frames.append(plane_at(plane, at, k0))  # type: ignore[arg-type]
+
+    def result(self) -> dict[str, Any] | None:
+        """The `Evaluation`'s ``plane`` at the points' instants."""
+        if not self.frames:
+            return None
+        f = self.frames
+
+        def cat(key: str) -> dict[str, np.ndarray]:
+            return {k: np.concatenate([x[key][k] for x in f]) for k in f[0][key]}
+
+        return {
+            "truth": np.concatenate([x["truth"] for x in f]),
+            "estimates": cat("estimates"),
+            "ellipses": cat("ellipses"),
+            "scale": _scale(self.part.confidence),
         }

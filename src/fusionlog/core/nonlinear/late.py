@@ -1,0 +1,136 @@
+"""Late measurements in the EKF/UKF lanes (DESIGN.md "Late measurements"), every run of a
+block at once (arrays over the runs; each run its own arrivals where the delays are random).
+
+An architecture is a recursion on its state, s_k = step(k, s_{k-1}, z_k), its estimate
+out(s_k) (`architectures.Machine`: the CKF's or SKF's filter, HKF's centre, the track-to-track
+locals with their joint covariance). At the output instant t_k only the readings that have
+arrived by then (arrival <= t_k) may be used:
+
+* *reprocess*: the states of the last W + 1 instants are kept (W the largest lag in instants:
+  the bounded history, W + 1 states of the architecture per run). When readings taken at
+  t_i, i < k, arrive at k, each run rewinds to its oldest newly arrived reading's instant i0
+  and reruns `step` from its stored state at i0 - 1 to k with every reading of those instants
+  that has arrived. The rerun *relinearises*: the EKF's Jacobians (the UKF's sigma points) are
+  taken afresh at the refiltered estimates, so the state kept at instant i is exactly the
+  filter run from scratch on the readings taken by t_i that have arrived by t_k (a run whose
+  own i0 is later keeps its stored states: the rerun starts at the block's oldest i0).
+* *neglect*: a reading older than the last update of the filter that fuses it (the newest
+  measurement time it has taken; `core.latency.accepted`, per local filter in the track-to-
+  track architectures) is dropped, the others processed as reprocess does. As they are not
+  older than the last update, the rewind goes back to that update at most: between it and
+  t_k the stored states are predictions, so this is the event-driven filter that predicts
+  from its last update to each accepted reading (a reading of the last update's own instant
+  that arrives later is fused with that instant's others, the update of that instant redone).
+* *retrodict*: `retrodict` (Bar-Shalom's Al1 with the EKF's Jacobians, in each filter that
+  fuses the late sensor: the one filter, HKF's centre, each track-to-track local).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+from ...errors import FusionlogError
+from ..latency import accepted, arrival_steps, random_delays
+from ..model import System
+
+__all__ = ["arrival_instants", "late_steps", "reprocess_steps"]
+
+
+def arrival_instants(system: System, times: np.ndarray, arrival: np.ndarray | None) -> np.ndarray:
+    """The instant index at which each reading arrives, (runs or 1, K+1, S) (K+1: never,
+    within the horizon): from `arrival` (runs, K+1, S) seconds on the clock of `times`, or
+    where it is None from the sensors' fixed latencies."""
+    times = np.asarray(times, float)
+    if arrival is None:
+        if random_delays(system):
+            raise FusionlogError(
+                "arrival: a sensor's latency is a range (random delays): give the arrival "
+                "times of the readings (runs, K+1, S) s"
+            )
+        lat = np.array([s.timing.latency[0] for s in system.sensors])
+        arrival = (times[:, None] + lat[None, :])[None]
+    arrival = np.asarray(arrival, float)
+    S, K1 = len(system.sensors), len(times)
+    if arrival.ndim != 3 or arrival.shape[1:] != (K1, S):
+        raise FusionlogError(
+            f"arrival: shape {arrival.shape}, expected (runs, {K1}, {S}): when each reading "
+            "of each sensor arrived (s)"
+        )
+    early = arrival < times[None, :, None] - 1e-9
+    if early.any():
+        raise FusionlogError("arrival: a reading arrives before it is taken")
+    return arrival_steps(times, arrival)
+
+
+def late_steps(m, filters: list[list[int]], arrive: np.ndarray) -> Iterator:
+    """The estimates (x, P) at each output instant of machine `m` (its system's policy,
+    `System.late`) with the readings arriving at the instants `arrive` (runs or 1, K+1, S);
+    `filters`: the sensors each of its filters fuses (neglect's last update is per filter)."""
+    st = m.st
+    z = st.z
+    M, K1 = z.shape[:2]
+    S = len(st.system.sensors)
+    arrive = np.broadcast_to(arrive, (M, K1, S))
+    took = np.stack([~np.isnan(z[:, :, c]).all(-1) for c in st.cols], axis=-1)  # (M, K1, S)
+    used = np.isin(np.arange(S), [j for g in filters for j in g])
+    arrive = np.where(took & used, arrive, K1)  # nothing taken (or fused): nothing arrives
+    W = window(arrive)
+    policy = st.system.late
+    if policy == "neglect":
+        ok = np.zeros_like(took)
+        for g in filters:
+            ok[..., g] = accepted(took[..., g], arrive[..., g], W)
+        arrive = np.where(ok, arrive, K1)
+    if policy == "retrodict":
+        from .retrodict import retrodict_steps
+
+        return retrodict_steps(m, arrive, W)
+    return reprocess_steps(m, arrive, W)
+
+
+def window(arrive: np.ndarray) -> int:
+    """W: the largest lag (in instants) of a reading that arrives within the horizon."""
+    K1 = arrive.shape[1]
+    lag = np.where(arrive < K1, arrive - np.arange(K1)[:, None], 0)
+    return int(lag.max(initial=0))
+
+
+def reprocess_steps(m, arrive: np.ndarray, W: int) -> Iterator:
+    """Reprocessing (module docstring): machine `m` rerun from each run's stored state before
+    its oldest newly arrived reading, `arrive` (M, K+1, S) the instant each reading arrives
+    (K+1: never), W the largest lag."""
+    st = m.st
+    z = st.z
+    M, K1 = z.shape[:2]
+    col_sensor = np.concatenate([np.full(len(c), j) for j, c in enumerate(st.cols)])
+    arrive_c = arrive[..., col_sensor]  # (M, K1, m): when each component arrives
+    steps = np.arange(K1)
+    hist = {-1: m.start()}  # the state after instant i, with what has arrived so far
+    for k in range(K1):
+        lo = max(0, k - W)
+        new = (arrive[:, lo : k + 1] == k).any(-1)  # (M, k+1-lo): a reading of i arrives now
+        i0 = np.where(new.any(-1), steps[lo : k + 1][np.argmax(new, -1)], k)
+        s = hist[int(i0.min()) - 1]
+        for i in range(int(i0.min()), k + 1):
+            zi = np.where(arrive_c[:, i] <= k, z[:, i], np.nan)
+            s = m.step(i, s, zi)
+            if i < k:  # runs whose rewind starts later keep their stored state
+                s = select(i >= i0, s, hist[i])
+            hist[i] = s
+        for i in [i for i in hist if i < k - W]:
+            del hist[i]
+        yield m.out(s)
+
+
+def select(mask: np.ndarray, a, b):
+    """The state `a` in the runs `mask` (M,), `b` elsewhere, for states made of arrays whose
+    first axis is the run (tuples and lists of them, None kept)."""
+    if mask.all():
+        return a
+    if a is None:
+        return None
+    if isinstance(a, (tuple, list)):
+        return type(a)(select(mask, u, v) for u, v in zip(a, b, strict=True))
+    return np.where(mask.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
