@@ -37,7 +37,8 @@ import numpy as np
 
 from .architectures import Plan, definition, parse_arch
 from .architectures.filters import constant_tail
-from .latency_corr import conditions_of, correlated_refusal, with_conditions
+from .latency_corr import apart_pairs, conditions_of, correlated_refusal, with_conditions
+from .latency_joint import joint_fused_plan
 from .latency_stacked import fused_plan, stacked_system, wrap
 from .model import System
 
@@ -346,6 +347,11 @@ class LateModel:
                 inner = build(centre[0], arch, self.steps, mask, **kw)
                 m, W, n = self.system.m, self.window, self.system.n
                 return wrap(inner, centre[1], m, W, n, centre[2])
+            if locals_kind == "per-sensor" and definition(base).joint and apart_pairs(self.system):
+                # correlated readings enter two locals at two instants: J from the maps
+                criterion = kw.get("criterion", "trace")
+                args = (self.system, self.stacked, base, mask, self.slots, self.window)
+                return joint_fused_plan(*args, criterion)
             if locals_kind == "per-sensor":  # the rule on the locals' current blocks
                 criterion = kw.get("criterion", "trace")
                 nodes = kw.get("history_nodes", False)

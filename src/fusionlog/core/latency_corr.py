@@ -34,7 +34,13 @@ from ..errors import NumericalError
 from .model import System
 from .models import LinearSensor
 
-__all__ = ["Conditions", "conditions_of", "correlated_refusal", "with_conditions"]
+__all__ = [
+    "Conditions",
+    "apart_pairs",
+    "conditions_of",
+    "correlated_refusal",
+    "with_conditions",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -201,15 +207,11 @@ def correlated_refusal(system: System, locals_kind: str, arch: str) -> str | Non
     arrive at different instants, or None. The centre (CKF) fuses the decorrelated readings
     (module docstring); HKF believes the sensors independent on time as late; a single
     sensor's filter and the locals of a rule that does not read their joint error covariance
-    fuse one sensor each, so nothing correlated meets in a filter."""
+    fuse one sensor each, so nothing correlated meets in a filter; the rules that read the
+    locals' joint error covariance get it from the affine maps (`core.latency_joint`)."""
     if not system.linear:  # the EKF/UKF lanes rerun an instant with all its arrived readings
         return None  # (`core.nonlinear.late`): no stacked model, their own refusals
-    lat = [s.timing.latency for s in system.sensors]
-    apart = [
-        (i, j)
-        for (i, j), Rij in system.cross_R.items()
-        if np.any(Rij) and (lat[i] != lat[j] or lat[i][0] != lat[i][1])
-    ]
+    apart = apart_pairs(system)
     if not apart:
         return None
     i, j = (system.sensors[q].name for q in apart[0])
@@ -219,13 +221,15 @@ def correlated_refusal(system: System, locals_kind: str, arch: str) -> str | Non
             "retrodiction (Al1) updates with a late reading as if independent of what the "
             "filter fused: use reprocess or neglect, which fuse the decorrelated reading"
         )
-    from .architectures import definition, parse_arch
-
-    base, _ = parse_arch(arch, [s.name for s in system.sensors])
-    if locals_kind == "per-sensor" and definition(base).joint:
-        return (
-            f"architecture {arch}: sensors {i!r} and {j!r} are correlated and arrive apart; "
-            "its rule weighs the locals by their joint error covariance, whose recursion "
-            "pairs noises entering two locals at one instant, not at two"
-        )
     return None
+
+
+def apart_pairs(system: System) -> list[tuple[int, int]]:
+    """The pairs of correlated sensors whose readings of one instant may arrive at different
+    instants (different latencies, or a latency range)."""
+    lat = [s.timing.latency for s in system.sensors]
+    return [
+        (i, j)
+        for (i, j), Rij in system.cross_R.items()
+        if np.any(Rij) and (lat[i] != lat[j] or lat[i][0] != lat[i][1])
+    ]
