@@ -31,7 +31,15 @@ Where more than one filter fuses a late sensor (`core.retrodict_fused` for the l
 * *track to track*: each local EKF applies Al1 to its own sensor's late readings, as the one
   filter does (its own tau, its own stored estimates), and the rule fuses the locals' estimates
   at every output instant with their reported covariances, as on time; a rule that reads the
-  locals' joint error covariance is refused (`core.latency.ekf_retrodict_refusal`).
+  locals' joint error covariance is refused (`core.latency.ekf_retrodict_refusal`). The linear
+  plans' J (`core.retrodict_fused`: E cov([x_k; s_k]) E^T) does not carry over: the truth's
+  covariance cancels in it only because every local predicts with the F that moves x_k, which
+  EKF locals linearised at their own estimates do not. What J needs here is the on-time lanes'
+  error form (J_ij <- F_i J_ij F_j^T + Q, each local's own Jacobians) extended to Al1: the
+  errors of each local's current and stored estimates and the process noises w_s of the
+  window as one vector, its covariance carried through each in-sequence update and each Al1
+  (x_d - x(d|tau) = F(d,tau) [x_tau - x(tau|tau) - w(d,tau) + Q(tau,d) S*^-1 nu*-error], the
+  errors of x(tau|tau) and the stored x(tau|a) both in that vector). Not built.
 * *HKF*: each local restarts from the fused prediction and hands the centre its equivalent
   measurement H_j^T R_j^-1 (z_j - h_j(x) + H_j x), information H_j^T R_j^-1 H_j, H_j the
   Jacobian at the point it restarted from; a late pair is retrodicted by the centre with Al1 in
