@@ -66,7 +66,7 @@ def main() -> None:
     on_time = dataclasses.replace(
         sc.system, sensors=(*sc.system.sensors[:2], dataclasses.replace(s3, timing=SensorTiming()))
     )
-    from fusionlog.core.latency import draw_arrivals
+    from fusionlog.core.late_policy import draw_arrivals
 
     arrivals = draw_arrivals(late_sys, sim.times, sc.seed, 0, args.runs)
     K = len(sim.times) - 1

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 
 from ..errors import FusionlogError
 from .architectures.registry import STATE_ARCHITECTURES, definition, parse_arch
-from .latency import late_refusal
+from .late_policy import late_refusal
 from .model import System
 
 #: The five architectures of the paper's Table I, in its column order.
@@ -28,7 +28,7 @@ __all__ = [
 
 def parse_arch_of(arch: str, system: System) -> tuple[str, str | None]:
     """`parse_arch` on the system's sensors, and refused (ValueError) where the system's late
-    sensors give the architecture no meaning or no plan (`core.latency.late_refusal`)."""
+    sensors give the architecture no meaning or no plan (`core.late_policy.late_refusal`)."""
     out = parse_arch(arch, [s.name for s in system.sensors])
     why = late_refusal(system, definition(out[0]).locals, arch)
     if why is not None:

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from .linalg import overflow_is_inf
+from .rpe_pairs import RPE_UNITS, RpeTaker
 
 __all__ = [
     "ALIGNMENTS",
@@ -62,12 +63,9 @@ __all__ = [
 ]
 
 ALIGNMENTS = ("none", "origin", "rigid", "similarity")
-RPE_UNITS = ("frames", "m", "s")
 STATISTICS = ("rmse", "mean", "median", "std", "min", "max")
 #: An alignment fitted by least squares needs this many matched instants.
 MIN_FIT = 3
-#: Tolerance of the seconds rule of the RPE pairs: the recording's clock is in nanoseconds.
-TIME_TOL = 1e-9
 
 
 class AlignmentError(ValueError):
@@ -207,8 +205,6 @@ def rpe_pairs(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Indices (i, j) of the consecutive RPE pairs of a matched sequence: positions (N, m) (the
     aligned estimate, whose path the ``m`` rule follows), times (N,) s (see the module)."""
-    from .trajectory_blocks import RpeTaker  # its home: the rules carried across blocks
-
     ids = RpeTaker(delta, unit).take(positions, times)
     return ids[:-1], ids[1:]
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from fusionlog.core.latency import LATE_POLICIES
+from fusionlog.core.late_policy import LATE_POLICIES
 from fusionlog.core.timing import MAX_PERIOD_S
 
 from . import toml

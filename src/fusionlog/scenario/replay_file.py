@@ -296,8 +296,8 @@ def _arrival(ctx: Ctx, t: dict[str, Any], where: str, stream: Stream) -> bool:
 def _late_probe(ctx: Ctx, system: System, streams: list[Stream]) -> System:
     """The system as the estimation will see it once the delays are read (`arrival` sensors
     late by an unknown delay): refused in one line where late measurements cannot be
-    estimated (`core.latency.system_refusal`), and the architectures checked against it."""
-    from fusionlog.core.latency import system_refusal
+    estimated (`core.late_policy.system_refusal`), and the architectures checked against it."""
+    from fusionlog.core.late_policy import system_refusal
     from fusionlog.core.timing import SensorTiming
 
     late = [j for j, st in enumerate(streams) if st.arrival]

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from fusionlog.core.latency import system_refusal
+from fusionlog.core.late_policy import system_refusal
 from fusionlog.core.model import Prior, System
 from fusionlog.core.models import SensorModel
 from fusionlog.core.names import STATE_ARCHITECTURES, known_arch, parse_arch_of

@@ -29,7 +29,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from fusionlog.core.architectures import Estimate
-from fusionlog.core.latency import random_delays
+from fusionlog.core.late_policy import random_delays
 from fusionlog.driver import JobPlans, PlanCache, estimate_block
 from fusionlog.errors import NumericalError
 from fusionlog.memory import keep_freed_memory

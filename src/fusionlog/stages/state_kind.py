@@ -18,7 +18,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from fusionlog.core.architectures.long_log import steady_log
-from fusionlog.core.latency import is_late, random_delays
+from fusionlog.core.late_policy import is_late, random_delays
 from fusionlog.core.model import System
 from fusionlog.core.names import check_architectures
 from fusionlog.core.reference import reference_paths
@@ -70,7 +70,7 @@ def with_late(system: Any, late: str | None, where: str = "--late") -> Any:
     recorded), refused in one line where its late sensors cannot take it."""
     if late is None:
         return system
-    from fusionlog.core.latency import LATE_POLICIES, system_refusal
+    from fusionlog.core.late_policy import LATE_POLICIES, system_refusal
 
     if not isinstance(system, System):
         raise FusionlogError(f"{where}: only state scenarios have late measurements")
@@ -162,7 +162,7 @@ class StateKind(Kind):
         return ((k0, k1, x, [z[..., sl] for sl in system.sensor_slices]) for k0, k1, x, z in blocks)
 
     def arrivals(self, scenario: Scenario, run_offset: int, runs: int) -> np.ndarray | None:
-        from fusionlog.core.latency import draw_arrivals
+        from fusionlog.core.late_policy import draw_arrivals
 
         return draw_arrivals(scenario.system, scenario.times, scenario.seed, run_offset, runs)
 

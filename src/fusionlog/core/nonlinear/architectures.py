@@ -31,7 +31,7 @@ from ...errors import FusionlogError, NumericalError
 from ..architectures.definition import Architecture
 from ..architectures.registry import definition, parse_arch
 from ..kernels import lanes
-from ..latency import ekf_retrodict_refusal, is_late, late_refusal
+from ..late_policy import ekf_retrodict_refusal, is_late, late_refusal
 from ..linalg import NUMERICAL_FAILURES, mT, spd_inv, sym
 from ..model import System
 from ..models.polar import PolarSensor

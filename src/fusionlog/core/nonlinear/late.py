@@ -15,7 +15,7 @@ arrived by then (arrival <= t_k) may be used:
   filter run from scratch on the readings taken by t_i that have arrived by t_k (a run whose
   own i0 is later keeps its stored states: the rerun starts at the block's oldest i0).
 * *neglect*: a reading older than the last update of the filter that fuses it (the newest
-  measurement time it has taken; `core.latency.accepted`, per local filter in the track-to-
+  measurement time it has taken; `core.late_policy.accepted`, per local filter in the track-to-
   track architectures) is dropped, the others processed as reprocess does. As they are not
   older than the last update, the rewind goes back to that update at most: between it and
   t_k the stored states are predictions, so this is the event-driven filter that predicts
@@ -32,8 +32,9 @@ from collections.abc import Iterator
 import numpy as np
 
 from ...errors import FusionlogError
-from ..latency import accepted, arrival_steps, random_delays
+from ..late_policy import accepted, arrival_steps, random_delays
 from ..model import System
+from .local import select
 
 __all__ = ["arrival_instants", "late_steps", "reprocess_steps"]
 
@@ -122,15 +123,3 @@ def reprocess_steps(m, arrive: np.ndarray, W: int) -> Iterator:
         for i in [i for i in hist if i < k - W]:
             del hist[i]
         yield m.out(s)
-
-
-def select(mask: np.ndarray, a, b):
-    """The state `a` in the runs `mask` (M,), `b` elsewhere, for states made of arrays whose
-    first axis is the run (tuples and lists of them, None kept)."""
-    if mask.all():
-        return a
-    if a is None:
-        return None
-    if isinstance(a, (tuple, list)):
-        return type(a)(select(mask, u, v) for u, v in zip(a, b, strict=True))
-    return np.where(mask.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)

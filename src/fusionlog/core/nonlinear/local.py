@@ -262,3 +262,15 @@ def update(
     if ukf is None:
         return update_ekf(model, x, P, z, work)
     return update_ukf(model, x, P, z, ukf)
+
+
+def select(mask: np.ndarray, a, b):
+    """The state `a` in the runs `mask` (M,), `b` elsewhere, for states made of arrays whose
+    first axis is the run (tuples and lists of them, None kept)."""
+    if mask.all():
+        return a
+    if a is None:
+        return None
+    if isinstance(a, (tuple, list)):
+        return type(a)(select(mask, u, v) for u, v in zip(a, b, strict=True))
+    return np.where(mask.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)

@@ -24,14 +24,14 @@ x(tau|a), P(tau|a) the EKF's prediction of the stored estimate from a to tau. Th
   `core.retrodict`, the residual z(d) - h(x(d|tau)) the sensor's own (bearings wrapped).
 
 The estimate at an output instant is the filter predicted there from tau. The UKF has no
-retrodiction here (`core.latency.nonlinear_refusal` says why).
+retrodiction here (`core.late_policy.nonlinear_refusal` says why).
 
 Where more than one filter fuses a late sensor (`core.retrodict_fused` for the linear plans):
 
 * *track to track*: each local EKF applies Al1 to its own sensor's late readings, as the one
   filter does (its own tau, its own stored estimates), and the rule fuses the locals' estimates
   at every output instant with their reported covariances, as on time; a rule that reads the
-  locals' joint error covariance is refused (`core.latency.ekf_retrodict_refusal`). The linear
+  locals' joint error covariance is refused (`core.late_policy.ekf_retrodict_refusal`). The linear
   plans' J (`core.retrodict_fused`: E cov([x_k; s_k]) E^T) does not carry over: the truth's
   covariance cancels in it only because every local predicts with the F that moves x_k, which
   EKF locals linearised at their own estimates do not. What J needs here is the on-time lanes'
@@ -57,10 +57,9 @@ from collections.abc import Iterator
 import numpy as np
 
 from ...errors import FusionlogError
-from ..latency import nonlinear_refusal
+from ..late_policy import nonlinear_refusal
 from ..linalg import mm, mT, solve, sym
-from .late import select
-from .local import Stacked, transition
+from .local import Stacked, select, transition
 
 
 def retrodict_steps(m, arrive: np.ndarray, W: int) -> Iterator:

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from fusionlog.core.evaluation import Evaluation
-from fusionlog.core.latency import is_late
+from fusionlog.core.late_policy import is_late
 from fusionlog.core.model import System
 from fusionlog.core.names import known_arch
 from fusionlog.driver import KeptPlans, PlanCache
