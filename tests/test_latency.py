@@ -516,6 +516,26 @@ def test_retrodict_with_a_one_update_lag_is_algorithm_a_and_exact(tmp_path):
                 np.testing.assert_allclose(est[late].cov[run, k], P, rtol=1e-9, atol=1e-12)
 
 
+def retrodicted(x, P, stored, i, t):
+    """Al1's retrodiction (Bar-Shalom, Chen, Mallick 2004) of the estimate (x, P) at t to the
+    late reading's time i < t, from the newest estimate stored at or before i: the retrodicted
+    state and covariance and cov(x_t, x_i) = (P - P_xv) F(t, i)^-T."""
+    a = max(s for s in stored if s <= i)
+    xa, Pa = stored[a]
+    Fa, Qa = transition(a, t)
+    Pp = Fa @ Pa @ Fa.T + Qa
+    Ppi = np.linalg.inv(Pp)
+    A = Ppi @ (Pp - P) @ Ppi
+    g = Ppi @ (x - Fa @ xa)
+    Fkd, Qkd = transition(i, t)
+    Fdk = np.linalg.inv(Fkd)
+    xd = Fdk @ (x - Qkd @ g)
+    Pxv = Qkd - Pp @ A @ Qkd
+    Pvv = Qkd - Qkd @ A @ Qkd
+    Pd = Fdk @ (P + Pvv - Pxv - Pxv.T) @ Fdk.T
+    return xd, Pd, (P - Pxv) @ Fdk.T
+
+
 def al1(z, arrive, K, R, W):
     """Bar-Shalom, Chen, Mallick 2004, Al1, event-driven: the updates since the newest stored
     estimate at or before the OOSM's time as one equivalent measurement of the current state
@@ -535,22 +555,10 @@ def al1(z, arrive, K, R, W):
                 x, P, t = Fi @ x, Fi @ P @ Fi.T + Qi, i
                 x, P = kf_update(x, P, [z[j][i] for j in js], [R[j] for j in js])
             else:
-                a = max(s for s in stored if s <= i)
-                xa, Pa = stored[a]
-                Fa, Qa = transition(a, t)
-                Pp = Fa @ Pa @ Fa.T + Qa
-                Ppi = np.linalg.inv(Pp)
-                A = Ppi @ (Pp - P) @ Ppi
-                g = Ppi @ (x - Fa @ xa)
-                Fkd, Qkd = transition(i, t)
-                Fdk = np.linalg.inv(Fkd)
-                xd = Fdk @ (x - Qkd @ g)
-                Pxv = Qkd - Pp @ A @ Qkd
-                Pvv = Qkd - Qkd @ A @ Qkd
-                Pd = Fdk @ (P + Pvv - Pxv - Pxv.T) @ Fdk.T
+                xd, Pd, C = retrodicted(x, P, stored, i, t)
                 Hd = np.vstack([H] * len(js))
                 Sd = Hd @ Pd @ Hd.T + np.diag([R[j] for j in js])
-                Pxz = (P - Pxv) @ Fdk.T @ Hd.T
+                Pxz = C @ Hd.T
                 Wd = Pxz @ np.linalg.inv(Sd)
                 x = x + Wd @ (np.array([z[j][i] for j in js]) - Hd @ xd)
                 P = P - Wd @ Pxz.T

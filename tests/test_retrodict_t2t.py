@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from cli_helpers import ok
 from scipy.optimize import minimize_scalar
-from test_latency import RANDOM, H, al1, millman, scenario, transition
+from test_latency import RANDOM, H, al1, millman, retrodicted, scenario, transition
 
 import fusionlog as fl
 
@@ -131,20 +131,7 @@ def hkf_al1(z, arrive, K, R, W=4):
                 P = np.linalg.inv(Y)
                 x = P @ (Yp @ xp + i_d)
             else:
-                a = max(s for s in stored if s <= i)
-                xa, Pa = stored[a]
-                Fa, Qa = transition(a, t)
-                Pp = Fa @ Pa @ Fa.T + Qa
-                Ppi = np.linalg.inv(Pp)
-                A = Ppi @ (Pp - P) @ Ppi
-                g = Ppi @ (x - Fa @ xa)
-                Fkd, Qkd = transition(i, t)
-                Fdk = np.linalg.inv(Fkd)
-                xd = Fdk @ (x - Qkd @ g)
-                Pxv = Qkd - Pp @ A @ Qkd
-                Pvv = Qkd - Qkd @ A @ Qkd
-                Pd = Fdk @ (P + Pvv - Pxv - Pxv.T) @ Fdk.T
-                C = (P - Pxv) @ Fdk.T  # cov(x_k, x_d)
+                xd, Pd, C = retrodicted(x, P, stored, i, t)  # C = cov(x_k, x_d)
                 G = C @ np.linalg.inv(np.eye(2) + Id @ Pd)
                 x = x + G @ (i_d - Id @ xd)
                 P = P - G @ Id @ C.T
