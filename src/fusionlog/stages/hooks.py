@@ -131,6 +131,11 @@ class Kind(ABC):
         """When each reading of the runs arrives, (runs, K+1, S) seconds; None: on time."""
         return None
 
+    def latencies(self, scenario: Scenario) -> np.ndarray | None:
+        """Each sensor's fixed latency (S,) s where some sensor is late and none has a delay
+        drawn per reading (a reading taken at t arrives at t + latency); None otherwise."""
+        return None
+
     @abstractmethod
     def model(self, sensors: McapFile, recorded: Scenario | None, model_path: Path | None) -> Model:
         """The filter's model: the recorded scenario's system, or the ``--model`` file's."""

@@ -166,6 +166,12 @@ class StateKind(Kind):
 
         return draw_arrivals(scenario.system, scenario.times, scenario.seed, run_offset, runs)
 
+    def latencies(self, scenario: Scenario) -> np.ndarray | None:
+        system = scenario.system
+        if not is_late(system) or random_delays(system):
+            return None
+        return np.array([s.timing.latency[0] for s in system.sensors])
+
     def model(self, sensors: McapFile, recorded: Scenario | None, model_path: Path | None) -> Model:
         if model_path is None:
             recorded = self.recorded(sensors, recorded)
@@ -313,8 +319,8 @@ class _StateEstimator(Estimator):
         system = plans.system
         if plans.steps + 1 <= B or reference_paths():
             return None
-        if is_late(system):  # late readings (issue 30): the whole run
-            return None
+        if is_late(system):  # late readings (issue 30): the late plans carried, else whole
+            return self._late_windows(sensors, B)
         if not system.linear:  # EKF/UKF: their states carried from block to block
             return self._nonlinear_windows(sensors, B)
         steady = system.Rs is None and system.time_invariant
@@ -337,6 +343,28 @@ class _StateEstimator(Estimator):
         return (
             (k0, k1, {a: _estimate_writer(e.mean, e.cov, True, k0) for a, e in got.items()})
             for k0, k1, got in out
+        )
+
+    def _late_windows(self, sensors: McapFile, B: int) -> Any:
+        """A long one-run log with late sensors at fixed latencies, every reading present, in
+        blocks of time: the late plans of a short horizon, their state (the latency window)
+        carried across the blocks (`core.latency_long`); None otherwise (the whole run)."""
+        from fusionlog.core.latency_long import late_steady_log
+        from fusionlog.driver.long_log import long_estimates, spool_readings
+
+        plans = self.plans
+        system = plans.system
+        log = late_steady_log(system, self.archs, plans.steps, plans.criterion, sensors.times())
+        if log is None:
+            return None
+        spool = spool_readings(sensors.iter_time_blocks(self.topics, B), self.topics, system.m)
+        if spool.missing:  # the plans stand for a complete log
+            spool.close()
+            return None
+        plans.patterns.append(np.packbits(np.ones((plans.steps + 1, system.m), bool)).tobytes())
+        return (
+            (k0, k1, {a: _estimate_writer(e.mean, e.cov, True, k0) for a, e in got.items()})
+            for k0, k1, got in long_estimates(log, spool, B)
         )
 
     def _nonlinear_windows(self, sensors: McapFile, B: int) -> Any:

@@ -21,7 +21,7 @@ pass, which fuses it with the forward filter's states block by block (eq. 28).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -188,19 +188,29 @@ def _steady(plan: Plan, c: int) -> bool:
 
 
 def steady_log(
-    system: System, archs: Sequence[str], steps: int, criterion: str = "trace"
+    system: System,
+    archs: Sequence[str],
+    steps: int,
+    criterion: str = "trace",
+    build: Callable[[str, int], Plan] | None = None,
 ) -> SteadyLog | None:
     """The short plans standing for a log of instants 0..`steps` with every measurement present
     (`SteadyLog`), or None where they do not: a model that is not time-invariant or linear, or
     plans not steady by the middle of the longest horizon (`HORIZONS`). A log no longer than
-    that horizon has its plans over all of it (`SteadyLog.whole`)."""
+    that horizon has its plans over all of it (`SteadyLog.whole`). `build(arch, K)`: the plan
+    of instants 0..K (default `build_plan`; late sensors: `core.latency_long`)."""
     if not (system.linear and system.time_invariant):
         return None
+    if build is None:
+
+        def build(arch: str, K: int) -> Plan:
+            return build_plan(system, arch, K, None, criterion)
+
     if steps + 1 <= HORIZONS[-1]:
-        plans = {a: build_plan(system, a, steps, None, criterion) for a in archs}
+        plans = {a: build(a, steps) for a in archs}
         return SteadyLog(plans, steps, steps + 1)
     for horizon in HORIZONS:
-        plans = {a: build_plan(system, a, horizon - 1, None, criterion) for a in archs}
+        plans = {a: build(a, horizon - 1) for a in archs}
         if all(_steady(p, horizon // 2) for p in plans.values()):
             return SteadyLog(plans, steps, horizon)
     return None

@@ -65,6 +65,8 @@ class LongSetup:
     replay_exact: Any = None
     #: the states the truth gives where it gives only some (partial truth: metrics over them)
     truthed: list[int] | None = None
+    #: the policy for late measurements where some sensor is late (summary.json "late")
+    late: str | None = None
 
     @property
     def bound(self) -> dict[str, np.ndarray]:
@@ -192,6 +194,8 @@ class LongEvaluator:
             if b is not None and a in archs:
                 archs[a]["bound"] = b
         summary = {**s.head, "architectures": archs}
+        if s.late is not None:
+            summary["late"] = s.late
         pcrb = None
         if self.pcrb is not None:  # no exact analysis beside the Monte Carlo values
             for entry in archs.values():

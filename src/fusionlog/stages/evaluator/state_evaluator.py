@@ -202,7 +202,7 @@ class StateEvaluator(Evaluator):
 
         if self.M != 1 or self.K + 1 <= time_block() or reference_paths():
             return None
-        if self.late is not None:  # late readings (issue 30): the whole run
+        if self.late is not None and self._late_whole():  # late readings (issue 30)
             return None
         parts = {MetricsPart, ExactPart, SamplesPart, NisPart, BoundPart, PcrbPart, TrajectoryPart}
         parts |= {PlanePart}
@@ -227,12 +227,14 @@ class StateEvaluator(Evaluator):
                 return None
             p = exact.plans
             steady = exact.mask is None and p.system.time_invariant
-            log = steady_log(p.system, exact.known, self.K, p.criterion) if steady else None
+            log = self._steady_log(p, exact.known) if steady else None
             for a in exact.known if log is not None else ():
                 expected[a] = log.expected(a, exact.truth)
                 if not log.whole and not converged(expected[a], log.c):
                     log, expected = None, {}
                     break
+            if log is None and self.late is not None:  # no late plans stand for it: whole
+                return None
             if log is None:  # a recorded replay: the one-log route in blocks, else the whole
                 replayed = self._replay_exact(exact)
                 if replayed is None:
@@ -261,7 +263,7 @@ class StateEvaluator(Evaluator):
         if plane is not None:  # the inputs' ellipses: each sensor's SKF's short plans
             p = plane.plans
             skf = [f"SKF:{s.name}" for s in p.system.sensors]
-            inputs = steady_log(p.system, skf, self.K, p.criterion)
+            inputs = self._steady_log(p, skf)
             if inputs is None:
                 return None
         sc = self.sc
@@ -273,7 +275,7 @@ class StateEvaluator(Evaluator):
                 recorded=sc.replay is not None, truth_info=self.metrics.truth_info, log=log,
                 expected=expected, nis=long_nis, pcrb=pcrb, trajectory=traj,
                 plane=(plane, inputs) if plane is not None else None,
-                replay_exact=replayed,
+                replay_exact=replayed, late=self.late,
                 truthed=None if len(self.metrics.truthed) == self.n else self.metrics.truthed,
                 fields={
                     "state_names": tuple(sc.state_names), "confidence": sc.confidence,
@@ -282,6 +284,26 @@ class StateEvaluator(Evaluator):
                 },
             )
         )  # fmt: skip
+
+    def _late_whole(self) -> bool:
+        """Whether a log with late sensors takes the whole run: delays that differ per reading
+        (recorded or drawn arrivals: plans per arrival pattern), or an exact analysis whose
+        late plans do not stand for the log (`core.latency_long`)."""
+        from fusionlog.core.late_policy import random_delays
+
+        exact = next((p for p in self.parts if isinstance(p, ExactPart)), None)
+        plans = exact.plans if exact is not None else None
+        return plans is None or random_delays(plans.system) or plans.system.Rs is not None
+
+    def _steady_log(self, plans: PlanCache, archs: Sequence[str]) -> Any:
+        """The short plans standing for the log (`long_log.steady_log`; with late sensors
+        their late plans, `latency_long.late_steady_log`), or None."""
+        from fusionlog.core.architectures.long_log import steady_log
+        from fusionlog.core.latency_long import late_steady_log
+
+        if self.late is not None:
+            return late_steady_log(plans.system, archs, self.K, plans.criterion, self.times)
+        return steady_log(plans.system, archs, self.K, plans.criterion)
 
     def _replay_exact(self, exact: ExactPart) -> Any:
         """The exact values of a recorded replay in blocks of time (`.long_exact`): the one-log

@@ -1,0 +1,80 @@
+"""A long one-run log with late sensors in blocks of time (issues 30 and 34): the late plans of
+a short horizon standing for the whole log (`architectures.long_log.SteadyLog`).
+
+With fixed latencies the plans of every policy are plans on the measurements as taken
+(`core.latency`): reprocess and neglect are filters on the state stacked over the latency
+window, wrapped to keep the last W readings; retrodiction keeps its current estimate, the
+estimates stored over the window and the last W readings (`core.retrodict`). So each plan's
+internal state s_k already holds everything that crosses a block edge -- the stacked state
+(the instants a reprocess rewinds to), the stored estimates Al1 retrodicts from, and the
+readings taken but not yet arrived -- and carrying s_{k0-1} from block to block
+(`SteadyLog.forward`) is the whole log's recursion.
+
+Past the latency window the same lags arrive at every instant, so the maps become steady:
+reprocess and neglect by `filters.constant_tail` (the shortcut repeats one map object),
+retrodiction once its Riccati recursion repeats to the last bit (`_repeats_shared`: a step
+equal bit for bit to the one before is that object, so nothing changes numerically). The
+steadiness the long path needs is then `long_log`'s own check at the horizon's middle.
+
+Not here (the whole run at once, `stages.state_kind.time_windows`): random delays and
+recorded arrivals (the plans differ per arrival pattern), missing readings, and retrodiction
+with the rules that read the locals' joint covariance (MSC-GMF, AVG: J is propagated from the
+covariance of [x_k; s_k], which grows with the truth's, so it never repeats).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from .architectures import Plan, build_plan
+from .architectures.long_log import SteadyLog, steady_log
+from .late_policy import is_late, random_delays
+from .latency import LateModel
+from .model import System
+
+__all__ = ["late_steady_log"]
+
+_FIELDS = ("T", "U", "O", "P", "D")
+
+
+def _repeats_shared(plan: Plan) -> Plan:
+    """`plan` with each step that equals the step before bit for bit replaced by that step's
+    object (the identity the steady shortcut and `SteadyLog` look for), in place."""
+    steps = plan.steps
+    for k in range(1, len(steps)):
+        a, b = steps[k - 1], steps[k]
+        if a is not b and all(np.array_equal(getattr(a, f), getattr(b, f)) for f in _FIELDS):
+            steps[k] = a
+    return plan
+
+
+def late_steady_log(
+    system: System,
+    archs: Sequence[str],
+    steps: int,
+    criterion: str = "trace",
+    times: np.ndarray | None = None,
+) -> SteadyLog | None:
+    """The late plans of a short horizon standing for a one-run log of instants 0..`steps`
+    whose readings are all present (`SteadyLog`, its plans built by `LateModel.build` on the
+    horizon's first instants of `times`, default k dt), or None where they do not stand for
+    it: no late sensor, delays that differ per reading, a model that is not time-invariant,
+    per-message R, or plans not steady (module docstring)."""
+    if not is_late(system) or random_delays(system) or system.Rs is not None:
+        return None
+    if not (system.linear and system.time_invariant):
+        return None
+    models: dict[int, LateModel] = {}
+
+    def build(arch: str, K: int) -> Plan:
+        late = models.get(K)
+        if late is None:
+            clock = None if times is None else np.asarray(times[: K + 1], float)
+            late = models[K] = LateModel.of(system, K, clock)
+            assert late is not None
+        plan = late.build(build_plan, arch, None, criterion=criterion)
+        return _repeats_shared(plan) if system.late == "retrodict" else plan
+
+    return steady_log(system, archs, steps, criterion, build=build)
