@@ -230,3 +230,36 @@ def test_the_sensors_log_is_the_whole_runs(late_runs) -> None:
     assert got["/sensors/s1"] is None
     np.testing.assert_array_equal(got["/sensors/s2"][0], t + 1.0)
     np.testing.assert_array_equal(got["/sensors/s3"][0], t + 3.0)
+
+
+@pytest.mark.parametrize("late", ["reprocess", "retrodict"])
+def test_peak_memory_does_not_grow_with_the_instants(tmp_path, monkeypatch, late) -> None:
+    """The Python allocations' peak (tracemalloc: numpy's arrays included) of a whole `run`
+    with late sensors in blocks of 1000 instants, a recording decimated to 150 points per
+    series: twice the instants, the same peak within 10 % (the whole run holds its plans'
+    maps, estimates and per-instant sums)."""
+    import tracemalloc
+
+    import fusionlog.core.architectures.long_log as long_log
+    from fusionlog.core import decimate
+    from fusionlog.scenario import load_scenario
+    from fusionlog.stages.run import run_pipeline
+
+    monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", "1000")
+    monkeypatch.setattr(long_log, "HORIZONS", (512,))
+    monkeypatch.setattr(decimate, "DECIMATE_ABOVE", 500)
+    monkeypatch.setattr(decimate, "BUCKETS", 50)
+    spy = _Spy(monkeypatch)
+    archs = ["CKF", "MSC", "SKF:s3"]
+    path = _scenario(tmp_path, late, archs)
+    peaks = []
+    for K in (2_000, 10_000, 20_000):  # the first: what is imported on first use
+        sc = load_scenario(path, steps=K)
+        tracemalloc.start()
+        try:
+            run_pipeline(sc, tmp_path / str(K), archs=archs, force=True)
+            peaks.append(tracemalloc.get_traced_memory()[1])
+        finally:
+            tracemalloc.stop()
+    assert spy.estimated == spy.evaluated == 3 + 11 + 21  # every log in blocks (K + 1 instants)
+    assert peaks[2] <= 1.1 * peaks[1], peaks

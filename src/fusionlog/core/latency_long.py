@@ -34,7 +34,7 @@ from .late_policy import is_late, random_delays
 from .latency import LateModel
 from .model import System
 
-__all__ = ["late_steady_log"]
+__all__ = ["analysis_rtol", "late_steady_log"]
 
 _FIELDS = ("T", "U", "O", "P", "D")
 
@@ -78,3 +78,20 @@ def late_steady_log(
         return _repeats_shared(plan) if system.late == "retrodict" else plan
 
     return steady_log(system, archs, steps, criterion, build=build)
+
+
+def analysis_rtol(truth: System, plans: SteadyLog, mse: float) -> float:
+    """How closely the exact analysis of late plans can repeat at the horizon's middle c
+    (`long_log.converged`'s rtol): the late plans carry no error form (`latency_stacked.wrap`:
+    D = 0), so the analysis propagates the joint moments of the truth x_k and the plan's state,
+    and its values (of size `mse`) are differences of numbers of the size of the truth's
+    covariance at c: 64 roundings of its largest entry, relative to `mse` (at least 1e-9,
+    the on-time plans' rtol)."""
+    prior = truth.initial if truth.initial is not None else truth.prior
+    if prior is None:
+        return 1e-9
+    P, F, Q = prior.cov, truth.F, truth.GQG
+    for _ in range(plans.c):
+        P = F @ P @ F.T + Q
+    scale = float(np.abs(P).max())
+    return max(1e-9, 64 * float(np.finfo(float).eps) * scale / max(mse, 1e-300))
