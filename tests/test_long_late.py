@@ -68,6 +68,8 @@ JOINT = ["MSC-GMF", "AVG"]
 
 def archs_of(late: str, archs=ARCHS) -> list[str]:
     return [a for a in archs if late != "retrodict" or a not in JOINT]
+
+
 POLICIES = ["reprocess", "neglect", "retrodict"]
 STEPS = 1199
 #: HKF's plans reach their steady map after ~1600 instants here (its information-form
