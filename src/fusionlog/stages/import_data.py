@@ -197,7 +197,9 @@ def read_replay(scenario: Scenario) -> ReplayData:
         notes += [f"{name}: {n}" for n in s.notes]
     sensor_series = series[: len(names)]
     notes += _disjoint(names, [replay.sensors[j].time for j in range(len(names))], sensor_series)
-    instants = np.unique(np.concatenate([s.times_ns for s in sensor_series]))
+    # the sorted union by a sort (numpy 2.4's np.unique hashes: 2 s for 2·10^6 times)
+    every = np.sort(np.concatenate([s.times_ns for s in sensor_series]))
+    instants = every[np.concatenate(([True], every[1:] != every[:-1]))]
     sensors: list[_Sensor] = []
     nominal = []
     latencies = []

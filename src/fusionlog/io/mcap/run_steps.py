@@ -49,11 +49,11 @@ class RunColumn(NamedTuple):
                              arrival=part(self.arrival))  # fmt: skip
 
 
-def present_runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """[a, b) of each run of True in `mask` (w,): the instants a topic has messages at."""
+def present_runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Starts and ends [a, b) of the runs of True in `mask` (w,): the instants a topic has
+    messages at."""
     edges = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
-    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist(),
-                    strict=True))  # fmt: skip
+    return np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
 
 
 def _varint_len(steps: np.ndarray) -> np.ndarray:

@@ -456,8 +456,8 @@ class McapWriter:
         w, C = len(t), len(columns)
         if not w or not columns:
             return
-        if not (np.isfinite(t).all() and (t >= 0).all()):
-            raise ValueError("time must be finite and >= 0")
+        if not (np.isfinite(t).all() and (t >= 0).all()) or k0 + w - 1 > UINT32_MAX:
+            raise ValueError(f"time must be finite and >= 0, steps to {k0 + w - 1} in uint32")
         keep = np.ones((w, C), bool) if present is None else np.asarray(present, bool)
         if keep.shape != (w, C) or not keep.any(axis=1).all():
             raise ValueError(f"present must be ({w}, {C}) with a message at every instant")
@@ -477,11 +477,11 @@ class McapWriter:
             st = states[ci] = st if st and (st.kind, st.dim) == (c.kind, d) else \
                 self._new_topic(c.topic, c.kind, d)  # fmt: skip
             first = self._first_steps.setdefault(c.topic, StepSet())
-            for a, b in present_runs(keep[:, ci]):
-                twice = st.seen.add_range(k0 + a, k0 + b)
-                if twice is not None:
-                    raise ValueError(f"{c.topic}: step {twice} written twice for runs from 0")
-                first.add_range(k0 + a, k0 + b)
+            a, b = present_runs(keep[:, ci])
+            twice = st.seen.add_ranges(k0 + a, k0 + b)
+            if twice is not None:
+                raise ValueError(f"{c.topic}: step {twice} written twice for runs from 0")
+            first.add_ranges(k0 + a, k0 + b)
         self._first_times.extend(k0, t)
         self._hstep = -1  # the one-message path's cached head is not these instants'
         logs = [None if st is None else st.log for st in states]

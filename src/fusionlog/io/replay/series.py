@@ -130,7 +130,8 @@ class Collector:
         t = np.frombuffer(self._times, dtype=np.int64)
         if (t[1:] > t[:-1]).all():  # the usual case: increasing, no sort needed
             return False
-        return np.unique(t).size != t.size
+        s = np.sort(t)
+        return bool((s[1:] == s[:-1]).any())
 
     def _far(self, t: np.ndarray) -> str | None:
         """A note on the items whose time is far from their log time, by the others' offset."""

@@ -77,7 +77,8 @@ def read_table_streams(
     except (_NotFast, FusionlogError, pa.ArrowException, ValueError, UnicodeDecodeError, OSError):
         return [None] * len(requests)
     out: list[Series | None] = []
-    for col in collectors:
+    for i in range(len(collectors)):
+        col, collectors[i] = collectors[i], None  # its rows freed once its Series is made
         try:  # two rows at one time: the error names the lines, which only that reader knows
             out.append(None if col.has_duplicates() else col.finish())
         except FusionlogError:  # no rows with finite values: the reader says so
