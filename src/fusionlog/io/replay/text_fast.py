@@ -69,11 +69,13 @@ def read_table_streams(
     delimiter: str | None,
     columns: Sequence[str] | None,
     requests: Sequence[TextRequest],
+    block_bytes: int = _BLOCK,
 ) -> list[Series | None]:
     """Each request's Series from one pass over the table `source` (a CSV of `delimiter` and
-    `columns` as in `read_text`), or None where the line-by-line reader must read it."""
+    `columns` as in `read_text`) in blocks of about `block_bytes` (whole lines), or None where
+    the line-by-line reader must read it."""
     try:
-        collectors = _read(source, delimiter, columns, requests)
+        collectors = _read(source, delimiter, columns, requests, block_bytes)
     except (_NotFast, FusionlogError, pa.ArrowException, ValueError, UnicodeDecodeError, OSError):
         return [None] * len(requests)
     out: list[Series | None] = []
@@ -112,13 +114,13 @@ def _head(raw: BinaryIO, comments: bool) -> tuple[list[tuple[int, str]], int]:
     return sample, start
 
 
-def _blocks(raw: BinaryIO, start: int, comments: bool) -> Iterator[bytes]:
+def _blocks(raw: BinaryIO, start: int, comments: bool, size: int) -> Iterator[bytes]:
     """The table's bytes from `start` in blocks of whole lines, each checked for what only
     the line-by-line reader reads (module docstring)."""
     raw.seek(start)
     carry, total = b"", start
     while True:
-        chunk = raw.read(_BLOCK)
+        chunk = raw.read(size)
         total += len(chunk)
         if total > MAX_TEXT_BYTES:
             raise _NotFast  # grew while read: the reader stops with its error
@@ -203,7 +205,7 @@ def _times_ns(cells: pa.Array, unit: str) -> np.ndarray:
 
 
 def _read(source: Path, delimiter: str | None, columns: Sequence[str] | None,
-          requests: Sequence[TextRequest]) -> list:  # fmt: skip
+          requests: Sequence[TextRequest], block_bytes: int) -> list:  # fmt: skip
     what = requests[0].what
     with open_source(source, what, MAX_TEXT_BYTES, "a text table") as raw:
         comments = columns is not None
@@ -217,7 +219,7 @@ def _read(source: Path, delimiter: str | None, columns: Sequence[str] | None,
         wanted = sorted({*tcols, *(c for v in vcols for c in v)})
         times = sorted({(c, r.time_unit) for c, r in zip(tcols, requests, strict=True)})
         collectors = [text_collector(source, r.what, len(r.values)) for r in requests]
-        for block in _blocks(raw, start, comments):
+        for block in _blocks(raw, start, comments, block_bytes):
             cells = _parse(block, delimiter, len(header), wanted)
             ns = {(c, u): _times_ns(cells[c], u) for c, u in times}
             vals = {c: _values(cells[c]) for c in {c for v in vcols for c in v}}
