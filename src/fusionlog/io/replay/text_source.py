@@ -13,6 +13,10 @@ Times are converted from their digits to whole nanoseconds (integer arithmetic; 
 through :class:`decimal.Decimal`), never through a float, so ``1700000000.123456789`` s is
 1700000000123456789 ns. Blank lines are skipped. An empty, ``nan`` or ``inf`` value skips its
 row (counted); a row with the wrong number of fields or a non-number is an error naming its line.
+
+This is the line-by-line reader, the reference: an import reads a table once for all its
+streams, in blocks (`.text_fast`, `fusionlog.io.replay.read_streams`), wherever that reads it
+the same way, and comes here for the rest and for every error.
 """
 
 from __future__ import annotations
