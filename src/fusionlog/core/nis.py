@@ -114,13 +114,7 @@ def _normalised(nu: np.ndarray, S: np.ndarray, present: np.ndarray, usable: np.n
 def _linear_prediction(system: System, mean: np.ndarray, cov: np.ndarray, a: int, k1: int):
     """x_k^- = F_k x_{k-1}, P_k^- = F_k P_{k-1} F_k' + Q_k for k = a..k1-1 from the estimates
     mean (M, k1-a, n) and cov ([M,] k1-a, n, n) of the instants before them."""
-    n = system.n
-    if system.time_invariant:
-        F = np.broadcast_to(system.F, (k1 - a, n, n))
-        Q = np.broadcast_to(system.GQG, (k1 - a, n, n))
-    else:
-        F = np.array([system.F_at(k) for k in range(a, k1)]).reshape(k1 - a, n, n)
-        Q = np.array([system.GQG_at(k) for k in range(a, k1)]).reshape(k1 - a, n, n)
+    F, Q = system.transitions(a - 1, k1 - 1)
     return np.einsum("kij,mkj->mki", F, mean), sym(F @ cov @ mT(F) + Q)
 
 

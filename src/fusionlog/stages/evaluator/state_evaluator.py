@@ -246,7 +246,9 @@ class StateEvaluator(Evaluator):
             forward, ckf = None, _centralised()
             if any(definition(a).locals == "smoother" for a in nis.archs):
                 forward = steady_log(nis.system, [ckf], self.K)
-                if forward is None:  # a replay: its CKF carried block to block
+                if forward is None and ckf in nis.archs:  # a replay: the CKF's own estimates
+                    forward = ckf
+                if forward is None:  # a replay without the CKF: its CKF carried block to block
                     from fusionlog.core.architectures.replay_blocks import ReplayBlocks
                     from fusionlog.driver.long_log import time_block
 
