@@ -78,12 +78,7 @@ def _mul(A, B, out):  # pragma: no cover - compiled
 @_jit
 def _mul_t(A, B, out):  # pragma: no cover - compiled
     """out = A B'."""
-    for i in range(A.shape[0]):
-        for j in range(B.shape[0]):
-            v = 0.0
-            for k in range(A.shape[1]):
-                v += A[i, k] * B[j, k]
-            out[i, j] = v
+    _mul(A, B.T, out)
 
 
 @_jit
