@@ -35,8 +35,8 @@ __all__ = ["LAYOUT_META", "Layout", "StepMask"]
 
 LAYOUT_META = "fusionlog.layout"
 _FORMAT = "1"
-#: Numbers of a JSON list written or parsed at once (their text and arrays: a few 100 kB).
-_STRETCH = 1 << 15
+#: Numbers of a JSON list written or parsed at once (their text and arrays: some 10 kB).
+_STRETCH = 1 << 12
 
 
 class StepMask:
