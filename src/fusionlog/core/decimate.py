@@ -68,7 +68,10 @@ def _reduce(v: np.ndarray) -> np.ndarray:
         total = np.where(ok, v, 0.0)
         count = ok.sum(axis=1)
     ilo, ihi = lo_v.argmin(axis=1), hi_v.argmax(axis=1)
-    lo, hi = lo_v.min(axis=1), hi_v.max(axis=1)
+    # the extremes where argmin/argmax found them (min/max along a middle axis of a (nb, b,
+    # n) series take ~20 times as long as the arg- reductions)
+    lo = np.take_along_axis(lo_v, ilo[:, None], axis=1)[:, 0]
+    hi = np.take_along_axis(hi_v, ihi[:, None], axis=1)[:, 0]
     some = count > 0
     mean = np.where(some, total.sum(axis=1) / np.maximum(count, 1), np.nan)
     first, second = np.where(ilo <= ihi, lo, hi), np.where(ilo <= ihi, hi, lo)

@@ -153,7 +153,17 @@ def _linear_prediction(system: System, mean: np.ndarray, cov: np.ndarray, a: int
     else:
         F = np.array([system.F_at(k) for k in range(a, k1)]).reshape(k1 - a, n, n)
         Q = np.array([system.GQG_at(k) for k in range(a, k1)]).reshape(k1 - a, n, n)
-    return np.einsum("kij,mkj->mki", F, mean), sym(F @ cov @ mT(F) + Q)
+    xp = np.einsum("kij,mkj->mki", F, mean)
+    if system.time_invariant and cov.ndim == 3 and len(cov) > 1:
+        # a steady filter's shared covariance repeats the same matrix instant after instant
+        # (a long log's blocks): each stretch of one matrix predicted once, the same values
+        same = (cov[1:] == cov[:-1]) & (np.signbit(cov[1:]) == np.signbit(cov[:-1]))
+        first = np.flatnonzero(np.r_[True, ~same.all(axis=(1, 2))])
+        if len(first) < len(cov) // 2:
+            u = len(first)
+            Pp = sym(F[:u] @ cov[first] @ mT(F[:u]) + Q[:u])
+            return xp, np.repeat(Pp, np.diff(np.r_[first, len(cov)]), axis=0)
+    return xp, sym(F @ cov @ mT(F) + Q)
 
 
 def _prior(system: System, xp: np.ndarray, Pp: np.ndarray, k0: int) -> None:
