@@ -79,6 +79,25 @@ class StepSet:
             self.add(k)
         return None
 
+    def add_ranges(self, a: np.ndarray, b: np.ndarray) -> int | None:
+        """`add_range` of each [a_i, b_i) (increasing, disjoint: a topic's runs of steps),
+        appended at once where they follow the last step, as usual; the first step that was in
+        the set already, else None."""
+        ends = self._ends
+        if not len(a) or self._other or (ends and a[0] < ends[-1]):
+            for x, y in zip(a.tolist(), b.tolist(), strict=True):
+                twice = self.add_range(x, y)
+                if twice is not None:
+                    return twice
+            return None
+        self._count += int((b - a).sum())
+        i = 0
+        if ends and a[0] == ends[-1]:  # the first run continues the last range
+            ends[-1], i = int(b[0]), 1
+        self._starts.frombytes(np.asarray(a[i:], dtype=np.uint32).tobytes())
+        ends.frombytes(np.asarray(b[i:], dtype=np.uint64).tobytes())
+        return None
+
     def __len__(self) -> int:
         return self._count
 
