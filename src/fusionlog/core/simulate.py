@@ -144,8 +144,8 @@ def _advanced(seed: int, normals: int) -> np.random.Generator:
     """Run 0's stream (child 0 of the seed's SeedSequence) after `normals` standard normals,
     drawn in pieces (the ziggurat may take more than one word for a normal: no jump)."""
     rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0,)))
-    for a in range(0, normals, 1 << 20):
-        rng.standard_normal(min(1 << 20, normals - a))
+    for a in range(0, normals, 1 << 16):  # 0.5 MB at a time
+        rng.standard_normal(min(1 << 16, normals - a))
     return rng
 
 
@@ -173,6 +173,7 @@ def one_run_blocks(
     init = system.truth_initial
     G = system.G if system.G is not None else np.eye(n)
     LQ, LR = psd_sqrt(system.Q).T, psd_sqrt(system.R).T
+
     def chunk(row: np.ndarray) -> np.ndarray:
         """Run 0's row (1, .) as the chunk's `size` rows: `_draw`'s products are of the
         chunk's runs, and BLAS may round one row of a matrix product otherwise (gemv)."""

@@ -294,11 +294,12 @@ class _StateEstimator(Estimator):
 
     def time_windows(self, sensors: McapFile) -> Any:
         """A long one-run log in blocks of time (`driver.long_log`): a steady model with every
-        reading present through its short plans, a recorded replay (irregular instants,
-        per-message R, missing readings) through the plan-free path carried block to block, a
-        nonlinear model through its EKF/UKF filters carried block to block; None otherwise (a
-        log short enough for one block, late readings, the reference paths: the whole run at
-        once)."""
+        reading present through its short plans, a recorded replay or a simulated run without
+        steady plans (irregular instants, per-message R, readings missing or lost at dropouts)
+        through the plan-free path carried block to block, a nonlinear model through its
+        EKF/UKF filters carried block to block; None otherwise (a log short enough for one
+        block, late readings, the reference paths, a model `ReplayBlocks.of` refuses: the
+        whole run at once)."""
         from fusionlog.core.architectures.replay_blocks import ReplayBlocks
         from fusionlog.driver.long_log import (
             long_estimates,
