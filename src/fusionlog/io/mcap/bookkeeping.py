@@ -20,6 +20,7 @@ import numpy as np
 
 from fusionlog.core.timing import regular_times
 
+from .layout import StepMask
 from .wire import encode_block_fields, encode_payload2_key
 
 __all__ = ["FirstTimes", "StepSet", "TopicState"]
@@ -78,12 +79,37 @@ class StepSet:
             self.add(k)
         return None
 
+    def add_ranges(self, a: np.ndarray, b: np.ndarray) -> int | None:
+        """`add_range` of each [a_i, b_i) (increasing, disjoint: a topic's runs of steps),
+        appended at once where they follow the last step, as usual; the first step that was in
+        the set already, else None."""
+        ends = self._ends
+        if not len(a) or self._other or (ends and a[0] < ends[-1]):
+            for x, y in zip(a.tolist(), b.tolist(), strict=True):
+                twice = self.add_range(x, y)
+                if twice is not None:
+                    return twice
+            return None
+        self._count += int((b - a).sum())
+        i = 0
+        if ends and a[0] == ends[-1]:  # the first run continues the last range
+            ends[-1], i = int(b[0]), 1
+        self._starts.frombytes(np.asarray(a[i:], dtype=np.uint32).tobytes())
+        ends.frombytes(np.asarray(b[i:], dtype=np.uint64).tobytes())
+        return None
+
     def __len__(self) -> int:
         return self._count
 
-    def sorted(self) -> list[int]:
-        ranged = [k for a, b in zip(self._starts, self._ends, strict=True) for k in range(a, b)]
-        return sorted([*ranged, *self._other]) if self._other else ranged
+    def mask(self, instants: int) -> StepMask:
+        """The set as a `StepMask` of the instants 0..instants-1 (its steps are below that),
+        made from the ranges without a list of the steps."""
+        edge = np.zeros(instants + 1, dtype=np.int8)
+        edge[np.frombuffer(self._starts, np.uint32).astype(np.int64)] = 1
+        edge[np.frombuffer(self._ends, np.uint64).astype(np.int64)] -= 1  # (ranges apart)
+        inside = np.cumsum(edge[:-1], dtype=np.int8) > 0
+        inside[list(self._other)] = True
+        return StepMask(np.packbits(inside), instants, self._count)
 
 
 class FirstTimes:

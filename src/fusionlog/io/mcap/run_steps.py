@@ -19,21 +19,41 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .arrival import arrival_field
 from .wire import _K_STEP, _K_TIME, UINT32_MAX, encode_block_fields, encode_payload2_key
 
-__all__ = ["RunColumn", "encode_run_steps", "log_times"]
+__all__ = ["RunColumn", "encode_run_steps", "log_times", "present_runs"]
 
 _U8 = np.uint8
+_ARRIVAL_KEY = arrival_field(0.0)[:-8]  # what precedes a message's one arrival double
 
 
 class RunColumn(NamedTuple):
     """One topic's messages at the window's instants (run_offset 0, one run): ``first`` (w, d)
-    the values or the mean, ``second`` (w, d, d) the covariance or None."""
+    the values or the mean, ``second`` (w, d, d) the covariance or None, ``arrival`` (w,) when
+    each sensor reading arrived (s, the Block's ``arrival`` field) or None: on time."""
 
     topic: str
     kind: str
     first: np.ndarray
     second: np.ndarray | None = None
+    arrival: np.ndarray | None = None
+
+    def rows(self, i: int, j: int) -> RunColumn:
+        """The column at instants i..j-1 of its window."""
+
+        def part(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[i:j]
+
+        return self._replace(first=self.first[i:j], second=part(self.second),
+                             arrival=part(self.arrival))  # fmt: skip
+
+
+def present_runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Starts and ends [a, b) of the runs of True in `mask` (w,): the instants a topic has
+    messages at."""
+    edges = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
+    return np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
 
 
 def _varint_len(steps: np.ndarray) -> np.ndarray:
@@ -90,6 +110,10 @@ def encode_run_steps(
             sec = np.ascontiguousarray(c.second, dtype="<f8").reshape(w, -1)
             second = sec.view(_U8)
             cols.append(second)
+        if c.arrival is not None:  # the third payload: key, length 8, one double
+            arr = np.ascontiguousarray(c.arrival, dtype="<f8").reshape(w, 1)
+            key = np.frombuffer(_ARRIVAL_KEY, _U8)
+            cols += [np.broadcast_to(key, (w, len(key))), arr.view(_U8)]
         mid = encode_block_fields(0, 1, d, 8 * d)
         mid2 = encode_payload2_key(0 if c.second is None else second.shape[1])
         pieces.append((np.frombuffer(mid, _U8), cols[0], np.frombuffer(mid2, _U8), cols[1:]))

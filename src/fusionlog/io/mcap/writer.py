@@ -21,6 +21,7 @@ import os
 import struct
 from collections import deque
 from collections.abc import Sequence
+from itertools import compress
 from typing import Any
 
 import foxglove
@@ -35,7 +36,7 @@ from .arrival import arrival_field
 from .bookkeeping import FirstTimes, StepSet, TopicState
 from .chunks import one_line
 from .layout import LAYOUT_META, Layout
-from .run_steps import RunColumn, encode_run_steps, log_times
+from .run_steps import RunColumn, encode_run_steps, log_times, present_runs
 from .schema import ESTIMATE, ESTIMATE_SCHEMA, SENSOR_SCHEMA, VALUES, file_descriptor_set
 from .sink import SignalGuard, Sink
 from .wire import (
@@ -231,7 +232,7 @@ class McapWriter:
         dims = {t: st.dim for t, st in self._topic_states.items()}
         runs = max(0, self._block_offset + self._block_runs)
         sparse = {
-            t: s.sorted() for t, s in self._first_steps.items() if len(s) != steps and t in dims
+            t: s.mask(steps) for t, s in self._first_steps.items() if len(s) != steps and t in dims
         }
         return Layout(times, runs, self._blocks, dims, sparse)
 
@@ -435,47 +436,64 @@ class McapWriter:
             raise ValueError(f"cov must have shape ({n}, {n}) or ({runs}, {n}, {n}), got {c.shape}")
         self._write(topic, ESTIMATE, step, time, run_offset, runs, n, _payload(m), _payload(c))
 
-    def write_run_steps(self, k0: int, times: np.ndarray, columns: Sequence[RunColumn]) -> None:
+    def write_run_steps(
+        self,
+        k0: int,
+        times: np.ndarray,
+        columns: Sequence[RunColumn],
+        present: np.ndarray | None = None,
+    ) -> None:
         """One run's messages at instants k0..k0+w-1 (``times`` (w,) s): for each instant, for
-        each column in order, the message `write_values` (a VALUES column, its covariance
-        optional) or `write_estimate` (an ESTIMATE column: mean and covariance) would write,
-        byte for byte, encoded a window of instants at a time (`.run_steps`: a long one-run
-        log's ~10^7 messages would cost ~5 µs each one by one)."""
+        each column in order, the message `write_values` (a VALUES column, its covariance and
+        arrival optional) or `write_estimate` (an ESTIMATE column: mean and covariance) would
+        write, byte for byte, encoded a window of instants at a time (`.run_steps`: a long
+        one-run log's ~10^7 messages would cost ~5 µs each one by one). ``present`` (w, C)
+        bool: the instants each column has a message at (an imported log's topics, each at its
+        own instants; every instant has one), default every instant."""
         if self._writer is None:
             raise RuntimeError("McapWriter is closed")
         t = np.asarray(times, dtype=float) + 0.0  # + 0.0: -0.0 as 0.0, as `_set_head`
-        w = len(t)
+        w, C = len(t), len(columns)
         if not w or not columns:
             return
-        if not (np.isfinite(t).all() and (t >= 0).all()):
-            raise ValueError("time must be finite and >= 0")
-        states = []
+        if not (np.isfinite(t).all() and (t >= 0).all()) or k0 + w - 1 > UINT32_MAX:
+            raise ValueError(f"time must be finite and >= 0, steps to {k0 + w - 1} in uint32")
+        keep = np.ones((w, C), bool) if present is None else np.asarray(present, bool)
+        if keep.shape != (w, C) or not keep.any(axis=1).all():
+            raise ValueError(f"present must be ({w}, {C}) with a message at every instant")
         for c in columns:
             if c.kind == ESTIMATE and c.second is None:
                 raise ValueError(f"{c.topic}: an estimate needs its covariance")
-            d = np.shape(c.first)[-1]
-            st = self._topic_states.get(c.topic)
-            states.append(st if st and (st.kind, st.dim) == (c.kind, d) else
-                          self._new_topic(c.topic, c.kind, d))  # fmt: skip
+            if c.arrival is not None and not self._arrival_schema:
+                raise ValueError("arrival: call declare_arrival before the first message")
         if self._block_offset != 0 or self._block_runs != 1:
             self._new_block(columns[0].topic, 0, 1)
-        for c, st in zip(columns, states, strict=True):
-            twice = st.seen.add_range(k0, k0 + w)
+        states: list[TopicState | None] = [None] * C
+        # topics made in the order of their first message, as one by one
+        for ci in sorted(np.flatnonzero(keep.any(axis=0)).tolist(),
+                         key=lambda ci: (int(keep[:, ci].argmax()), ci)):  # fmt: skip
+            c, d = columns[ci], np.shape(columns[ci].first)[-1]
+            st = self._topic_states.get(c.topic)
+            st = states[ci] = st if st and (st.kind, st.dim) == (c.kind, d) else \
+                self._new_topic(c.topic, c.kind, d)  # fmt: skip
+            first = self._first_steps.setdefault(c.topic, StepSet())
+            a, b = present_runs(keep[:, ci])
+            twice = st.seen.add_ranges(k0 + a, k0 + b)
             if twice is not None:
                 raise ValueError(f"{c.topic}: step {twice} written twice for runs from 0")
-            self._first_steps.setdefault(c.topic, StepSet()).add_range(k0, k0 + w)
+            first.add_ranges(k0 + a, k0 + b)
         self._first_times.extend(k0, t)
         self._hstep = -1  # the one-message path's cached head is not these instants'
-        logs, T = [st.log for st in states], len(states)
+        logs = [None if st is None else st.log for st in states]
         for i in range(0, w, _WINDOW):
             j = min(w, i + _WINDOW)
-            part = [c._replace(first=c.first[i:j], second=None if c.second is None
-                               else c.second[i:j]) for c in columns]  # fmt: skip
-            buf, bounds = encode_run_steps(k0 + i, t[i:j], part)
-            b = bounds.tolist()
-            msgs = [buf[x:y] for x, y in zip(b[:-1], b[1:], strict=True)]
-            ns = log_times(self._origin, t[i:j], T)
-            deque(map(operator.call, logs * (j - i), msgs, ns), maxlen=0)
+            buf, bounds = encode_run_steps(k0 + i, t[i:j], [c.rows(i, j) for c in columns])
+            k = keep[i:j].ravel()  # the messages at the instants present
+            x, y = bounds[:-1][k].tolist(), bounds[1:][k].tolist()
+            msgs = [buf[a:b] for a, b in zip(x, y, strict=True)]
+            ns = compress(log_times(self._origin, t[i:j], C), k.tolist())
+            calls = compress(logs * (j - i), k.tolist())
+            deque(map(operator.call, calls, msgs, ns), maxlen=0)
             self._messages += len(msgs)
             if self._sink.alert:  # a write failed or a signal came during these messages
                 self._fail()

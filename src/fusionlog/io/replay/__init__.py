@@ -25,6 +25,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
+from fusionlog.errors import FusionlogError
+
 from .bag_source import bag_files, bag_topics, is_bag, read_bag
 from .extract import StreamFields
 from .fields import leaf_fields
@@ -42,6 +44,7 @@ __all__ = [
     "leaf_fields",
     "list_topics",
     "read_series",
+    "read_streams",
     "source_files",
     "source_kind",
     "to_enu",
@@ -119,3 +122,50 @@ def read_series(
         raise fail(source, what, f"format {format!r} is not known (known: tum)")
     return read_text(source, values=list(values), time=time, time_unit=time_unit, what=what,
                      delimiter=delimiter, columns=columns, fmt=format)  # fmt: skip
+
+
+def _table_key(source: Path, args: dict, what: str) -> tuple | None:
+    """The (file, delimiter, columns) a stream shares with the others of its table, where
+    `.text_fast` may read it; None for a stream read on its own (not a plain table, or keys
+    whose error `read_series` gives)."""
+    try:
+        StreamFields(args["values"], args.get("time"), args.get("time_unit", "s")).check(
+            source, what
+        )
+    except FusionlogError:
+        return None
+    if source_kind(source) != "text" or args.get("format") is not None:
+        return None
+    if any(args.get(k) is not None for k in ("topic", "covariance", "covariance_index")):
+        return None
+    columns = args.get("columns")
+    return (source, args.get("delimiter"), None if columns is None else tuple(columns))
+
+
+def _request(source: Path, args: dict, what: str):
+    from .text_fast import TextRequest
+
+    return TextRequest(what, tuple(args["values"]), args.get("time"), args.get("time_unit", "s"))
+
+
+def read_streams(streams: Sequence[tuple[Path, dict, str]]) -> list[Series]:
+    """``read_series(source, **args, what=what)`` of each stream in order, with the same
+    results and the same first error, but each text table read once for all the streams that
+    name it (`.text_fast`; where it does not read a stream, `read_series` does)."""
+    streams = [(Path(s), a, w) for s, a, w in streams]
+    keys = [_table_key(*st) for st in streams]
+    tables: dict[tuple, dict[int, Series | None]] = {}
+    out = []
+    for i, (source, args, what) in enumerate(streams):
+        key, series = keys[i], None
+        if key is not None:
+            if key not in tables:  # read when its first stream comes: errors stay in order
+                from .text_fast import read_table_streams  # pyarrow: only for a table
+
+                group = [j for j, k in enumerate(keys) if k == key]
+                requests = [_request(*streams[j]) for j in group]
+                read = read_table_streams(source, key[1], key[2], requests)
+                tables[key] = dict(zip(group, read, strict=True))
+            series = tables[key].pop(i)  # dropped once taken: no table outlives its streams
+        out.append(series if series is not None else read_series(source, **args, what=what))
+    return out

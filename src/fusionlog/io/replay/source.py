@@ -5,7 +5,7 @@ The file is opened without blocking (opening a FIFO for reading would otherwise 
 writer forever) and checked with ``fstat`` on the open descriptor, so what is checked is what is
 read. The size bounds say what each reader holds:
 
-* a text table (CSV) is held as Python numbers, several times its size: at most
+* a text table (CSV) is held as arrays of its rows' times and values: at most
   ``MAX_TEXT_BYTES`` (1 GiB, tens of millions of rows), and a file that grows while it is read
   stops there too;
 * an MCAP is read through its index, only the chosen topic decoded: at most

@@ -13,6 +13,10 @@ Times are converted from their digits to whole nanoseconds (integer arithmetic; 
 through :class:`decimal.Decimal`), never through a float, so ``1700000000.123456789`` s is
 1700000000123456789 ns. Blank lines are skipped. An empty, ``nan`` or ``inf`` value skips its
 row (counted); a row with the wrong number of fields or a non-number is an error naming its line.
+
+This is the line-by-line reader, the reference: an import reads a table once for all its
+streams, in blocks (`.text_fast`, `fusionlog.io.replay.read_streams`), wherever that reads it
+the same way, and comes here for the rest and for every error.
 """
 
 from __future__ import annotations
@@ -30,7 +34,14 @@ from .fields import INT64_MAX, TIME_UNITS
 from .series import Collector, Series, fail
 from .source import MAX_TEXT_BYTES, bounded_lines, open_source
 
-__all__ = ["DELIMITERS", "TUM_COLUMNS", "read_text"]
+__all__ = [
+    "DELIMITERS",
+    "TUM_COLUMNS",
+    "column_index",
+    "read_text",
+    "table_layout",
+    "text_collector",
+]
 
 _CTX = Context(prec=80)
 TUM_COLUMNS = ("timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
@@ -40,7 +51,7 @@ _DECIMAL = re.compile(r"([+-]?)(\d*)(?:\.(\d*))?")
 _SNIFF_LINES = 5
 
 
-def _column(source: Path, what: str, header: list[str], name: str, key: str) -> int:
+def column_index(source: Path, what: str, header: list[str], name: str, key: str) -> int:
     want = name.strip()
     hits = [i for i, h in enumerate(header) if h == want]
     if len(hits) == 1:
@@ -150,6 +161,38 @@ def _open(source: Path, what: str):
     return io.TextIOWrapper(raw, encoding="utf-8-sig", newline="")  # closed by the caller
 
 
+def table_layout(
+    source: Path,
+    what: str,
+    sample: list[tuple[int, str]],
+    delimiter: str | None,
+    columns: Sequence[str] | None,
+) -> tuple[str, list[str]]:
+    """The delimiter (given, else sniffed from the `sample`: the first data lines with their
+    numbers) and the header (the first sample line's fields, stripped, or `columns`): the one
+    place both the line-by-line reader and `.text_fast` decide them."""
+    if delimiter is None:
+        delimiter = _sniff(source, what, sample)
+    if columns is None:
+        header = [c.strip() for c in _splitter(delimiter)(sample[0][1])]
+    else:
+        header = [c.strip() for c in columns]
+    if len(header) < 2:
+        name = delimiter if delimiter == "whitespace" else repr(delimiter)
+        raise fail(
+            source,
+            what,
+            f"delimiter {name} does not split line {sample[0][0]} into columns "
+            f"({sample[0][1].strip()[:60]!r})",
+        )
+    return delimiter, header
+
+
+def text_collector(source: Path, what: str, d: int) -> Collector:
+    """The Collector of a table's rows (its notes and errors say "row", "line k")."""
+    return Collector(source, what, d, False, "row", lambda k: f"line {k}", "empty, NaN or infinite")
+
+
 def read_text(
     source: Path,
     *,
@@ -164,9 +207,7 @@ def read_text(
     if fmt == "tum":
         columns, delimiter = TUM_COLUMNS, delimiter or "whitespace"
         time = time if time is not None else "timestamp"
-    col = Collector(
-        source, what, len(values), False, "row", lambda k: f"line {k}", "empty, NaN or infinite"
-    )
+    col = text_collector(source, what, len(values))
     with _open(source, what) as f:
         lines = _Lines(bounded_lines(f, MAX_TEXT_BYTES, source, what), comments=columns is not None)
         it = iter(lines)
@@ -180,26 +221,13 @@ def read_text(
                 raise fail(
                     source, what, "no lines with data" if columns else "empty file (no header line)"
                 )
-            if delimiter is None:
-                delimiter = _sniff(source, what, sample)
+            delimiter, header = table_layout(source, what, sample, delimiter, columns)
             split = _splitter(delimiter)
             name = delimiter if delimiter == "whitespace" else repr(delimiter)
-            if columns is None:
-                header = [c.strip() for c in split(sample[0][1])]
-                rows = sample[1:]
-            else:
-                header = [c.strip() for c in columns]
-                rows = sample
-            if len(header) < 2:
-                raise fail(
-                    source,
-                    what,
-                    f"delimiter {name} does not split line {sample[0][0]} into columns "
-                    f"({sample[0][1].strip()[:60]!r})",
-                )
+            rows = sample[1:] if columns is None else sample
             tname = time if time is not None else "time"
-            vcols = [_column(source, what, header, v, "values") for v in values]
-            tcol = _column(
+            vcols = [column_index(source, what, header, v, "values") for v in values]
+            tcol = column_index(
                 source, what, header, tname, "time" if time is not None else "time (default)"
             )
 
