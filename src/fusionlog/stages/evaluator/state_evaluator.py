@@ -286,15 +286,17 @@ class StateEvaluator(Evaluator):
         )  # fmt: skip
 
     def _replay_exact(self, exact: ExactPart) -> Any:
-        """The exact values of a recorded replay in blocks of time (`.long_exact`): the one-log
-        route, where the truth is the filters' model and the replay path takes them; None
-        otherwise."""
+        """The exact values of one log in blocks of time (`.long_exact`) without steady plans (a
+        recorded replay, or a simulated run with dropouts or irregular instants): the one-log
+        route, where the truth is the filters' model and the replay path takes them (for a
+        simulated run the same values as the plans of its pattern, to rounding: the plans
+        would hold every instant's maps); None otherwise."""
         from fusionlog.core.exact_replay import replay_expected_blocks
         from fusionlog.driver.long_log import time_block
 
         from .long_exact import LongReplayExact
 
-        if exact.route != "one-log":
+        if exact.route not in ("one-log", "plans"):
             return None
         p, T = exact.plans, time_block()
         got = replay_expected_blocks(p.system, exact.truth, exact.known, self.K, T, p.criterion)
