@@ -236,3 +236,58 @@ def test_blocks_equal_the_whole_log_on_a_random_model() -> None:
         got = long.bound_summary(a)
         assert got["worst_step"] == want["worst_step"] and got["holds"] == want["holds"], a
         assert math.isclose(got["worst"], want["worst"], rel_tol=RTOL), a
+
+
+def _sparse_file(path: Path, K1: int) -> None:
+    """A one-run log of K1 instants k dt (regular: the layout records dt, not the times) whose
+    truth has every instant and two sensors about 90 % and 60 % of them, at random: the layout
+    record lists each sensor's steps (the `sparse` JSON)."""
+    from fusionlog.io.mcap import McapWriter
+
+    rng = np.random.default_rng(K1)
+    at = {"/sensors/a": rng.random(K1) < 0.9, "/sensors/b": rng.random(K1) < 0.6}
+    one = np.ones((1, 1))
+    with open(path, "wb") as f, McapWriter(f, chunk_size=1 << 16) as w:  # (small blocks)
+        for k in range(K1):
+            w.write_values("/truth", k, k * 0.005, 0, one)
+            for topic, mask in at.items():
+                if mask[k]:
+                    w.write_values(topic, k, k * 0.005, 0, one)
+
+
+def _sparse_open_peak(path: Path, K1: int, block: int) -> int:
+    """The peak of the Python allocations (tracemalloc) while the file's structure is learnt
+    (the layout record parsed) and it is read in blocks of time, beyond the file's metadata
+    text (read by the constructor) and its instants' times (one shared array, held here)."""
+    import tracemalloc
+
+    from fusionlog.core.timing import regular_times
+    from fusionlog.io.mcap import McapFile
+
+    times = regular_times(K1, 0.005)  # the array the layout's dt stands for, made before
+    mf = McapFile(path)
+    tracemalloc.start()
+    try:
+        got = 0
+        for k0, k1, data in mf.iter_time_blocks(["/truth", "/sensors/a", "/sensors/b"], block):
+            got += k1 - k0
+            assert data["/sensors/a"].shape == (1, k1 - k0, 1)
+        assert got == K1 and mf.times() is times
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def test_opening_a_sparse_log_does_not_grow_with_the_instants(tmp_path) -> None:
+    """Four times the instants, the same peak within 10 % when a log whose sensors have
+    readings at some instants is opened and read in blocks of 500 instants. The layout kept
+    each sensor's steps as a Python list (a 36-byte int each, checked through a set) and each
+    block of time read a (K+1,) mask: the peak grew ~110 bytes per instant here (1.3 MB at
+    10^4 instants, 4.8 MB at 4*10^4); a sensor's steps are now one bit per instant, parsed a
+    stretch of the record at a time."""
+    small, large = tmp_path / "small.mcap", tmp_path / "large.mcap"
+    _sparse_file(small, 10_000)
+    _sparse_file(large, 40_000)
+    _sparse_open_peak(small, 10_000, 500)  # what is imported on first use
+    p1, p2 = _sparse_open_peak(small, 10_000, 500), _sparse_open_peak(large, 40_000, 500)
+    assert p2 <= 1.1 * p1, (p1, p2)

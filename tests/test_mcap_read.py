@@ -4,6 +4,7 @@ writing-order checks, and the writer's fusionlog.layout record."""
 
 from __future__ import annotations
 
+import json
 import tempfile
 import tracemalloc
 from pathlib import Path
@@ -409,6 +410,34 @@ def test_layout_record_with_irregular_times(tmp_path):
     assert np.array_equal(f.read_all(["/truth"])["/truth"], truth)
 
 
+def test_layout_record_of_a_sparse_long_log(tmp_path):
+    """A topic with messages at some instants and irregular times, over more instants than
+    the record is written and parsed at once: the record's lists are `json.dumps`' text of
+    the steps and times written, and the file reads back with them."""
+    rng = np.random.default_rng(7)
+    S = 20_000
+    times = np.cumsum(rng.uniform(0.001, 0.002, S)) - 0.001
+    at = {"/sensors/a": np.flatnonzero(rng.random(S) < 0.7), "/sensors/b": np.arange(1, S, 3)}
+    path = tmp_path / "sparse.mcap"
+    has = {topic: set(steps.tolist()) for topic, steps in at.items()}
+    with mcap_writer(path) as w:
+        for k, t in enumerate(times.tolist()):
+            w.write_values("/truth", k, t, 0, np.zeros((1, 1)))
+            for topic in at:
+                if k in has[topic]:
+                    w.write_values(topic, k, t, 0, np.full((1, 1), k, float))
+    f = McapFile(path)
+    meta = f.metadata[LAYOUT_META]
+    assert meta["sparse"] == json.dumps({t: s.tolist() for t, s in at.items()}, sort_keys=True)
+    assert meta["times"] == json.dumps(times.tolist())
+    assert f.times().tobytes() == times.tobytes()
+    for topic, steps in at.items():
+        np.testing.assert_array_equal(np.flatnonzero(f.topic_steps(topic)), steps)
+        got = np.concatenate([d[topic][0, :, 0] for _, _, d in f.iter_time_blocks([topic], 999)])
+        np.testing.assert_array_equal(np.flatnonzero(~np.isnan(got)), steps)
+        np.testing.assert_array_equal(got[steps], steps)
+
+
 def test_copied_layout_record_is_replaced_by_the_writers_own(tmp_path):
     truth, sens, mean = make_data(2, 6, 3)
     big = tmp_path / "big.mcap"
@@ -467,6 +496,21 @@ GOOD = {
         {**GOOD, "format": "2"},
         {**GOOD, "dt": "x"},
         {k: v for k, v in GOOD.items() if k != "dt"},
+        # the steps of a topic with some instants, and the times, as the record lists them
+        {**GOOD, "sparse": '{"/truth": [0, 1]}'},
+        {**GOOD, "sparse": '{"/truth": [1]}'},
+        {**GOOD, "sparse": '{"/truth": [1, 0]}'},
+        {**GOOD, "sparse": '{"/truth": [0, 0]}'},
+        {**GOOD, "sparse": '{"/truth": [0, 2]}'},
+        {**GOOD, "sparse": '{"/truth": [0, 1.5]}'},
+        {**GOOD, "sparse": '{"/truth": [0, 1,]}'},
+        {**GOOD, "sparse": '{"/truth": [0, 1]'},
+        {**GOOD, "sparse": '{"/other": [0]}'},
+        {**{k: v for k, v in GOOD.items() if k != "dt"}, "times": "[0.0, 0.25]"},
+        {**{k: v for k, v in GOOD.items() if k != "dt"}, "times": "[0.0, 0.5]"},
+        {**{k: v for k, v in GOOD.items() if k != "dt"}, "times": "[0.0, 0.25, 0.5]"},
+        {**{k: v for k, v in GOOD.items() if k != "dt"}, "times": "[0.0,]"},
+        {**{k: v for k, v in GOOD.items() if k != "dt"}, "times": '[0.0, "x"]'},
     ],
 )
 def test_layout_record_is_checked_against_the_file(tmp_path, layout):

@@ -59,13 +59,21 @@ def point_steps(instants: int, b: int) -> np.ndarray:
 def _reduce(v: np.ndarray) -> np.ndarray:
     """Buckets (nb, s, ...) -> their points (nb * 3, ...)."""
     ok = np.isfinite(v)
-    lo_v = np.where(ok, v, np.inf)
-    hi_v = np.where(ok, v, -np.inf)
+    if ok.all():  # the usual case: v itself (C order, as the copies below) in their place
+        lo_v = hi_v = total = np.ascontiguousarray(v)
+        count = np.full(v.shape[:1] + v.shape[2:], v.shape[1])
+    else:
+        lo_v = np.where(ok, v, np.inf)
+        hi_v = np.where(ok, v, -np.inf)
+        total = np.where(ok, v, 0.0)
+        count = ok.sum(axis=1)
     ilo, ihi = lo_v.argmin(axis=1), hi_v.argmax(axis=1)
-    lo, hi = lo_v.min(axis=1), hi_v.max(axis=1)
-    count = ok.sum(axis=1)
+    # the extremes where argmin/argmax found them (min/max along a middle axis of a (nb, b,
+    # n) series take ~20 times as long as the arg- reductions)
+    lo = np.take_along_axis(lo_v, ilo[:, None], axis=1)[:, 0]
+    hi = np.take_along_axis(hi_v, ihi[:, None], axis=1)[:, 0]
     some = count > 0
-    mean = np.where(some, np.where(ok, v, 0.0).sum(axis=1) / np.maximum(count, 1), np.nan)
+    mean = np.where(some, total.sum(axis=1) / np.maximum(count, 1), np.nan)
     first, second = np.where(ilo <= ihi, lo, hi), np.where(ilo <= ihi, hi, lo)
     first, second = np.where(some, first, np.nan), np.where(some, second, np.nan)
     return np.stack([first, mean, second], axis=1).reshape(-1, *v.shape[2:])

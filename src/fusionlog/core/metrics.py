@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import NumericalError
+from .chi2 import chi2_quantile, expected_mahalanobis_consistent
 from .linalg import finite_mean, overflow_is_inf, spd_inv, spd_inv_scaled, wide_diagonal
 
 __all__ = [
@@ -47,21 +48,6 @@ __all__ = [
     "chi2_quantile",
     "expected_mahalanobis_consistent",
 ]
-
-
-def chi2_quantile(q: float | np.ndarray, dof: float | np.ndarray) -> np.ndarray:
-    """Chi-square quantile, `scipy.stats.chi2.ppf(q, dof)`'s routine without scipy.stats (0.5 s);
-    scipy.special (0.25 s) imported here: a Dask worker only sums, and never needs it."""
-    from scipy.special import chdtri
-
-    return chdtri(dof, 1.0 - np.asarray(q, dtype=float))
-
-
-def expected_mahalanobis_consistent(n: int) -> float:
-    """E[sqrt(chi2_n)] = sqrt(2) Gamma((n+1)/2) / Gamma(n/2): the DM of a consistent filter."""
-    from scipy.special import gammaln  # (see chi2_quantile)
-
-    return math.sqrt(2.0) * math.exp(gammaln((n + 1) / 2.0) - gammaln(n / 2.0))
 
 
 class MetricsWorkspace:

@@ -157,6 +157,14 @@ class System:
         """Process noise covariance (state space) from instant k-1 to instant k (k >= 1)."""
         return self.GQG if self.Qs is None else self.Qs[k - 1]
 
+    def transitions(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """`F_at(k)` and `GQG_at(k)` of the instants k = a+1..b at once, (b - a, n, n) each
+        (views, read-only where the system has one F or G Q G^T)."""
+        n = self.n
+        Fs = self.Fs[a:b] if self.Fs is not None else np.broadcast_to(self.F, (b - a, n, n))
+        Qs = self.Qs[a:b] if self.Qs is not None else np.broadcast_to(self.GQG, (b - a, n, n))
+        return Fs, Qs
+
     def schedule(self, steps: int) -> Schedule:
         """The instants of a horizon of `steps` dt and when each sensor measures."""
         return schedule(self.dt, steps, tuple(s.timing for s in self.sensors))

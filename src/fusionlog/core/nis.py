@@ -26,7 +26,14 @@ from .linalg import mT, overflow_is_inf, sym
 from .model import System
 from .nonlinear.local import predict
 
-__all__ = ["Innovations", "WhitenessSums", "innovations", "ljung_box", "whiteness"]
+__all__ = [
+    "Innovations",
+    "WhitenessSums",
+    "innovations",
+    "innovations_of",
+    "ljung_box",
+    "whiteness",
+]
 
 
 @dataclass
@@ -44,7 +51,6 @@ class Innovations:
 BLOCK = 32_768
 
 
-@overflow_is_inf  # an outlier near 1e308: its NIS is inf, reported as non-finite
 def innovations(
     system: System,
     mean: np.ndarray,
@@ -57,25 +63,56 @@ def innovations(
     ((K+1, n, n) shared or (M, K+1, n, n)), on the components `rows` of the stacked
     measurements z (M, K+1, m), with noise covariance R (rows x rows; default the system's,
     per instant where it varies: `System.R_at`). Computed in blocks of `BLOCK` instants."""
+    return innovations_of(system, mean, cov, z, [rows], R)[0]
+
+
+@overflow_is_inf  # an outlier near 1e308: its NIS is inf, reported as non-finite
+def innovations_of(
+    system: System,
+    mean: np.ndarray,
+    cov: np.ndarray,
+    z: np.ndarray,
+    parts: list[np.ndarray],
+    R: np.ndarray | None = None,
+) -> list[Innovations]:
+    """`innovations` of one filter's estimates on each of the components `parts` (one sensor's
+    rows each), block by block: a linear model's predictions x_k^-, P_k^- of a block made once
+    for all the parts (they depend on the estimates only)."""
     M, K1, _ = z.shape
-    r = len(rows)
-    nis, dof = np.full((M, K1), np.nan), np.zeros((M, K1), dtype=np.int64)
-    out = np.full((M, K1, r), np.nan)
+    out = []
+    for rows in parts:
+        r = len(rows)
+        out.append((np.full((M, K1), np.nan), np.zeros((M, K1), dtype=np.int64),
+                    np.full((M, K1, r), np.nan)))  # fmt: skip
     for k0 in range(0, K1, BLOCK):
         k1 = min(K1, k0 + BLOCK)
-        nis[:, k0:k1], dof[:, k0:k1], out[:, k0:k1] = _block(system, mean, cov, z, rows, R, k0, k1)
-    return Innovations(nis, dof, out)
+        predicted = _predicted(system, mean, cov, k0, k1) if system.linear else None
+        for rows, (nis, dof, normalised) in zip(parts, out, strict=True):
+            got = _block(system, mean, cov, z, rows, R, k0, k1, predicted)
+            nis[:, k0:k1], dof[:, k0:k1], normalised[:, k0:k1] = got
+    return [Innovations(*o) for o in out]
 
 
-def _block(system, mean, cov, z, rows, R, k0: int, k1: int):
-    """NIS, degrees of freedom and normalised innovations of the instants k0..k1-1."""
+def _block(system, mean, cov, z, rows, R, k0: int, k1: int, predicted=None):
+    """NIS, degrees of freedom and normalised innovations of the instants k0..k1-1
+    (`predicted`: a linear model's predictions there, `_predicted`)."""
     if not system.linear:
         return _extended_block(system, mean, cov, z, rows, R, k0, k1)
-    M = z.shape[0]
-    n, w = system.n, k1 - k0
     H = system.linear_measurement()[rows]
-    # The predictions x_k^- = F_k x_{k-1}, P_k^- = F_k P F_k' + Q_k (k >= 1), the prior at
-    # k = 0 (none without a prior).
+    xp, Pp = predicted if predicted is not None else _predicted(system, mean, cov, k0, k1)
+    S = sym(H @ Pp @ H.T + _noise(system, rows, R, k0, k1))  # ([M,] w, r, r)
+    zr = z[:, k0:k1][:, :, rows]
+    present = ~np.isnan(zr)  # (M, w, r)
+    usable = np.isfinite(xp).all(axis=-1) & np.isfinite(S).all(axis=(-2, -1))
+    nu = np.where(present, np.nan_to_num(zr) - xp @ H.T, 0.0)
+    return _normalised(nu, S, present, usable)
+
+
+def _predicted(system: System, mean: np.ndarray, cov: np.ndarray, k0: int, k1: int):
+    """A linear model's predictions at the instants k0..k1-1, (M, w, n) and ([M,] w, n, n):
+    x_k^- = F_k x_{k-1}, P_k^- = F_k P F_k' + Q_k (k >= 1), the prior at k = 0 (none
+    without a prior), from the filtered estimates of the instants before."""
+    M, n, w = mean.shape[0], system.n, k1 - k0
     a = max(k0, 1)  # the first instant with a predecessor
     xp = np.full((M, w, n), np.nan)
     Pp = np.full(cov.shape[:-3] + (w, n, n), np.nan)
@@ -83,12 +120,7 @@ def _block(system, mean, cov, z, rows, R, k0: int, k1: int):
         system, mean[:, a - 1 : k1 - 1], cov[..., a - 1 : k1 - 1, :, :], a, k1
     )
     _prior(system, xp, Pp, k0)
-    S = sym(H @ Pp @ H.T + _noise(system, rows, R, k0, k1))  # ([M,] w, r, r)
-    zr = z[:, k0:k1][:, :, rows]
-    present = ~np.isnan(zr)  # (M, w, r)
-    usable = np.isfinite(xp).all(axis=-1) & np.isfinite(S).all(axis=(-2, -1))
-    nu = np.where(present, np.nan_to_num(zr) - xp @ H.T, 0.0)
-    return _normalised(nu, S, present, usable)
+    return xp, Pp
 
 
 def _normalised(nu: np.ndarray, S: np.ndarray, present: np.ndarray, usable: np.ndarray):
@@ -114,14 +146,18 @@ def _normalised(nu: np.ndarray, S: np.ndarray, present: np.ndarray, usable: np.n
 def _linear_prediction(system: System, mean: np.ndarray, cov: np.ndarray, a: int, k1: int):
     """x_k^- = F_k x_{k-1}, P_k^- = F_k P_{k-1} F_k' + Q_k for k = a..k1-1 from the estimates
     mean (M, k1-a, n) and cov ([M,] k1-a, n, n) of the instants before them."""
-    n = system.n
-    if system.time_invariant:
-        F = np.broadcast_to(system.F, (k1 - a, n, n))
-        Q = np.broadcast_to(system.GQG, (k1 - a, n, n))
-    else:
-        F = np.array([system.F_at(k) for k in range(a, k1)]).reshape(k1 - a, n, n)
-        Q = np.array([system.GQG_at(k) for k in range(a, k1)]).reshape(k1 - a, n, n)
-    return np.einsum("kij,mkj->mki", F, mean), sym(F @ cov @ mT(F) + Q)
+    F, Q = system.transitions(a - 1, k1 - 1)
+    xp = np.einsum("kij,mkj->mki", F, mean)
+    if system.time_invariant and cov.ndim == 3 and len(cov) > 1:
+        # a steady filter's shared covariance repeats the same matrix instant after instant
+        # (a long log's blocks): each stretch of one matrix predicted once, the same values
+        same = (cov[1:] == cov[:-1]) & (np.signbit(cov[1:]) == np.signbit(cov[:-1]))
+        first = np.flatnonzero(np.r_[True, ~same.all(axis=(1, 2))])
+        if len(first) < len(cov) // 2:
+            u = len(first)
+            Pp = sym(F[:u] @ cov[first] @ mT(F[:u]) + Q[:u])
+            return xp, np.repeat(Pp, np.diff(np.r_[first, len(cov)]), axis=0)
+    return xp, sym(F @ cov @ mT(F) + Q)
 
 
 def _prior(system: System, xp: np.ndarray, Pp: np.ndarray, k0: int) -> None:

@@ -140,47 +140,71 @@ def simulate(
     return chunked(draw, steps, seed, run_offset, runs)
 
 
+def _advanced(seed: int, normals: int) -> np.random.Generator:
+    """Run 0's stream (child 0 of the seed's SeedSequence) after `normals` standard normals,
+    drawn in pieces (the ziggurat may take more than one word for a normal: no jump)."""
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0,)))
+    for a in range(0, normals, 1 << 16):  # 0.5 MB at a time
+        rng.standard_normal(min(1 << 16, normals - a))
+    return rng
+
+
 def one_run_blocks(
     system: System, steps: int, seed: int, block: int, measures: np.ndarray | None = None
 ) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
     """The truth and measurements of run 0 (`simulate(system, steps, seed, 0, 1, measures)`:
-    the same numbers) in blocks of `block` instants, (k0, k1, x (1, w, n), z (1, w, m)), for a
-    time-invariant model (linear or not: f and h as `_draw` applies them, a bearing wrapped)
-    without dropouts, NaN where `measures` (K+1, S) says a sensor does not measure (issue 34:
-    a 10^6-instant log in bounded memory). The stream's draw order is x0, every w, every v
-    (`_draw`), so w is drawn block by block from one generator while a second one, advanced
-    past x0 and every w, draws v block by block: nothing of the length of the log is kept."""
+    the same numbers) in blocks of `block` instants, (k0, k1, x (1, w, n), z (1, w, m)): f and
+    h as `_draw` applies them (a bearing wrapped), the noise of each interval where the
+    instants are irregular (`System.GQG_at`), NaN where `measures` (K+1, S) says a sensor does
+    not measure or its reading is lost (`timing.dropout`) (issue 34: a 10^6-instant log in
+    bounded memory). The stream's draw order is x0, every w, every v, then the dropouts'
+    uniforms (`_draw`, each of the chunk's runs with run 0's values first), so w is drawn block
+    by block from one generator while a second one, advanced past x0 and every w, draws v, and
+    a third, advanced past v too, the dropouts: nothing of the length of the log is kept."""
     n, m = system.n, system.m
-    q = system.Q.shape[0]
+    invariant = system.time_invariant
+    q = system.Q.shape[0] if invariant else n
     size = chunk_runs(steps)  # the runs drawn together from the stream: run 0's values first
-
-    def stream() -> np.random.Generator:
-        return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0,)))
-
-    rng, rng_v = stream(), stream()
+    skip_w = size * n  # x0 of every run of the chunk
+    skip_v = skip_w + size * steps * q  # then w
+    rng, rng_v = _advanced(seed, 0), _advanced(seed, skip_v)
+    dropout = np.array([s.timing.dropout for s in system.sensors])
+    rng_d = _advanced(seed, skip_v + size * (steps + 1) * m) if dropout.any() else None
     init = system.truth_initial
     G = system.G if system.G is not None else np.eye(n)
     LQ, LR = psd_sqrt(system.Q).T, psd_sqrt(system.R).T
-    skip = size * n + size * steps * q  # x0 of every run of the chunk, then w
-    for a in range(0, skip, 1 << 20):
-        rng_v.standard_normal(min(1 << 20, skip - a))
+
+    def chunk(row: np.ndarray) -> np.ndarray:
+        """Run 0's row (1, .) as the chunk's `size` rows: `_draw`'s products are of the
+        chunk's runs, and BLAS may round one row of a matrix product otherwise (gemv)."""
+        return np.repeat(row, size, axis=0) if size > 1 else row
+
     with np.errstate(over="ignore", invalid="ignore"):
-        x_prev = init.mean + rng.standard_normal((size, n))[:1] @ psd_sqrt(init.cov).T
+        x_prev = (init.mean + rng.standard_normal((size, n)) @ psd_sqrt(init.cov).T)[:1]
     for k0 in range(0, steps + 1, block):
         k1 = min(k0 + block, steps + 1)
         first = max(k0, 1)  # the first instant of the block reached by a transition
         with np.errstate(over="ignore", invalid="ignore"):
-            w = rng.standard_normal((1, k1 - first, q)) @ LQ @ G.T
+            if invariant:
+                w = rng.standard_normal((1, k1 - first, q)) @ LQ @ G.T
+            else:  # as `_draw`: each interval's noise in state space
+                w = rng.standard_normal((1, k1 - first, n))
+                for k in range(first, k1):
+                    w[:, k - first] = (chunk(w[:, k - first]) @ psd_sqrt(system.GQG_at(k)).T)[:1]
             x = np.empty((1, k1 - k0, n))
             if k0 == 0:
                 x[:, 0] = x_prev
             for k in range(first, k1):
-                x_prev = x[:, k - k0] = system.propagate(x_prev, k) + w[:, k - first]
+                x_prev = x[:, k - k0] = system.propagate(chunk(x_prev), k)[:1] + w[:, k - first]
             z = system.h(x) + rng_v.standard_normal((1, k1 - k0, m)) @ LR
             if not system.linear:  # as `_draw`: a bearing read with its noise in (-pi, pi]
                 z = system.residual(z, np.zeros(m))
         _require_finite(x, z, k0)
+        present = np.ones((k1 - k0, len(system.sensors)), dtype=bool)
         if measures is not None:
-            for j, sl in enumerate(system.sensor_slices):
-                z[:, ~measures[k0:k1, j], sl] = np.nan
+            present &= measures[k0:k1]
+        if rng_d is not None:  # drawn as `_draw` draws them, after every v
+            present &= rng_d.random((1, k1 - k0, len(dropout)))[0] >= dropout
+        for j, sl in enumerate(system.sensor_slices):
+            z[:, ~present[:, j], sl] = np.nan
         yield k0, k1, x, z

@@ -26,7 +26,7 @@ import numpy as np
 from fusionlog.core.architectures import REGISTRY, definition, estimate, parse_arch
 from fusionlog.core.metrics import chi2_quantile
 from fusionlog.core.model import System
-from fusionlog.core.nis import innovations, whiteness
+from fusionlog.core.nis import innovations_of, whiteness
 
 __all__ = ["NisAccumulator", "availability"]
 
@@ -82,10 +82,11 @@ class NisAccumulator:
                     fwd = estimate(self.system, z, _centralised())
                     forward = (fwd.mean, fwd.cov)
                 mean, cov = forward
-            for part, rows in self.parts[a]:
-                if kind == "hierarchical" and len(self.system.sensors) == 1:  # its one
-                    R = self._blockdiag()
-                inn = innovations(system, mean, cov, z, rows, R)
+            if kind == "hierarchical" and len(self.system.sensors) == 1:  # its one
+                R = self._blockdiag()
+            parts = self.parts[a]
+            got = innovations_of(system, mean, cov, z, [rows for _, rows in parts], R)
+            for (part, _), inn in zip(parts, got, strict=True):
                 key = (a, part)
                 have = np.isfinite(inn.nis)
                 self.sum[key] += np.where(have, inn.nis, 0.0).sum(axis=0)

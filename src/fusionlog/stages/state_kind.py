@@ -147,7 +147,7 @@ class StateKind(Kind):
         return x, [z[..., sl] for sl in system.sensor_slices]
 
     def simulate_blocks(self, scenario: Scenario, block: int) -> Any:
-        """One run of a time-invariant model (linear or not) without dropouts, longer than a
+        """One run (linear or not, regular instants or not, with dropouts or not) longer than a
         block of time: `core.simulate.one_run_blocks` (the numbers of `simulate`)."""
         from fusionlog.core.simulate import one_run_blocks
 
@@ -155,8 +155,6 @@ class StateKind(Kind):
         if scenario.runs != 1 or sched.steps + 1 <= block:
             return None
         system = system.on_times(sched.times)
-        if not system.time_invariant or any(s.timing.dropout for s in system.sensors):
-            return None
         measures = None if sched.measures.all() else sched.measures
         blocks = one_run_blocks(system, sched.steps, scenario.seed, block, measures)
         return ((k0, k1, x, [z[..., sl] for sl in system.sensor_slices]) for k0, k1, x, z in blocks)
@@ -302,11 +300,12 @@ class _StateEstimator(Estimator):
 
     def time_windows(self, sensors: McapFile) -> Any:
         """A long one-run log in blocks of time (`driver.long_log`): a steady model with every
-        reading present through its short plans, a recorded replay (irregular instants,
-        per-message R, missing readings) through the plan-free path carried block to block, a
-        nonlinear model through its EKF/UKF filters carried block to block; None otherwise (a
-        log short enough for one block, late readings, the reference paths: the whole run at
-        once)."""
+        reading present through its short plans, a recorded replay or a simulated run without
+        steady plans (irregular instants, per-message R, readings missing or lost at dropouts)
+        through the plan-free path carried block to block, a nonlinear model through its
+        EKF/UKF filters carried block to block; None otherwise (a log short enough for one
+        block, late readings, the reference paths, a model `ReplayBlocks.of` refuses: the
+        whole run at once)."""
         from fusionlog.core.architectures.replay_blocks import ReplayBlocks
         from fusionlog.driver.long_log import (
             long_estimates,

@@ -50,6 +50,7 @@ class SteadyLog:
     horizon: int
     state: dict[str, np.ndarray] = field(default_factory=dict)  # s_{k0-1}, (1, d)
     _forward: dict[int, StepMap] = field(default_factory=dict, repr=False)
+    _mapped: dict[str, list[StepMap]] = field(default_factory=dict, repr=False)
 
     @property
     def c(self) -> int:
@@ -97,10 +98,15 @@ class SteadyLog:
         sm = plan.smoother
         # the block's maps: the steady ones stay one object (the executor's steady blocks);
         # FBS: its forward filter's states themselves (O = I), fused below
-        steps = [self._states_map(plan.steps[i]) if sm else plan.steps[i] for i in idx.tolist()]
+        base = plan.steps
+        if sm is not None:
+            if arch not in self._mapped:
+                self._mapped[arch] = [self._states_map(st) for st in plan.steps]
+            base = self._mapped[arch]
+        steps, steady = _picked(base, idx, self.c)
         last: list = []
         with np.errstate(over="ignore", invalid="ignore"):
-            out = _recursion(Plan(plan.name, s0, steps), z, s0, last=last)
+            out = _recursion(_Block(plan.name, s0, steps, steady_at=steady), z, s0, last=last)
         self.state[arch] = last[0]
         if sm is None:
             return out
@@ -155,6 +161,39 @@ class SteadyLog:
             out[k] = y
             k -= 1
         return out, (out[0].copy(), zz[0].copy())
+
+
+@dataclass
+class _Block(Plan):
+    """A block's plan (`SteadyLog.forward`) whose steady tail is known from how its steps were
+    picked (`_picked`), not found by comparing each of its 65 536 steps."""
+
+    steady_at: int = 0
+
+    @property
+    def steady_from(self) -> int:
+        return self.steady_at
+
+
+def _picked(base: list[StepMap], idx: np.ndarray, c: int) -> tuple[list[StepMap], int]:
+    """[base[i] for i in idx] for `SteadyLog.index`'s steps (consecutive below c, c, then
+    consecutive again), made of slices and one repeated object, and where the trailing run of
+    the last map starts (`Plan.steady_from`), found without visiting the repeated middle."""
+    lo, hi = (int(x) for x in np.searchsorted(idx, [c, c + 1]))
+    head = base[int(idx[0]) : int(idx[0]) + lo] if lo else []
+    tail = base[int(idx[hi]) : int(idx[hi]) + len(idx) - hi] if hi < len(idx) else []
+    mid = [base[c]] * (hi - lo)
+    steps = head + mid + tail
+    last = steps[-1]
+    j = len(tail)
+    while j > 0 and tail[j - 1] is last:
+        j -= 1
+    if j > 0 or (mid and mid[0] is not last):
+        return steps, lo + len(mid) + j
+    j = lo
+    while j > 0 and head[j - 1] is last:
+        j -= 1
+    return steps, j
 
 
 def _runs(idx: np.ndarray):

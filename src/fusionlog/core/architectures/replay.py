@@ -32,6 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -161,7 +162,7 @@ class Carried:
     eq. (35)'s joint J and HKF's error covariance where they were computed (else None)."""
 
     P: np.ndarray
-    x: np.ndarray
+    x: np.ndarray | None
     J: np.ndarray | None = None
     E: np.ndarray | None = None
 
@@ -192,8 +193,7 @@ class _Replay:
         self.R = system.Rs if system.Rs is not None else np.broadcast_to(system.R, (K1, m, m))
         K = K1 - 1 if start is None else K1
         self.p0 = K1 - K  # the first instant with a prediction
-        self.Fs = system.Fs if system.Fs is not None else np.broadcast_to(system.F, (K, n, n))
-        self.Qs = system.Qs if system.Qs is not None else np.broadcast_to(system.GQG, (K, n, n))
+        self.Fs, self.Qs = system.transitions(0, K)
         rows = np.zeros((S, m), dtype=bool)
         for j, sl in enumerate(system.sensor_slices):
             rows[j, sl] = True
@@ -220,7 +220,7 @@ class _Replay:
         self.Hm, self.Rm = Hm, Rm
         P0 = system.prior.cov if start is None else start.P
         self.bank = run_bank(slots, P0, self.Fs, self.Qs, Hm, Rm, start is not None)
-        self.means = self._means()
+        self.x_last: np.ndarray | None = None  # the means' last instant, once computed
         self._J: np.ndarray | None = None  # eq. (35), when an architecture needs it
         self._E: np.ndarray | None = None  # HKF's error covariance, when asked for
 
@@ -232,9 +232,12 @@ class _Replay:
 
     # -- the mean recursions ------------------------------------------------------------------
 
-    def _means(self) -> dict[str, np.ndarray]:
+    @cached_property
+    def means(self) -> dict[str, np.ndarray]:
         """Every filter's means (K+1, n): x_k = (I - K H) F x_{k-1} + K z_k for the KFs
-        (eq. 14), x_k = P (Tacc F x_{k-1} + U z_k) for HKF (eqs. 38-40), all as one stack."""
+        (eq. 14), x_k = P (Tacc F x_{k-1} + U z_k) for HKF (eqs. 38-40), all as one stack.
+        Computed where asked for: the error covariances need none (`carried` then carries
+        no means, and the blocks after compute none either)."""
         b, n, S = self.bank, self.n, self.S
         F = self.Fs  # into every instant; the log's instant 0 has none:
         if self.p0:
@@ -253,6 +256,8 @@ class _Replay:
             return {}
         x0 = np.broadcast_to(self.system.prior.mean, (sum(p[1] for p in parts), n))
         if self.start is not None:
+            if self.start.x is None:
+                raise ValueError("the block of time before carried no means")
             x0 = self.start.x
         A = np.concatenate([p[2] for p in parts], axis=1)
         X = affine_recursion(A, np.concatenate([p[3] for p in parts], axis=1), x0)
@@ -304,7 +309,7 @@ class _Replay:
                 out[a] = (self._hkf_error(), self.bank.P_hkf)
                 continue
             if not arch.fuses_locals:  # a filter's or the smoother's own P
-                P = self._KINDS[arch.locals](self, arch, sensor)[1]
+                P = self._own_cov(arch.locals, sensor)
                 out[a] = (P, P)
                 continue
             O, P = self._weights(arch)
@@ -312,12 +317,20 @@ class _Replay:
             out[a] = (_sym(O @ J @ O.swapaxes(-1, -2)), P)
         return out
 
+    def _own_cov(self, kind: str, sensor: str | None) -> np.ndarray:
+        """The covariance (K+1, n, n) of a filter (CKF, SKF) or of the smoother, no means."""
+        if kind == "centralised":
+            return self.bank.P[:, self.ckf]
+        if kind == "single":
+            return self.bank.P[:, self.loc + self.system.sensor_index(sensor)]
+        return self._smoothing[1]
+
     def _ckf(self, arch, sensor):
-        return self.means["ckf"], self.bank.P[:, self.ckf]
+        return self.means["ckf"], self._own_cov("centralised", sensor)
 
     def _skf(self, arch, sensor):
         j = self.system.sensor_index(sensor)
-        return self.means["loc"][:, j], self.bank.P[:, self.loc + j]
+        return self.means["loc"][:, j], self._own_cov("single", sensor)
 
     def _hkf(self, arch, sensor):
         return self.means["hkf"], self.bank.P_hkf
@@ -364,23 +377,34 @@ class _Replay:
         pf = self.present.astype(float)
         return self.R * (pf[:, :, None] * pf[:, None, :]) + np.eye(pf.shape[1]) * (1 - pf)[:, None]
 
+    @cached_property
+    def _backward(self) -> tuple[np.ndarray, np.ndarray]:
+        """FBS's backward information filter, eqs. (25)-(28): y_b and S (K+1, ...), run here
+        over the whole log or (a block of time) handed over by the backward pass that came
+        first from the log's end."""
+        if self.backward is not None:
+            return self.backward
+        c = self.ckf
+        W, cz = information(self.Hm[:, c], self.Rm[:, c], self.z)
+        L, Smat = backward_information(W, self.Fs, self.Qs)
+        return backward_means(L, cz), Smat
+
+    @cached_property
+    def _smoothing(self) -> tuple[np.ndarray, np.ndarray]:
+        """The fusion of the CKF forward and the backward filter, eqs. (26)-(28): K_s = P S
+        (I + P S)^-1 and P_s = (I - K_s) P (K+1, n, n)."""
+        Pf = self.bank.P[:, self.ckf]
+        eye = np.eye(self.n)
+        PS = Pf @ self._backward[1]
+        Ks = solve((eye + PS).swapaxes(-1, -2), PS.swapaxes(-1, -2)).swapaxes(-1, -2)
+        return Ks, _sym((eye - Ks) @ Pf)
+
     def _fbs(self, arch, sensor):
         """FBS, eqs. (25)-(28): the CKF forward, the backward information filter, and their
-        fusion K_s = P S (I + P S)^-1, P_s = (I - K_s) P, x_s = (I - K_s) x + P_s y_b."""
-        c = self.ckf
-        if self.backward is None:
-            W, cz = information(self.Hm[:, c], self.Rm[:, c], self.z)
-            L, Smat = backward_information(W, self.Fs, self.Qs)
-            yb = backward_means(L, cz)
-        else:  # a block of time: the backward pass over the log's end came first
-            yb, Smat = self.backward
-        Pf = self.bank.P[:, c]
-        eye = np.eye(self.n)
-        PS = Pf @ Smat
-        Ks = solve((eye + PS).swapaxes(-1, -2), PS.swapaxes(-1, -2)).swapaxes(-1, -2)
-        Ps = _sym((eye - Ks) @ Pf)
-        x = self.means["ckf"]
-        mean = np.einsum("kij,kj->ki", eye - Ks, x) + np.einsum("kij,kj->ki", Ps, yb)
+        fusion x_s = (I - K_s) x + P_s y_b (`_smoothing`)."""
+        Ks, Ps = self._smoothing
+        x, yb = self.means["ckf"], self._backward[0]
+        mean = np.einsum("kij,kj->ki", np.eye(self.n) - Ks, x) + np.einsum("kij,kj->ki", Ps, yb)
         return mean, Ps
 
     #: Each kind of architecture (`definition.LOCALS`) from the recursions above.

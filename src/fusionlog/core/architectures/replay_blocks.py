@@ -31,14 +31,6 @@ from .replay_filters import backward_information, backward_means, information, m
 __all__ = ["ReplayBlocks", "system_window"]
 
 
-def _transitions(system: System, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
-    """F and G Q G' (b - a, n, n) of the transitions into instants a+1..b (`System.F_at`)."""
-    n = system.n
-    Fs = system.Fs[a:b] if system.Fs is not None else np.broadcast_to(system.F, (b - a, n, n))
-    Qs = system.Qs[a:b] if system.Qs is not None else np.broadcast_to(system.GQG, (b - a, n, n))
-    return Fs, Qs
-
-
 def system_window(system: System, k0: int, k1: int, into_first: bool) -> System:
     """The system on the instants k0..k1-1: its per-instant R of those instants, and its F, Q
     (a nonlinear motion's intervals) into k0+1..k1-1 (`into_first`: into k0 too, the block's
@@ -102,7 +94,8 @@ class ReplayBlocks:
         except (NumericalError, *NUMERICAL_FAILURES) as e:
             raise NumericalError(f"instants {k0}..{k1 - 1}: {e}") from None
         self.carried = r.carried()
-        if not all_finite(self.carried.P) or not all_finite(self.carried.x):
+        x = self.carried.x
+        if not all_finite(self.carried.P) or (x is not None and not all_finite(x)):
             raise NumericalError(f"instants {k0}..{k1 - 1}: a number beyond the float range")
         self.next_instant = k1
         return out
@@ -141,7 +134,7 @@ class ReplayBlocks:
         Hm, Rm = masked_rows(self.system.linear_measurement(), R, present[:, None, :])
         W, c = information(Hm[:, 0], Rm[:, 0], np.where(present, z, 0.0))
         last = after is None
-        Fs, Qs = _transitions(self.system, k0, k1 - 1 if last else k1)
+        Fs, Qs = self.system.transitions(k0, k1 - 1 if last else k1)
         if last:
             L, Smat = backward_information(W, Fs, Qs)
             yb = backward_means(L, c)

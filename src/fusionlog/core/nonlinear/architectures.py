@@ -36,7 +36,7 @@ from ..linalg import NUMERICAL_FAILURES, mT, spd_inv, sym
 from ..model import System
 from ..models.polar import PolarSensor
 from .late import arrival_instants, late_steps
-from .local import Stacked, predict, transition, ukf_params, update
+from .local import predict, stacked, transition, ukf_params, update
 
 
 @dataclass
@@ -105,7 +105,7 @@ class _Steps:
             which = [j for j in which if not np.isnan(zk[:, self.cols[j]]).all()]
         if not which:
             return None
-        model = Stacked(tuple(self.system.sensors[j] for j in which))
+        model = stacked(self.system, which, k)
         zk = self.z[:, k] if zk is None else zk
         zk = zk[:, np.concatenate([self.cols[j] for j in which])]
         self._check_ranges(k, which, x, zk)

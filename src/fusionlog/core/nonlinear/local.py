@@ -24,7 +24,7 @@ batched update serves runs with any pattern of missing data.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -40,9 +40,11 @@ from .lanes import gain_lanes, joseph_update, linear_prediction
 @dataclass(frozen=True)
 class Stacked:
     """Several sensors as one measurement z = [h_1(x); ...; h_S(x)] (eq. 30: the CKF's one
-    update per instant with every sensor that measures then); R block-diagonal."""
+    update per instant with every sensor that measures then); R block-diagonal, or `noise`
+    where the instant has its own (a recorded log's per-message covariances, `System.Rs`)."""
 
     sensors: tuple[SensorModel, ...]
+    noise: np.ndarray | None = field(default=None, compare=False)
 
     @property
     def dim(self) -> int:
@@ -59,6 +61,8 @@ class Stacked:
 
     @property
     def R(self) -> np.ndarray:
+        if self.noise is not None:
+            return self.noise
         R, start = np.zeros((self.dim, self.dim)), 0
         for s in self.sensors:
             R[start : start + s.dim, start : start + s.dim] = s.R
@@ -88,6 +92,17 @@ class Stacked:
         if len(nonzero) < len(cols):
             Hq, cols = np.ascontiguousarray(Hq[:, nonzero]), [cols[a] for a in nonzero]
         return h, Hq, cols
+
+
+def stacked(system: System, which: list[int], k: int) -> Stacked:
+    """The sensors `which` of `system` (on its instants) as one measurement at instant k, with
+    R of that instant where it varies (`System.Rs`: the rows and columns of those sensors)."""
+    model = Stacked(tuple(system.sensors[j] for j in which))
+    if system.Rs is None:
+        return model
+    slices = system.sensor_slices
+    rows = np.concatenate([np.arange(system.m)[slices[j]] for j in which])
+    return Stacked(model.sensors, system.Rs[k][np.ix_(rows, rows)])
 
 
 def transition(system: System, k: int) -> tuple[MotionModel, float]:

@@ -14,6 +14,10 @@ estimate at the first instant of the block after, keeping the block's own; handi
 out in order recomputes each once more. Three forward and two backward passes of the CKF, the
 readings read back block by block (`read`), one block in memory; the same operations on the
 same numbers as the whole run's smoother.
+
+A log whose messages carry their own covariance (`System.Rs`) goes the same way: every update
+takes R of its instant (`local.stacked`), in blocks as in the whole run. The array Rs itself
+(K+1, m, m) is the system's, made by the estimate stage from the whole file.
 """
 
 from __future__ import annotations

@@ -90,9 +90,11 @@ def _sums(
     states truth (M, w, n), the states before them x_before (M, n), None at k0 = 0)."""
     w, n = truth.shape[1], sys.n
     info = np.zeros((w, n, n))
-    for j, s in enumerate(sys.sensors):
+    for j, (s, sl) in enumerate(zip(sys.sensors, sys.sensor_slices, strict=True)):
         H = s.jacobian(truth)  # (M, w, m, n)
-        RiH = np.linalg.solve(s.R, H)
+        # R of each instant where the log's messages carry it (`System.Rs`)
+        R = s.R if sys.Rs is None else sys.Rs[k0 : k0 + w, sl, sl]
+        RiH = np.linalg.solve(R, H)
         info += np.einsum("mkai,mkaj,mk->kij", H, RiH, present[..., j].astype(float))
     if sys.motion.linear:
         return info, None, None

@@ -59,7 +59,7 @@ import numpy as np
 from ...errors import FusionlogError
 from ..late_policy import nonlinear_refusal
 from ..linalg import mm, mT, solve, sym
-from .local import Stacked, select, transition
+from .local import select, stacked, transition
 
 
 def retrodict_steps(m, arrive: np.ndarray, W: int) -> Iterator:
@@ -187,7 +187,7 @@ def al1(st, which, x, P, tau, d: int, zd, stored: dict, has: dict):
     Pd = sym(mm(mm(Fdk, P + Pvv - Pxv - mT(Pxv)), mT(Fdk)))
     present = ~np.isnan(zd) & runs[:, None]
     sens = [j for j in which if present[:, st.cols[j]].any()]
-    model = Stacked(tuple(st.system.sensors[j] for j in sens))
+    model = stacked(st.system, sens, d)  # R of instant d where it varies
     cols = np.concatenate([st.cols[j] for j in sens])
     zc, pc = zd[:, cols], present[:, cols]
     H = model.jacobian(xd) * pc[:, :, None]

@@ -20,6 +20,7 @@ import numpy as np
 
 from fusionlog.core.timing import regular_times
 
+from .layout import StepMask
 from .wire import encode_block_fields, encode_payload2_key
 
 __all__ = ["FirstTimes", "StepSet", "TopicState"]
@@ -100,9 +101,15 @@ class StepSet:
     def __len__(self) -> int:
         return self._count
 
-    def sorted(self) -> list[int]:
-        ranged = [k for a, b in zip(self._starts, self._ends, strict=True) for k in range(a, b)]
-        return sorted([*ranged, *self._other]) if self._other else ranged
+    def mask(self, instants: int) -> StepMask:
+        """The set as a `StepMask` of the instants 0..instants-1 (its steps are below that),
+        made from the ranges without a list of the steps."""
+        edge = np.zeros(instants + 1, dtype=np.int8)
+        edge[np.frombuffer(self._starts, np.uint32).astype(np.int64)] = 1
+        edge[np.frombuffer(self._ends, np.uint64).astype(np.int64)] -= 1  # (ranges apart)
+        inside = np.cumsum(edge[:-1], dtype=np.int8) > 0
+        inside[list(self._other)] = True
+        return StepMask(np.packbits(inside), instants, self._count)
 
 
 class FirstTimes:

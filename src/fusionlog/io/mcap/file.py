@@ -28,7 +28,7 @@ from .blocks import Assembly, Cursor, Window
 from .chunk_rows import Rows, chunk_rows
 from .chunks import Container, linear_batches, open_container, open_error, read_chunk
 from .columns import BadMessage, Table, decode_rows, decode_table, gather
-from .layout import LAYOUT_META, Layout
+from .layout import LAYOUT_META, Layout, StepMask
 from .schema import ESTIMATE_SCHEMA, SENSOR_SCHEMA, VALUES
 from .wire import MessageFormat, format_of_schema_record
 
@@ -51,7 +51,7 @@ class _Structure:
     times: np.ndarray
     dims: dict[str, int]
     runs: int
-    sparse: dict[str, list[int]] = field(default_factory=dict)  # see Layout.sparse
+    sparse: dict[str, StepMask] = field(default_factory=dict)  # see Layout.sparse
 
     def steps_of(self, topic: str) -> np.ndarray:
         """(K+1,) bool: the instants at which `topic` has a message."""
@@ -70,6 +70,9 @@ class McapFile:
         self.path = Path(path)
         self._structure: _Structure | None = None
         self._origin: int | None = None  # time_origin_ns, read once
+        #: topics whose messages carry no covariance (`message_covariances_of`, a pass over
+        #: the file, asked for the filter's and the truth's model: one pass, not two)
+        self._no_covariances: set[str] = set()
         check_input(self.path)  # a FIFO or a device would block or never end
         try:
             with open(self.path, "rb") as f:
@@ -187,7 +190,7 @@ class McapFile:
             return None
         ours = {t: i for t, i in self._topics.items() if i.format is not None}
         if set(lay.dims) != set(ours) or any(
-            i.count != int(lay.steps_of(t).sum()) * lay.blocks for t, i in ours.items()
+            i.count != lay.count_of(t) * lay.blocks for t, i in ours.items()
         ):
             return None
         if lay.runs != self._last_run_end(cids):
@@ -303,7 +306,8 @@ class McapFile:
                 raise ValueError(f"{t} is not a values topic")
         st = self._get_structure()
         out: dict[str, np.ndarray | None] = dict.fromkeys(topics)
-        if not topics or st.runs != 1:
+        infos = {t: i for t, i in infos.items() if t not in self._no_covariances}
+        if not infos or st.runs != 1:
             return out
         dims = {t: self.dim_of(t) for t in topics}
         for _, tab in self._tables({c for i in infos.values() for c in i.channel_ids}):
@@ -322,6 +326,7 @@ class McapFile:
                 if c is None:
                     c = out[t] = np.full((len(st.times), d, d), np.nan)
                 c[tab.step[rows]] = gather(tab.raw, tab.p2[rows], d * d).reshape(-1, d, d)
+        self._no_covariances.update(t for t in infos if out[t] is None)
         return out
 
     def lost_share(self, topic: str, block_runs: int = 1 << 14) -> float:
@@ -466,7 +471,7 @@ class McapFile:
         topic_index[list(tidx)] = list(tidx.values())
         kinds = [i.format.kind for i in infos]  # type: ignore[union-attr]
         dims = [self.dim_of(t) for t in names]
-        masks = [st.steps_of(t) if t in st.sparse else None for t in names]
+        masks = [st.sparse.get(t) for t in names]  # each block unpacks its own bits
         tables = self._tables(set(tidx))
         try:
             yield from time_blocks(

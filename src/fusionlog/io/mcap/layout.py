@@ -11,21 +11,162 @@ scans the file instead where it does not match or is absent (hand-written logs).
 
 Values are strings (MCAP metadata is a string map); times are JSON numbers, which round-trip
 doubles exactly.
+
+In memory (issue 34) a sparse topic's steps are a `StepMask`, one bit per instant, and the
+record's JSON lists are written and parsed a stretch of `_STRETCH` numbers at a time with numpy,
+the text the same as `json.dumps` of the lists: a Python list of the steps (a 36-byte int each,
+and a set of them to check the order) took ~600 bytes per instant at its peak when a long
+sparse log was opened.
 """
 
 from __future__ import annotations
 
 import json
+import re
+import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from fusionlog.core.timing import regular_times
 
-__all__ = ["LAYOUT_META", "Layout"]
+__all__ = ["LAYOUT_META", "Layout", "StepMask"]
 
 LAYOUT_META = "fusionlog.layout"
 _FORMAT = "1"
+#: Numbers of a JSON list written or parsed at once (their text and arrays: some 10 kB).
+_STRETCH = 1 << 12
+
+
+class StepMask:
+    """The instants 0..S-1 at which a topic has a message: one bit each (`np.packbits` order),
+    and their count. `mask[k0:k1]` is the (k1 - k0,) bool mask of a window (a block of time
+    unpacks only its own bits)."""
+
+    __slots__ = ("bits", "count", "instants")
+
+    def __init__(self, bits: np.ndarray, instants: int, count: int) -> None:
+        self.bits, self.instants, self.count = bits, instants, count
+
+    @staticmethod
+    def of_steps(parts: Iterator[np.ndarray] | list[np.ndarray], instants: int) -> StepMask:
+        """The mask of the steps given as increasing arrays, stretch by stretch; ValueError
+        where a step is out of 0..S-1 or not above the one before."""
+        bits = np.zeros((instants + 7) // 8, dtype=np.uint8)
+        last, count = -1, 0
+        for steps in parts:
+            if not len(steps):
+                continue
+            if steps[0] <= last or steps[-1] >= instants or (np.diff(steps) <= 0).any():
+                raise ValueError("steps not increasing within 0..S-1")
+            np.bitwise_or.at(bits, steps >> 3, (128 >> (steps & 7)).astype(np.uint8))
+            last, count = int(steps[-1]), count + len(steps)
+        return StepMask(bits, instants, count)
+
+    def __getitem__(self, window: slice) -> np.ndarray:
+        k0, k1, step = window.indices(self.instants)
+        if step != 1 or k1 <= k0:
+            return self.full()[window]
+        a = k0 // 8
+        return np.unpackbits(self.bits[a : (k1 + 7) // 8], count=k1 - 8 * a)[k0 - 8 * a :] > 0
+
+    def full(self) -> np.ndarray:
+        """(S,) bool."""
+        return np.unpackbits(self.bits, count=self.instants) > 0
+
+    def stretches(self) -> Iterator[np.ndarray]:
+        """The steps, in increasing arrays of a stretch of instants each."""
+        for a in range(0, self.instants, 8 * _STRETCH):
+            yield np.flatnonzero(self[a : a + 8 * _STRETCH]) + a
+
+
+def _json_list(parts: Iterator[list]) -> str:
+    """`json.dumps` of the list of the items of `parts` (lists of ints or finite floats:
+    their text is `repr`'s), written a part at a time."""
+    return "[" + ", ".join(t for p in parts if p for t in [", ".join(map(repr, p))]) + "]"
+
+
+_NUMBERS = re.compile(r"[0-9eE+\-.,\s]*")
+
+
+def _numbers(text: str, start: int, dtype: type) -> tuple[Iterator[np.ndarray], int]:
+    """The numbers of the JSON list of ints or floats that starts at text[start] (``[``), as
+    arrays of up to ~`_STRETCH` numbers, and the index after its ``]``; ValueError where it is
+    not such a list (then `json` says what is wrong)."""
+    if text[start] != "[":
+        raise ValueError("not a list")
+    end = text.index("]", start)
+    cuts = [start + 1]
+    while cuts[-1] < end:  # stretches cut after a comma
+        at = text.find(",", min(cuts[-1] + 24 * _STRETCH, end), end)
+        cuts.append(end if at < 0 else at + 1)
+
+    def parts() -> Iterator[np.ndarray]:
+        for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+            piece = text[a : b if b == end else b - 1]  # without the comma it was cut after
+            if not _NUMBERS.fullmatch(piece):
+                raise ValueError("not a list of numbers")
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                got = np.fromstring(piece, dtype=dtype, sep=",") if piece.strip() else None
+            if got is None:
+                if b != end or a != start + 1:
+                    raise ValueError("an empty item")
+                continue
+            if len(got) != piece.count(",") + 1:
+                raise ValueError("not a list of numbers")
+            yield got
+
+    return parts(), end + 1
+
+
+def _sparse_of(text: str, instants: int) -> dict[str, StepMask]:
+    """The ``sparse`` record ({topic: [steps]}) as `StepMask`s, parsed a stretch at a time."""
+    dec = json.JSONDecoder()
+    out: dict[str, StepMask] = {}
+    i = _skip(text, 0)
+    if text[i] != "{":
+        raise ValueError("not an object")
+    i = _skip(text, i + 1)
+    while text[i] != "}":
+        key, i = dec.raw_decode(text, i)
+        i = _skip(text, i)
+        if not isinstance(key, str) or text[i] != ":":
+            raise ValueError("not an object of lists")
+        parts, i = _numbers(text, _skip(text, i + 1), np.int64)
+        out[key] = StepMask.of_steps(parts, instants)
+        i = _skip(text, i)
+        if text[i] == ",":
+            i = _skip(text, i + 1)
+        elif text[i] != "}":
+            raise ValueError("not an object of lists")
+    if text[i + 1 :].strip():
+        raise ValueError("text after the object")
+    return out
+
+
+def _skip(text: str, i: int) -> int:
+    while text[i] in " \t\r\n":
+        i += 1
+    return i
+
+
+def _times_of(text: str, instants: int) -> np.ndarray:
+    """The ``times`` record (a JSON list of doubles) as an array, parsed a stretch at a time;
+    `json` where it is not plain numbers (NaN, or malformed: its error)."""
+    try:
+        parts, end = _numbers(text, _skip(text, 0), float)
+        out, at = np.empty(instants), 0
+        for p in parts:
+            if at + len(p) > instants:
+                raise ValueError("too many")
+            out[at : at + len(p)], at = p, at + len(p)
+        if at == instants and not text[end:].strip():
+            return out
+    except (ValueError, IndexError):
+        pass
+    return np.array(json.loads(text), dtype=float)
 
 
 def _regular(t: np.ndarray, block: int = 1 << 16) -> bool:
@@ -45,7 +186,7 @@ class Layout:
     runs: int
     blocks: int
     dims: dict[str, int]
-    sparse: dict[str, list[int]] = field(default_factory=dict)
+    sparse: dict[str, StepMask] = field(default_factory=dict)
 
     @property
     def instants(self) -> int:
@@ -53,12 +194,13 @@ class Layout:
 
     def steps_of(self, topic: str) -> np.ndarray:
         """(S,) bool: the instants at which `topic` has a message (in every block of runs)."""
-        mask = np.zeros(self.instants, dtype=bool)
         if topic in self.sparse:
-            mask[self.sparse[topic]] = True
-        else:
-            mask[:] = True
-        return mask
+            return self.sparse[topic].full()
+        return np.ones(self.instants, dtype=bool)
+
+    def count_of(self, topic: str) -> int:
+        """The number of instants at which `topic` has a message."""
+        return self.sparse[topic].count if topic in self.sparse else self.instants
 
     def to_metadata(self) -> dict[str, str]:
         t = self.times
@@ -70,9 +212,16 @@ class Layout:
             "topics": json.dumps(self.dims, sort_keys=True),
         }
         if self.sparse:
-            out["sparse"] = json.dumps(self.sparse, sort_keys=True)
+            out["sparse"] = "{" + ", ".join(
+                f"{json.dumps(k)}: {_json_list(s.tolist() for s in self.sparse[k].stretches())}"
+                for k in sorted(self.sparse)
+            ) + "}"  # fmt: skip
         if len(t) >= 2 and _regular(t):
             out["dt"] = repr(float(t[1]))
+        elif np.isfinite(t).all():
+            out["times"] = _json_list(
+                t[a : a + _STRETCH].astype(float).tolist() for a in range(0, len(t), _STRETCH)
+            )
         else:
             out["times"] = json.dumps([float(x) for x in t])
         return out
@@ -85,26 +234,20 @@ class Layout:
                 raise ValueError(f"format {meta.get('format')!r}, not {_FORMAT}")
             instants, runs, blocks = (int(meta[k]) for k in ("instants", "runs", "blocks"))
             dims = json.loads(meta["topics"])
-            sparse = json.loads(meta.get("sparse", "{}"))
+            if min(instants, runs, blocks) < 0:
+                raise ValueError("a negative count")
+            sparse = _sparse_of(meta.get("sparse", "{}"), instants)
             if "dt" in meta:
                 times = regular_times(instants, float(meta["dt"]))
             else:
-                times = np.array(json.loads(meta["times"]), dtype=float)
-        except (KeyError, TypeError, json.JSONDecodeError) as e:
+                times = _times_of(meta["times"], instants)
+        except (KeyError, TypeError, IndexError, json.JSONDecodeError) as e:
             raise ValueError(f"{type(e).__name__}: {e}") from None
         if (
-            min(instants, runs, blocks) < 0
-            or times.shape != (instants,)
+            times.shape != (instants,)
             or not isinstance(dims, dict)
             or not all(isinstance(k, str) and type(v) is int for k, v in dims.items())
-            or not isinstance(sparse, dict)
-            or not all(
-                k in dims
-                and isinstance(v, list)
-                and all(type(i) is int and 0 <= i < instants for i in v)
-                and v == sorted(set(v))
-                for k, v in sparse.items()
-            )
+            or not all(k in dims for k in sparse)
         ):
             raise ValueError("inconsistent fields")
         return Layout(times, runs, blocks, dims, sparse)

@@ -232,7 +232,7 @@ class McapWriter:
         dims = {t: st.dim for t, st in self._topic_states.items()}
         runs = max(0, self._block_offset + self._block_runs)
         sparse = {
-            t: s.sorted() for t, s in self._first_steps.items() if len(s) != steps and t in dims
+            t: s.mask(steps) for t, s in self._first_steps.items() if len(s) != steps and t in dims
         }
         return Layout(times, runs, self._blocks, dims, sparse)
 

@@ -32,10 +32,13 @@ def _cat(prev: Any, cur: Any, axis: int) -> Any:
 
 class LongNis:
     """The blocks of one log for `part` (the evaluator's `NisPart`: its system, sensors and
-    schedule); `forward`: the centralised KF's short plans, or a replay's CKF carried block to
-    block (a smoother's innovations), or None."""
+    schedule); `forward` (a smoother's innovations): the centralised KF's short plans, or a
+    replay's CKF carried block to block, or the name of the CKF among the estimates a replay
+    hands over (the same filter on the same readings: nothing recomputed), or None."""
 
-    def __init__(self, part: NisPart, forward: SteadyLog | ReplayBlocks | None, ckf: str) -> None:
+    def __init__(
+        self, part: NisPart, forward: SteadyLog | ReplayBlocks | str | None, ckf: str
+    ) -> None:
         self.part, self.forward, self.ckf = part, forward, ckf
         self.archs = part.archs
         self.prev: dict[str, Any] = {}  # each architecture's (mean, cov) of the last instant
@@ -65,7 +68,9 @@ class LongNis:
             ests[a] = (_cat(prev[0], mean, 1), _cat(prev[1], cov, -3))
             self.prev[a] = (mean[:, -1:], cov[..., -1:, :, :])
         fwd = None
-        if isinstance(self.forward, ReplayBlocks):  # a replay's forward CKF, carried
+        if isinstance(self.forward, str):  # a replay's CKF among the estimates: the same filter
+            f = estimates[self.forward]
+        elif isinstance(self.forward, ReplayBlocks):  # a replay's forward CKF, carried
             e = self.forward.estimates(k0, k1, z[0], None)[self.ckf]
             f = (e.mean, e.cov)
         elif self.forward is not None:

@@ -249,7 +249,9 @@ class StateEvaluator(Evaluator):
             forward, ckf = None, _centralised()
             if any(definition(a).locals == "smoother" for a in nis.archs):
                 forward = steady_log(nis.system, [ckf], self.K)
-                if forward is None:  # a replay: its CKF carried block to block
+                if forward is None and ckf in nis.archs:  # a replay: the CKF's own estimates
+                    forward = ckf
+                if forward is None:  # a replay without the CKF: its CKF carried block to block
                     from fusionlog.core.architectures.replay_blocks import ReplayBlocks
                     from fusionlog.driver.long_log import time_block
 
@@ -316,15 +318,17 @@ class StateEvaluator(Evaluator):
         return analysis_rtol(truth, log, float(np.abs(ex.mse[log.c]).max()))
 
     def _replay_exact(self, exact: ExactPart) -> Any:
-        """The exact values of a recorded replay in blocks of time (`.long_exact`): the one-log
-        route, where the truth is the filters' model and the replay path takes them; None
-        otherwise."""
+        """The exact values of one log in blocks of time (`.long_exact`) without steady plans (a
+        recorded replay, or a simulated run with dropouts or irregular instants): the one-log
+        route, where the truth is the filters' model and the replay path takes them (for a
+        simulated run the same values as the plans of its pattern, to rounding: the plans
+        would hold every instant's maps); None otherwise."""
         from fusionlog.core.exact_replay import replay_expected_blocks
         from fusionlog.driver.long_log import time_block
 
         from .long_exact import LongReplayExact
 
-        if exact.route != "one-log":
+        if exact.route not in ("one-log", "plans"):
             return None
         p, T = exact.plans, time_block()
         got = replay_expected_blocks(p.system, exact.truth, exact.known, self.K, T, p.criterion)
