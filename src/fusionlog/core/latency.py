@@ -211,7 +211,7 @@ class LateModel:
             if centre is not None:  # correlated readings of one instant arriving apart
                 inner = build(centre[0], arch, self.steps, mask, **kw)
                 m, W, n = self.system.m, self.window, self.system.n
-                return wrap(inner, centre[1], m, W, n, centre[2])
+                return wrap(inner, centre[1], m, W, n, centre[2], self.system)
             if locals_kind == "per-sensor" and definition(base).joint and apart_pairs(self.system):
                 # correlated readings enter two locals at two instants: J from the maps
                 criterion = kw.get("criterion", "trace")
@@ -224,7 +224,8 @@ class LateModel:
                 inner = fused_plan(self.stacked, base, mask, criterion, n, nodes)
             else:
                 inner = build(self.stacked, arch, self.steps, mask, **kw)
-        return wrap(inner, self.slots, self.system.m, self.window, self.system.n)
+        m, W, n = self.system.m, self.window, self.system.n
+        return wrap(inner, self.slots, m, W, n, system=self.system)
 
 
 def _centre_model(model: LateModel) -> tuple | None:

@@ -90,15 +90,63 @@ def _dense(A):
     return A.dense() if isinstance(A, BlockDiagonal) else A
 
 
+def back_propagation(system: System | None, W: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """The noise-free past of x_k: S ((W+1) n, n) with X_k = [x_k; ...; x_{k-W}] = S x_k
+    (x_{k-l} = F^-l x_k), and Hb (W+1 blocks of m rows) with z_{k-l} = H F^-l x_k; None
+    when the model has no single invertible F (per-step F, a singular or ill-conditioned F,
+    a nonlinear sensor): the wrapped plan then keeps D = 0."""
+    if system is None or system.Fs is not None or not all(s.linear for s in system.sensors):
+        return None
+    F = system.F
+    if not np.isfinite(F).all() or np.linalg.cond(F) > 1e8:  # F^-W would amplify rounding
+        return None
+    Finv = np.linalg.inv(F)
+    powers = [np.eye(system.n)]
+    for _ in range(W):
+        powers.append(Finv @ powers[-1])
+    H = system.linear_measurement()
+    return np.vstack(powers), np.vstack([H @ Fl for Fl in powers])
+
+
 def wrap(
-    inner: Plan, slots: np.ndarray, m: int, W: int, n: int, coef: np.ndarray | None = None
+    inner: Plan,
+    slots: np.ndarray,
+    m: int,
+    W: int,
+    n: int,
+    coef: np.ndarray | None = None,
+    system: System | None = None,
 ) -> Plan:
     """The plan `inner` of the stacked model as a plan on z as taken (see the module's
     docstring): s_k = [s~_k; b_k], b_k = [z_k; ...; z_{k-W+1}], the reading of slot (j, l, o)
     taken from z_k (l = 0) or from block l - 1 of b_{k-1}; x_hat = the first block of
     the stacked estimate, P its covariance. `coef` (m~, m): each slot's reading as a
-    combination of the readings of its instant (`latency_corr`; default component o)."""
+    combination of the readings of its instant (`latency_corr`; default component o).
+
+    `system` (the model on x, not the stacked one) gives the error form D of the wrapped
+    state (`StepMap.D`): without noise X_k = S x_k and z_{k-l} = H F^-l x_k
+    (`back_propagation`), so D_k = [D~_k S; H; H F^-1; ...; H F^-(W-1)] (D~ the inner's, on
+    X_k) and D_0 = [D~_0 S; H F^-1; ...; H F^-W] (s0 stands before step 0, whose F the
+    analysis takes as I). s - D x is then of the size of the errors, where with D = 0 the
+    exact analysis (`core.exact`) subtracts numbers of the size of the truth's covariance,
+    which grows without bound (q k^3 for constant velocity). The analysis is exact with any
+    D (the wrapped plan keeps x in its moments, `moments.coupling`): D only conditions it."""
     B = W * m
+    back = back_propagation(system, W)
+    N = None if back is None else back[0].shape[0]
+
+    def error_form(Dt: np.ndarray, buffer: np.ndarray, batch: tuple) -> np.ndarray:
+        """[D~ S; buffer], batch + (d + B, n)."""
+        top = Dt @ back[0]
+        out = np.zeros(np.broadcast_shapes(batch, top.shape[:-2]) + (top.shape[-2] + B, n))
+        out[..., : top.shape[-2], :] = top
+        out[..., top.shape[-2] :, :] = buffer
+        return out
+
+    def usable(Dt: np.ndarray | None) -> bool:
+        """Whether the inner map has an error form on X_k (and F is usable)."""
+        return back is not None and Dt is not None and Dt.shape[-1] == N
+
     # Sel (m~, m + W m): slot c's columns among [z_k, b_{k-1}] (block l of l m columns)
     Sel = np.zeros((len(slots), m + B))
     if coef is None:
@@ -127,16 +175,21 @@ def wrap(
         O = st.O[..., :n, :]
         Ow = np.concatenate([O, np.zeros(O.shape[:-1] + (B,))], axis=-1)
         P = np.ascontiguousarray(st.P[..., :n, :n])
-        out = done[id(st)] = StepMap(Tw, Uw, Ow, P, np.zeros(batch + (d + B, n)))
+        if usable(st.D):
+            D = error_form(st.D, back[1][: W * m], batch)
+        else:
+            D = np.zeros(batch + (d + B, n))
+        out = done[id(st)] = StepMap(Tw, Uw, Ow, P, D)
         return out
 
     steps = [step(st) for st in inner.steps]
     d0 = len(inner.s0)
+    D0 = error_form(inner.D0, back[1][m:], ()) if usable(inner.D0) else np.zeros((d0 + B, n))
     return dataclasses.replace(
         inner,
         s0=np.concatenate([inner.s0, np.zeros(B)]),
         steps=steps,
-        D0=np.zeros((d0 + B, n)),
+        D0=D0,
         complete=False,
         dense=None,
         omega=None,
