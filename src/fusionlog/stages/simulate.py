@@ -63,20 +63,8 @@ def simulate_to(
     blocks = None
     if not late_sensors or lat is not None:
         blocks = kind.simulate_blocks(scenario, time_block())
-    for k0, k1, x, z in blocks or ():  # one long run in blocks of time
-        if lat is not None:  # late sensors: the messages one by one, each with its arrival
-            _late_messages(w, k0, k1, times, x, z, topics, measures, lat)
-            continue
-        if everywhere:  # every sensor at every instant: a window's messages at once
-            columns = [RunColumn(TRUTH, VALUES, x[0])]
-            columns += [RunColumn(topics[j], VALUES, z[j][0]) for j in every]
-            w.write_run_steps(k0, times[k0:k1], columns)
-            continue
-        for k in range(k0, k1):
-            t = float(times[k])
-            w.write_values(TRUTH, k, t, 0, x[:, k - k0])
-            for j in every if everywhere else np.flatnonzero(measures[k]).tolist():
-                w.write_values(topics[j], k, t, 0, z[j][:, k - k0])
+    for k0, k1, x, z in blocks or ():  # one long run in blocks of time: a window at once
+        _block_messages(w, k0, times[k0:k1], x, z, topics, measures[k0:k1], lat)
     if blocks is not None:
         return (K + 1) + int(measures.sum())
     messages = 0
@@ -101,16 +89,20 @@ def simulate_to(
     return messages
 
 
-def _late_messages(w, k0, k1, times, x, z, topics, measures, lat) -> None:
-    """The block [k0, k1) of a one-run log whose late sensors have fixed latencies `lat` (S,)
-    s: the messages of the whole run's loop (`simulate_to`), a late reading's arrival t + lat
-    as there (`core.late_policy.draw_arrivals`)."""
-    for k in range(k0, k1):
-        t = times[k]
-        w.write_values(TRUTH, k, float(t), 0, x[:, k - k0])
-        for j in np.flatnonzero(measures[k]).tolist():
-            a = (t + lat[j])[None] if lat[j] > 0.0 else None
-            w.write_values(topics[j], k, float(t), 0, z[j][:, k - k0], arrival=a)
+def _block_messages(w, k0, times, x, z, topics, measures, lat) -> None:
+    """The block of a one-run log from instant k0 (`times` (w,), `measures` (w, S) the sensors
+    measuring): the messages of the whole run's loop (`simulate_to`) written a window at once
+    (`McapWriter.write_run_steps`: the same bytes), the truth at every instant, a sensor at
+    the instants it measures, a late sensor's arrival t + its fixed latency `lat` (S,) s as
+    there (`core.late_policy.draw_arrivals`)."""
+    columns = [RunColumn(TRUTH, VALUES, x[0])]
+    for j, topic in enumerate(topics):
+        late = lat is not None and lat[j] > 0.0
+        columns.append(RunColumn(topic, VALUES, z[j][0], arrival=times + lat[j] if late else None))
+    present = None
+    if not measures.all():
+        present = np.concatenate([np.ones((len(times), 1), bool), measures], axis=1)
+    w.write_run_steps(k0, times, columns, present)
 
 
 def run_simulate(
