@@ -7,9 +7,15 @@ covariance, which grows like q k^3 for constant velocity: at 1200 instants the o
 filter's bound check read 1 + 1.7e-7 (the reference: the optimal filter's reported covariance
 IS its error covariance, so lambda_max(P^-1 E[e e^T]) = 1 at every instant, Kalman 1960;
 for reprocess and neglect alike, each a Kalman filter of the stacked model on the readings it
-accepts, see core/latency.py). With the error form the ratio is 1 to the rounding of a
-contractive recursion: ~10^2 roundings of eps = 2.2e-16 relative; 1e-9 leaves a margin of
-10^4 whatever the BLAS kernel, and is 10^2 below what D = 0 gives.
+accepts, see core/latency.py; for retrodict, Bar-Shalom's Al1, whose reported covariance is
+its error covariance while a late reading lags its filter's last update by one update at most,
+Algorithm A, exact, core/retrodict.py: with s3 late by 2 s and s1, s2 on time every instant,
+every late reading lags by one). MSC-GMF on retrodicting locals fuses them with their true
+joint error covariance J (from the plans' maps): its fused covariance (E^T J^-1 E)^-1 is the
+fused error's C J C^T, so its ratio is 1 too (Bar-Shalom and Campo 1986). With the error form
+the ratio is 1 to the rounding of a contractive recursion: ~10^2 roundings of eps = 2.2e-16
+relative; 1e-9 leaves a margin of 10^4 whatever the BLAS kernel, and is 10^2 below what D = 0
+gives (retrodict on main: 1 + 1.36e-7).
 """
 
 from __future__ import annotations
@@ -46,8 +52,9 @@ name = "s3"
 H = [[1.0, 0.0]]
 R = 1.0
 latency = 2.0
+{extra}
 [estimate]
-architectures = ["CKF", "HKF", "SKF:s3"]
+architectures = {archs}
 late = "{late}"
 """
 
@@ -55,16 +62,50 @@ late = "{late}"
 RATIO_TOL = 1e-9
 
 
-@pytest.mark.parametrize("late", ["reprocess", "neglect"])
-def test_optimal_late_filter_bound_ratio_is_one_on_a_long_log(tmp_path, late) -> None:
-    """CKF, HKF (the same estimate, information form) and SKF on the late sensor alone are
-    optimal for what they fuse: their worst bound ratio over 1201 instants is 1 to rounding."""
+OPTIMAL = ["CKF", "HKF", "SKF:s3"]
+
+
+@pytest.mark.parametrize(
+    ("late", "archs"),
+    [("reprocess", OPTIMAL), ("neglect", OPTIMAL), ("retrodict", [*OPTIMAL, "MSC-GMF"])],
+)
+def test_optimal_late_filter_bound_ratio_is_one_on_a_long_log(tmp_path, late, archs) -> None:
+    """CKF, HKF (the same estimate, information form), SKF on the late sensor alone and, for
+    retrodict, MSC-GMF are optimal for what they fuse or report their error covariance: their
+    worst bound ratio over 1201 instants is 1 to rounding."""
     scenario = tmp_path / "late.toml"
-    scenario.write_text(SCENARIO.format(late=late))
+    scenario.write_text(SCENARIO.format(late=late, archs=json.dumps(archs), extra=""))
     out = tmp_path / "out"
     ok("run", scenario, "--out-dir", out)
     summary = json.loads((out / "summary.json").read_text())
-    for arch in ("CKF", "HKF", "SKF:s3"):
+    for arch in archs:
         bound = summary["architectures"][arch]["bound"]
         assert abs(bound["worst"] - 1.0) <= RATIO_TOL, (late, arch, bound)
         assert bound["holds"], (late, arch, bound)
+
+
+#: s2 and s3 correlated (noise covariance 0.3): s3's readings arrive 2 s after s2's
+CORRELATED = """
+[[correlations]]
+sensors = ["s2", "s3"]
+cov = [[0.3]]
+"""
+
+
+def test_joint_rules_on_correlated_readings_arriving_apart_keep_ratio_one(tmp_path) -> None:
+    """MSC-GMF and AVG on locals whose correlated readings arrive apart (`latency_joint`) read
+    the locals' true joint error covariance J; their fused covariance C J C^T is then their
+    true error covariance, so the worst bound ratio over 1201 instants is 1 to rounding (the
+    same reference as test_latency_corr's exact = Monte Carlo case). With D = 0 there (before
+    the error form): MSC-GMF 1 + 3.5e-8."""
+    scenario = tmp_path / "corr.toml"
+    archs = ["MSC-GMF", "AVG"]
+    text = SCENARIO.format(late="reprocess", archs=json.dumps(archs), extra=CORRELATED)
+    scenario.write_text(text)
+    out = tmp_path / "out"
+    ok("run", scenario, "--out-dir", out)
+    summary = json.loads((out / "summary.json").read_text())
+    for arch in archs:
+        bound = summary["architectures"][arch]["bound"]
+        assert abs(bound["worst"] - 1.0) <= RATIO_TOL, (arch, bound)
+        assert bound["holds"], (arch, bound)

@@ -82,11 +82,14 @@ def late_steady_log(
 
 def analysis_rtol(truth: System, plans: SteadyLog, mse: float) -> float:
     """How closely the exact analysis of late plans can repeat at the horizon's middle c
-    (`long_log.converged`'s rtol): the late plans carry no error form (`latency_stacked.wrap`:
-    D = 0), so the analysis propagates the joint moments of the truth x_k and the plan's state,
-    and its values (of size `mse`) are differences of numbers of the size of the truth's
-    covariance at c: 64 roundings of its largest entry, relative to `mse` (at least 1e-9,
-    the on-time plans' rtol)."""
+    (`long_log.converged`'s rtol). The late plans carry an error form D (reprocess and
+    neglect: `latency_stacked.wrap`, `latency_joint`; retrodict: `retrodict`), with which the
+    analysis's values stay of the size of the errors; but where F is singular or
+    ill-conditioned (cond > 1e8), varies per step (`wrap`) or a sensor is nonlinear, D is 0
+    (in the retrodict plans, the blocks whose transition is ill-conditioned), and the
+    analysis's values (of size `mse`) are then differences of numbers of the size of the
+    truth's covariance at c. The bound covers that case: 64 roundings of that covariance's
+    largest entry, relative to `mse` (at least 1e-9, the on-time plans' rtol)."""
     prior = truth.initial if truth.initial is not None else truth.prior
     if prior is None:
         return 1e-9

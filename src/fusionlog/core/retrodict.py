@@ -44,7 +44,7 @@ from .architectures import Plan, StepMap
 from .linalg import mT, sym
 from .model import System
 
-__all__ = ["retrodict_maps", "retrodict_plan"]
+__all__ = ["initial_error_form", "retrodict_maps", "retrodict_plan"]
 
 
 @dataclass
@@ -72,7 +72,7 @@ class _Transitions:
     """F and Q (process noise in state space) from instant a to instant b >= a."""
 
     def __init__(self, system: System):
-        self.system, self.cache = system, {}
+        self.system, self.cache, self.inverses = system, {}, {}
 
     def __call__(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
         a, b = int(a), int(b)
@@ -86,17 +86,30 @@ class _Transitions:
             got = self.cache[a, b] = (F, sym(Q))
         return got
 
-    def gathered(self, a: np.ndarray, b: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
-        """F, Q from a[r] to b[r] for every run r, (R, n, n) each (one lookup per distinct pair)."""
+    def back(self, a: int, b: int) -> tuple[np.ndarray]:
+        """(F(a, b)^-1,): x_a = F(a, b)^-1 x_b without noise; zero when F(a, b) is singular or
+        ill-conditioned (cond > 1e8, its inverse would amplify rounding): that block of the
+        error form D is then 0, as before (`error_form`)."""
+        a, b = int(a), int(b)
+        got = self.inverses.get((a, b))
+        if got is None:
+            F = self(a, b)[0]
+            usable = np.isfinite(F).all() and np.linalg.cond(F) <= 1e8
+            got = self.inverses[a, b] = (np.linalg.inv(F) if usable else np.zeros_like(F),)
+        return got
+
+    def gathered(self, a: np.ndarray, b: np.ndarray | int, of=None) -> tuple[np.ndarray, ...]:
+        """F, Q (or what `of`, default self, gives) from a[r] to b[r] for every run r, (R, n, n)
+        each (one lookup per distinct pair)."""
+        of = self if of is None else of
         b = np.broadcast_to(b, a.shape)
         if (a == a.flat[0]).all() and (b == b.flat[0]).all():  # one pair (e.g. one pattern)
-            F, Q = self(a.flat[0], b.flat[0])
-            return np.broadcast_to(F, a.shape + F.shape), np.broadcast_to(Q, a.shape + Q.shape)
+            return tuple(np.broadcast_to(X, a.shape + X.shape) for X in of(a.flat[0], b.flat[0]))
         wide = int(max(a.max(initial=0), b.max(initial=0))) + 1
         keys, inv = np.unique(a * wide + b, return_inverse=True)  # the pairs as numbers
-        got = [self(p, q) for p, q in zip(keys // wide, keys % wide, strict=True)]
+        got = [of(p, q) for p, q in zip(keys // wide, keys % wide, strict=True)]
         inv = inv.ravel()
-        return np.stack([g[0] for g in got])[inv], np.stack([g[1] for g in got])[inv]
+        return tuple(np.stack(X)[inv] for X in zip(*got, strict=True))
 
 
 def _masked(H: np.ndarray, R: np.ndarray, cm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -151,7 +164,7 @@ def _batch(
     W: int,
     trans: _Transitions,
 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-    """(T, U, O, P), each (M, ...), of every step for M arrival patterns at once: `present`
+    """(T, U, O, P, D), each (M, ...), of every step for M arrival patterns at once: `present`
     (M, K+1, m), `arrive` (M, K+1, S) the instant each reading arrives by, the filter on
     `sensors`. During step k the stored estimates are kept by instant t = k-1-W+r, r = 0..W+1
     (`sval`: stored for that run; their expressions `sx` rows over u = [s_{k-1}; z_k])."""
@@ -227,10 +240,28 @@ def _batch(
         O = np.zeros((M, n, d))
         O[:, :, :n] = Fo
         T, U = np.ascontiguousarray(rows[:, :, :d]), np.ascontiguousarray(rows[:, :, d:])
-        out.append((T, U, O, sym(Fo @ P @ mT(Fo)) + Qo))
+        out.append((T, U, O, sym(Fo @ P @ mT(Fo)) + Qo, _error_form(lay, H, k, tau, sval, trans)))
         sP[:, :-1], sval[:, :-1] = sP[:, 1:], sval[:, 1:]  # to step k+1's instants
         sval[:, -1] = False
     return out
+
+
+def _error_form(lay: _Layout, H, k: int, tau, sval, trans: _Transitions) -> np.ndarray:
+    """D_k (M, d, n), s_k = D_k x_k without noise (`StepMap.D`): the current estimate is
+    x_tau = F(tau, k)^-1 x_k (every update, in sequence or Al1, is unbiased), a stored one at
+    instant k-q is x_{k-q} = F(k-q, k)^-1 x_k (0 where none is stored: its rows are 0), the
+    buffered z_{k-q} = H F(k-q, k)^-1 x_k (0 before instant 0: s0's buffer is 0). Then
+    T_k D_{k-1} + (U_k H - D_k) F_k = 0, so s - D x stays of the size of the errors, where
+    with D = 0 the exact analysis subtracts numbers of the size of the truth's covariance."""
+    M, L = sval.shape
+    W = L - 2
+    D = np.zeros((M, lay.d, lay.n))
+    D[:, : lay.n] = trans.gathered(tau, k, of=trans.back)[0]
+    for q in range(min(W, k) + 1):
+        D[:, lay.stored(q)] = trans.back(k - q, k)[0] * sval[:, W + 1 - q, None, None]
+        if q < W:
+            D[:, lay.buffered(q)] = H @ trans.back(k - q, k)[0]
+    return D
 
 
 def _keep_window(sx, sP, sval, b: int, base: int, trans: _Transitions) -> None:
@@ -259,9 +290,10 @@ def _keep_window(sx, sP, sval, b: int, base: int, trans: _Transitions) -> None:
 def retrodict_maps(
     system: System, present: np.ndarray, arrive: np.ndarray, sensors: list[int], W: int
 ) -> tuple[list[tuple[np.ndarray, ...]], bool]:
-    """The (T, U, O, P) of every step of the retrodicting filter on `sensors`, and whether they
-    are per run: `present` (K+1, m) or (M, K+1, m), `arrive` (K+1, S) or (M, K+1, S) the
-    instant each reading arrives by; the recursion runs once on the distinct patterns."""
+    """The (T, U, O, P, D) (`StepMap`'s fields) of every step of the retrodicting filter on
+    `sensors`, and whether they are per run: `present` (K+1, m) or (M, K+1, m), `arrive`
+    (K+1, S) or (M, K+1, S) the instant each reading arrives by; the recursion runs once on
+    the distinct patterns."""
     trans = _Transitions(system)
     if present.ndim == 2 and arrive.ndim == 2:
         maps = _batch(system, present[None], arrive[None], sensors, W, trans)
@@ -299,5 +331,13 @@ def retrodict_plan(
     s0[:n] = system.prior.mean
     s0[lay.stored(0)] = system.prior.mean  # unused: instant 0's stored estimate is cur's
     maps, per_run = retrodict_maps(system, present, arrive, sensors, W)
-    steps = [StepMap(T, U, O, P, np.zeros(T.shape[:-2] + (lay.d, n))) for T, U, O, P in maps]
-    return Plan(name, s0, steps, per_run=per_run, D0=np.zeros((lay.d, n)), complete=False)
+    steps = [StepMap(*mk) for mk in maps]
+    return Plan(name, s0, steps, per_run=per_run, D0=initial_error_form(lay.d, n), complete=False)
+
+
+def initial_error_form(d: int, n: int) -> np.ndarray:
+    """D_0 of the state before step 0 (`_error_form`): its current estimate is the prior's
+    mean, of x_0 (step 0 has no prediction); nothing stored nor buffered yet."""
+    D0 = np.zeros((d, n))
+    D0[:n] = np.eye(n)
+    return D0

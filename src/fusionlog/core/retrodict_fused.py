@@ -21,7 +21,9 @@ gets it from the plans' affine maps: y_k = [x_k; s_k] (s the locals' states) fol
     y_k = A_k y_{k-1} + B_k w_k + [0; U_k] v_k,   A = [[F, 0], [U H F, T]],  B = [I; U H],
 
 so cov(y_k) = A cov(y_{k-1}) A^T + B Q B^T + [0; U] R [0; U]^T (R with its cross-sensor
-blocks: eq. 35's K_i R_ij K_j^T), and J = E cov(y) E^T for the errors e_j = x_k - O_j s_j.
+blocks: eq. 35's K_i R_ij K_j^T), and J = E cov(y) E^T for the errors e_j = x_k - O_j s_j;
+computed on [x_k; s_k - D_k x_k] (D the locals' error forms, `retrodict._error_form`), whose
+terms stay of the size of the errors where x's grow like q k^3.
 Over several updates Al1 is an approximation, so J's diagonal blocks are the locals' true error
 covariances, not the ones they report. The locals keep one copy of the last W readings.
 """
@@ -34,6 +36,7 @@ from .architectures import Plan, StepMap, definition
 from .architectures.hkf import independent_noise
 from .linalg import mT, sym
 from .model import System
+from .moments import step_moments
 from .retrodict import retrodict_maps, retrodict_plan
 
 __all__ = ["late_retrodict_plan"]
@@ -97,43 +100,53 @@ def _fused(
     prior = system.prior
     assert prior is not None
     steps, omegas = [], []
-    cov = None  # cov([x_k; s_k]) when the rule reads J
+    cov = None  # cov([x_k; zeta_k]) when the rule reads J (`_error_moments`)
+    D_prev = np.zeros((dC, n))  # D0: every local's current estimate is the prior's mean
+    for j in range(S):
+        D_prev[at[j] : at[j] + n] = np.eye(n)
+    D0 = D_prev
     for k in range(K1):
         maps = [mk[k] for mk, _ in locs]
         batch = maps[0][0].shape[:-2]
         T = np.zeros(batch + (dC, dC))
         U = np.zeros(batch + (dC, m))
         Ol = np.zeros(batch + (S * n, dC))
-        for j, (Tj, Uj, Oj, _) in enumerate(maps):
+        D = np.zeros(batch + (dC, n))  # the error form: the locals' and the shared buffer's
+        for j, (Tj, Uj, Oj, _, Dj) in enumerate(maps):
             nb, rows, buf = nbs[j], slice(at[j], at[j + 1]), at[-1]
             T[..., rows, rows] = Tj[..., :nb, :nb]
             T[..., rows, buf : buf + Ws[j] * m] = Tj[..., :nb, nb:]  # its newest W_j readings
             U[..., rows, :] = Uj[..., :nb, :]
             Ol[..., j * n : (j + 1) * n, rows] = Oj[..., :, :nb]
+            D[..., rows, :] = Dj[..., :nb, :]
         wide = Ws.index(W)  # a local that keeps all W readings: their shift
         nw, buf = nbs[wide], at[-1]
         T[..., buf:, buf:] = maps[wide][0][..., nw:, nw:]
         U[..., buf:, :] = maps[wide][1][..., nw:, :]
+        D[..., buf:, :] = maps[wide][4][..., nw:, :]
         Ploc = np.stack([mp[3] for mp in maps], axis=-3)  # batch + (S, n, n)
+        st = StepMap(T, U, Ol, Ploc, D)  # the moments read T, U and D
         J = None
         if arch_def.joint:
-            cov = _moments(system, k, T, U, H, cov, prior.cov)
-            E = np.zeros(batch + (S * n, n + dC))  # e_j = x_k - O_j s_j
-            E[..., :n] = np.tile(np.eye(n), (S, 1))
+            cov = _error_moments(system, k, st, D_prev, cov, prior.cov, H)
+            E = np.zeros(batch + (S * n, n + dC))  # e_j = (I - O_j D_j) x_k - O_j zeta_j
+            E[..., :n] = np.tile(np.eye(n), (S, 1)) - Ol @ D
             E[..., n:] = -Ol
             J = sym(E @ cov @ mT(E))
+        D_prev = D
         C, Pf, w = _rule(arch_def, Ploc, J, criterion)
         omegas.append(w)
-        steps.append(StepMap(T, U, C @ Ol, Pf, np.zeros(batch + (dC, n))))
+        steps.append(StepMap(T, U, C @ Ol, Pf, D))
     s0 = np.zeros(dC)
     for j in range(S):
         s0[at[j] : at[j] + n] = prior.mean
     omega = None
     if any(w is not None for w in omegas):
         omega = np.stack([np.broadcast_to(w, batch + (S,)) for w in omegas], axis=-2)
-    plan = Plan(arch, s0, steps, per_run=per_run, D0=np.zeros((dC, n)), complete=False)
-    # plan.system stays None: with D = 0 the state s is not D x plus an error, so the exact
-    # analysis keeps the true state's terms (`moments.coupling`)
+    plan = Plan(arch, s0, steps, per_run=per_run, D0=D0, complete=False)
+    # plan.system stays None: the exact analysis keeps the true state's terms
+    # (`moments.coupling`), so it is exact with any D; D (`retrodict._error_form`) only keeps
+    # s - D x of the size of the errors
     plan.omega = omega
     return plan
 
@@ -156,23 +169,14 @@ def _rule(arch_def, P: np.ndarray, J: np.ndarray | None, criterion: str):
     return C, Pf, w
 
 
-def _moments(system, k, T, U, H, cov, P0):
-    """cov([x_k; s_k]) from cov([x_{k-1}; s_{k-1}]) (module docstring); at k = 0 from [x_0; s_0]
-    (s_0 known), through step 0's maps without a prediction."""
+def _error_moments(system, k, st: StepMap, D_prev, cov, P0, H):
+    """cov([x_k; zeta_k]), zeta_k = s_k - D_k x_k, from cov([x_{k-1}; zeta_{k-1}]) (the
+    module docstring's recursion in the error form of `moments.step_moments`, with the model
+    as the truth); at k = 0 from [x_0; s_0 - D_0 x_0] (s_0 known). With D = 0 the recursion
+    above subtracts numbers of the size of x's covariance (q k^3 for constant velocity)."""
     n = system.n
-    batch = T.shape[:-2]
-    dy = n + T.shape[-1]
     if cov is None:
-        cov = np.zeros(batch + (dy, dy))
-        cov[..., :n, :n] = P0
-    F = np.eye(n) if k == 0 else system.F_at(k)
-    Q = np.zeros((n, n)) if k == 0 else system.GQG_at(k)
-    UH = U @ H
-    A = np.zeros(batch + (dy, dy))
-    A[..., :n, :n] = F
-    A[..., n:, :n] = UH @ F
-    A[..., n:, n:] = T
-    Bw = np.concatenate([np.broadcast_to(np.eye(n), UH.shape[:-2] + (n, n)), UH], axis=-2)
-    out = A @ cov @ mT(A) + Bw @ Q @ mT(Bw)
-    out[..., n:, n:] += U @ system.R_at(k) @ mT(U)
-    return sym(out)
+        Jx = np.concatenate([np.eye(n), -D_prev])
+        cov = Jx @ P0 @ Jx.T
+    mu = np.zeros(st.T.shape[:-2] + (cov.shape[-1],))
+    return step_moments(st, k, mu, cov, D_prev, system, n, H)[1]
