@@ -150,7 +150,9 @@ def test_the_evaluate_stage_takes_it_for_one_run(tmp_path, monkeypatch) -> None:
 
     monkeypatch.setattr(exact_replay, "replay_expected", recorded)
     fast = run(tmp_path / "fast")
-    assert len(seen) == 1 and sorted(seen[0]) == ["CKF", "HKF", "MSC"]
+    # what the route returned, should it refuse on some machine (a Prescott run was reported
+    # to fail here once and could not be reproduced: the quantities are conditioned ~1e-16)
+    assert len(seen) == 1 and sorted(seen[0]) == ["CKF", "HKF", "MSC"], [sorted(e) for e in seen]
     monkeypatch.setattr(exact_replay, "truth_is_model", lambda *a: False)
     slow = run(tmp_path / "slow")
     for a in ("CKF", "MSC", "HKF"):
