@@ -4,7 +4,10 @@
 The filters (CKF, SKF, HKF and the track-to-track architectures, `.architectures`) are
 recursions on their state (`Machine`: s_k = step(k, s_{k-1}, z_k)): each keeps its state from
 block to block and takes a block's readings instant by instant, so a block's estimates are
-the whole run's.
+the whole run's. With late sensors each architecture runs its policy (`late.late_steps`) on a
+`late_feed.Feed` that reads the log a block at a time and keeps the last W instants' readings
+and arrival instants beside it; the policy keeps what else crosses an edge (the states a
+reprocess rewinds to, the estimates Al1 retrodicts from, neglect's newest measurement times).
 
 FBS, the extended / unscented RTS smoother, needs the instants after. Its forward filter is
 *recomputed*, not written to disk: a first sweep keeps the filter's estimate (x, P) at the end
