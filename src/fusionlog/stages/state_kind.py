@@ -303,9 +303,9 @@ class _StateEstimator(Estimator):
         reading present through its short plans, a recorded replay or a simulated run without
         steady plans (irregular instants, per-message R, readings missing or lost at dropouts)
         through the plan-free path carried block to block, a nonlinear model through its
-        EKF/UKF filters carried block to block; None otherwise (a log short enough for one
-        block, late readings, the reference paths, a model `ReplayBlocks.of` refuses: the
-        whole run at once)."""
+        EKF/UKF filters (and their late policies) carried block to block; None otherwise (a
+        log short enough for one block, linear late readings without late plans standing for
+        the log, the reference paths, a model `ReplayBlocks.of` refuses: the whole run)."""
         from fusionlog.core.architectures.replay_blocks import ReplayBlocks
         from fusionlog.driver.long_log import (
             long_estimates,
