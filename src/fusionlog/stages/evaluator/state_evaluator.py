@@ -332,7 +332,21 @@ class StateEvaluator(Evaluator):
             return None
         p, T = exact.plans, time_block()
         got = replay_expected_blocks(p.system, exact.truth, exact.known, self.K, T, p.criterion)
-        return None if got is None else LongReplayExact(got, exact.mask, p.system.m, T)
+        if got is None:  # the truth is not the model
+            return self._mismatch_exact(exact, T)
+        return LongReplayExact(got, exact.mask, p.system.m, T)
+
+    def _mismatch_exact(self, exact: ExactPart, T: int) -> Any:
+        """`_replay_exact` where the truth is not the filters' model (`--model`, a `[truth]`):
+        the joint moments of the truth and the filters carried block to block
+        (`core.exact_mismatch`); None where that path does not take the log."""
+        from fusionlog.core.exact_mismatch import mismatch_expected_blocks
+
+        from .long_mismatch import LongMismatchExact
+
+        p = exact.plans
+        got = mismatch_expected_blocks(p.system, exact.truth, exact.known, self.K, T, p.criterion)
+        return None if got is None else LongMismatchExact(got, exact.mask, p.system.m, T)
 
     def _finish(self) -> Finished:
         archs: dict[str, dict[str, Any]] = {}
