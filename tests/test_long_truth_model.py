@@ -2,7 +2,7 @@
 filters' model (`estimate --model`, a scenario's `[truth]`, a truth with other noise or
 dynamics), on logs without steady plans (irregular instants, a covariance per message, missing
 readings): `core.exact_mismatch`, taken by the evaluate stage where the one-log route in blocks
-(`exact_replay.replay_expected_blocks`, the truth the model) refuses.
+(`exact_replay.replay_expected_blocks`) took only where the truth is the model.
 
 * Core: every architecture's MSE matrix, bias, reported covariance, NEES, DM and the bound
   check in blocks against the whole log's route, `exact.analyse` of the plans (a truth with
@@ -80,13 +80,14 @@ def _truth(model: System, times: np.ndarray, kind: str) -> System:
 def _blocked(model: System, truth: System, archs, mask: np.ndarray, block: int):
     """{arch: {field: (K+1, ...)}} of the exact values in blocks of `block` instants, and
     the bound check's summary ("summary"); asserts the route takes them."""
-    from fusionlog.core.exact_mismatch import mismatch_expected_blocks
+    from fusionlog.core.exact_mismatch import MismatchBlocks
+    from fusionlog.core.exact_replay import replay_expected_blocks
     from fusionlog.driver.long_log import edges
     from fusionlog.stages.evaluator.long_mismatch import LongMismatchExact
 
     K1 = len(mask)
-    blocks = mismatch_expected_blocks(model, truth, archs, K1 - 1, block)
-    assert blocks is not None
+    blocks = replay_expected_blocks(model, truth, archs, K1 - 1, block)
+    assert isinstance(blocks, MismatchBlocks)
     long = LongMismatchExact(blocks, mask, model.m, block)
     got: dict[str, dict[str, list]] = {a: {} for a in archs}
     for k0, k1 in edges(K1, block):
@@ -197,7 +198,7 @@ def _peak(K1: int, block: int) -> int:
     backward pass included, each block's values dropped as the evaluator does."""
     import tracemalloc
 
-    from fusionlog.core.exact_mismatch import mismatch_expected_blocks
+    from fusionlog.core.exact_replay import replay_expected_blocks
     from fusionlog.driver.long_log import edges
     from fusionlog.stages.evaluator.long_mismatch import LongMismatchExact
 
@@ -207,7 +208,7 @@ def _peak(K1: int, block: int) -> int:
     tracemalloc.start()
     try:
         long = LongMismatchExact(
-            mismatch_expected_blocks(model, truth, archs, K1 - 1, block), mask, model.m, block
+            replay_expected_blocks(model, truth, archs, K1 - 1, block), mask, model.m, block
         )
         for k0, k1 in edges(K1, block):
             assert set(long.window(k0, k1)) == set(archs)
@@ -228,18 +229,18 @@ def test_peak_memory_does_not_grow_with_the_instants() -> None:
 
 
 class Calls:
-    """Counts the calls of `core.exact_mismatch.mismatch_expected_blocks` (the blocked route)."""
+    """Counts the calls of `core.exact_mismatch.mismatch_blocks` (the blocked route)."""
 
     def __init__(self, mp) -> None:
         from fusionlog.core import exact_mismatch
 
-        self.count, inner = 0, exact_mismatch.mismatch_expected_blocks
+        self.count, inner = 0, exact_mismatch.mismatch_blocks
 
         def wrapped(*a, **kw):
             self.count += 1
             return inner(*a, **kw)
 
-        mp.setattr(exact_mismatch, "mismatch_expected_blocks", wrapped)
+        mp.setattr(exact_mismatch, "mismatch_blocks", wrapped)
 
 
 def _fusionlog(folder: Path, block: int | None, *args) -> int:

@@ -32,7 +32,6 @@ Same formulas as the plans', not the same order of operations: the two agree to 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from types import SimpleNamespace
 
 import numpy as np
@@ -49,7 +48,7 @@ from .linalg import mT, solve, sym
 from .model import System
 from .moments import coupling
 
-__all__ = ["CHUNK", "MismatchBlocks", "mismatch_expected_blocks"]
+__all__ = ["CHUNK", "MismatchBlocks", "mismatch_blocks"]
 
 #: Instants whose joint maps (A_k, the noise's C_k: (N, N) each, N up to (S + 1) n) are formed
 #: at once inside a block of time: a few megabytes whatever the block.
@@ -82,7 +81,8 @@ class MismatchBlocks:
     """Each architecture's exact values on one run of `model`'s filters whose data come from
     `truth` (both on the log's instants, the truth's sensors in the filters' order), block of
     time by block, in order (`window`); FBS's backward recursion first, in reverse order
-    (`backward`). `mismatch_expected_blocks` says whether the path takes them."""
+    (`backward`). `mismatch_blocks` says whether the path takes them (the caller:
+    `exact_replay.replay_expected_blocks`)."""
 
     def __init__(self, model: System, truth: System, blocks: ReplayBlocks) -> None:
         self.model, self.truth, self.blocks = model, truth, blocks
@@ -279,20 +279,11 @@ def coupling_of(model: System, truth: System) -> bool:
     return coupling(SimpleNamespace(system=model), truth)
 
 
-def mismatch_expected_blocks(
-    model: System,
-    truth: System,
-    archs: Sequence[str],
-    steps: int,
-    block: int,
-    criterion: str | None = None,
-) -> MismatchBlocks | None:
-    """`MismatchBlocks` of one run of instants 0..`steps` in blocks of `block` instants, where
-    the plan-free replay takes the filters (`ReplayBlocks.of`) and the truth is linear with the
-    filters' sizes; else None."""
-    if not truth.linear or truth.n != model.n or truth.m != model.m:
+def mismatch_blocks(model: System, truth: System, blocks: ReplayBlocks) -> MismatchBlocks | None:
+    """`MismatchBlocks` of the filters `blocks` (`ReplayBlocks.of` of `model`) on data from
+    `truth`, where the truth is linear with the filters' sizes; else None."""
+    if not truth.linear or truth.motion_model is not None:
         return None
-    if truth.motion_model is not None:
+    if truth.n != model.n or truth.m != model.m:
         return None
-    blocks = ReplayBlocks.of(model, archs, steps, block, criterion)
-    return None if blocks is None else MismatchBlocks(model, truth, blocks)
+    return MismatchBlocks(model, truth, blocks)
