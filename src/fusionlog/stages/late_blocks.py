@@ -33,7 +33,7 @@ def arrival_blocks(
     times = sensors.times()
     K1 = len(times)
     if not random_delays(system):
-        for k0 in range(0, K1, block):
+        for _ in range(0, K1, block):
             yield None
         return
     late = [j for j, s in enumerate(system.sensors) if s.timing.late]

@@ -164,6 +164,18 @@ class StateKind(Kind):
 
         return draw_arrivals(scenario.system, scenario.times, scenario.seed, run_offset, runs)
 
+    def arrival_blocks(self, scenario: Scenario, block: int) -> Any:
+        """`core.late_policy.arrival_blocks`, NaN for the sensors on time (no arrival field,
+        as `simulate_to` writes the whole run's)."""
+        from fusionlog.core.late_policy import arrival_blocks
+
+        system = scenario.system
+        got = arrival_blocks(system, scenario.times, scenario.seed, block)
+        if got is None:
+            return None
+        on_time = [not s.timing.late for s in system.sensors]
+        return (np.where(on_time, np.nan, a) for a in got)
+
     def latencies(self, scenario: Scenario) -> np.ndarray | None:
         system = scenario.system
         if not is_late(system) or random_delays(system):
