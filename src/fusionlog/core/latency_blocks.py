@@ -39,7 +39,7 @@ from .architectures.plan import Estimate
 from .architectures.replay_blocks import ReplayBlocks, system_window
 from .late_policy import arrival_steps, is_late, random_delays
 from .latency import LateModel, lag_pairs, lags_of
-from .latency_corr import Conditions, conditions_of, with_conditions
+from .latency_corr import Conditions, apart_pairs, conditions_of, with_conditions
 from .latency_replay import stacked_readings
 from .latency_stacked import stacked_system
 from .model import System
@@ -125,11 +125,15 @@ class LateBlocks:
         block: int,
         criterion: str | None = None,
         missing: bool = True,
+        exact: bool = False,
     ) -> LateBlocks | None:
         """The blocked late path of one run of instants 0..`steps` at `times` (s), the lags found
         in blocks of `block` instants; None where it does not apply (module docstring;
         `missing`: some reading is missing -- with fixed latencies on a steady model and every
-        reading present the steady plans do it)."""
+        reading present the steady plans do it). `exact`: for the error covariances, which
+        take the stacked noises as white: not HKF where correlated readings of one instant may
+        arrive apart (it fuses them as independent, so its error has their correlation across
+        instants, which only the plans' analysis follows)."""
         if not is_late(system) or system.late == "retrodict" or system.prior is None:
             return None
         if not system.linear or system.motion_model is not None:
@@ -145,6 +149,8 @@ class LateBlocks:
         for a in archs:
             _, kind, filters = late.filters_of(a)
             if kind not in ("centralised", "hierarchical", "single"):
+                return None
+            if exact and kind == "hierarchical" and apart_pairs(system):
                 return None
             centre = late.centre_model() if kind == "centralised" else None
             model = late.stacked if centre is None else centre[0]
