@@ -256,7 +256,6 @@ def test_blocked_recording_equals_the_whole_log(runs) -> None:
         np.testing.assert_allclose(b["series"][key], v, rtol=1e-9, atol=tol, err_msg=key)
 
 
-
 def test_hkf_with_correlated_readings_apart_is_evaluated_whole(tmp_path, monkeypatch) -> None:
     """HKF on correlated sensors whose readings of one instant arrive apart: estimated in
     blocks (its estimates the whole run's), evaluated on the whole run (the plans' exact
@@ -275,6 +274,7 @@ def test_hkf_with_correlated_readings_apart_is_evaluated_whole(tmp_path, monkeyp
     np.testing.assert_allclose(b[0], a[0], rtol=0, atol=RTOL * np.abs(a[0]).max())
     sa, sb = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
     _close(sb, sa)
+
 
 # -- a recorded replay: arrivals from the messages' log times ---------------------------------
 
@@ -295,7 +295,8 @@ def _recorded(tmp: Path, late: str, gaps: bool) -> Path:
         stamp = T0 + (i * 100 + 50) * NS // 1000
         if gaps and rng.random() < 0.2:
             continue
-        b.append((stamp, stamp + round(rng.uniform(0, 0.3) * NS), x[2 * i + 1] + rng.normal(0, 0.4)))
+        late = stamp + round(rng.uniform(0, 0.3) * NS)
+        b.append((stamp, late, x[2 * i + 1] + rng.normal(0, 0.4)))
     schema = {"type": "object", "properties": {"header": {"type": "object"},
                                                "v": {"type": "number"}}}  # fmt: skip
     with open(tmp / "log.mcap", "wb") as f:
