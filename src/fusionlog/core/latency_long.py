@@ -16,10 +16,13 @@ retrodiction once its Riccati recursion repeats to the last bit (`_repeats_share
 equal bit for bit to the one before is that object, so nothing changes numerically). The
 steadiness the long path needs is then `long_log`'s own check at the horizon's middle.
 
-Not here (the whole run at once, `stages.state_kind.time_windows`): random delays and
-recorded arrivals (the plans differ per arrival pattern), missing readings, and retrodiction
-with the rules that read the locals' joint covariance (MSC-GMF, AVG: J is propagated from the
-covariance of [x_k; s_k], which grows with the truth's, so it never repeats).
+Not here: random delays and recorded arrivals (the plans differ per arrival pattern) and
+missing readings go to the plan-free stacked filters carried block to block
+(`core.latency_blocks`: CKF, HKF, SKF under reprocess and neglect; the per-sensor rules and
+retrodiction there take the whole run at once, as does HKF's exact analysis where correlated
+readings arrive apart); retrodiction with the rules that read the locals' joint covariance
+(MSC-GMF, AVG: J is propagated from the covariance of [x_k; s_k], which grows with the
+truth's, so it never repeats) takes the whole run at once.
 """
 
 from __future__ import annotations
