@@ -35,6 +35,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .architectures import definition, parse_arch
 from .architectures.plan import Estimate
 from .architectures.replay_blocks import ReplayBlocks, system_window
 from .late_policy import arrival_steps, is_late, random_delays
@@ -134,9 +135,7 @@ class LateBlocks:
         take the stacked noises as white: not HKF where correlated readings of one instant may
         arrive apart (it fuses them as independent, so its error has their correlation across
         instants, which only the plans' analysis follows)."""
-        if not is_late(system) or system.late == "retrodict" or system.prior is None:
-            return None
-        if not system.linear or system.motion_model is not None:
+        if not cls.covers(system, archs):
             return None
         if not random_delays(system) and system.time_invariant and not missing:
             return None
@@ -163,6 +162,22 @@ class LateBlocks:
             got.late, got.centre = late, centre
             inner[a] = (got, filters, centre, sub)
         return cls(late, archs, inner, times)
+
+    @staticmethod
+    def covers(system: System, archs: Sequence[str]) -> bool:
+        """Whether the path may take `archs` on `system` at all (before any reading is seen):
+        late sensors of a linear model with a prior, reprocess or neglect, and filters fusing
+        every sensor or one."""
+        if not is_late(system) or system.late == "retrodict" or system.prior is None:
+            return False
+        if not system.linear or system.motion_model is not None:
+            return False
+        names = [s.name for s in system.sensors]
+        try:
+            kinds = [definition(parse_arch(a, names)[0]).locals for a in archs]
+        except ValueError:
+            return False
+        return all(k in ("centralised", "hierarchical", "single") for k in kinds)
 
     def _arrivals(self, k0: int, k1: int, arrival: np.ndarray | None) -> np.ndarray:
         """The arrival times (w, S) s of the block's readings: `arrival` (NaN: none taken),

@@ -397,6 +397,8 @@ class _StateEstimator(Estimator):
         plans = self.plans
         system = plans.system
         log = late_steady_log(system, self.archs, plans.steps, plans.criterion, sensors.times())
+        if log is None and not LateBlocks.covers(system, self.archs):
+            return None  # the plans of the whole run
         spool = spool_readings(sensors.iter_time_blocks(self.topics, B), self.topics, system.m)
         if log is not None and not spool.missing:
             plans.patterns.append(np.packbits(np.ones((plans.steps + 1, system.m), bool)).tobytes())
