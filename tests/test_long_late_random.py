@@ -276,7 +276,6 @@ def test_hkf_with_correlated_readings_apart_is_evaluated_whole(tmp_path, monkeyp
     _close(sb, sa)
 
 
-
 def test_a_recorded_log_s_route_takes_late_sensors_into_account() -> None:
     """The exact analysis of one recorded log (the ``one-log`` route) with a sensor late by a
     fixed 2 s and readings missing equals the late plan's analysis (the ``plans`` route), not
@@ -292,11 +291,13 @@ def test_a_recorded_log_s_route_takes_late_sensors_into_account() -> None:
     mask = np.ones((K + 1, system.m), bool)
     mask[::3, 0] = False
     got = {
-        route: shared_expected(route, system, system, ["CKF"], mask, K, plans.criterion,
-                               lambda a: plans.plan(a, mask))("CKF").mse  # fmt: skip
+        route: shared_expected(
+            route, system, system, ["CKF"], mask, K, plans.criterion, lambda a: plans.plan(a, mask)
+        )("CKF").mse  # fmt: skip
         for route in ("one-log", "plans")
     }
     np.testing.assert_array_equal(got["one-log"], got["plans"])
+
 
 # -- a recorded replay: arrivals from the messages' log times ---------------------------------
 

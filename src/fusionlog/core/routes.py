@@ -51,7 +51,6 @@ def shared_expected(
     architecture's name, each computed on first use (`plan_of(arch)` its plan with that mask,
     built only where the plans' analysis is needed)."""
     from .exact import analyse
-
     from .late_policy import is_late
 
     fast: dict[str, object] = {}
