@@ -215,6 +215,13 @@ class LateBlocks:
         self.next_instant = k1
         return out
 
+    def _sub_blocks(self, a: str, k0: int, k1: int, rows: np.ndarray, what) -> list:
+        """what(inner blocks, b0, b1, the rows of [b0, b1)) of each sub-block of [k0, k1) of
+        architecture `a`'s stacked filters (`LATE_BLOCK_BYTES`), in order."""
+        blocks, _, _, sub = self.inner[a]
+        spans = [(b0, min(b0 + sub, k1)) for b0 in range(k0, k1, sub)]
+        return [what(blocks, b0, b1, rows[b0 - k0 : b1 - k0]) for b0, b1 in spans]
+
     def estimates(
         self, k0: int, k1: int, z: np.ndarray, arrival: np.ndarray | None = None
     ) -> dict[str, Estimate]:
@@ -224,14 +231,9 @@ class LateBlocks:
         n = self.late.system.n
         out = {}
         for a, (zs, _) in self._masks(k0, k1, z, arrival).items():
-            blocks, _, _, sub = self.inner[a]
-            means, covs = [], []
-            for b0 in range(k0, k1, sub):
-                b1 = min(b0 + sub, k1)
-                e = blocks.estimates(b0, b1, zs[b0 - k0 : b1 - k0], None)[a]
-                means.append(e.mean[..., :n])
-                covs.append(e.cov[..., :n, :n])
-            out[a] = Estimate(np.concatenate(means, axis=1), np.concatenate(covs))
+            got = self._sub_blocks(a, k0, k1, zs, lambda b, b0, b1, r: b.estimates(b0, b1, r, None))
+            mean = np.concatenate([e[a].mean[..., :n] for e in got], axis=1)
+            out[a] = Estimate(mean, np.concatenate([e[a].cov[..., :n, :n] for e in got]))
         return out
 
     def error_covariances(
@@ -244,12 +246,8 @@ class LateBlocks:
         z = np.where(present, 0.0, np.nan)
         out = {}
         for a, (_, mask) in self._masks(k0, k1, z, arrival).items():
-            blocks, _, _, sub = self.inner[a]
-            Es, Ps = [], []
-            for b0 in range(k0, k1, sub):
-                b1 = min(b0 + sub, k1)
-                E, P = blocks.error_covariances(b0, b1, mask[b0 - k0 : b1 - k0])[a]
-                Es.append(E[:, :n, :n])
-                Ps.append(P[:, :n, :n])
-            out[a] = (np.concatenate(Es), np.concatenate(Ps))
+            got = self._sub_blocks(
+                a, k0, k1, mask, lambda b, b0, b1, r: b.error_covariances(b0, b1, r)
+            )
+            out[a] = tuple(np.concatenate([g[a][i][:, :n, :n] for g in got]) for i in (0, 1))
         return out
