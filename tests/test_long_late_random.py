@@ -256,6 +256,26 @@ def test_blocked_recording_equals_the_whole_log(runs) -> None:
         np.testing.assert_allclose(b["series"][key], v, rtol=1e-9, atol=tol, err_msg=key)
 
 
+def test_sub_blocks_of_the_stacked_filters_change_no_number(tmp_path, monkeypatch) -> None:
+    """A block of time cut into sub-blocks of the stacked filters (`LATE_BLOCK_BYTES` small:
+    a few instants each, the cut inside the blocks of 50): the estimates and the summary as
+    the whole run's."""
+    import fusionlog.core.latency_blocks as latency_blocks
+
+    sc = _scenario(tmp_path, "{min = 1.0, max = 3.0}", True, False, "reprocess")
+    whole = _run(sc, tmp_path / "whole", None, monkeypatch)
+    monkeypatch.setattr(latency_blocks, "LATE_BLOCK_BYTES", 1 << 15)
+    blocked = _run(sc, tmp_path / "blocked", BLOCK, monkeypatch)
+    topics = [f"/estimates/{a}" for a in ARCHS]
+    a = McapFile(whole / "estimates.mcap").read_all(topics)
+    b = McapFile(blocked / "estimates.mcap").read_all(topics)
+    for t in topics:
+        np.testing.assert_allclose(b[t][0], a[t][0], rtol=0, atol=RTOL * np.abs(a[t][0]).max())
+        np.testing.assert_allclose(b[t][1], a[t][1], rtol=0, atol=RTOL * np.abs(a[t][1]).max())
+    sa, sb = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
+    _close(sb, sa)
+
+
 def test_hkf_with_correlated_readings_apart_is_evaluated_whole(tmp_path, monkeypatch) -> None:
     """HKF on correlated sensors whose readings of one instant arrive apart: estimated in
     blocks (its estimates the whole run's), evaluated on the whole run (the plans' exact
