@@ -338,8 +338,8 @@ def _recorded(tmp: Path, late: str, gaps: bool) -> Path:
         stamp = T0 + (i * 100 + 50) * NS // 1000
         if gaps and rng.random() < 0.2:
             continue
-        late = stamp + round(rng.uniform(0, 0.3) * NS)
-        b.append((stamp, late, x[2 * i + 1] + rng.normal(0, 0.4)))
+        logged = stamp + round(rng.uniform(0, 0.3) * NS)
+        b.append((stamp, logged, x[2 * i + 1] + rng.normal(0, 0.4)))
     schema = {"type": "object", "properties": {"header": {"type": "object"},
                                                "v": {"type": "number"}}}  # fmt: skip
     with open(tmp / "log.mcap", "wb") as f:
