@@ -41,6 +41,8 @@ class System:
     constant-velocity and continuous kinds); F and Q are then its discretisation over dt.
     On irregular instants (`on_times`) the transition from instant k-1 to k is `Fs[k-1]`, its
     process noise (in state space, G Q G^T) `Qs[k-1]`; None: the same F, G Q G^T every step.
+    `on_times` gives them as `core.intervals.PerInterval`s, formed for the intervals asked for
+    (a block of time), not held for the whole log; arrays are taken too.
     """
 
     F: np.ndarray
