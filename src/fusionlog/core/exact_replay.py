@@ -13,11 +13,13 @@ reported covariance not positive definite) is left to the plans, which name a fa
 `ExpectedBlocks`: the same in blocks of time (issue 34), the error covariances' recursions
 carried from block to block (`architectures.replay_blocks`); where a block's reported
 covariance is not positive definite its NEES and DM are NaN there (no plans to hand it to).
+A long log whose truth is not the model goes in blocks too, `exact_mismatch`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +28,9 @@ from .architectures.replay_blocks import ReplayBlocks
 from .exact import Expected, shared_nees_and_dm
 from .intervals import same_per_interval
 from .model import System
+
+if TYPE_CHECKING:
+    from .exact_mismatch import MismatchBlocks
 
 
 def _per_step(a: np.ndarray | None, default: np.ndarray, count: int) -> np.ndarray:
@@ -116,10 +121,16 @@ def replay_expected_blocks(
     steps: int,
     block: int,
     criterion: str | None = None,
-) -> ExpectedBlocks | None:
+) -> ExpectedBlocks | MismatchBlocks | None:
     """`ExpectedBlocks` of one run of instants 0..`steps` in blocks of `block` instants where
-    the truth is the model and the replay path takes every architecture; else None."""
-    if not truth_is_model(model, truth, steps):
-        return None
+    the truth is the model and the replay path takes every architecture; where the truth is
+    not the model, the joint moments of the truth and the filters carried from block to
+    block (`exact_mismatch.mismatch_blocks`); else None."""
     blocks = ReplayBlocks.of(model, archs, steps, block, criterion)
-    return None if blocks is None else ExpectedBlocks(blocks)
+    if blocks is None:
+        return None
+    if not truth_is_model(model, truth, steps):
+        from .exact_mismatch import mismatch_blocks
+
+        return mismatch_blocks(model, truth, blocks)
+    return ExpectedBlocks(blocks)

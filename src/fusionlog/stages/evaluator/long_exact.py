@@ -82,18 +82,23 @@ class LongReplayExact:
 
     def window(self, k0: int, k1: int) -> dict[str, tuple[Any, np.ndarray]]:
         """{arch: (Expected (w, ...), the bound check's ratio (w,))} at the instants k0..k1-1."""
-        from fusionlog.driver.long_log import read_backward
-
         self.prepare()
-        bw = read_backward(self.spool, k0, k1) if self.spool is not None else None
         out = {}
-        for a, ex in self.exact.window(k0, k1, self._present(k0, k1), bw).items():
+        for a, ex in self.exact.window(
+            k0, k1, self._present(k0, k1), self._backward(k0, k1)
+        ).items():
             ratio = np.asarray(ex.bound, dtype=float)
             self.bounds[a].add(k0, ratio)
             out[a] = (ex, ratio)
         if k1 >= self.exact.blocks.steps + 1:
             self.close()
         return out
+
+    def _backward(self, k0: int, k1: int):
+        """What `prepare` spooled of the instants k0..k1-1 (None without FBS)."""
+        from fusionlog.driver.long_log import read_backward
+
+        return read_backward(self.spool, k0, k1) if self.spool is not None else None
 
     def bound_summary(self, arch: str) -> dict[str, Any] | None:
         """summary.json's ``bound`` of the instants seen (`core.bound.bound_summary`)."""

@@ -322,17 +322,29 @@ class StateEvaluator(Evaluator):
         recorded replay, or a simulated run with dropouts or irregular instants): the one-log
         route, where the truth is the filters' model and the replay path takes them (for a
         simulated run the same values as the plans of its pattern, to rounding: the plans
-        would hold every instant's maps); None otherwise."""
+        would hold every instant's maps), and where the truth is not the model (`--model`, a
+        `[truth]`) its joint moments with the filters' carried (`core.exact_mismatch`);
+        None otherwise."""
         from fusionlog.core.exact_replay import replay_expected_blocks
         from fusionlog.driver.long_log import time_block
-
-        from .long_exact import LongReplayExact
 
         if exact.route not in ("one-log", "plans"):
             return None
         p, T = exact.plans, time_block()
         got = replay_expected_blocks(p.system, exact.truth, exact.known, self.K, T, p.criterion)
-        return None if got is None else LongReplayExact(got, exact.mask, p.system.m, T)
+        return None if got is None else self._long_exact(got, exact.mask, p.system.m, T)
+
+    @staticmethod
+    def _long_exact(got: Any, mask: Any, m: int, T: int) -> Any:
+        """The stage's blocks of `got`: the truth the model (`exact_replay.ExpectedBlocks`)
+        or not (`exact_mismatch.MismatchBlocks`, FBS's spool its own)."""
+        from fusionlog.core.exact_mismatch import MismatchBlocks
+
+        from .long_exact import LongReplayExact
+        from .long_mismatch import LongMismatchExact
+
+        kind = LongMismatchExact if isinstance(got, MismatchBlocks) else LongReplayExact
+        return kind(got, mask, m, T)
 
     def _finish(self) -> Finished:
         archs: dict[str, dict[str, Any]] = {}
