@@ -6,6 +6,8 @@ a plan, need nothing of the plans' package."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 
 from .latency_corr import correlated_refusal
@@ -19,6 +21,7 @@ __all__ = [
     "accept_at",
     "accepted",
     "arrival_steps",
+    "arrival_blocks",
     "draw_arrivals",
     "ekf_retrodict_refusal",
     "is_late",
@@ -145,6 +148,29 @@ def draw_arrivals(
         (u,) = chunked(draw, K1 - 1, seed, run_offset, runs, stream=DELAY_STREAM)
         out[..., rand] += u * (lat[rand, 1] - lat[rand, 0])
     return out
+
+
+def arrival_blocks(
+    system: System, times: np.ndarray, seed: int, block: int
+) -> Iterator[np.ndarray] | None:
+    """`draw_arrivals` of run 0 in blocks of `block` instants, (w, S) s each, in order (issue
+    34: a long log's delays never held whole); None where no delay is drawn. Run 0's uniforms
+    are the first of its chunk's draw (C order), and a generator draws its doubles one after
+    the other, so drawing them block by block from the same stream gives the same numbers."""
+    lat = np.array([s.timing.latency for s in system.sensors])  # (S, 2)
+    rand = lat[:, 1] > lat[:, 0]
+    if not rand.any():
+        return None
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0, *DELAY_STREAM)))
+
+    def blocks() -> Iterator[np.ndarray]:
+        for k0 in range(0, len(times), block):
+            out = times[k0 : k0 + block, None] + lat[None, :, 0]
+            u = rng.random((len(out), int(rand.sum())))
+            out[:, rand] += u * (lat[rand, 1] - lat[rand, 0])
+            yield out
+
+    return blocks()
 
 
 def arrival_steps(times: np.ndarray, arrival: np.ndarray) -> np.ndarray:

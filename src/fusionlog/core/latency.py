@@ -38,12 +38,12 @@ import numpy as np
 from .architectures import Plan, definition, parse_arch
 from .architectures.filters import constant_tail
 from .late_policy import accepted, arrival_steps, is_late, random_delays
-from .latency_corr import apart_pairs, conditions_of, with_conditions
+from .latency_corr import Conditions, apart_pairs, conditions_of, with_conditions
 from .latency_joint import joint_fused_plan
 from .latency_stacked import fused_plan, stacked_system, wrap
 from .model import System
 
-__all__ = ["LateModel", "stacked_system"]
+__all__ = ["LateModel", "lag_pairs", "lags_of", "stacked_system"]
 
 
 @dataclass
@@ -89,17 +89,30 @@ class LateModel:
         arrive = arrival_steps(times, times[:, None] + lat[None, :, 0])
         last = arrival_steps(times, times[:, None] + lat[None, :, 1])  # the latest arrival
         K1 = steps + 1
-        lags = []
-        for j in range(len(system.sensors)):
-            got = arrive[:, j] < K1
-            i = np.arange(K1)[got]
-            # every lag between the earliest and the latest arrival (within the horizon)
-            lo, hi = arrive[got, j] - i, np.minimum(last[got, j], K1 - 1) - i
-            pairs = np.unique(lo.astype(np.int64) * (K1 + 1) + hi)  # few distinct spans
-            spans = [np.arange(p // (K1 + 1), p % (K1 + 1) + 1) for p in pairs.tolist()]
-            lj = np.unique(np.concatenate(spans or [np.zeros(1, np.intp)]))
-            lags.append(lj.astype(np.intp))
+        pairs = lag_pairs(arrive, last, 0, K1)
+        lags = [lags_of(p, K1) for p in pairs]
         return cls(system, steps, arrive, lags, times, random_delays(system), last)
+
+    @classmethod
+    def of_lags(
+        cls,
+        system: System,
+        steps: int,
+        lags: list[np.ndarray],
+        times: np.ndarray,
+        conditions: Conditions | None,
+    ) -> LateModel:
+        """The late model of `system` whose sensors' lags and decorrelation conditions were
+        found elsewhere (over a long log block by block, `core.latency_blocks`): it has no
+        arrival instants of its own (`arrive` empty), so `stacked_mask` takes them given."""
+        arrive = np.zeros((0, len(system.sensors)), dtype=np.intp)
+        model = cls(system, steps, arrive, lags, times, random_delays(system), None)
+        centre = None
+        if conditions is not None:
+            got = with_conditions(model.stacked, conditions, lags, model.slots)
+            centre = (*got, conditions)
+        model._centre = centre
+        return model
 
     def centre_model(self) -> tuple | None:
         """The decorrelated stacked model of the centre (`_centre_model`), made once."""
@@ -226,6 +239,26 @@ class LateModel:
                 inner = build(self.stacked, arch, self.steps, mask, **kw)
         m, W, n = self.system.m, self.window, self.system.n
         return wrap(inner, self.slots, m, W, n, system=self.system)
+
+
+def lag_pairs(arrive: np.ndarray, last: np.ndarray, first: int, K1: int) -> list[np.ndarray]:
+    """Per sensor, the distinct spans (earliest lag, latest lag), coded lo (K1+1) + hi, of the
+    readings taken at instants first, first+1, ... that arrive at `arrive` (rows, S) at the
+    earliest and `last` at the latest (instant indices; K1: never, within the horizon)."""
+    out = []
+    i = np.arange(first, first + len(arrive))
+    for j in range(arrive.shape[1]):
+        got = arrive[:, j] < K1
+        # every lag between the earliest and the latest arrival (within the horizon)
+        lo, hi = arrive[got, j] - i[got], np.minimum(last[got, j], K1 - 1) - i[got]
+        out.append(np.unique(lo.astype(np.int64) * (K1 + 1) + hi))  # few distinct spans
+    return out
+
+
+def lags_of(pairs: np.ndarray, K1: int) -> np.ndarray:
+    """A sensor's lags: every lag of its spans (`lag_pairs`), 0 where it has none."""
+    spans = [np.arange(p // (K1 + 1), p % (K1 + 1) + 1) for p in pairs.tolist()]
+    return np.unique(np.concatenate(spans or [np.zeros(1, np.intp)])).astype(np.intp)
 
 
 def _centre_model(model: LateModel) -> tuple | None:

@@ -27,10 +27,13 @@ D is 0 (a transition over the window singular or ill-conditioned, `retrodict._Tr
 back`) J carries the truth's covariance: where that grows, J never repeats, `steady_log`
 finds no steady middle and the log is taken whole.
 
-Not here (the whole run at once, `stages.state_kind.time_windows`): random delays and
-recorded arrivals (the plans differ per arrival pattern), missing readings, and the cases
-just named. Nonlinear late sensors need no plans: the EKF/UKF lanes carry their late state
-from block to block themselves (`nonlinear.late_feed`, `nonlinear.long_log`).
+Not here: random delays and recorded arrivals (the plans differ per arrival pattern) and
+missing readings go to the plan-free stacked filters carried block to block
+(`core.latency_blocks`: CKF, HKF, SKF under reprocess and neglect; the per-sensor rules and
+retrodiction there take the whole run at once, as does HKF's exact analysis where correlated
+readings arrive apart); the cases just named take the whole run at once. Nonlinear late
+sensors need no plans: the EKF/UKF lanes carry their late state from block to block
+themselves (`nonlinear.late_feed`, `nonlinear.long_log`).
 """
 
 from __future__ import annotations

@@ -14,7 +14,8 @@ ones arrive apart; HKF) and one sensor's (SKF), under reprocess and neglect. The
 rules fuse the locals' current blocks only (`latency_stacked.fused_plan`) and retrodiction is
 a plan of its own: those go to the plans (None), as does a steady model with fixed
 latencies and every reading present (the plans' steady shortcut repeats one map,
-`filters.Steady`).
+`filters.Steady`). A long log in blocks of time: the same filters carried from block to block
+(`core.latency_blocks`, `stacked_readings` of a window reaching W instants back).
 """
 
 from __future__ import annotations

@@ -51,9 +51,12 @@ def shared_expected(
     architecture's name, each computed on first use (`plan_of(arch)` its plan with that mask,
     built only where the plans' analysis is needed)."""
     from .exact import analyse
+    from .late_policy import is_late
 
     fast: dict[str, object] = {}
-    if route == "one-log":  # without plans where the truth is the model
+    # without plans where the truth is the model; not with late sensors, whose filters are
+    # the late plans' (the one-log path's covariances are of the readings fused on time)
+    if route == "one-log" and not is_late(model):
         from .exact_replay import replay_expected
 
         fast = replay_expected(model, truth, archs, present, steps, criterion)

@@ -131,6 +131,11 @@ class Kind(ABC):
         """When each reading of the runs arrives, (runs, K+1, S) seconds; None: on time."""
         return None
 
+    def arrival_blocks(self, scenario: Scenario, block: int) -> Any:
+        """A one-run scenario's `arrivals` of run 0 in blocks of time, (w, S) s each (NaN: a
+        sensor on time), in order, where delays are drawn; None otherwise."""
+        return None
+
     def latencies(self, scenario: Scenario) -> np.ndarray | None:
         """Each sensor's fixed latency (S,) s where some sensor is late and none has a delay
         drawn per reading (a reading taken at t arrives at t + latency); None otherwise."""

@@ -53,7 +53,9 @@ def simulate_to(
     w.add_metadata(PROVENANCE_META, provenance(command, scenario.seed))
     # fixed latencies: each reading's arrival is its time plus its sensor's latency
     lat = kind.latencies(scenario)
-    late_sensors = lat is not None or kind.arrivals(scenario, 0, 1) is not None
+    # drawn delays of a long one-run log: drawn block by block (None: fixed, or several runs)
+    drawn = kind.arrival_blocks(scenario, time_block()) if M == 1 else None
+    late_sensors = lat is not None or drawn is not None or kind.arrivals(scenario, 0, 1) is not None
     if late_sensors:  # late sensors: the schema says arrival
         w.declare_arrival()
     every = list(range(len(topics)))
@@ -61,10 +63,11 @@ def simulate_to(
     # instant is ~100 bytes: 0.4 GB for 4*10^6 instants)
     everywhere = bool(measures.all())
     blocks = None
-    if not late_sensors or lat is not None:
+    if not late_sensors or lat is not None or drawn is not None:
         blocks = kind.simulate_blocks(scenario, time_block())
     for k0, k1, x, z in blocks or ():  # one long run in blocks of time: a window at once
-        _block_messages(w, k0, times[k0:k1], x, z, topics, measures[k0:k1], lat)
+        arrival = next(drawn) if drawn is not None else None
+        _block_messages(w, k0, times[k0:k1], x, z, topics, measures[k0:k1], lat, arrival)
     if blocks is not None:
         return (K + 1) + int(measures.sum())
     messages = 0
@@ -89,16 +92,21 @@ def simulate_to(
     return messages
 
 
-def _block_messages(w, k0, times, x, z, topics, measures, lat) -> None:
+def _block_messages(w, k0, times, x, z, topics, measures, lat, arrival=None) -> None:
     """The block of a one-run log from instant k0 (`times` (w,), `measures` (w, S) the sensors
     measuring): the messages of the whole run's loop (`simulate_to`) written a window at once
     (`McapWriter.write_run_steps`: the same bytes), the truth at every instant, a sensor at
     the instants it measures, a late sensor's arrival t + its fixed latency `lat` (S,) s as
-    there (`core.late_policy.draw_arrivals`)."""
+    there (`core.late_policy.draw_arrivals`), or with delays drawn the block's `arrival` (w, S)
+    s of its late sensors (`core.late_policy.arrival_blocks`)."""
     columns = [RunColumn(TRUTH, VALUES, x[0])]
     for j, topic in enumerate(topics):
-        late = lat is not None and lat[j] > 0.0
-        columns.append(RunColumn(topic, VALUES, z[j][0], arrival=times + lat[j] if late else None))
+        a = None
+        if arrival is not None and not np.isnan(arrival[0, j]):
+            a = arrival[:, j]  # a sensor on time has none (NaN)
+        elif lat is not None and lat[j] > 0.0:
+            a = times + lat[j]
+        columns.append(RunColumn(topic, VALUES, z[j][0], arrival=a))
     present = None
     if not measures.all():
         present = np.concatenate([np.ones((len(times), 1), bool), measures], axis=1)

@@ -164,6 +164,18 @@ class StateKind(Kind):
 
         return draw_arrivals(scenario.system, scenario.times, scenario.seed, run_offset, runs)
 
+    def arrival_blocks(self, scenario: Scenario, block: int) -> Any:
+        """`core.late_policy.arrival_blocks`, NaN for the sensors on time (no arrival field,
+        as `simulate_to` writes the whole run's)."""
+        from fusionlog.core.late_policy import arrival_blocks
+
+        system = scenario.system
+        got = arrival_blocks(system, scenario.times, scenario.seed, block)
+        if got is None:
+            return None
+        on_time = [not s.timing.late for s in system.sensors]
+        return (np.where(on_time, np.nan, a) for a in got)
+
     def latencies(self, scenario: Scenario) -> np.ndarray | None:
         system = scenario.system
         if not is_late(system) or random_delays(system):
@@ -202,8 +214,13 @@ class StateKind(Kind):
         topics = [sensor_topic(s.name) for s in system.sensors]
         system = with_message_covariances(system.on_times(sensors.times()), sensors)
         plans = PlanCache(system, steps, times=sensors.times(), one_run=runs == 1, kept=kept)
-        plans.arrivals = recorded_arrivals(plans, sensors, topics, runs)
-        return _StateEstimator(plans, runs, archs, topics)
+        est = _StateEstimator(plans, runs, archs, topics)
+        # a long one-run log's arrivals are read block by block (`.late_blocks`); the whole
+        # run's path reads them all on its first block
+        est.load = lambda: recorded_arrivals(plans, sensors, topics, runs)
+        if not _long_one_run(plans.steps, runs):
+            est.arrivals()
+        return est
 
     def evaluator(
         self,
@@ -259,6 +276,14 @@ def recorded_arrivals(
     )
 
 
+def _long_one_run(steps: int, runs: int) -> bool:
+    """Whether a log may be taken in blocks of time (`driver.long_log`): one run longer than a
+    block, not on the reference paths."""
+    from fusionlog.driver.long_log import time_block
+
+    return runs == 1 and steps + 1 > time_block() and not reference_paths()
+
+
 def _sensor_log(sc: Scenario, filter_sys: System, sens: McapFile) -> SensorLog:
     """Whether the sensors log has the truth, and each sensor's scheduled instants where
     availability says something: a replayed recording, or sensors with their own timing."""
@@ -271,10 +296,16 @@ def _sensor_log(sc: Scenario, filter_sys: System, sens: McapFile) -> SensorLog:
         }
     truth = sens.metadata.get("fusionlog.scenario", {}).get("replay_truth")
     late = PlanCache(filter_sys, sens.steps() - 1, clock=sens.times())
-    arrivals = recorded_arrivals(late, sens, topics, sens.runs())
+
+    def load() -> np.ndarray | None:
+        return recorded_arrivals(late, sens, topics, sens.runs())
+
+    # a long one-run log's arrivals: read block by block in blocks of time, else on first use
+    long = _long_one_run(late.steps, sens.runs())
     return SensorLog(
-        TRUTH in sens.topics, scheduled, json.loads(truth) if truth else None, arrivals
-    )
+        TRUTH in sens.topics, scheduled, json.loads(truth) if truth else None,
+        None if long else load(), sens if long else None, load if long else None,
+    )  # fmt: skip
 
 
 class _StateEstimator(Estimator):
@@ -282,11 +313,18 @@ class _StateEstimator(Estimator):
 
     def __init__(self, plans: PlanCache, runs: int, archs: list[str], topics: list[str]) -> None:
         self.plans, self.M, self.archs, self.topics = plans, runs, archs, topics
+        self.load: Any = None  # reads the log's arrivals (`recorded_arrivals`), once
+
+    def arrivals(self) -> None:
+        """The log's arrivals into the plan cache, read on first use."""
+        if self.load is not None:
+            self.plans.arrivals, self.load = self.load(), None
 
     def block_runs(self, requested: int | None) -> int:
         return block_runs(self.plans.steps, self.M, requested)
 
     def estimate(self, run_offset: int, data: dict[str, np.ndarray]) -> dict[str, StepWriter]:
+        self.arrivals()
         z = np.concatenate([data[t] for t in self.topics], axis=-1)
         if not self.plans.system.linear:  # EKF/UKF: each instant computed as it is written
             self.plans.patterns.append(None)  # per-run covariances (provenance)
@@ -345,25 +383,40 @@ class _StateEstimator(Estimator):
         )
 
     def _late_windows(self, sensors: McapFile, B: int) -> Any:
-        """A long one-run log with late sensors at fixed latencies, every reading present, in
-        blocks of time: the late plans of a short horizon, their state (the latency window)
-        carried across the blocks (`core.latency_long`); None otherwise (the whole run)."""
+        """A long one-run log with late sensors in blocks of time: at fixed latencies with
+        every reading present the late plans of a short horizon, their state (the latency
+        window) carried across the blocks (`core.latency_long`); with delays drawn or
+        recorded, or readings missing, the plan-free stacked filters carried
+        (`core.latency_blocks`, `.late_blocks`); None otherwise (the whole run)."""
+        from fusionlog.core.latency_blocks import LateBlocks
         from fusionlog.core.latency_long import late_steady_log
         from fusionlog.driver.long_log import long_estimates, spool_readings
+
+        from .late_blocks import late_estimates
 
         plans = self.plans
         system = plans.system
         log = late_steady_log(system, self.archs, plans.steps, plans.criterion, sensors.times())
-        if log is None:
-            return None
+        if log is None and not LateBlocks.covers(system, self.archs):
+            return None  # the plans of the whole run
         spool = spool_readings(sensors.iter_time_blocks(self.topics, B), self.topics, system.m)
-        if spool.missing:  # the plans stand for a complete log
-            spool.close()
-            return None
-        plans.patterns.append(np.packbits(np.ones((plans.steps + 1, system.m), bool)).tobytes())
+        if log is not None and not spool.missing:
+            plans.patterns.append(np.packbits(np.ones((plans.steps + 1, system.m), bool)).tobytes())
+            out = long_estimates(log, spool, B)
+        else:
+            blocks = LateBlocks.of(
+                system, self.archs, plans.steps, sensors.times(), B, plans.criterion, spool.missing
+            )
+            if blocks is None:  # the plans of the whole run
+                spool.close()
+                return None
+            # the estimates' measurement pattern as the whole run's path records it
+            per_run = random_delays(system)
+            plans.patterns.append(None if per_run else np.packbits(spool.present(B)).tobytes())
+            out = late_estimates(blocks, sensors, system, self.topics, spool, B)
         return (
             (k0, k1, {a: _estimate_writer(e.mean, e.cov, True, k0) for a, e in got.items()})
-            for k0, k1, got in long_estimates(log, spool, B)
+            for k0, k1, got in out
         )
 
     def _nonlinear_windows(self, sensors: McapFile, B: int) -> Any:

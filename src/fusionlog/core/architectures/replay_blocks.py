@@ -80,13 +80,18 @@ class ReplayBlocks:
             return None
         return cls(system, archs, steps, criterion or system.ci_criterion, bases)
 
+    def window_system(self, k0: int, k1: int, into_first: bool) -> System:
+        """The system on the instants k0..k1-1 (`system_window`; a late model's stacked one
+        is made per block, `core.latency_blocks`)."""
+        return system_window(self.system, k0, k1, into_first)
+
     def _block(self, k0: int, k1: int, z: np.ndarray, backward, what):
         """what(_Replay of the block from the carried state); the block's last state carried.
         A numerical failure names the block's instants (no plans to hand it to, as the
         whole log's path does: its earlier blocks are written)."""
         if k0 != self.next_instant:
             raise ValueError(f"blocks of time in order: {k0} after {self.next_instant}")
-        system = system_window(self.system, k0, k1, k0 > 0)
+        system = self.window_system(k0, k1, k0 > 0)
         try:
             with np.errstate(all="ignore"):
                 r = _Replay(system, z, self.need, self.criterion, self.carried, backward)

@@ -193,6 +193,8 @@ class LongEvaluator:
             b = s.replay_exact.bound_summary(a)
             if b is not None and a in archs:
                 archs[a]["bound"] = b
+            if getattr(s.replay_exact, "conditional", False) and a in archs:
+                archs[a]["expected"]["conditional"] = True  # on the drawn delays
         summary = {**s.head, "architectures": archs}
         if s.late is not None:
             summary["late"] = s.late

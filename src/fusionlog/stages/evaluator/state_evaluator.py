@@ -52,6 +52,10 @@ class SensorLog:
     truth: dict[str, Any] | None = None
     #: when each reading arrived, (runs, K+1, S) s, where the delays differ per run
     arrivals: np.ndarray | None = None
+    #: a long one-run log (`time_windows`): the sensors file, read block by block, and what
+    #: reads `arrivals` for the whole run's path, on its first block
+    sensors: Any = None
+    load_arrivals: Any = None
 
 
 class StateEvaluator(Evaluator):
@@ -91,6 +95,7 @@ class StateEvaluator(Evaluator):
         recorded = sc.replay is not None
         plans = PlanCache(filter_sys, self.K, kept=kept, clock=self.times)
         plans.arrivals = log.arrivals
+        self._load_arrivals, self._sensors_file = log.load_arrivals, log.sensors
         #: the policy for late measurements where some sensor is late (summary.json "late")
         self.late = filter_sys.late if is_late(filter_sys) else None
         #: EKF/UKF filters: nothing evaluated reads when the readings arrived (no exact
@@ -141,6 +146,11 @@ class StateEvaluator(Evaluator):
         return block_runs(self.K, self.M, requested)
 
     def add(self, off: int, truth: Array, estimates: Topics, sensors: Readings = None) -> None:
+        if self._load_arrivals is not None:  # the whole run's path: the log's arrivals
+            exact = next((p for p in self.parts if isinstance(p, ExactPart)), None)
+            if exact is not None:
+                exact.plans.arrivals = self._load_arrivals()
+            self._load_arrivals = None
         n = self.n
         runs = next(iter(estimates.values()))[0].shape[0]
         # no truth: NaN everywhere, one value broadcast (a long log's would be 32 MB per 10^6
@@ -226,10 +236,10 @@ class StateEvaluator(Evaluator):
 
         log, expected, replayed = None, {}, None
         if exact is not None and self.has_truth:
-            if exact.route == "per-run":
+            if exact.route == "per-run" and self.late is None:
                 return None
             p = exact.plans
-            steady = exact.mask is None and p.system.time_invariant
+            steady = exact.route != "per-run" and exact.mask is None and p.system.time_invariant
             log = self._steady_log(p, exact.known) if steady else None
             for a in exact.known if log is not None else ():
                 expected[a] = log.expected(a, exact.truth)
@@ -237,9 +247,11 @@ class StateEvaluator(Evaluator):
                 if not log.whole and not converged(expected[a], log.c, rtol):
                     log, expected = None, {}
                     break
-            if log is None and self.late is not None:  # no late plans stand for it: whole
-                return None
-            if log is None:  # a recorded replay: the one-log route in blocks, else the whole
+            if log is None and self.late is not None:  # no late plans stand for it
+                replayed = self._late_exact(exact)  # the stacked filters carried, else whole
+                if replayed is None:
+                    return None
+            elif log is None:  # a recorded replay: the one-log route in blocks, else the whole
                 replayed = self._replay_exact(exact)
                 if replayed is None:
                     return None
@@ -292,14 +304,32 @@ class StateEvaluator(Evaluator):
         )  # fmt: skip
 
     def _late_whole(self) -> bool:
-        """Whether a log with late sensors takes the whole run: delays that differ per reading
-        (recorded or drawn arrivals: plans per arrival pattern), or an exact analysis whose
-        late plans do not stand for the log (`core.latency_long`)."""
-        from fusionlog.core.late_policy import random_delays
-
+        """Whether a log with late sensors takes the whole run: no exact analysis to decide
+        by, or per-message R (which the late plans do not take)."""
         exact = next((p for p in self.parts if isinstance(p, ExactPart)), None)
-        plans = exact.plans if exact is not None else None
-        return plans is None or random_delays(plans.system) or plans.system.Rs is not None
+        return exact is None or exact.plans.system.Rs is not None
+
+    def _late_exact(self, exact: ExactPart) -> Any:
+        """The exact values of a long log with late sensors whose late plans of a short
+        horizon do not stand for it (delays drawn or recorded, readings missing): the stacked
+        filters' error covariances block by block (`.long_late`), where the truth is the
+        filters' model and `core.latency_blocks` takes every architecture; else None."""
+        from fusionlog.core.exact_replay import truth_is_model
+        from fusionlog.core.latency_blocks import LateBlocks
+        from fusionlog.driver.long_log import time_block
+
+        from .long_late import LongLateExact
+
+        p, T = exact.plans, time_block()
+        if self._sensors_file is None or not truth_is_model(p.system, exact.truth, self.K):
+            return None
+        blocks = LateBlocks.of(
+            p.system, exact.known, self.K, self.times, T, p.criterion, exact=True
+        )
+        if blocks is None:
+            return None
+        topics = [sensor_topic(s.name) for s in p.system.sensors]
+        return LongLateExact(blocks, self._sensors_file, topics, exact.route == "per-run", T)
 
     def _steady_log(self, plans: PlanCache, archs: Sequence[str]) -> Any:
         """The short plans standing for the log (`long_log.steady_log`; with late sensors
