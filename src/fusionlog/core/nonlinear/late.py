@@ -31,39 +31,10 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from ...errors import FusionlogError
-from ..late_policy import arrival_steps, random_delays
-from ..model import System
-from .late_feed import Feed, Reader, driven, window_of
+from .late_feed import Feed, Reader, arrival_instants, driven, window_of
 from .local import select
 
 __all__ = ["arrival_instants", "late_steps", "reprocess_steps"]
-
-
-def arrival_instants(system: System, times: np.ndarray, arrival: np.ndarray | None) -> np.ndarray:
-    """The instant index at which each reading arrives, (runs or 1, K+1, S) (K+1: never,
-    within the horizon): from `arrival` (runs, K+1, S) seconds on the clock of `times`, or
-    where it is None from the sensors' fixed latencies."""
-    times = np.asarray(times, float)
-    if arrival is None:
-        if random_delays(system):
-            raise FusionlogError(
-                "arrival: a sensor's latency is a range (random delays): give the arrival "
-                "times of the readings (runs, K+1, S) s"
-            )
-        lat = np.array([s.timing.latency[0] for s in system.sensors])
-        arrival = (times[:, None] + lat[None, :])[None]
-    arrival = np.asarray(arrival, float)
-    S, K1 = len(system.sensors), len(times)
-    if arrival.ndim != 3 or arrival.shape[1:] != (K1, S):
-        raise FusionlogError(
-            f"arrival: shape {arrival.shape}, expected (runs, {K1}, {S}): when each reading "
-            "of each sensor arrived (s)"
-        )
-    early = arrival < times[None, :, None] - 1e-9
-    if early.any():
-        raise FusionlogError("arrival: a reading arrives before it is taken")
-    return arrival_steps(times, arrival)
 
 
 def late_steps(

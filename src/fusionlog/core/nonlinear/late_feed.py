@@ -17,24 +17,49 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from ..late_policy import accept_at, arrival_steps
+from ...errors import FusionlogError
+from ..late_policy import accept_at, arrival_steps, random_delays
 from ..model import System
 
-__all__ = ["Feed", "fixed_arrivals", "window_of"]
+__all__ = ["Feed", "arrival_instants", "fixed_arrivals", "window_of"]
 
 #: (k0, k1) -> an array of the instants k0..k1-1 (readings (M, w, m) or arrivals (M, w, S)).
 Reader = Callable[[int, int], np.ndarray]
 
 
+def arrival_instants(system: System, times: np.ndarray, arrival: np.ndarray | None) -> np.ndarray:
+    """The instant index at which each reading arrives, (runs or 1, K+1, S) (K+1: never,
+    within the horizon): from `arrival` (runs, K+1, S) seconds on the clock of `times`, or
+    where it is None from the sensors' fixed latencies."""
+    times = np.asarray(times, float)
+    if arrival is None:
+        if random_delays(system):
+            raise FusionlogError(
+                "arrival: a sensor's latency is a range (random delays): give the arrival "
+                "times of the readings (runs, K+1, S) s"
+            )
+        lat = np.array([s.timing.latency[0] for s in system.sensors])
+        arrival = (times[:, None] + lat[None, :])[None]
+    arrival = np.asarray(arrival, float)
+    S, K1 = len(system.sensors), len(times)
+    if arrival.ndim != 3 or arrival.shape[1:] != (K1, S):
+        raise FusionlogError(
+            f"arrival: shape {arrival.shape}, expected (runs, {K1}, {S}): when each reading "
+            "of each sensor arrived (s)"
+        )
+    early = arrival < times[None, :, None] - 1e-9
+    if early.any():
+        raise FusionlogError("arrival: a reading arrives before it is taken")
+    return arrival_steps(times, arrival)
+
+
 def fixed_arrivals(system: System, times: np.ndarray, arrival: np.ndarray | None) -> Reader:
     """The arrival instants of the readings of k0..k1-1, (runs or 1, w, S): from `arrival`
     (runs, K+1, S) s (checked and taken whole, as the log gives them), or where it is None
-    the sensors' fixed latencies on the clock `times` (`late.arrival_instants`' numbers, a
+    the sensors' fixed latencies on the clock `times` (`arrival_instants`' numbers, a
     block at a time)."""
     times = np.asarray(times, float)
     if arrival is not None:
-        from .late import arrival_instants
-
         got = arrival_instants(system, times, arrival)
         return lambda k0, k1: got[:, k0:k1]
     lat = np.array([s.timing.latency[0] for s in system.sensors])
