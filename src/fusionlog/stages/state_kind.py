@@ -435,6 +435,7 @@ class _StateEstimator(Estimator):
         def windows() -> Any:
             try:
                 read = lambda a, b: spool.read(a, b)[None]  # noqa: E731
+                self.arrivals()  # drawn or recorded delays: the log's, read whole (8 S B/instant)
                 arrival = plans.block_arrivals(0, 1)
                 got = estimate_blocks(plans.system, self.archs, read, plans.times, B, arrival)
                 for k0, k1, out in got:
