@@ -26,6 +26,7 @@ import numpy as np
 from .architectures.replay import replay_error_covariances
 from .architectures.replay_blocks import ReplayBlocks
 from .exact import Expected, shared_nees_and_dm
+from .intervals import same_per_interval
 from .model import System
 
 if TYPE_CHECKING:
@@ -48,11 +49,16 @@ def truth_is_model(model: System, truth: System, steps: int) -> bool:
         (model.linear_measurement(), truth.linear_measurement()),
         (model.prior.mean, init.mean),
         (model.prior.cov, init.cov),
-        (_per_step(model.Fs, model.F, steps), _per_step(truth.Fs, truth.F, steps)),
-        (_per_step(model.Qs, model.GQG, steps), _per_step(truth.Qs, truth.GQG, steps)),
         (_per_step(model.Rs, model.R, steps + 1), _per_step(truth.Rs, truth.R, steps + 1)),
     ]
-    return all(a.shape == b.shape and np.array_equal(a, b) for a, b in same)
+    # F, Q of every interval a stretch at a time (`core.intervals`: not formed whole)
+    per = (("Fs", "F"), ("Qs", "GQG"))
+    return all(a.shape == b.shape and np.array_equal(a, b) for a, b in same) and all(
+        same_per_interval(
+            getattr(model, f), getattr(model, d), getattr(truth, f), getattr(truth, d), steps
+        )
+        for f, d in per
+    )
 
 
 def replay_expected(

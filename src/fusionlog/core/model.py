@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .intervals import MotionNoise, PerInterval, Transitions, VanLoan
 from .models import LinearMotion, LinearSensor, MotionModel, NotLinear, SensorModel
 from .timing import Schedule, schedule
 
@@ -40,6 +41,8 @@ class System:
     constant-velocity and continuous kinds); F and Q are then its discretisation over dt.
     On irregular instants (`on_times`) the transition from instant k-1 to k is `Fs[k-1]`, its
     process noise (in state space, G Q G^T) `Qs[k-1]`; None: the same F, G Q G^T every step.
+    `on_times` gives them as `core.intervals.PerInterval`s, formed for the intervals asked for
+    (a block of time), not held for the whole log; arrays are taken too.
     """
 
     F: np.ndarray
@@ -52,8 +55,8 @@ class System:
     dt: float = 1.0
     state_names: tuple[str, ...] = ()
     continuous: tuple[np.ndarray, np.ndarray] | None = None
-    Fs: np.ndarray | None = None  # (K, n, n)
-    Qs: np.ndarray | None = None  # (K, n, n)
+    Fs: np.ndarray | PerInterval | None = None  # (K, n, n)
+    Qs: np.ndarray | PerInterval | None = None  # (K, n, n)
     #: The stacked measurement noise covariance of eq. (31) at each instant (K+1, m, m), where
     #: it varies (a recorded log whose messages carry their own covariance); None: R always.
     Rs: np.ndarray | None = None
@@ -158,8 +161,9 @@ class System:
         return self.GQG if self.Qs is None else self.Qs[k - 1]
 
     def transitions(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
-        """`F_at(k)` and `GQG_at(k)` of the instants k = a+1..b at once, (b - a, n, n) each
-        (views, read-only where the system has one F or G Q G^T)."""
+        """`F_at(k)` and `GQG_at(k)` of the instants k = a+1..b at once, (b - a, n, n) each,
+        read only (views where the system has one F or G Q G^T; on irregular instants formed
+        for these intervals alone, `core.intervals`)."""
         n = self.n
         Fs = self.Fs[a:b] if self.Fs is not None else np.broadcast_to(self.F, (b - a, n, n))
         Qs = self.Qs[a:b] if self.Qs is not None else np.broadcast_to(self.GQG, (b - a, n, n))
@@ -176,32 +180,32 @@ class System:
     def on_times(self, times: np.ndarray) -> System:
         """The system on the instants `times` (K+1,): itself when they are k dt, else with the
         continuous model discretised for every interval (`timing.van_loan`, one matrix
-        exponential per distinct interval). A model given by F and Q alone has no other
-        discretisation: its F and Q apply between every two instants, whatever their times
-        (a scenario with irregular instants refuses such a model when it is loaded)."""
+        exponential per distinct interval), formed a stretch of intervals at a time when asked
+        for (`core.intervals.PerInterval`: `Fs`, `Qs` hold the times, not K matrices). A model
+        given by F and Q alone has no other discretisation: its F and Q apply between every
+        two instants, whatever their times (a scenario with irregular instants refuses such a
+        model when it is loaded)."""
         times = np.asarray(times, dtype=float)
         if self.motion_model is not None:  # f(x, dt) and Q(dt) take any interval
-            if np.array_equal(times, np.arange(len(times)) * self.dt):
+            if _is_grid(times, self.dt):
                 return dataclasses.replace(self, intervals=None, Qs=None)
-            deltas = np.diff(times)
-            Qs = np.stack([self.motion_model.Q(float(d)) for d in deltas])
-            return dataclasses.replace(self, intervals=deltas, Qs=Qs)
-        if self.continuous is None or np.array_equal(times, np.arange(len(times)) * self.dt):
+            source = Transitions(times, MotionNoise(self.motion_model.Q, self.n))
+            return dataclasses.replace(self, intervals=np.diff(times), Qs=PerInterval(source, 1))
+        if self.continuous is None or _is_grid(times, self.dt):
             return self if self.Fs is None else dataclasses.replace(self, Fs=None, Qs=None)
         from .timing import van_loan
 
         A, Qc = self.continuous
-        deltas = np.diff(times)
-        if len(deltas) and np.ptp(deltas) <= 1e-9 * abs(deltas[0]):
+        lo, hi = _interval_range(times)
+        if len(times) > 1 and hi - lo <= 1e-9 * abs(times[1] - times[0]):
             # A regular log (times on a grid to rounding): one interval, so a time-invariant
             # system, whose Riccati recursion reaches the steady state that the plans repeat
             # instead of recomputing 10^6 identical gains.
-            dt = float(np.mean(deltas))
+            dt = float(np.mean(np.diff(times)))
             F1, Q1 = van_loan(A, Qc, dt)
             return dataclasses.replace(self, F=F1, Q=Q1, G=None, dt=dt, Fs=None, Qs=None)
-        uniq, where = np.unique(deltas, return_inverse=True)
-        Fu, Qu = van_loan(A, Qc, uniq)
-        return dataclasses.replace(self, Fs=Fu[where.ravel()], Qs=Qu[where.ravel()])
+        source = Transitions(times, VanLoan(A, Qc))
+        return dataclasses.replace(self, Fs=PerInterval(source, 0), Qs=PerInterval(source, 1))
 
     @property
     def truth_initial(self) -> Prior:
@@ -285,6 +289,25 @@ class System:
             if s.name == name:
                 return j
         raise KeyError(name)
+
+
+def _is_grid(times: np.ndarray, dt: float, block: int = 1 << 16) -> bool:
+    """times_k == k dt for every k, a block of instants at a time (no array of the log's
+    length: `np.array_equal(times, np.arange(K + 1) * dt)`)."""
+    return all(
+        np.array_equal(times[a : a + block], np.arange(a, min(a + block, len(times))) * dt)
+        for a in range(0, len(times), block)
+    )
+
+
+def _interval_range(times: np.ndarray, block: int = 1 << 16) -> tuple[float, float]:
+    """The smallest and largest interval between consecutive instants (0, 0 for fewer than
+    two), a block of instants at a time."""
+    lo, hi = np.inf, -np.inf
+    for a in range(0, len(times) - 1, block):
+        d = np.diff(times[a : a + block + 1])
+        lo, hi = min(lo, d.min()), max(hi, d.max())
+    return (0.0, 0.0) if lo > hi else (float(lo), float(hi))
 
 
 def constant_velocity(dt: float, n0: float) -> tuple[np.ndarray, np.ndarray]:

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..errors import NumericalError
 from .architectures import Plan, StepMap
+from .intervals import same_per_interval
 from .linalg import mT, sym
 from .model import System
 
@@ -35,7 +36,12 @@ def coupling(plan: Plan, truth: System) -> bool:
     if model is None:
         return True
     same_F = np.array_equal(model.F, truth.F) and (
-        model.Fs is truth.Fs or (model.Fs is not None and np.array_equal(model.Fs, truth.Fs))
+        model.Fs is truth.Fs
+        or (
+            model.Fs is not None
+            and truth.Fs is not None
+            and same_per_interval(model.Fs, model.F, truth.Fs, truth.F, len(model.Fs))
+        )
     )
     return not (same_F and np.array_equal(model.linear_measurement(), truth.linear_measurement()))
 

@@ -58,6 +58,11 @@ class _Structure:
         return Layout(self.times, self.runs, 0, self.dims, self.sparse).steps_of(topic)
 
 
+#: The layout record's fields that grow with the log (`Layout.to_metadata`): dropped from
+#: `McapFile.metadata` once the structure is read from them (issue 34).
+_LISTS = ("times", "sparse")
+
+
 class McapFile:
     """A fusionlog MCAP file opened for reading; opening validates the container, its CRCs and
     the schemas.
@@ -188,6 +193,8 @@ class McapFile:
             lay = Layout.from_metadata(meta)
         except ValueError:
             return None
+        finally:  # the lists' text (~35 bytes per instant) read once: parsed, or refused
+            self.metadata[LAYOUT_META] = {k: v for k, v in meta.items() if k not in _LISTS}
         ours = {t: i for t, i in self._topics.items() if i.format is not None}
         if set(lay.dims) != set(ours) or any(
             i.count != lay.count_of(t) * lay.blocks for t, i in ours.items()

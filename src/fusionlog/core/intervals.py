@@ -1,0 +1,179 @@
+"""The per-interval F, Q of a model on irregular instants, formed a stretch at a time on demand.
+
+`System.on_times` (`core.model`) discretises a continuous model for every interval between the
+log's instants: F = expm(A Δ), Q by Van Loan's method (`timing.van_loan`), one matrix
+exponential per distinct interval. Held whole, the K intervals' F and Q are 2 K n² doubles (64 MB
+at 10^6 instants with 2 states, and ~240 MB while `van_loan` formed them, issue 34). Here they
+are formed only for the intervals asked for: `PerInterval` stands where the (K, n, n) arrays
+stood (`System.Fs`, `System.Qs`), indexed like them — a range (`System.transitions`, a block of
+time) formed at once, a single interval (`System.F_at`, `GQG_at`, instant by instant) from a
+cached stretch of `STRETCH` intervals — from the instants' times, which the log holds anyway.
+
+The numbers are those of forming every interval at once: `van_loan` computes each interval's
+F and Q from its Δ alone (elementwise powers and one product per row), so the distinct
+intervals of a stretch give the same bits as those of the whole log (tests/test_intervals.py).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+
+import numpy as np
+
+from .timing import van_loan
+
+__all__ = [
+    "STRETCH",
+    "MotionNoise",
+    "PerInterval",
+    "Transitions",
+    "VanLoan",
+    "same_per_interval",
+]
+
+#: Intervals formed at once for a single interval's F or Q (`PerInterval[k]`): one stretch
+#: (a few hundred kB) cached per system, so an instant-by-instant loop forms each once.
+STRETCH = 1 << 12
+
+
+class VanLoan:
+    """The F, Q of a continuous model (A, Qc) for an array of intervals (`timing.van_loan`)."""
+
+    def __init__(self, A: np.ndarray, Qc: np.ndarray) -> None:
+        self.A, self.Qc = A, Qc
+        self.key = A.tobytes() + Qc.tobytes()  # the model bit for bit
+
+    def __call__(self, deltas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return van_loan(self.A, self.Qc, deltas)
+
+
+class MotionNoise:
+    """The Q(Δ) (n, n) of a nonlinear motion (`core.models`) for an array of intervals, one
+    call each (F: None, the motion is f(x, Δ))."""
+
+    key = None  # a model's Q is a function: only the same source is known to be equal
+
+    def __init__(self, Q_of: Callable[[float], np.ndarray], n: int) -> None:
+        self.Q_of, self.n = Q_of, n
+
+    def __call__(self, deltas: np.ndarray) -> tuple[None, np.ndarray]:
+        Q = [self.Q_of(float(d)) for d in deltas]
+        return None, np.stack(Q) if Q else np.empty((0, self.n, self.n))
+
+
+class Transitions:
+    """The (F, Q) of the intervals between the instants `times` (K+1,) s: `form(deltas)`
+    (`VanLoan`, `MotionNoise`) gives them for an array of distinct intervals ((U, n, n) each;
+    F None for a motion without a matrix); `form.key` names the model bit for bit (two sources
+    with equal keys and times form equal matrices; None: only the source itself is known to)."""
+
+    def __init__(self, times: np.ndarray, form: VanLoan | MotionNoise) -> None:
+        self.times, self.form, self.key = times, form, form.key
+        self._cached: tuple[int, tuple] | None = None
+
+    def __len__(self) -> int:
+        return len(self.times) - 1
+
+    def __getstate__(self) -> dict:  # pickled (Dask) without the cached stretch
+        return {**self.__dict__, "_cached": None}
+
+    def deltas(self, key) -> np.ndarray:
+        """The intervals t_{k+1} - t_k of the intervals `key` (a slice, an int or an int array,
+        numpy's meaning over 0..K-1): the values of `np.diff(times)[key]`."""
+        if isinstance(key, slice):
+            a, b, step = key.indices(len(self))
+            if step == 1:
+                b = max(a, b)
+                return self.times[a + 1 : b + 1] - self.times[a:b]
+            key = np.arange(a, b, step)
+        idx = np.arange(len(self))[key]  # numpy's bounds and negative indices
+        return self.times[idx + 1] - self.times[idx]
+
+    def of(self, key) -> tuple:
+        """(F, Q) of the intervals `key`, shaped as `deltas(key)` + (n, n) (F None where the
+        motion has none)."""
+        if isinstance(key, (int, np.integer)):
+            k = int(key) + len(self) if key < 0 else int(key)
+            if not 0 <= k < len(self):
+                raise IndexError(f"interval {key} of {len(self)}")
+            c = k // STRETCH
+            if self._cached is None or self._cached[0] != c:
+                self._cached = (c, self.of(slice(c * STRETCH, (c + 1) * STRETCH)))
+            F, Q = self._cached[1]
+            j = k - c * STRETCH
+            return (None if F is None else F[j]), Q[j]
+        d = self.deltas(key)
+        uniq, where = np.unique(d, return_inverse=True)
+        F, Q = self.form(uniq)
+        where = where.reshape(d.shape)
+        out = (None if F is None else F[where], Q[where])
+        for a in out:
+            if a is not None:
+                a.flags.writeable = False  # shared by the cache: what a caller gets to read
+        return out
+
+
+class PerInterval(np.lib.mixins.NDArrayOperatorsMixin):
+    """F (`which` 0) or Q (1) of every interval of a `Transitions`, indexed like the (K, n, n)
+    array it stands for: `x[k]`, `x[a:b]`, `x[int_array]` form those intervals (read only);
+    `np.asarray(x)` and arithmetic (`3.0 * x`) form them all."""
+
+    __slots__ = ("source", "which")
+
+    def __init__(self, source: Transitions, which: int) -> None:
+        self.source, self.which = source, which
+
+    def __getstate__(self) -> tuple:
+        return (self.source, self.which)
+
+    def __setstate__(self, state: tuple) -> None:
+        self.source, self.which = state
+
+    def __len__(self) -> int:
+        return len(self.source)
+
+    def __getitem__(self, key) -> np.ndarray:
+        return self.source.of(key)[self.which]
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        for k in range(len(self)):
+            yield self[k]
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        out = self[:]
+        return out if dtype is None else out.astype(dtype)
+
+    def __array_ufunc__(self, ufunc, method, *inputs, **kwargs):
+        args = [np.asarray(x) if isinstance(x, PerInterval) else x for x in inputs]
+        return getattr(ufunc, method)(*args, **kwargs)
+
+    @property
+    def ndim(self) -> int:
+        return 3
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (len(self),) + self[0].shape if len(self) else (0, 0, 0)
+
+
+def same_per_interval(a, default_a: np.ndarray, b, default_b: np.ndarray, count: int) -> bool:
+    """Whether two systems' matrices of the `count` intervals are equal bit for bit: `a`, `b`
+    are (count, ...) arrays or `PerInterval`s, or None (`default_a`, `default_b` at every
+    interval); compared a stretch at a time, two `PerInterval`s of the same model and times
+    without forming them."""
+    if any(x is not None and len(x) != count for x in (a, b)):
+        return False
+    if isinstance(a, PerInterval) and isinstance(b, PerInterval) and a.which == b.which:
+        sa, sb = a.source, b.source
+        same = sa.key is not None and sa.key == sb.key
+        if sa is sb or (same and np.array_equal(sa.times, sb.times)):
+            return True
+    if a is None and b is None:
+        return default_a.shape == default_b.shape and np.array_equal(default_a, default_b)
+    for k0 in range(0, count, STRETCH):
+        k1 = min(k0 + STRETCH, count)
+        x = np.broadcast_to(default_a, (k1 - k0,) + default_a.shape) if a is None else a[k0:k1]
+        y = np.broadcast_to(default_b, (k1 - k0,) + default_b.shape) if b is None else b[k0:k1]
+        if x.shape != y.shape or not np.array_equal(x, y):
+            return False
+    return True
