@@ -486,10 +486,8 @@ class McapFile:
             tables.close()
 
     def topic_tables(self, topics: Sequence[str]) -> tuple[np.ndarray, Iterator[tuple[int, Table]]]:
-        """The index in `topics` of each channel id, and the messages of `topics` decoded chunk
-        by chunk as columns (`columns.Table`, in file order): the one fast reader of a field."""
-        infos = [self._readable(t) for t in topics]
-        tidx = {cid: ti for ti, info in enumerate(infos) for cid in info.channel_ids}
+        """Each channel id's index in `topics`, and their messages as columns chunk by chunk."""
+        tidx = {cid: ti for ti, t in enumerate(topics) for cid in self._readable(t).channel_ids}
         topic_index = np.full(max(tidx) + 1, -1, np.int64)
         topic_index[list(tidx)] = list(tidx.values())
         return topic_index, self._tables(set(tidx))
