@@ -3,8 +3,9 @@ are missing, in blocks of time (issue 34): the sensors file read block by block 
 (spooled, `driver.long_log`) and the arrival field of its late sensors' messages
 (`io.mcap.arrival.iter_arrival_blocks`) -- through `core.latency_blocks.LateBlocks`.
 
-The arrivals are those `state_kind.recorded_arrivals` reads for the whole run: a late sensor's
-from its messages (NaN where it has none: no reading), a sensor on time at its instants.
+The arrivals are those `state_kind.recorded_arrivals` reads for the whole run
+(`io.mcap.arrival.message_arrivals`): a late sensor's from its messages, a message without the
+field on time (NaN where it has no message: no reading), a sensor on time at its instants.
 """
 
 from __future__ import annotations

@@ -268,12 +268,8 @@ def recorded_arrivals(
         return None
     from fusionlog.io.mcap.arrival import read_arrivals
 
-    K1 = plans.steps + 1
-    got = read_arrivals(sensors.path, topics, runs, K1)
-    times = sensors.times()
-    return np.stack(
-        [a if a is not None else np.broadcast_to(times, (runs, K1)) for a in got.values()], -1
-    )
+    got = read_arrivals(sensors.path, topics, runs, plans.steps + 1, on_time=sensors.times())
+    return np.stack(list(got.values()), -1)
 
 
 def _long_one_run(steps: int, runs: int) -> bool:

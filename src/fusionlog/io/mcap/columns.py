@@ -58,6 +58,7 @@ class Template:
     time: int | None  # col of the time's first byte
     p1: tuple[int, int]  # (start, length) of the payloads in the message; (0, 0) if absent
     p2: tuple[int, int]
+    p3: tuple[int, int]  # a Block's arrival (`wire.Fields`)
 
     @staticmethod
     def of(data: bytes, fmt: MessageFormat) -> Template | None:
@@ -69,7 +70,7 @@ class Template:
         m = fast.match(data)
         pos = m.end()  # type: ignore[union-attr]
         payload: list[tuple[int, int]] = []
-        for key in (fmt.p1_key, fmt.p2_key):
+        for key in (fmt.p1_key, fmt.p2_key, fmt.p3_key):
             if 0 <= pos < n and data[pos] == key:
                 a, pos = payload_span(data, pos, n)
                 payload.append((a, pos))
@@ -97,28 +98,26 @@ class Template:
         )
         time = None if spans[1][0] < 0 else int(where[spans[1][0]])
         expect = np.frombuffer(data, np.uint8)[cols] & mask
-        (a1, b1), (a2, b2) = payload
-        return Template(cols, mask, expect, ints, time, (a1, b1 - a1), (a2, b2 - a2))
+        spans3 = [(a, b - a) for a, b in payload]
+        return Template(cols, mask, expect, ints, time, *spans3)
 
     def decode(
         self, u8: np.ndarray, starts: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The messages at byte offsets ``starts`` of ``u8``: (ok, ints, time) with ints rows
-        step, run_offset, runs, dim, p1, n1, p2, n2 (payload offsets in ``u8`` and byte
-        lengths); ok is False where a message does not fit the template (decode it singly)."""
+        step, run_offset, runs, dim, p1, n1, p2, n2, p3, n3 (payload offsets in ``u8`` and
+        byte lengths); ok is False where a message does not fit the template (decode it singly)."""
         head = u8[starts[:, None] + self.cols]
         ok = ((head & self.mask) == self.expect).all(axis=1)
-        ints = np.zeros((8, len(starts)), np.int64)
+        ints = np.zeros((10, len(starts)), np.int64)
         for row, spec in enumerate(self.ints):
             if spec is not None:
                 c, ln = spec
                 v = ints[row]
                 for i in range(ln):
                     v |= (head[:, c + i] & 0x7F).astype(np.int64) << (7 * i)
-        ints[4] = starts + self.p1[0]
-        ints[5] = self.p1[1]
-        ints[6] = starts + self.p2[0]
-        ints[7] = self.p2[1]
+        for row, (a, n) in zip((4, 6, 8), (self.p1, self.p2, self.p3), strict=True):
+            ints[row], ints[row + 1] = starts + a, n
         ok &= (ints[:4] <= UINT32_MAX).all(axis=0)  # else decoded singly, which says why
         if self.time is None:
             time = np.zeros(len(starts))
@@ -133,7 +132,8 @@ class Table:
     """Messages decoded into columns, in file order.
 
     The payloads stay in ``raw`` (the messages' bytes joined, then any payload that had to be
-    reassembled from pieces): p1/p2 are their byte offsets in it, n1/n2 their byte lengths.
+    reassembled from pieces): p1/p2/p3 are their byte offsets in it, n1/n2/n3 their byte
+    lengths (p3: a Block's arrival, n3 = 0 where a message has none).
     """
 
     raw: bytes
@@ -147,6 +147,8 @@ class Table:
     n1: np.ndarray
     p2: np.ndarray
     n2: np.ndarray
+    p3: np.ndarray
+    n3: np.ndarray
 
     def __len__(self) -> int:
         return len(self.cid)
@@ -172,8 +174,8 @@ def decode_rows(rows: Rows, formats: dict[int, MessageFormat]) -> Table | None:
     if not n:
         return None
     u8 = np.frombuffer(raw, np.uint8)
-    # step, run_offset, runs, dim, p1, n1, p2, n2 (payload offsets in raw and byte lengths)
-    cols = np.zeros((8, n), np.int64)
+    # step, run_offset, runs, dim, p1, n1, p2, n2, p3, n3 (payload offsets in raw, byte lengths)
+    cols = np.zeros((10, n), np.int64)
     time = np.zeros(n)
     done = np.zeros(n, bool)
     small = np.flatnonzero(lens < _SMALL)
@@ -195,8 +197,7 @@ def decode_rows(rows: Rows, formats: dict[int, MessageFormat]) -> Table | None:
     rest = np.flatnonzero(~done)
     if len(rest):
         raw = _decode_rows(raw, rest, cid, starts, lens, cols, time, formats)
-    step, off, runs, dim, p1, n1, p2, n2 = cols
-    return Table(raw, cid, step, off, runs, dim, time, p1, n1, p2, n2)
+    return Table(raw, cid, *cols[:4], time, *cols[4:])
 
 
 def _decode_rows(
@@ -220,7 +221,7 @@ def _decode_rows(
             fields = decode_fields(mv[s : s + int(lens[i])], formats[c])
         except WireError as e:
             raise BadMessage(c, str(e)) from e
-        step, t, off, runs, dim, q1, q2 = fields
+        step, t, off, runs, dim, *payloads = fields
         if max(step, off, runs, dim) > UINT32_MAX:
             raise BadMessage(
                 c,
@@ -228,7 +229,7 @@ def _decode_rows(
             )
         cols[:4, i] = step, off, runs, dim
         time[i] = t
-        for j, q in ((4, q1), (6, q2)):
+        for j, q in zip((4, 6, 8), payloads, strict=True):
             if len(q) == 1:
                 cols[j, i], cols[j + 1, i] = s + q[0][0], q[0][1] - q[0][0]
             elif q:

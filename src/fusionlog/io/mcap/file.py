@@ -473,13 +473,10 @@ class McapFile:
         st = self._get_structure()
         if st.runs != 1:
             raise ValueError("blocks of time are read from a one-run log")
-        tidx = {cid: ti for ti, info in enumerate(infos) for cid in info.channel_ids}
-        topic_index = np.zeros(max(tidx) + 1, np.int64)
-        topic_index[list(tidx)] = list(tidx.values())
         kinds = [i.format.kind for i in infos]  # type: ignore[union-attr]
         dims = [self.dim_of(t) for t in names]
         masks = [st.sparse.get(t) for t in names]  # each block unpacks its own bits
-        tables = self._tables(set(tidx))
+        topic_index, tables = self.topic_tables(names)
         try:
             yield from time_blocks(
                 self.path, tables, names, dims, kinds, topic_index, masks, max(1, steps),
@@ -487,6 +484,13 @@ class McapFile:
             )  # fmt: skip
         finally:
             tables.close()
+
+    def topic_tables(self, topics: Sequence[str]) -> tuple[np.ndarray, Iterator[tuple[int, Table]]]:
+        """Each channel id's index in `topics`, and their messages as columns chunk by chunk."""
+        tidx = {cid: ti for ti, t in enumerate(topics) for cid in self._readable(t).channel_ids}
+        topic_index = np.full(max(tidx) + 1, -1, np.int64)
+        topic_index[list(tidx)] = list(tidx.values())
+        return topic_index, self._tables(set(tidx))
 
     def read_all(self, topics: Sequence[str]) -> dict[str, Any]:
         """All runs of ``topics`` at once (small files, tests); same shapes as iter_run_blocks."""

@@ -191,16 +191,17 @@ def encode_estimate_message(
 # --------------------------------------------------------------------------------------------
 
 # Actions of a wire key in a MessageFormat.
-_A_STEP, _A_RUN_OFFSET, _A_RUNS, _A_DIM, _A_TIME, _A_P1, _A_P2 = range(7)
+_A_STEP, _A_RUN_OFFSET, _A_RUNS, _A_DIM, _A_TIME, _A_P1, _A_P2, _A_P3 = range(8)
 _INT_FIELDS = ("step", "run_offset", "runs", "dim")
 
 Decoded = tuple[int, float, int, int, int, Any, Any]
 """(step, time, run_offset, runs, dim, payload1, payload2); payloads are bytes-like, LE doubles."""
 
 Pieces = list[tuple[int, int]]
-Fields = tuple[int, float, int, int, int, Pieces, Pieces]
-"""(step, time, run_offset, runs, dim, pieces1, pieces2): a payload as (start, end) byte ranges
-of the message, usually one; several when a writer split the packed field or did not pack it."""
+Fields = tuple[int, float, int, int, int, Pieces, Pieces, Pieces]
+"""(step, time, run_offset, runs, dim, pieces1, pieces2, pieces3): a payload as (start, end) byte
+ranges of the message, usually one; several when a writer split the packed field or did not
+pack it. The third is a Block's ``arrival`` (`schema.PAYLOAD_FIELDS`), empty for an estimate."""
 
 
 class WireError(Exception):
@@ -214,8 +215,8 @@ class MessageFormat:
 
     ``kind`` is VALUES or ESTIMATE; ``keys`` maps a wire key (field number << 3 | wire type) to
     what it holds; ``fast`` matches the five scalars of a canonical encoding (fields in number
-    order, one-byte keys), None if the schema's numbers do not allow it; ``p1_key``/``p2_key``
-    are the packed payloads' keys (-1: none).
+    order, one-byte keys), None if the schema's numbers do not allow it; ``p1_key``..``p3_key``
+    are the packed payloads' keys (-1: none), in `schema.PAYLOAD_FIELDS` order.
     """
 
     kind: str
@@ -223,6 +224,7 @@ class MessageFormat:
     fast: re.Pattern[bytes] | None = None
     p1_key: int = -1
     p2_key: int = -1
+    p3_key: int = -1
 
 
 _VARINT_RE = rb"([\x80-\xff]{0,9}[\x00-\x7f])"
@@ -286,8 +288,7 @@ def _fields_generic(buf: Any, keys: dict[int, int]) -> Fields:
     """
     ints = [0, 0, 0, 0]
     t = 0.0
-    p1: Pieces = []
-    p2: Pieces = []
+    pieces: tuple[Pieces, Pieces, Pieces] = ([], [], [])
     n = len(buf)
     pos = 0
     try:
@@ -316,17 +317,15 @@ def _fields_generic(buf: Any, keys: dict[int, int]) -> Fields:
                 if action is not None:
                     if ln % 8:
                         raise WireError("packed double field length is not a multiple of 8")
-                    (p1 if action == _A_P1 else p2).append((pos, end))
+                    pieces[action - _A_P1].append((pos, end))
                 pos = end
             elif wt == _FIXED64:
                 if pos + 8 > n:
                     raise WireError("fixed64 field runs past the end")
                 if action == _A_TIME:
                     t = _F64.unpack_from(buf, pos)[0]
-                elif action == _A_P1:
-                    p1.append((pos, pos + 8))
-                elif action == _A_P2:
-                    p2.append((pos, pos + 8))
+                elif action is not None and action >= _A_P1:
+                    pieces[action - _A_P1].append((pos, pos + 8))
                 pos += 8
             elif wt == _FIXED32:
                 pos += 4
@@ -336,7 +335,7 @@ def _fields_generic(buf: Any, keys: dict[int, int]) -> Fields:
             raise WireError("message ends inside a field")
     except IndexError:
         raise WireError("message ends inside a field") from None
-    return ints[0], t, ints[1], ints[2], ints[3], p1, p2
+    return ints[0], t, ints[1], ints[2], ints[3], *pieces
 
 
 def payload_span(buf: Any, pos: int, n: int) -> tuple[int, int]:
@@ -361,15 +360,11 @@ def decode_fields(buf: Any, fmt: MessageFormat) -> Fields:
         m = fast.match(buf)
         pos = m.end()  # type: ignore[union-attr]  # every group is optional: always matches
         n = len(buf)
-        p1: Pieces = []
-        p2: Pieces = []
-        # the payload fields, unrolled: key, length, packed doubles
-        if pos < n and buf[pos] == fmt.p1_key:
-            a, pos = payload_span(buf, pos, n)
-            p1 = [(a, pos)]
-        if 0 <= pos < n and buf[pos] == fmt.p2_key:
-            a, pos = payload_span(buf, pos, n)
-            p2 = [(a, pos)]
+        got: list[Pieces] = [[], [], []]
+        for i, key in enumerate((fmt.p1_key, fmt.p2_key, fmt.p3_key)):  # key, length, doubles
+            if 0 <= pos < n and buf[pos] == key:
+                a, pos = payload_span(buf, pos, n)
+                got[i] = [(a, pos)]
         if pos == n:  # -1 when a payload was malformed
             gs, gt, go, gr, gd = m.groups()  # type: ignore[union-attr]
             return (
@@ -378,15 +373,14 @@ def decode_fields(buf: Any, fmt: MessageFormat) -> Fields:
                 0 if go is None else go[0] if len(go) == 1 else _varint_value(go),
                 0 if gr is None else gr[0] if len(gr) == 1 else _varint_value(gr),
                 0 if gd is None else gd[0] if len(gd) == 1 else _varint_value(gd),
-                p1,
-                p2,
+                *got,
             )
     return _fields_generic(buf, fmt.keys)
 
 
 def decode(buf: Any, fmt: MessageFormat) -> Decoded:
     """Decode one message, payloads as bytes-like (views of ``buf`` where they are contiguous)."""
-    step, t, off, runs, dim, q1, q2 = decode_fields(buf, fmt)
+    step, t, off, runs, dim, q1, q2, _ = decode_fields(buf, fmt)
     return step, t, off, runs, dim, _join(buf, q1), _join(buf, q2)
 
 
@@ -456,8 +450,9 @@ def _format_of_fields(fields: dict[str, tuple[int, int, int]]) -> MessageFormat 
         return None
     kind = kinds[0]
     payload = [p for p, _ in PAYLOAD_FIELDS[kind] if p in fields]
-    for action, pname in zip((_A_P1, _A_P2), payload, strict=False):
-        f = fields[pname]
+    action_of = {p: _A_P1 + i for i, (p, _) in enumerate(PAYLOAD_FIELDS[kind])}  # by name
+    for pname in payload:
+        action, f = action_of[pname], fields[pname]
         if f[1] != TYPE_DOUBLE or f[2] != LABEL_REPEATED:
             return None
         keys[_key(f[0], _LEN)] = action  # packed
@@ -465,8 +460,10 @@ def _format_of_fields(fields: dict[str, tuple[int, int, int]]) -> MessageFormat 
     numbers = {n: fields[n][0] for n in ("step", "time", *_INT_FIELDS[1:], *payload)}
     # the reference switch (`core.reference`): every message decoded field by field
     fast = None if reference_paths() else _fast_pattern(numbers, payload)
-    payload_keys = [_key(numbers[p], _LEN) for p in payload] + [-1]
-    return MessageFormat(kind, keys, fast, payload_keys[0], payload_keys[1])
+    pkeys = [-1, -1, -1]
+    for p in payload:
+        pkeys[action_of[p] - _A_P1] = _key(numbers[p], _LEN)
+    return MessageFormat(kind, keys, fast, *pkeys)
 
 
 @lru_cache(maxsize=2)
