@@ -18,6 +18,7 @@ __all__ = [
     "DELAY_STREAM",
     "LATE_POLICIES",
     "SINGLE_FILTER",
+    "accept_at",
     "accepted",
     "arrival_steps",
     "arrival_blocks",
@@ -191,9 +192,16 @@ def accepted(took: np.ndarray, arrive: np.ndarray, W: int) -> np.ndarray:
     newest = np.full(took.shape[:-2], -1, dtype=np.intp)
     for k in range(K1):
         lo = max(0, k - W)
-        i = np.arange(lo, k + 1)
-        ok = took[..., lo : k + 1, :] & (arrive[..., lo : k + 1, :] == k)
-        ok &= i[:, None] >= newest[..., None, None]
+        here = took[..., lo : k + 1, :] & (arrive[..., lo : k + 1, :] == k)
+        ok, newest = accept_at(here, np.arange(lo, k + 1), newest)
         out[..., lo : k + 1, :] |= ok
-        newest = np.maximum(newest, np.where(ok.any(-1), i, -1).max(-1))
     return out
+
+
+def accept_at(here: np.ndarray, i: np.ndarray, newest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Neglect's rule at one arrival instant (`accepted`'s step; the EKF/UKF lanes take it an
+    instant at a time, `nonlinear.late_feed`): of the readings `here` (batch + (w, S)), taken
+    at the instants i (w,), that arrive now, those not older than the newest measurement time
+    the filter has taken (`newest`, batch); and that time after them."""
+    ok = here & (i[:, None] >= newest[..., None, None])
+    return ok, np.maximum(newest, np.where(ok.any(-1), i, -1).max(-1))

@@ -16,13 +16,24 @@ retrodiction once its Riccati recursion repeats to the last bit (`_repeats_share
 equal bit for bit to the one before is that object, so nothing changes numerically). The
 steadiness the long path needs is then `long_log`'s own check at the horizon's middle.
 
+Retrodiction with the rules that read the locals' joint covariance (MSC-GMF, AVG) is here
+too: J is propagated from the covariance of [x_k; s_k - D_k x_k] (`retrodict_fused.
+_error_moments`, D the plans' error form), which stays of the size of the errors and, with
+the locals' recursions, reaches its fixed point to the last bit past the latency window
+(pipeline/latency.toml retrodicted: every step from the 47th the same), so the rule's maps
+become steady and the short plans stand for the log (`tests/test_long_late_more.py`); a
+recursion that never repeats bit for bit has no steady middle and takes the whole run. Where
+D is 0 (a transition over the window singular or ill-conditioned, `retrodict._Transitions.
+back`) J carries the truth's covariance: where that grows, J never repeats, `steady_log`
+finds no steady middle and the log is taken whole.
+
 Not here: random delays and recorded arrivals (the plans differ per arrival pattern) and
 missing readings go to the plan-free stacked filters carried block to block
 (`core.latency_blocks`: CKF, HKF, SKF under reprocess and neglect; the per-sensor rules and
 retrodiction there take the whole run at once, as does HKF's exact analysis where correlated
-readings arrive apart); retrodiction with the rules that read the locals' joint covariance
-(MSC-GMF, AVG: J is propagated from the covariance of [x_k; s_k], which grows with the
-truth's, so it never repeats) takes the whole run at once.
+readings arrive apart); the cases just named take the whole run at once. Nonlinear late
+sensors need no plans: the EKF/UKF lanes carry their late state from block to block
+themselves (`nonlinear.late_feed`, `nonlinear.long_log`).
 """
 
 from __future__ import annotations

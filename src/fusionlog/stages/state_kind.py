@@ -341,9 +341,9 @@ class _StateEstimator(Estimator):
         reading present through its short plans, a recorded replay or a simulated run without
         steady plans (irregular instants, per-message R, readings missing or lost at dropouts)
         through the plan-free path carried block to block, a nonlinear model through its
-        EKF/UKF filters carried block to block; None otherwise (a log short enough for one
-        block, late readings, the reference paths, a model `ReplayBlocks.of` refuses: the
-        whole run at once)."""
+        EKF/UKF filters (and their late policies) carried block to block; None otherwise (a
+        log short enough for one block, linear late readings without late plans standing for
+        the log, the reference paths, a model `ReplayBlocks.of` refuses: the whole run)."""
         from fusionlog.core.architectures.replay_blocks import ReplayBlocks
         from fusionlog.driver.long_log import (
             long_estimates,
@@ -356,9 +356,9 @@ class _StateEstimator(Estimator):
         system = plans.system
         if plans.steps + 1 <= B or reference_paths():
             return None
-        if is_late(system):  # late readings (issue 30): the late plans carried, else whole
+        if is_late(system) and system.linear:  # late plans carried (issue 30), else whole
             return self._late_windows(sensors, B)
-        if not system.linear:  # EKF/UKF: their states carried from block to block
+        if not system.linear:  # EKF/UKF (late or not): their states carried block to block
             return self._nonlinear_windows(sensors, B)
         steady = system.Rs is None and system.time_invariant
         log = steady_log(system, self.archs, plans.steps, plans.criterion) if steady else None
@@ -421,7 +421,9 @@ class _StateEstimator(Estimator):
 
     def _nonlinear_windows(self, sensors: McapFile, B: int) -> Any:
         """A long nonlinear one-run log in blocks of time (`core.nonlinear.long_log`), its
-        readings spooled (FBS reads them back in reverse)."""
+        readings spooled (FBS reads them back in reverse; the late policies read the last W
+        instants again); late readings arrive when the log says (`recorded_arrivals`) or
+        with the sensors' fixed latencies."""
         from fusionlog.core.nonlinear.long_log import estimate_blocks
         from fusionlog.driver.long_log import spool_readings
 
@@ -432,9 +434,10 @@ class _StateEstimator(Estimator):
 
         def windows() -> Any:
             try:
-                got = estimate_blocks(
-                    plans.system, self.archs, lambda a, b: spool.read(a, b)[None], plans.times, B
-                )
+                read = lambda a, b: spool.read(a, b)[None]  # noqa: E731
+                self.arrivals()  # drawn or recorded delays: the log's, read whole (8 S B/instant)
+                arrival = plans.block_arrivals(0, 1)
+                got = estimate_blocks(plans.system, self.archs, read, plans.times, B, arrival)
                 for k0, k1, out in got:
                     yield k0, k1, {a: _estimate_writer(*e, False, k0) for a, e in out.items()}
             finally:

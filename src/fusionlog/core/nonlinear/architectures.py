@@ -165,7 +165,6 @@ def estimate_steps(
     """`estimate` one instant at a time: (mean (M, n), covariances (M, n, n)) for k = 0..K,
     each computed when asked for (the filters keep one instant in memory, not all; FBS, a
     smoother, all of them)."""
-    names = [s.name for s in system.sensors]
     kind = require_filter(system, arch)
     if is_late(system) and (why := late_refusal(system, kind.locals, arch)) is not None:
         raise FusionlogError(why)
@@ -174,13 +173,18 @@ def estimate_steps(
         return _named(_smoother(st, arch), arch)
     m = machine_of(st, arch)
     if is_late(system):
-        if kind.locals == "per-sensor":
-            filters = [[j] for j in range(len(names))]
-        else:
-            filters = [m.which] if isinstance(m, _Filter) else [list(range(len(names)))]
         arrive = arrival_instants(st.system, st.times, arrival)
-        return _named(late_steps(m, filters, arrive), arch)
+        return _named(late_steps(m, late_filters(m, arch), arrive), arch)
     return _named(_run(m), arch)
+
+
+def late_filters(m: Machine, arch: str) -> list[list[int]]:
+    """The sensors each filter of machine `m` (architecture `arch`) fuses: one local per
+    sensor, or its one filter's (or centre's) sensors (neglect's last update is per filter)."""
+    S = len(m.st.system.sensors)
+    if require_filter(m.st.system, arch).locals == "per-sensor":
+        return [[j] for j in range(S)]
+    return [m.which] if isinstance(m, _Filter) else [list(range(S))]
 
 
 def require_filter(system: System, arch: str) -> Architecture:

@@ -31,91 +31,55 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from ...errors import FusionlogError
-from ..late_policy import accepted, arrival_steps, random_delays
-from ..model import System
+from .late_feed import Feed, Reader, arrival_instants, driven, window_of
 from .local import select
 
 __all__ = ["arrival_instants", "late_steps", "reprocess_steps"]
 
 
-def arrival_instants(system: System, times: np.ndarray, arrival: np.ndarray | None) -> np.ndarray:
-    """The instant index at which each reading arrives, (runs or 1, K+1, S) (K+1: never,
-    within the horizon): from `arrival` (runs, K+1, S) seconds on the clock of `times`, or
-    where it is None from the sensors' fixed latencies."""
-    times = np.asarray(times, float)
-    if arrival is None:
-        if random_delays(system):
-            raise FusionlogError(
-                "arrival: a sensor's latency is a range (random delays): give the arrival "
-                "times of the readings (runs, K+1, S) s"
-            )
-        lat = np.array([s.timing.latency[0] for s in system.sensors])
-        arrival = (times[:, None] + lat[None, :])[None]
-    arrival = np.asarray(arrival, float)
-    S, K1 = len(system.sensors), len(times)
-    if arrival.ndim != 3 or arrival.shape[1:] != (K1, S):
-        raise FusionlogError(
-            f"arrival: shape {arrival.shape}, expected (runs, {K1}, {S}): when each reading "
-            "of each sensor arrived (s)"
-        )
-    early = arrival < times[None, :, None] - 1e-9
-    if early.any():
-        raise FusionlogError("arrival: a reading arrives before it is taken")
-    return arrival_steps(times, arrival)
-
-
-def late_steps(m, filters: list[list[int]], arrive: np.ndarray) -> Iterator:
+def late_steps(
+    m, filters: list[list[int]], arrive, read: Reader | None = None, block: int = 0
+) -> Iterator:
     """The estimates (x, P) at each output instant of machine `m` (its system's policy,
     `System.late`) with the readings arriving at the instants `arrive` (runs or 1, K+1, S);
-    `filters`: the sensors each of its filters fuses (neglect's last update is per filter)."""
+    `filters`: the sensors each of its filters fuses (neglect's last update is per filter).
+    A long log (`long_log.estimate_blocks`): `arrive` and `read` give the arrival instants
+    and the readings of instants k0..k1-1, read `block` instants at a time (`late_feed`)."""
     st = m.st
-    z = st.z
-    M, K1 = z.shape[:2]
+    K1 = len(st.times)
+    if read is None:  # the whole run: one block of the arrays
+        z, a = st.z, arrive
+        read, arrive, block = (lambda k0, k1: z[:, k0:k1]), (lambda k0, k1: a[:, k0:k1]), K1
     S = len(st.system.sensors)
-    arrive = np.broadcast_to(arrive, (M, K1, S))
-    took = np.stack([~np.isnan(z[:, :, c]).all(-1) for c in st.cols], axis=-1)  # (M, K1, S)
     used = np.isin(np.arange(S), [j for g in filters for j in g])
-    arrive = np.where(took & used, arrive, K1)  # nothing taken (or fused): nothing arrives
-    W = window(arrive)
+    W = window_of(read, arrive, st.cols, used, K1, block)
     policy = st.system.late
-    if policy == "neglect":
-        ok = np.zeros_like(took)
-        for g in filters:
-            ok[..., g] = accepted(took[..., g], arrive[..., g], W)
-        arrive = np.where(ok, arrive, K1)
+    neglect = filters if policy == "neglect" else None
+    feed = Feed(read, arrive, st.z.shape[0], K1, st.cols, used, W, block, neglect)
     if policy == "retrodict":
         from .retrodict import retrodict_steps
 
-        return retrodict_steps(m, arrive, W)
-    return reprocess_steps(m, arrive, W)
+        return driven(feed, retrodict_steps(m, feed))
+    return driven(feed, reprocess_steps(m, feed))
 
 
-def window(arrive: np.ndarray) -> int:
-    """W: the largest lag (in instants) of a reading that arrives within the horizon."""
-    K1 = arrive.shape[1]
-    lag = np.where(arrive < K1, arrive - np.arange(K1)[:, None], 0)
-    return int(lag.max(initial=0))
-
-
-def reprocess_steps(m, arrive: np.ndarray, W: int) -> Iterator:
+def reprocess_steps(m, feed: Feed) -> Iterator:
     """Reprocessing (module docstring): machine `m` rerun from each run's stored state before
-    its oldest newly arrived reading, `arrive` (M, K+1, S) the instant each reading arrives
-    (K+1: never), W the largest lag."""
+    its oldest newly arrived reading, the readings and their arrival instants (K+1: never) of
+    the last W + 1 instants from `feed` (W the largest lag)."""
     st = m.st
-    z = st.z
-    M, K1 = z.shape[:2]
     col_sensor = np.concatenate([np.full(len(c), j) for j, c in enumerate(st.cols)])
-    arrive_c = arrive[..., col_sensor]  # (M, K1, m): when each component arrives
-    steps = np.arange(K1)
+    W = feed.W
+    steps = np.arange(feed.K1)
     hist = {-1: m.start()}  # the state after instant i, with what has arrived so far
-    for k in range(K1):
+    for k in range(feed.K1):
         lo = max(0, k - W)
-        new = (arrive[:, lo : k + 1] == k).any(-1)  # (M, k+1-lo): a reading of i arrives now
+        new = (feed.arrive_at(lo, k + 1) == k).any(-1)  # (M, k+1-lo): a reading of i arrives
         i0 = np.where(new.any(-1), steps[lo : k + 1][np.argmax(new, -1)], k)
         s = hist[int(i0.min()) - 1]
         for i in range(int(i0.min()), k + 1):
-            zi = np.where(arrive_c[:, i] <= k, z[:, i], np.nan)
+            arrived = feed.arrive_at(i, i + 1)[:, 0, col_sensor] <= k  # (M, m)
+            zi = np.where(arrived, feed.z_at(i), np.nan)
             s = m.step(i, s, zi)
             if i < k:  # runs whose rewind starts later keep their stored state
                 s = select(i >= i0, s, hist[i])

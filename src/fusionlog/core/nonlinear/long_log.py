@@ -4,7 +4,10 @@
 The filters (CKF, SKF, HKF and the track-to-track architectures, `.architectures`) are
 recursions on their state (`Machine`: s_k = step(k, s_{k-1}, z_k)): each keeps its state from
 block to block and takes a block's readings instant by instant, so a block's estimates are
-the whole run's.
+the whole run's. With late sensors each architecture runs its policy (`late.late_steps`) on a
+`late_feed.Feed` that reads the log a block at a time and keeps the last W instants' readings
+and arrival instants beside it; the policy keeps what else crosses an edge (the states a
+reprocess rewinds to, the estimates Al1 retrodicts from, neglect's newest measurement times).
 
 FBS, the extended / unscented RTS smoother, needs the instants after. Its forward filter is
 *recomputed*, not written to disk: a first sweep keeps the filter's estimate (x, P) at the end
@@ -26,6 +29,7 @@ from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 
+from ..late_policy import is_late
 from ..model import System
 from .architectures import (
     Machine,
@@ -33,10 +37,13 @@ from .architectures import (
     _named,
     _Out,
     _Steps,
+    late_filters,
     machine_of,
     require_filter,
     rts,
 )
+from .late import late_steps
+from .late_feed import fixed_arrivals
 
 __all__ = ["estimate_blocks"]
 
@@ -50,9 +57,12 @@ def estimate_blocks(
     read: Reader,
     times: np.ndarray,
     block: int,
+    arrival: np.ndarray | None = None,
 ) -> Iterator[tuple[int, int, dict[str, tuple[np.ndarray, np.ndarray]]]]:
     """(k0, k1, {arch: (mean (1, w, n), cov (1, w, n, n))}) of each block of `block` instants
-    of a one-run log on the instants `times` (K+1,) s, in order (`estimate_steps`' numbers)."""
+    of a one-run log on the instants `times` (K+1,) s, in order (`estimate_steps`' numbers).
+    Late sensors: each reading arrives at `arrival` (1, K+1, S) s, default the sensors' fixed
+    latencies (`_late`)."""
     K1 = len(times)
     edges = [(k0, min(k0 + block, K1)) for k0 in range(0, K1, block)]
     z0 = read(*edges[0])
@@ -62,6 +72,8 @@ def estimate_blocks(
     for a in archs:
         if require_filter(system, a).locals == "smoother":
             smoothers[a] = _Smoother(system, a, times, edges, read)
+        elif is_late(system):
+            gens[a] = _named(_late(system, a, z0, times, read, block, arrival), a)
         else:
             m = machine_of(_Steps(system, z0, times, 0), a)
             gens[a] = _named(_fed(m, K1, held), a)
@@ -78,6 +90,18 @@ def estimate_blocks(
             tr = got.track()
             out[a] = (tr.mean, tr.cov)
         yield k0, k1, out
+
+
+def _late(system, arch, z0, times, read: Reader, block: int, arrival) -> Iterator:
+    """`arch`'s filters under the late policy (`late.late_steps`): what crosses a block edge
+    -- the states a reprocess rewinds to, the estimates Al1 retrodicts from, the readings of
+    the last W instants with their arrival instants, neglect's newest measurement times -- is
+    held by the policy and its `late_feed.Feed`, which reads the log a block at a time."""
+    st = _Steps(system, z0, times, 0)
+    m = machine_of(st, arch)
+    filters = late_filters(m, arch)
+    arrive = fixed_arrivals(st.system, st.times, arrival)
+    return late_steps(m, filters, arrive, read, block)
 
 
 def _fed(m: Machine, K1: int, held: dict, first: int = 0, state=None):

@@ -62,37 +62,36 @@ from ..linalg import mm, mT, solve, sym
 from .local import select, stacked, transition
 
 
-def retrodict_steps(m, arrive: np.ndarray, W: int) -> Iterator:
+def retrodict_steps(m, feed) -> Iterator:
     """The retrodicting EKFs of machine `m` at each output instant (module docstring):
     `m.retrodicting()` gives each of its filters' sensors and in-order update (None: the
-    stacked EKF update), `m.combine` makes the
-    architecture's estimate of theirs; `arrive` (M, K+1, S) the instant each reading arrives
+    stacked EKF update), `m.combine` makes the architecture's estimate of theirs; `feed`
+    (`late_feed.Feed`) the readings of the last W + 1 instants and the instant each arrives
     (K+1: never), W the largest lag."""
     st = m.st
     if (why := nonlinear_refusal(st.system)) is not None:
         raise FusionlogError(f"{why[0]}: {why[1]}")
-    filters = [filter_steps(st, which, arrive, W, up) for which, up in m.retrodicting()]
+    filters = [filter_steps(st, which, feed, up) for which, up in m.retrodicting()]
     for ests in zip(*filters, strict=True):
         yield m.combine(ests)
 
 
-def filter_steps(st, which: list[int], arrive: np.ndarray, W: int, up=None) -> Iterator:
-    """One retrodicting EKF on the sensors `which` at each output instant (x, P); `up(i, x,
-    P, zi)` -> (x, P) its update with the readings zi of instant i in order (None: the stacked
-    EKF update; HKF's centre gives its own, the same to rounding, so that its numbers on
-    time stay its own)."""
-    z = st.z
-    M, K1 = z.shape[:2]
+def filter_steps(st, which: list[int], feed, up=None) -> Iterator:
+    """One retrodicting EKF on the sensors `which` at each output instant (x, P), its readings
+    from `feed`; `up(i, x, P, zi)` -> (x, P) its update with the readings zi of instant i in
+    order (None: the stacked EKF update; HKF's centre gives its own, the same to rounding, so
+    that its numbers on time stay its own)."""
+    M, K1, W = feed.M, feed.K1, feed.W
     col_sensor = np.concatenate([np.full(len(c), j) for j, c in enumerate(st.cols)])
-    mine = np.isin(col_sensor, which)
-    arrive_c = np.where(mine, arrive[..., col_sensor], K1)  # other sensors: never
+    mine = np.isin(col_sensor, which)  # other sensors' readings: never used
     x, P = st.start()
     tau = np.zeros(M, dtype=np.intp)
     stored = {0: (x, P)}  # the estimate each run had at instant t (`has`: it has one)
     has = {0: np.ones(M, bool)}
     for k in range(K1):
         for i in range(max(0, k - W), k + 1):
-            zi = np.where(arrive_c[:, i] == k, z[:, i], np.nan)
+            now = mine & (feed.arrive_at(i, i + 1)[:, 0, col_sensor] == k)
+            zi = np.where(now, feed.z_at(i), np.nan)
             here = ~np.isnan(zi).all(-1)
             inseq, late = here & (i >= tau), here & (i < tau)
             if inseq.any():  # predict to i, update
