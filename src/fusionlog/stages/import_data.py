@@ -198,8 +198,10 @@ def read_replay(scenario: Scenario) -> ReplayData:
     sensor_series = series[: len(names)]
     notes += _disjoint(names, [replay.sensors[j].time for j in range(len(names))], sensor_series)
     # the sorted union by a sort (numpy 2.4's np.unique hashes: 2 s for 2·10^6 times)
-    every = np.sort(np.concatenate([s.times_ns for s in sensor_series]))
+    every = np.concatenate([s.times_ns for s in sensor_series])
+    every.sort()  # in place: one array of the readings' times, not two
     instants = every[np.concatenate(([True], every[1:] != every[:-1]))]
+    del every
     sensors: list[_Sensor] = []
     nominal = []
     latencies = []
@@ -235,11 +237,18 @@ def read_replay(scenario: Scenario) -> ReplayData:
             notes += more
         latencies.append(latency)
         sensors.append(_Sensor(at, s.values, cov, arrival))
+        series[j] = sensor_series[j] = s = None  # its times (8 bytes a reading) freed: `at` now
     truth: dict = {}
     truth_info: dict = {}
     if replay.truth is not None:
         t = series[-1]
-        at_instants = associate(instants, t.times_ns, t.values, replay.match, replay.max_diff_ns)
+        # a window of instants at a time: each instant's sample is found on its own, and the
+        # search's temporaries (~50 bytes per instant) stay a window's
+        at_instants = np.empty((len(instants), t.values.shape[1]))
+        for k0 in range(0, len(instants), _WINDOW):
+            at_instants[k0 : k0 + _WINDOW] = associate(
+                instants[k0 : k0 + _WINDOW], t.times_ns, t.values, replay.match, replay.max_diff_ns
+            )
         matched = np.isfinite(at_instants).all(axis=1)
         n_matched = int(matched.sum())
         states = [system.state_names[i] for i in replay.truth_states]
@@ -287,7 +296,6 @@ def import_to(data: ReplayData, w: McapWriter, *, command: str) -> int:
     )
     kind = kind_of(sc.kind)
     check_budget(sc, kind.bytes_per_run_step(sc), "importing")
-    times = (instants - instants[0]) / 1e9
     meta = scenario_metadata(sc, kind.system_fields(sc))
     meta["replay_notes"] = json.dumps(notes)
     if data.truth_info:
@@ -324,7 +332,8 @@ def import_to(data: ReplayData, w: McapWriter, *, command: str) -> int:
             if parts[2] is not None:  # s from the first instant, as the times
                 arrival = (parts[2] - instants[0]).astype(np.float64) / 1e9
             columns.append(RunColumn(topic, VALUES, parts[0], parts[1], arrival))
-        w.write_run_steps(k0, times[k0:k1], columns, present)
+        times = (instants[k0:k1] - instants[0]) / 1e9  # a window's: the same numbers
+        w.write_run_steps(k0, times, columns, present)
         messages += int(np.count_nonzero(present))
     return messages
 
@@ -342,7 +351,9 @@ def run_import(
     inputs += replay_inputs(scenario)
     with Outputs([out], force=force, inputs=inputs) as outs:
         data = read_replay(scenario)
+        instants, notes = len(data.instants), data.notes
         with McapWriter(outs.open(out), time_origin_ns=int(data.instants[0])) as w:
             messages = import_to(data, w, command=command)
+            data = None  # the readings freed before the writer's layout record is formed
         outs.commit()
-    return ImportResult(out, len(data.instants), messages, data.notes)
+    return ImportResult(out, instants, messages, notes)

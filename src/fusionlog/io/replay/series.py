@@ -133,11 +133,11 @@ class Collector:
         s = np.sort(t)
         return bool((s[1:] == s[:-1]).any())
 
-    def _far(self, t: np.ndarray) -> str | None:
+    def _far(self, t: np.ndarray, record: np.ndarray | None) -> str | None:
         """A note on the items whose time is far from their log time, by the others' offset."""
-        if len(self._record) != len(t):
+        if record is None:
             return None
-        off = t - np.frombuffer(self._record, dtype=np.int64)
+        off = t - record
         typical = int(np.median(off))
         far = np.flatnonzero(np.abs(off - typical) > FAR_NS)
         if not far.size:
@@ -147,7 +147,7 @@ class Collector:
             f"{_plural(far.size, self.unit)} whose time is more than {FAR_NS // 10**9} s off "
             f"the others' (time - log time {typical / 1e9:.6g} s for most), e.g. "
             f"{self.label(self._origin[i])}: time {int(t[i])} ns at log time "
-            f"{self._record[i]} ns: an unset or foreign stamp? (kept)"
+            f"{int(record[i])} ns: an unset or foreign stamp? (kept)"
         )
 
     def finish(self) -> Series:
@@ -165,23 +165,32 @@ class Collector:
                 if self.seen
                 else f"no {u}s",
             )
+        # each buffer released once copied: a long log's rows are held once, not twice
         t = np.frombuffer(self._times, dtype=np.int64).copy()
+        self._times = array("q")
         record = (
             np.frombuffer(self._record, dtype=np.int64).copy()
             if len(self._record) == len(t)
             else None
         )
-        far = self._far(t)
+        far = self._far(t, record)
+        recorded, self._record = bool(self._record), array("q")
         if far:
             notes.append(far)
         values = np.frombuffer(self._values, dtype=np.float64).reshape(len(t), self.d).copy()
+        self._values = array("d")
         cov = (
             np.array(self._covs, dtype=np.float64).reshape(len(t), self.d, self.d)
             if (self.with_cov)
             else None
         )
-        late = int(np.count_nonzero(t[1:] < np.maximum.accumulate(t)[:-1]))
-        order = np.argsort(t, kind="stable")
+        # increasing (the usual case): no running maximum nor sort order of the log's length
+        late = (
+            0
+            if (t[1:] >= t[:-1]).all()
+            else int(np.count_nonzero(t[1:] < np.maximum.accumulate(t)[:-1]))
+        )
+        order = np.argsort(t, kind="stable") if late or not self._bulk else None
         if late:
             notes.append(f"{_plural(late, u)} out of time order (sorted)")
             t, values = t[order], values[order]
@@ -194,7 +203,7 @@ class Collector:
             i = int(dup[0])
             a, b = sorted((self._origin[order[i]], self._origin[order[i + 1]]))
             more = np.unique(t[dup]).size - 1
-            unset = bool(self._record) and not t[i]  # a header stamp of 0 from a field
+            unset = recorded and not t[i]  # a header stamp of 0 from a field
             raise fail(
                 self.source,
                 self.what,
