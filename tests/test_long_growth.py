@@ -141,4 +141,6 @@ def test_an_opened_long_sparse_log_holds_its_times_not_the_layout_record_s_text(
         np.testing.assert_array_equal(f.topic_steps("/sensors/a"), a)
         np.testing.assert_array_equal(f.topic_steps("/sensors/b"), np.arange(size) % 3 == 0)
         del f
-    assert held[1] - held[0] <= 3 * K * (8 + 2 / 8) + 4096, held
+    # slack: tracemalloc also sees what other threads allocate meanwhile (the whole suite
+    # leaves some running); main's growth (~2.9 MB) is still 3x the bound
+    assert held[1] - held[0] <= 3 * K * (8 + 2 / 8) + (256 << 10), held
