@@ -350,7 +350,7 @@ class _StateEstimator(Estimator):
 
         plans, B = self.plans, time_block()
         system = plans.system
-        if plans.steps + 1 <= B or reference_paths():
+        if not _long_one_run(plans.steps, self.M):  # the same rule that defers its arrivals
             return None
         if is_late(system) and system.linear:  # late plans carried (issue 30), else whole
             return self._late_windows(sensors, B)
