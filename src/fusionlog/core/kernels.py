@@ -460,13 +460,37 @@ def solve_spd_or_flag(
     """A^-1 B for a batch of symmetric positive definite A by the Cholesky kernel, and
     whether each A could be factored safely (every pivot above `rtol`, default PIVOT_RTOL,
     times its diagonal entry): where not, the result is not a solution and the caller
-    computes that matrix its own way."""
-    nb = len(_batch_shape(A.shape[:-2], B.shape[:-2]))
+    computes that matrix its own way. A few matrices (fewer than KERNEL_MIN_BATCH) by
+    LAPACK's Cholesky, the pivots read off its diagonal, and LU's solve: the kernel makes
+    ~n^3 numpy calls whatever the batch (a one-run nonlinear log's every instant)."""
+    batch = _batch_shape(A.shape[:-2], B.shape[:-2])
+    if not many_matrices(batch):
+        got = _solve_spd_or_flag_lapack(A, B, PIVOT_RTOL if rtol is None else rtol)
+        if got is not None:
+            return got
+    nb = len(batch)
     with np.errstate(all="ignore"):
         L, ok = cholesky(lanes_of(A, nb), rtol)
         X = cholesky_solve(L, lanes_of(B, nb))
         ok = ok & _finite(X)  # (A may have fewer runs than B)
     return unlanes(X), ok
+
+
+def _solve_spd_or_flag_lapack(
+    A: np.ndarray, B: np.ndarray, rtol: float
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """`solve_spd_or_flag` by LAPACK for a few matrices (None where one of them is not
+    positive definite: the kernel then flags each on its own). The pivots are L_jj^2."""
+    with np.errstate(all="ignore"):
+        try:
+            L = np.linalg.cholesky(A)
+            X = np.linalg.solve(A, B)
+        except np.linalg.LinAlgError:
+            return None
+        pivots = np.square(np.diagonal(L, axis1=-2, axis2=-1))
+        least = np.maximum(rtol * np.diagonal(A, axis1=-2, axis2=-1), _TINY)
+        ok = (pivots > least).all(axis=-1) & np.isfinite(X).all(axis=(-2, -1))
+    return X, np.broadcast_to(ok, X.shape[:-2]).copy()
 
 
 def spd_inv_kernel(

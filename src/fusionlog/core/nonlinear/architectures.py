@@ -30,13 +30,13 @@ import numpy as np
 from ...errors import FusionlogError, NumericalError
 from ..architectures.definition import Architecture
 from ..architectures.registry import definition, parse_arch
-from ..kernels import lanes
+from ..kernels import all_finite, lanes
 from ..late_policy import ekf_retrodict_refusal, is_late, late_refusal
 from ..linalg import NUMERICAL_FAILURES, mT, spd_inv, sym
 from ..model import System
 from ..models.polar import PolarSensor
 from .late import arrival_instants, late_steps
-from .local import predict, stacked, transition, ukf_params, update
+from .local import Stacked, predict, stacked, transition, ukf_params, update
 
 
 @dataclass
@@ -84,9 +84,15 @@ class _Steps:
         self.measures = np.stack([some[:, c].any(axis=1) for c in self.cols], axis=1)  # (K+1, S)
         self.ukf = ukf_params(self.system)
         self.work: dict = {}  # the EKF update's temporaries, reused from instant to instant
+        # what every instant would make again of a steady model: its transition (one F, Q),
+        # and each group of sensors' stacked model and columns (one R)
+        steady = self.system.Fs is None and self.system.Qs is None
+        self.motion = transition(self.system, 1) if steady else None
+        self.models: dict | None = {} if self.system.Rs is None else None
 
     def predict(self, k: int, x: np.ndarray, P: np.ndarray):
-        return predict(*transition(self.system, k), x, P, self.ukf)
+        motion = self.motion or transition(self.system, k)
+        return predict(*motion, x, P, self.ukf)
 
     def update(
         self,
@@ -100,16 +106,42 @@ class _Steps:
         `zk` (M, m): the readings of instant k to use (default all of z's: late measurements
         give only those that have arrived, `late`)."""
         if zk is None:
+            zk = self.z[:, k]
             which = [j for j in which if self.measures[k, j]]
-        else:
-            which = [j for j in which if not np.isnan(zk[:, self.cols[j]]).all()]
+        else:  # a sensor measures if some run has one of its readings
+            absent = np.isnan(zk).all(axis=0).tolist()
+            which = [j for j in which if not all(absent[self.system.sensor_slices[j]])]
         if not which:
             return None
-        model = stacked(self.system, which, k)
-        zk = self.z[:, k] if zk is None else zk
-        zk = zk[:, np.concatenate([self.cols[j] for j in which])]
-        self._check_ranges(k, which, x, zk)
-        return update(model, x, P, zk, self.ukf, self.work)
+        model, cols = self._model(k, which)
+        zk = zk[:, cols]
+        if self.ukf is not None:  # the sigma points may straddle the sensor: asked first
+            self._check_ranges(k, which, x, zk)
+            return update(model, x, P, zk, self.ukf)
+        # the EKF's Jacobian at a range 0 is 0/0: not finite, which asks why (not before: the
+        # check costs as much as the update's products for one run)
+        try:
+            u = update(model, x, P, zk, None, self.work)
+        except (NumericalError, *NUMERICAL_FAILURES):
+            self._check_ranges(k, which, x, zk)
+            raise
+        if not (all_finite(u.x) and all_finite(u.P)):
+            self._check_ranges(k, which, x, zk)
+        return u
+
+    def _model(self, k: int, which: list[int]) -> tuple[Stacked, np.ndarray | slice]:
+        """The sensors `which` as one measurement at instant k, and their columns of z (a
+        slice where they are adjacent: a view), made once per group where R is the same at
+        every instant."""
+        got = None if self.models is None else self.models.get(key := tuple(which))
+        if got is None:
+            cols = np.concatenate([self.cols[j] for j in which])
+            if (np.diff(cols) == 1).all():
+                cols = slice(int(cols[0]), int(cols[-1]) + 1)
+            got = stacked(self.system, which, k), cols
+            if self.models is not None:
+                self.models[key] = got
+        return got
 
     def _check_ranges(self, k: int, which: list[int], x: np.ndarray, zk: np.ndarray) -> None:
         """A range or bearing has no derivative at the sensor's own position: refuse it."""
@@ -221,23 +253,26 @@ def _named(steps: Steps, arch: str) -> Steps:
     a NaN mean would be read downstream as "no estimate". The smoother's failures name the
     step of its forward pass (its backward pass runs before its first step is given)."""
     for k in range(np.iinfo(np.int64).max):
-        where = f"architecture {arch}, step {k}"
         try:
             with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
                 x, P = next(steps)
         except StopIteration:
             return
         except NumericalError as e:
+            where = f"architecture {arch}, step {k}"
             if str(e).startswith("architecture "):  # named already (the smoother's filter)
                 raise
             raise NumericalError(f"{where}: {e}") from None
         except NUMERICAL_FAILURES as e:
+            where = f"architecture {arch}, step {k}"
             raise NumericalError(
                 f"{where}: a matrix is singular or overflows to working precision "
                 f"({type(e).__name__}: {e})"
             ) from e
-        if not (np.isfinite(x).all() and np.isfinite(P).all()):
-            raise NumericalError(f"{where}: the estimate overflows (not finite)")
+        if not (all_finite(x) and all_finite(P)):
+            raise NumericalError(
+                f"architecture {arch}, step {k}: the estimate overflows (not finite)"
+            )
         yield x, P
 
 

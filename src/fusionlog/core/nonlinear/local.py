@@ -25,12 +25,13 @@ batched update serves runs with any pattern of missing data.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 
 from ...errors import NumericalError
-from ..kernels import lanes, unlanes
+from ..kernels import lanes, many_matrices, unlanes
 from ..linalg import mm, mT, solve, sym
 from ..model import System
 from ..models import LinearMotion, MotionModel, SensorModel
@@ -46,7 +47,7 @@ class Stacked:
     sensors: tuple[SensorModel, ...]
     noise: np.ndarray | None = field(default=None, compare=False)
 
-    @property
+    @cached_property
     def dim(self) -> int:
         return sum(s.dim for s in self.sensors)
 
@@ -59,7 +60,7 @@ class Stacked:
             start += s.dim
         return np.concatenate(out, axis=-1)
 
-    @property
+    @cached_property
     def R(self) -> np.ndarray:
         if self.noise is not None:
             return self.noise
@@ -181,10 +182,14 @@ def predict(
     smoother's) of one prediction over dt. Linear motion: F x, F P F^T + Q for both filters
     (the unscented transform is exact there)."""
     Q = motion.Q(dt)
-    if motion.linear:  # one F for every run: shared-factor products
+    if motion.linear and many_matrices(x.shape[:1]):  # one F for every run: on lanes
         F = motion.F(dt)
         Pp, C = linear_prediction(P, F, Q)
         return x @ F.T, Pp, F, C
+    if motion.linear:  # a few runs: numpy's products, a call each (lanes make ~n^2)
+        F = motion.F(dt)
+        C = P @ F.T
+        return x @ F.T, sym(F @ C + Q), F, C
     if ukf is None:
         F = motion.jacobian(x, dt)
         C = mm(P, mT(F))
@@ -227,6 +232,10 @@ def update_ekf(
     y = model.residual(z0, h.T)
     if not present.all():
         Hq, y = Hq * present.T[:, None], y * present
+    if not many_matrices(x.shape[:1]):
+        H = np.zeros((x.shape[0], Hq.shape[0], x.shape[1]))
+        H[:, :, q] = unlanes(Hq)
+        return joseph_few(x, P, H, R, y)
     if R.ndim == 3:
         R = lanes(R)
     Pl = lanes(P)
@@ -238,6 +247,18 @@ def update_ekf(
         return H
 
     return Update(xu, unlanes(Pu), lambda: unlanes(gain_lanes(Pl, q, V)).swapaxes(1, 2), full_H)
+
+
+def joseph_few(x: np.ndarray, P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np.ndarray):
+    """`update_ekf` of a few runs (below the lanes' `kernels.KERNEL_MIN_BATCH`; a long log's
+    one): the Joseph form of the module docstring with numpy's stacked products, a call per
+    product where the lanes make one per entry. H (M, m, n), R (m, m) or (M, m, m), y (M, m)."""
+    PHt = P @ mT(H)
+    S = H @ PHt + R
+    K = mT(solve(S, mT(PHt), hermitian=True, what="the innovation covariance"))
+    A = np.eye(x.shape[1]) - K @ H
+    Pu = sym(A @ P @ mT(A) + K @ R @ mT(K))
+    return Update(x + (K @ y[..., None])[..., 0], Pu, K, H)
 
 
 def update_ukf(
