@@ -28,6 +28,7 @@ NUMERIC := tests/test_retrodict_t2t.py tests/test_exact.py tests/test_exact_per_
 	tests/test_valid_inputs.py tests/test_api_misuse.py tests/test_bound.py tests/test_ei.py \
 	tests/test_latency.py tests/test_latency_replay.py tests/test_latency_corr.py \
 	tests/test_long_logs.py tests/test_latency_nonlinear.py tests/test_nis_nonlinear.py \
+	tests/test_nonlinear_one_run.py \
 	tests/test_long_more.py tests/test_long_replay.py tests/test_replay_kernels.py \
 	tests/test_long_rest.py tests/test_long_truth_model.py tests/test_long_late_random.py \
 	tests/test_long_late_more.py

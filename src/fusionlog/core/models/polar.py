@@ -43,6 +43,9 @@ def wrap(a: np.ndarray) -> np.ndarray:
     if np.ndim(t) == 0:
         m = np.mod(t, 2.0 * math.pi)
         return math.pi - (m if m < 2.0 * math.pi else 0.0)
+    # a few angles (one run's): Python's comparisons cost less than numpy's three passes
+    if t.size <= _FEW and all(0.0 <= v < _TWO_PI for v in t.ravel().tolist()):
+        return np.subtract(math.pi, t, out=t)
     out = (t < 0.0) | (t >= 2.0 * math.pi)
     if out.any():
         m = np.mod(t[out], 2.0 * math.pi)
@@ -50,6 +53,11 @@ def wrap(a: np.ndarray) -> np.ndarray:
         t[out] = m
     np.subtract(math.pi, t, out=t)
     return t
+
+
+_TWO_PI = 2.0 * math.pi
+#: Arrays of at most this many angles are tested for being in range in Python (`wrap`).
+_FEW = 16
 
 
 def wrap_angles(d: np.ndarray, angles: np.ndarray) -> np.ndarray:
@@ -84,6 +92,11 @@ class PolarSensor(SensorModel):
     def angles(self) -> np.ndarray:
         return np.array([c == "bearing" for c in self.components])
 
+    @property
+    def _bearing(self) -> int | None:
+        """The bearing's component, if it measures one."""
+        return self.components.index("bearing") if "bearing" in self.components else None
+
     def _delta(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return x[..., self.idx[0]] - self.position[0], x[..., self.idx[1]] - self.position[1]
 
@@ -94,8 +107,12 @@ class PolarSensor(SensorModel):
         return np.sqrt(dx * dx + dy * dy)
 
     def residual(self, z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
-        """z - z_hat with the bearing wrapped to (-pi, pi]."""
-        return wrap_angles(z - z_hat, self.angles)
+        """z - z_hat with the bearing wrapped to (-pi, pi] (`wrap_angles`'s numbers, on the
+        bearing's column alone)."""
+        d = np.subtract(z, z_hat, dtype=float)
+        if (i := self._bearing) is not None:
+            d[..., i] = wrap(d[..., i])
+        return d
 
     def h(self, x: np.ndarray) -> np.ndarray:
         dx, dy = self._delta(x)

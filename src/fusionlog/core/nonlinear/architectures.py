@@ -79,20 +79,25 @@ class _Steps:
         # the instants, for messages only: a system already on its instants knows its intervals
         self.times = _instants(system, z.shape[1]) if times is None else np.asarray(times, float)
         m = self.system.m
-        self.cols = [np.arange(m)[sl] for sl in self.system.sensor_slices]
+        self.slices = self.system.sensor_slices
+        self.cols = [np.arange(m)[sl] for sl in self.slices]
         some = (~np.isnan(z)).any(axis=0)  # (K+1, m): the column has a reading in some run
         self.measures = np.stack([some[:, c].any(axis=1) for c in self.cols], axis=1)  # (K+1, S)
         self.ukf = ukf_params(self.system)
         self.work: dict = {}  # the EKF update's temporaries, reused from instant to instant
         # what every instant would make again of a steady model: its transition (one F, Q),
         # and each group of sensors' stacked model and columns (one R)
-        steady = self.system.Fs is None and self.system.Qs is None
+        sy = self.system
+        steady = sy.Fs is None and sy.Qs is None and sy.intervals is None
         self.motion = transition(self.system, 1) if steady else None
         self.models: dict | None = {} if self.system.Rs is None else None
 
+    def transition(self, k: int):
+        """`local.transition` from instant k-1 to k."""
+        return self.motion or transition(self.system, k)
+
     def predict(self, k: int, x: np.ndarray, P: np.ndarray):
-        motion = self.motion or transition(self.system, k)
-        return predict(*motion, x, P, self.ukf)
+        return predict(*self.transition(k), x, P, self.ukf)
 
     def update(
         self,
@@ -110,7 +115,7 @@ class _Steps:
             which = [j for j in which if self.measures[k, j]]
         else:  # a sensor measures if some run has one of its readings
             absent = np.isnan(zk).all(axis=0).tolist()
-            which = [j for j in which if not all(absent[self.system.sensor_slices[j]])]
+            which = [j for j in which if not all(absent[self.slices[j]])]
         if not which:
             return None
         model, cols = self._model(k, which)
@@ -424,15 +429,16 @@ class _TrackToTrack(Machine):
             xs, Ps = [p[0] for p in pred], [p[1] for p in pred]
             if joint:
                 Fs = np.stack([np.broadcast_to(p[2], (M, n, n)) for p in pred], axis=1)
-                motion, dt = transition(st.system, k)
-                Q = motion.Q(dt)
-                J = _congruence(Fs, J) + Q
-        A = np.broadcast_to(np.eye(n), (M, S, n, n)).copy()
+                motion, dt = st.transition(k)
+                J = _congruence(Fs, J) + motion.Q(dt)
+        # I - K H of each local, for the joint covariance only (K and H are made when asked)
+        A = np.broadcast_to(np.eye(n), (M, S, n, n)).copy() if joint else None
         for i in range(S):
             u = st.update(k, [i], xs[i], Ps[i], zk)
             if u is not None:
                 xs[i], Ps[i] = u.x, u.P
-                A[:, i] -= u.K @ u.H
+                if joint:
+                    A[:, i] -= u.K @ u.H
         if joint:
             J = _congruence(A, J)
             for i in range(S):

@@ -25,7 +25,7 @@ batched update serves runs with any pattern of missing data.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -89,7 +89,7 @@ class Stacked:
             for _, J, c in parts:
                 Hq[start : start + len(J), [cols.index(i) for i in c]] = J
                 start += len(J)
-        nonzero = [a for a in range(len(cols)) if Hq[:, a].any()]
+        nonzero = np.flatnonzero(Hq.any(axis=(0, 2))).tolist()
         if len(nonzero) < len(cols):
             Hq, cols = np.ascontiguousarray(Hq[:, nonzero]), [cols[a] for a in nonzero]
         return h, Hq, cols
@@ -256,9 +256,14 @@ def joseph_few(x: np.ndarray, P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np
     PHt = P @ mT(H)
     S = H @ PHt + R
     K = mT(solve(S, mT(PHt), hermitian=True, what="the innovation covariance"))
-    A = np.eye(x.shape[1]) - K @ H
+    A = _eye(x.shape[1]) - K @ H
     Pu = sym(A @ P @ mT(A) + K @ R @ mT(K))
     return Update(x + (K @ y[..., None])[..., 0], Pu, K, H)
+
+
+@lru_cache(maxsize=16)
+def _eye(n: int) -> np.ndarray:
+    return np.eye(n)
 
 
 def update_ukf(
