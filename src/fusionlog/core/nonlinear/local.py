@@ -235,7 +235,7 @@ def update_ekf(
     if not many_matrices(x.shape[:1]):
         H = np.zeros((x.shape[0], Hq.shape[0], x.shape[1]))
         H[:, :, q] = unlanes(Hq)
-        return joseph_few(x, P, H, R, y)
+        return _joseph_few(x, P, H, R, y)
     if R.ndim == 3:
         R = lanes(R)
     Pl = lanes(P)
@@ -249,7 +249,7 @@ def update_ekf(
     return Update(xu, unlanes(Pu), lambda: unlanes(gain_lanes(Pl, q, V)).swapaxes(1, 2), full_H)
 
 
-def joseph_few(x: np.ndarray, P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np.ndarray):
+def _joseph_few(x: np.ndarray, P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np.ndarray):
     """`update_ekf` of a few runs (below the lanes' `kernels.KERNEL_MIN_BATCH`; a long log's
     one): the Joseph form of the module docstring with numpy's stacked products, a call per
     product where the lanes make one per entry. H (M, m, n), R (m, m) or (M, m, m), y (M, m)."""
