@@ -42,7 +42,7 @@ from .late_policy import arrival_steps, is_late, random_delays
 from .latency import LateModel, lag_pairs, lags_of
 from .latency_corr import Conditions, apart_pairs, conditions_of, with_conditions
 from .latency_replay import stacked_readings
-from .latency_stacked import stacked_system
+from .latency_stacked import current_block_rule, stacked_system
 from .model import System
 
 __all__ = ["LATE_BLOCK_BYTES", "LateBlocks"]
@@ -51,6 +51,10 @@ __all__ = ["LATE_BLOCK_BYTES", "LateBlocks"]
 #: into sub-blocks below it (the stacked model has W + 1 times the states and a row block per
 #: lag).
 LATE_BLOCK_BYTES = 1 << 25
+
+#: The kinds of architecture (`definition.LOCALS`) the path takes: not the smoother, whose
+#: backward pass would run on the stacked model from the log's end.
+_KINDS = ("centralised", "hierarchical", "single", "per-sensor")
 
 
 def _geometry(
@@ -146,19 +150,26 @@ class LateBlocks:
         late.system = system
         inner = {}
         for a in archs:
-            _, kind, filters = late.filters_of(a)
-            if kind not in ("centralised", "hierarchical", "single"):
+            base, kind, filters = late.filters_of(a)
+            if kind not in _KINDS:
                 return None
-            if exact and kind == "hierarchical" and apart_pairs(system):
+            apart = bool(apart_pairs(system))
+            if exact and kind == "hierarchical" and apart:
+                return None
+            if kind == "per-sensor" and apart and (exact or definition(base).joint):
                 return None
             centre = late.centre_model() if kind == "centralised" else None
             model = late.stacked if centre is None else centre[0]
-            m, N = model.m, model.n
-            per_instant = (2 * len(model.sensors) + 2) * m * (m + N) * 8
+            m, N, S = model.m, model.n, len(model.sensors)
+            per_instant = (2 * S + 2) * m * (m + N) * 8
+            if kind == "per-sensor":  # eq. (35)'s J of the stacked locals, its A and C
+                per_instant += 4 * (S * N) ** 2 * 8
             sub = max(1, min(block, LATE_BLOCK_BYTES // per_instant))
             got = _Stacked.of(model, [a], steps, sub, criterion)
             if got is None:
                 return None
+            if kind == "per-sensor":  # the rule fuses the locals' current blocks
+                got.bases = [(current_block_rule(base, system.n, N), None)]
             got.late, got.centre = late, centre
             inner[a] = (got, filters, centre, sub)
         return cls(late, archs, inner, times)
@@ -177,7 +188,7 @@ class LateBlocks:
             kinds = [definition(parse_arch(a, names)[0]).locals for a in archs]
         except ValueError:
             return False
-        return all(k in ("centralised", "hierarchical", "single") for k in kinds)
+        return all(k in _KINDS for k in kinds)
 
     def _arrivals(self, k0: int, k1: int, arrival: np.ndarray | None) -> np.ndarray:
         """The arrival times (w, S) s of the block's readings: `arrival` (NaN: none taken),
