@@ -37,9 +37,11 @@ import numpy as np
 
 from .architectures import definition, parse_arch
 from .architectures.plan import Estimate
+from .architectures.replay import _Replay
 from .architectures.replay_blocks import ReplayBlocks, system_window
 from .late_policy import arrival_steps, is_late, random_delays
 from .latency import LateModel, lag_pairs, lags_of
+from .latency_apart import ApartReplay, selection
 from .latency_corr import Conditions, apart_pairs, conditions_of, with_conditions
 from .latency_replay import stacked_readings
 from .latency_stacked import current_block_rule, stacked_system
@@ -86,6 +88,17 @@ class _Stacked(ReplayBlocks):
 
     late: LateModel
     centre: tuple | None
+    #: `latency_apart.selection` where correlated readings arrive apart at the plain stacked
+    #: model's filters (HKF, the per-sensor locals), else None
+    apart: np.ndarray | None = None
+
+    def replay(self, system: System, z: np.ndarray, backward) -> _Replay:
+        if self.apart is None:
+            return super().replay(system, z, backward)
+        r = ApartReplay(system, z, self.need, self.criterion, self.carried, backward)
+        r.sel, r.W = self.apart, self.late.window
+        r.raw_R = self.late.system.R
+        return r
 
     def window_system(self, k0: int, k1: int, into_first: bool) -> System:
         if self.late.system.Fs is None and self.late.system.Qs is None:
@@ -130,15 +143,14 @@ class LateBlocks:
         block: int,
         criterion: str | None = None,
         missing: bool = True,
-        exact: bool = False,
     ) -> LateBlocks | None:
         """The blocked late path of one run of instants 0..`steps` at `times` (s), the lags found
         in blocks of `block` instants; None where it does not apply (module docstring;
         `missing`: some reading is missing -- with fixed latencies on a steady model and every
-        reading present the steady plans do it). `exact`: for the error covariances, which
-        take the stacked noises as white: not HKF where correlated readings of one instant may
-        arrive apart (it fuses them as independent, so its error has their correlation across
-        instants, which only the plans' analysis follows)."""
+        reading present the steady plans do it). Where correlated readings of one instant may
+        arrive apart, HKF (which fuses them as independent) and the per-sensor locals (which
+        they enter at different instants) have errors correlated across instants: their error
+        recursions keep the raw noises still to be read (`core.latency_apart`)."""
         if not cls.covers(system, archs):
             return None
         if not random_delays(system) and system.time_invariant and not missing:
@@ -153,17 +165,17 @@ class LateBlocks:
             base, kind, filters = late.filters_of(a)
             if kind not in _KINDS:
                 return None
-            apart = bool(apart_pairs(system))
-            if exact and kind == "hierarchical" and apart:
-                return None
-            if kind == "per-sensor" and apart and (exact or definition(base).joint):
+            apart = bool(apart_pairs(system)) and kind in ("hierarchical", "per-sensor")
+            if apart and system.Rs is not None:  # the raw noises kept need one R
                 return None
             centre = late.centre_model() if kind == "centralised" else None
             model = late.stacked if centre is None else centre[0]
             m, N, S = model.m, model.n, len(model.sensors)
             per_instant = (2 * S + 2) * m * (m + N) * 8
-            if kind == "per-sensor":  # eq. (35)'s J of the stacked locals, its A and C
-                per_instant += 4 * (S * N) ** 2 * 8
+            if kind in ("per-sensor", "hierarchical"):  # eq. (35)'s J, HKF's E, A and C
+                d = S * N if kind == "per-sensor" else N
+                d += late.window * system.m if apart else 0  # the raw noises kept
+                per_instant += 4 * d * d * 8
             sub = max(1, min(block, LATE_BLOCK_BYTES // per_instant))
             got = _Stacked.of(model, [a], steps, sub, criterion)
             if got is None:
@@ -171,6 +183,7 @@ class LateBlocks:
             if kind == "per-sensor":  # the rule fuses the locals' current blocks
                 got.bases = [(current_block_rule(base, system.n, N), None)]
             got.late, got.centre = late, centre
+            got.apart = selection(late.slots, system.m, late.window) if apart else None
             inner[a] = (got, filters, centre, sub)
         return cls(late, archs, inner, times)
 

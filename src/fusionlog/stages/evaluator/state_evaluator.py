@@ -323,9 +323,7 @@ class StateEvaluator(Evaluator):
         p, T = exact.plans, time_block()
         if self._sensors_file is None or not truth_is_model(p.system, exact.truth, self.K):
             return None
-        blocks = LateBlocks.of(
-            p.system, exact.known, self.K, self.times, T, p.criterion, exact=True
-        )
+        blocks = LateBlocks.of(p.system, exact.known, self.K, self.times, T, p.criterion)
         if blocks is None:
             return None
         topics = [sensor_topic(s.name) for s in p.system.sensors]
