@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import ok
 from test_long_late_random import (
     BLOCK,
     EXACT_ATOL,
@@ -193,3 +194,70 @@ def test_peak_memory_does_not_grow_with_the_instants(tmp_path, monkeypatch) -> N
             tracemalloc.stop()
     assert spy.estimated == spy.evaluated == spy.exact == 3 + 11 + 21
     assert peaks[2] <= 1.1 * peaks[1], peaks
+
+
+# -- a late log without an exact analysis: a nonlinear truth --------------------------------
+
+TURN = """
+[scenario]
+name = "late_turn"
+steps = 599
+runs = 1
+seed = 5
+dt = 1.0
+state_names = ["x", "vx", "y", "vy", "omega"]
+[model]
+{model}
+[prior]
+mean = [0.0, 15.0, 500.0, 0.0, 0.02]
+cov = [[100.0, 0.0, 0.0, 0.0, 0.0], [0.0, 16.0, 0.0, 0.0, 0.0], [0.0, 0.0, 100.0, 0.0, 0.0],
+       [0.0, 0.0, 0.0, 16.0, 0.0], [0.0, 0.0, 0.0, 0.0, 4.0e-4]]
+[[sensors]]
+name = "s1"
+H = [[1.0, 0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0, 0.0]]
+R = [[25.0, 0.0], [0.0, 25.0]]
+dropout = 0.2
+[[sensors]]
+name = "s2"
+H = [[1.0, 0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0, 0.0]]
+R = [[16.0, 0.0], [0.0, 16.0]]
+latency = {{min = 1.0, max = 3.0}}
+[estimate]
+architectures = ["MSC", "CI", "CKF"]
+late = "reprocess"
+{filter}
+"""
+
+#: the truth: a coordinated turn (EKF for its own scenario); the filters: constant velocity
+COORDINATED = 'kind = "coordinated-turn"\nq = [0.05, 0.05]\nq_turn = 1.0e-5'
+LINEAR = """F = [[1.0, 1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 1.0, 0.0],
+     [0.0, 0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 0.0, 1.0]]
+Q = [[0.1, 0.1, 0.0, 0.0, 0.0], [0.1, 0.5, 0.0, 0.0, 0.0], [0.0, 0.0, 0.1, 0.1, 0.0],
+     [0.0, 0.0, 0.1, 0.5, 0.0], [0.0, 0.0, 0.0, 0.0, 1.0e-5]]"""
+
+
+def test_a_late_log_without_exact_analysis_is_evaluated_in_blocks(tmp_path, monkeypatch) -> None:
+    """Linear late filters (`estimate --model`, constant velocity) on a coordinated-turn truth,
+    delays drawn and readings missing: no exact analysis (a nonlinear truth), so the metrics,
+    the PCRB and the rest are evaluated in blocks as an on-time log's (they read the estimates
+    and readings only), the summary the whole log's."""
+    truth, model = tmp_path / "truth.toml", tmp_path / "model.toml"
+    truth.write_text(TURN.format(model=COORDINATED, filter='filter = "EKF"'))
+    model.write_text(TURN.format(model=LINEAR, filter=""))
+    sensors, est = tmp_path / "s.mcap", tmp_path / "e.mcap"
+    monkeypatch.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
+    ok("simulate", truth, "-o", sensors)
+    ok("estimate", sensors, "--model", model, "-o", est)
+    summaries = {}
+    for block in (None, BLOCK):
+        if block is not None:
+            monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", str(block))
+            spy = _Spy(monkeypatch)
+        out = tmp_path / f"{block}.json"
+        ok("evaluate", sensors, est, "-o", tmp_path / f"{block}.rrd", "--summary", out)
+        summaries[block] = json.loads(out.read_text())
+    assert spy.evaluated == 12 and spy.exact == 0
+    whole, blocked = summaries[None], summaries[BLOCK]
+    _close(blocked, whole)
+    assert blocked["architectures"]["CKF"]["expected"] is None and blocked["late"] == "reprocess"
+    assert blocked["pcrb"]

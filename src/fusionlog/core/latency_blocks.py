@@ -21,11 +21,18 @@ the error covariances of the stacked filters under their own model (`ReplayBlock
 error_covariances`, `exact_replay`), the marginal of x_k -- the analysis conditional on the
 drawn or recorded delays, as the plans' of the run's arrival pattern.
 
-Covered: as `latency_replay` -- CKF (on the decorrelated readings where correlated ones arrive
-apart), HKF and SKF under reprocess and neglect. Not here (None: the whole run, the plans):
-retrodiction, the per-sensor rules (MSC, MSC-GMF, CI, AVG, ICI, EI fuse the locals' current
-blocks, `latency_stacked.fused_plan`), and fixed latencies on a steady model with every reading
-present (the steady plans of `latency_long`).
+Covered, under reprocess and neglect: as `latency_replay` -- CKF (on the decorrelated readings
+where correlated ones arrive apart), HKF and SKF -- and the per-sensor rules (MSC, MSC-GMF, CI,
+AVG, ICI, EI): one local stacked filter per sensor (neglect's acceptance per local), carried
+as `ReplayBlocks` carries the on-time locals with their joint error covariance J of eq. (35),
+the rule fusing their current blocks at each instant (`latency_stacked.current_block_rule`,
+the plans' `fused_plan` rule; no rule keeps a state of its own: CI's, ICI's and EI's weights
+are per instant). Where correlated readings of one instant arrive apart, the stacked noise is
+correlated across time: J (MSC-GMF's and AVG's weights, every rule's exact analysis) and HKF's
+error covariance then keep the raw noises still to be read (`core.latency_apart`, as the
+plans' `latency_joint` maps keep the readings). Not here (None: the whole run, the plans):
+retrodiction, FBS, and fixed latencies on a steady model with every reading present (the
+steady plans of `latency_long`).
 """
 
 from __future__ import annotations
