@@ -73,4 +73,4 @@ def to_enu(
         e, n, u = pymap3d.geodetic2enu(values[:, 0], values[:, 1], alt, lat0, lon0, alt0)
         return np.stack([e, n, u], axis=1)[:, :d]
 
-    return Series(s.rows.with_transform(enu), s.notes, s.recorded), (lat0, lon0, alt0)
+    return Series.of_rows(s.rows.with_transform(enu), s.notes, s.recorded), (lat0, lon0, alt0)

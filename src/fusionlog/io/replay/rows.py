@@ -6,12 +6,15 @@ doubles) and, where the stream has them, covariance block (``c``), log/record ti
 and where it came from (``o``, for errors) — in an unnamed temporary file (deleted when
 closed or collected), appended and read back a block of rows at a time: what a stream holds
 in memory is a block, whatever its length. A `transform` of the values (geodetic fixes to
-metres) applies as they are read.
+metres) applies as they are read. The file is a descriptor of an unlinked file, closed by a
+finalizer when its `Rows` is collected (a reader that fails halfway leaves nothing open).
 """
 
 from __future__ import annotations
 
+import os
 import tempfile
+import weakref
 from collections.abc import Callable, Iterator
 
 import numpy as np
@@ -37,26 +40,36 @@ class Rows:
 
     def __init__(self, dtype: np.dtype, transform: Transform | None = None) -> None:
         self.dtype = dtype
-        self.file = tempfile.TemporaryFile(prefix="fusionlog-rows-")
-        self.n = 0
-        self.transform = transform
+        fd, name = tempfile.mkstemp(prefix="fusionlog-rows-")
+        os.unlink(name)  # unnamed: gone with its descriptor
+        self.fd, self.n, self.transform = fd, 0, transform
+        self._close = weakref.finalize(self, os.close, fd)
+
+    def close(self) -> None:
+        self._close()
 
     def has(self, name: str) -> bool:
         return name in (self.dtype.names or ())
 
     def append(self, block: np.ndarray) -> None:
-        self.file.seek(self.n * self.dtype.itemsize)
-        np.ascontiguousarray(block, self.dtype).tofile(self.file)
+        data = memoryview(np.ascontiguousarray(block, self.dtype)).cast("B")
+        at = self.n * self.dtype.itemsize
+        while data:
+            done = os.pwrite(self.fd, data, at)
+            data, at = data[done:], at + done
         self.n += len(block)
 
     def read(self, a: int, b: int) -> np.ndarray:
         """Records a..b-1 (the values transformed)."""
         a, b = max(0, a), min(self.n, b)
-        if b <= a:
-            return np.zeros(0, self.dtype)
-        self.file.seek(a * self.dtype.itemsize)
-        out = np.fromfile(self.file, self.dtype, b - a)
-        if self.transform is not None:
+        out = np.empty(max(0, b - a), self.dtype)
+        view, at = memoryview(out).cast("B"), a * self.dtype.itemsize
+        while view:
+            done = os.preadv(self.fd, [view], at)
+            if not done:
+                raise OSError(f"a temporary file of {self.n} records ended early")
+            view, at = view[done:], at + done
+        if self.transform is not None and len(out):
             out["v"] = self.transform(out["v"])
         return out
 
@@ -75,11 +88,11 @@ class Rows:
     def time_at(self, i: int) -> int:
         """The time of record i (negative i from the end)."""
         i = i % self.n
-        self.file.seek(i * self.dtype.itemsize)
-        return int(np.fromfile(self.file, self.dtype, 1)["t"][0])
+        return int(self.read(i, i + 1)["t"][0])
 
     def with_transform(self, fn: Transform) -> Rows:
         """The same file read with `fn` applied to the values."""
         out = Rows.__new__(Rows)
-        out.dtype, out.file, out.n, out.transform = self.dtype, self.file, self.n, fn
+        out.dtype, out.fd, out.n, out.transform = self.dtype, self.fd, self.n, fn
+        out._close, out._owner = self._close, self  # the file lives while either does
         return out

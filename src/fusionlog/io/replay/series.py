@@ -43,11 +43,26 @@ class Series:
       field of the message (a header stamp): when the message was logged, i.e. received
       (``arrival = "log_time"``, DESIGN.md "Late measurements"); None otherwise.
 
-    ``notes``: counted, reported skips/fixes."""
+    ``notes``: counted, reported skips/fixes. Made from those arrays, or from records
+    (`of_rows`)."""
 
-    def __init__(self, rows: Rows, notes: tuple[str, ...], recorded: bool = True) -> None:
-        self.rows, self.notes = rows, notes
-        self.recorded = recorded and rows.has("r")
+    def __init__(self, times_ns, values, cov, notes, record_ns=None) -> None:
+        values = np.asarray(values, dtype=np.float64)
+        rows = Rows(row_dtype(values.shape[1], cov is not None, record_ns is not None, False))
+        rec = np.zeros(len(values), rows.dtype)
+        rec["t"], rec["v"] = times_ns, values
+        if cov is not None:
+            rec["c"] = cov
+        if record_ns is not None:
+            rec["r"] = record_ns
+        rows.append(rec)
+        self.rows, self.notes, self.recorded = rows, tuple(notes), record_ns is not None
+
+    @classmethod
+    def of_rows(cls, rows: Rows, notes: tuple[str, ...], recorded: bool = True) -> Series:
+        out = cls.__new__(cls)
+        out.rows, out.notes, out.recorded = rows, notes, recorded and rows.has("r")
+        return out
 
     def __len__(self) -> int:
         return self.rows.n
@@ -240,7 +255,7 @@ class Collector:
     def _sorted(self, rows: Rows) -> Rows:
         """The records in time order (stable): sorted in memory, written to a new file."""
         whole = rows.read(0, rows.n)
-        rows.file.close()
+        rows.close()
         out = Rows(rows.dtype)
         out.append(whole[np.argsort(whole["t"], kind="stable")])
         return out
@@ -306,4 +321,4 @@ class Collector:
                 f"{_plural(self.bad_covs, u)} with NaN or infinite covariance entries "
                 "(returned as read)"
             )
-        return Series(rows, tuple(notes), recorded)
+        return Series.of_rows(rows, tuple(notes), recorded)
