@@ -1,8 +1,10 @@
 """`fusionlog import`: a replay file's recorded data into an ordinary fusionlog sensors file.
 
 The readings of every sensor (and of the optional truth) are read with the ecosystem's decoders
-(:mod:`fusionlog.io.replay`); the instants are the sorted union of the sensors' measurement
-times; the file has one run, each sensor's topic a message only at its own instants (with its
+(:mod:`fusionlog.io.replay`), each stream's messages into an unnamed temporary file as they
+come; the instants are the sorted union of the sensors' measurement times, merged from those
+files a window at a time (:mod:`.import_windows`: memory that does not grow with the log,
+issue 34); the file has one run, each sensor's topic a message only at its own instants (with its
 covariance where R varies from message to message), times in seconds from the first instant,
 and the recorded timestamps as ``log_time``. Where a message's covariance is all zero or not
 positive definite (odometry drivers often leave it zero) the sensor's R applies, and the count
