@@ -20,6 +20,7 @@ from mcap_helpers import mcap_writer
 from fusionlog.core.model import ajgl2009
 from fusionlog.core.timing import constant_velocity_continuous
 from fusionlog.io.mcap import VALUES, McapFile
+from fusionlog.io.mcap.layout import LISTED
 from fusionlog.io.mcap.run_steps import RunColumn
 
 Q_DENSITY = 0.5
@@ -123,14 +124,16 @@ def _held_after_opening(path) -> tuple[int, McapFile]:
         tracemalloc.stop()
 
 
-def test_an_opened_long_sparse_log_holds_its_times_not_the_layout_record_s_text(tmp_path):
+@pytest.mark.parametrize("base, K", [(0, 15_000), (LISTED, 30_000)])
+def test_an_opened_long_sparse_log_holds_its_times_not_the_layout_record_s_text(tmp_path, base, K):
     """An opened file of 4K instants holds at most its times (8 bytes per instant) and a bit
     per instant for each sparse topic more than one of K: the layout record's lists of steps
     and times (~35 bytes per instant of text) are not kept once parsed; the file reads the
-    same (its times, the sparse topics' steps)."""
-    K = 30_000
+    same (its times, the sparse topics' steps). Past `LISTED` instants the record does not list
+    them and the file is scanned: both sizes on each side of it, so that one way of reading
+    is compared with itself."""
     held = []
-    for size in (K, 4 * K):
+    for size in (base + K, base + 4 * K):
         path = tmp_path / f"s{size}.mcap"
         _sparse_log(path, size)
         got, f = _held_after_opening(path)

@@ -8,6 +8,7 @@ off-diagonal blocks hold the cross-covariances between sensors (the paper allows
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -325,11 +326,33 @@ def nominal_R(covariances: np.ndarray) -> np.ndarray:
     no R of its own: the mean of its messages' finite covariances (N, m, m). The one rule
     (the import records it in the resolved scenario; the filters use it wherever a message
     has none)."""
-    have = np.isfinite(covariances).all(axis=(-2, -1))
-    return covariances[have].mean(axis=0)
+    return nominal_R_of([covariances])
 
 
-__all__ = ["NotLinear", "Prior", "Sensor", "System", "ajgl2009", "constant_velocity", "nominal_R"]
+def nominal_R_of(blocks: Iterable[np.ndarray]) -> np.ndarray:
+    """`nominal_R` of the messages' covariances given block by block (a long log's import),
+    bit for bit: numpy sums along the first axis in order, so the finite ones are summed in
+    order across the blocks and divided by their count, as ``mean(axis=0)`` does."""
+    acc, count, shape = None, 0, (0, 0)
+    for c in blocks:
+        shape = c.shape[1:]
+        have = c[np.isfinite(c).all(axis=(-2, -1))]
+        if len(have):
+            acc = np.add.reduce(have if acc is None else np.concatenate((acc[None], have)), axis=0)
+            count += len(have)
+    return np.full(shape, np.nan) if acc is None else acc / count
+
+
+__all__ = [
+    "NotLinear",
+    "Prior",
+    "Sensor",
+    "System",
+    "ajgl2009",
+    "constant_velocity",
+    "nominal_R",
+    "nominal_R_of",
+]
 
 
 def ajgl2009(ts: float = 1.0, n_sensors: int = 3) -> System:

@@ -1,8 +1,10 @@
 """`fusionlog import`: a replay file's recorded data into an ordinary fusionlog sensors file.
 
 The readings of every sensor (and of the optional truth) are read with the ecosystem's decoders
-(:mod:`fusionlog.io.replay`); the instants are the sorted union of the sensors' measurement
-times; the file has one run, each sensor's topic a message only at its own instants (with its
+(:mod:`fusionlog.io.replay`), each stream's messages into an unnamed temporary file as they
+come; the instants are the sorted union of the sensors' measurement times, merged from those
+files a window at a time (:mod:`.import_windows`: memory that does not grow with the log,
+issue 34); the file has one run, each sensor's topic a message only at its own instants (with its
 covariance where R varies from message to message), times in seconds from the first instant,
 and the recorded timestamps as ``log_time``. Where a message's covariance is all zero or not
 positive definite (odometry drivers often leave it zero) the sensor's R applies, and the count
@@ -15,24 +17,26 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
-from fusionlog.core.model import nominal_R
+from fusionlog.core.model import nominal_R_of
 from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import McapWriter
 from fusionlog.io.mcap.run_steps import RunColumn
 from fusionlog.io.mcap.schema import VALUES
 from fusionlog.io.mcap.topics import TRUTH, sensor_topic
+from fusionlog.io.replay.rows import Rows
 from fusionlog.scenario import Scenario, check_budget, scenario_with
 
 from .common import PROVENANCE_META, SCENARIO_META, provenance, scenario_metadata, sha256_of
+from .import_windows import TruthCursor, merged_windows
 from .kinds import kind_of
-
-_WINDOW = 1 << 16  # instants written at once (a few MB of rows)
 
 
 @dataclass
@@ -45,12 +49,30 @@ class ImportResult:
 
 @dataclass
 class _Sensor:
-    """One sensor's readings on the instants: where it measures, its values and covariances."""
+    """One sensor's readings (time-ordered records, `Rows`) and how they are written: with
+    each message's covariance (`fill`: what replaces an unusable one) or None (the sensor's
+    R), and with their arrival (their log times) or not."""
 
-    at: np.ndarray  # (N,) instant indices
-    values: np.ndarray  # (N, d)
-    cov: np.ndarray | None  # (N, d, d), the R of every message, or None: the sensor's R
-    arrival_ns: np.ndarray | None = None  # (N,) when each reading arrived, or None: on time
+    rows: Rows
+    fill: np.ndarray | float | None
+    arrival: bool
+
+    def window(self, b: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """(values, covariances or None, arrivals ns or None) of records `b`."""
+        cov = None
+        if self.fill is not None:
+            cov = _message_covs(b["c"], self.fill)
+        arrival = None
+        if self.arrival:
+            arrival = b["t"] + np.maximum(b["r"] - b["t"], 0)
+        return b["v"], cov, arrival
+
+
+def _message_covs(c: np.ndarray, fill) -> np.ndarray:
+    """Each message's R: its covariance used as its symmetric part (a driver's 1e-15
+    asymmetry) where usable, else `fill`."""
+    sym = 0.5 * (c + np.swapaxes(c, -1, -2))
+    return np.where(_usable(c)[:, None, None], sym, fill)
 
 
 def _read_all(replay, names: list[str]) -> tuple[list, list[str]]:
@@ -67,7 +89,7 @@ def _read_all(replay, names: list[str]) -> tuple[list, list[str]]:
     )
     shared = [i for i, st in enumerate(streams) if st.geodetic and st.origin is None]
     # the shared origin's stream first: its first fix is the origin of the others
-    order = sorted(shared, key=lambda i: int(series[i].times_ns[0]))
+    order = sorted(shared, key=lambda i: series[i].rows.time_at(0))
     order += [i for i, st in enumerate(streams) if st.geodetic and st.origin is not None]
     origin = None
     notes = []
@@ -127,11 +149,12 @@ def _usable(cov: np.ndarray) -> np.ndarray:
     return out
 
 
-def _arrivals(what: str, s) -> tuple[np.ndarray | None, tuple[float, float], list[str]]:
-    """A sensor's arrivals (N,) ns at its messages' log times, its latency (min, max) s, and a
-    note. A message logged before its stamp (the two clocks disagree) arrived when it was
-    measured: a filter cannot use a reading before it is taken."""
-    delay = s.record_ns - s.times_ns
+def _arrivals(what: str, s) -> tuple[bool, tuple[float, float], list[str]]:
+    """Whether a sensor's messages carry their log times as arrivals, its latency (min, max)
+    s, and a note. A message logged before its stamp (the two clocks disagree) arrived when it
+    was measured: a filter cannot use a reading before it is taken. (The delays, 8 bytes a
+    message, are held while their median is taken.)"""
+    delay = np.concatenate([b["r"] - b["t"] for b in s.rows.blocks()])
     early = int(np.count_nonzero(delay < 0))
     delay = np.maximum(delay, 0)
     lo, hi = int(delay.min()), int(delay.max())
@@ -144,9 +167,7 @@ def _arrivals(what: str, s) -> tuple[np.ndarray | None, tuple[float, float], lis
             f"{what}: {early} of {len(delay)} messages logged before their stamp (time): "
             "taken as arrived when measured"
         )
-    if hi == 0:
-        return None, (0.0, 0.0), notes
-    return s.times_ns + delay, (lo / 1e9, hi / 1e9), notes
+    return hi > 0, ((lo / 1e9, hi / 1e9) if hi else (0.0, 0.0)), notes
 
 
 def _disjoint(names: list[str], times: list[str | None], series: list) -> list[str]:
@@ -155,9 +176,9 @@ def _disjoint(names: list[str], times: list[str | None], series: list) -> list[s
     time (drivers stamp with another clock, or a bag was recorded days later)."""
     if len(series) < 2:
         return []
-    a = max(range(len(series)), key=lambda j: int(series[j].times_ns[0]))  # starts last
-    b = min(range(len(series)), key=lambda j: int(series[j].times_ns[-1]))  # ends first
-    gap = int(series[a].times_ns[0]) - int(series[b].times_ns[-1])
+    a = max(range(len(series)), key=lambda j: series[j].rows.time_at(0))  # starts last
+    b = min(range(len(series)), key=lambda j: series[j].rows.time_at(-1))  # ends first
+    gap = series[a].rows.time_at(0) - series[b].rows.time_at(-1)
     if gap <= 0:
         return []
 
@@ -172,23 +193,88 @@ def _disjoint(names: list[str], times: list[str | None], series: list) -> list[s
     ]
 
 
+class Window(NamedTuple):
+    """A window of instants: k0, the instants (w,) ns, each sensor's readings there (instant
+    index within the window, values, covariances or None, arrivals ns or None), and the truth
+    (instant index within the window, values (., n)) or None."""
+
+    k0: int
+    instants: np.ndarray
+    sensors: list[tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]]
+    truth: tuple[np.ndarray, np.ndarray] | None
+
+
 @dataclass
 class ReplayData:
-    """A replay's data on its instants: the scenario with its steps (and any nominal R) set,
-    the instants (ns), each sensor's readings, the truth ({at, values} or {}), notes."""
+    """A replay's data: the scenario with its steps (and any nominal R) set, the number of
+    instants and the first (ns), notes, and the readings on the instants window by window
+    (`windows`, read back from the streams' temporary files each time)."""
 
     scenario: Scenario
-    instants: np.ndarray
-    sensors: list[_Sensor]
-    truth: dict
+    count: int
+    first_ns: int
     notes: list[str]
+    sensors: list[_Sensor]
+    truth_rows: Rows | None
     truth_info: dict = field(default_factory=dict)  # {states, matched, unmatched}, with a truth
+
+    def windows(self) -> Iterator[Window]:
+        replay, system = self.scenario.replay, self.scenario.system
+        cursor = None
+        if self.truth_rows is not None:
+            cursor = TruthCursor(self.truth_rows, replay.match, replay.max_diff_ns)
+        k0 = 0
+        for m in merged_windows([s.rows for s in self.sensors]):
+            sensors = []
+            for sen, b in zip(self.sensors, m.records, strict=True):
+                sensors.append((np.searchsorted(m.instants, b["t"]), *sen.window(b)))
+            truth = None
+            if cursor is not None:
+                at_instants = cursor.at(m.instants)
+                matched = np.isfinite(at_instants).all(axis=1)
+                values = np.full((int(matched.sum()), system.n), np.nan)
+                values[:, list(replay.truth_states)] = at_instants[matched]
+                truth = (np.flatnonzero(matched), values)
+            yield Window(k0, m.instants, sensors, truth)
+            k0 += len(m.instants)
+
+
+def _sensor_R(j: int, sen, s, source) -> tuple[np.ndarray, np.ndarray | float | None, list[str]]:
+    """A sensor's nominal R, what replaces an unusable message covariance (None: the messages
+    carry none, or none that differs from R) and a note; passes over its records."""
+    R = sen.R
+    if not s.rows.has("c"):
+        return R, None, []
+    bad = total = 0
+    for b in s.rows.blocks():
+        good = _usable(b["c"])
+        bad, total = bad + int((~good).sum()), total + len(good)
+    if bad and not np.isfinite(R).all():
+        raise FusionlogError(
+            f"{source}: sensors[{j}] ({sen.name}): {bad} of {total} messages have a "
+            "covariance that is all zero or not positive definite, and the sensor has no R "
+            "to apply there: give R"
+        )
+    notes = []
+    if bad:
+        notes.append(
+            f"{sen.name}: {bad} of {total} messages with an all-zero or not positive definite "
+            "covariance: R applied"
+        )
+    fill = R if np.isfinite(R).all() else 0.0
+    if not np.isfinite(R).all():  # a sensor given by its messages alone: their mean
+        R = nominal_R_of(_message_covs(b["c"], fill) for b in s.rows.blocks())
+    same = all(
+        np.array_equal(c, np.broadcast_to(R, c.shape))
+        for c in (_message_covs(b["c"], fill) for b in s.rows.blocks())
+    )
+    return R, (None if same else fill), notes
 
 
 def read_replay(scenario: Scenario) -> ReplayData:
-    """Read every stream of the replay `scenario` and place the readings on the instants."""
-    from fusionlog.core.associate import associate
-
+    """Read every stream of the replay `scenario` (each into an unnamed temporary file) and
+    learn its instants: their count and the first, and the truth's matches (one pass over
+    the merged streams); the readings are placed on the instants by `ReplayData.windows`."""
     replay = scenario.replay
     system = scenario.system
     names = [sen.name for sen in system.sensors]
@@ -197,63 +283,32 @@ def read_replay(scenario: Scenario) -> ReplayData:
         notes += [f"{name}: {n}" for n in s.notes]
     sensor_series = series[: len(names)]
     notes += _disjoint(names, [replay.sensors[j].time for j in range(len(names))], sensor_series)
-    # the sorted union by a sort (numpy 2.4's np.unique hashes: 2 s for 2·10^6 times)
-    every = np.concatenate([s.times_ns for s in sensor_series])
-    every.sort()  # in place: one array of the readings' times, not two
-    instants = every[np.concatenate(([True], every[1:] != every[:-1]))]
-    del every
     sensors: list[_Sensor] = []
     nominal = []
     latencies = []
     for j, (sen, s) in enumerate(zip(system.sensors, sensor_series, strict=True)):
-        at = np.searchsorted(instants, s.times_ns)
-        cov = None
-        R = sen.R
-        if s.cov is not None:
-            good = _usable(s.cov)
-            bad = int((~good).sum())
-            if bad and not np.isfinite(R).all():
-                raise FusionlogError(
-                    f"{replay.sensors[j].source}: sensors[{j}] ({sen.name}): {bad} of "
-                    f"{len(good)} messages have a covariance that is all zero or not positive "
-                    "definite, and the sensor has no R to apply there: give R"
-                )
-            if bad:
-                notes.append(
-                    f"{sen.name}: {bad} of {len(good)} messages with an all-zero or not "
-                    "positive definite covariance: R applied"
-                )
-            # symmetric to rounding (a driver's 1e-15 asymmetry): used as its symmetric part
-            sym = 0.5 * (s.cov + np.swapaxes(s.cov, -1, -2))
-            cov = np.where(good[:, None, None], sym, R if np.isfinite(R).all() else 0.0)
-            if not np.isfinite(R).all():
-                R = nominal_R(cov)  # a sensor given by its messages alone
-            if np.array_equal(cov, np.broadcast_to(R, cov.shape)):
-                cov = None  # R does not vary: no per-message covariance needed
+        R, fill, more = _sensor_R(j, sen, s, replay.sensors[j].source)
+        notes += more
         nominal.append(R)
-        arrival, latency = None, (0.0, 0.0)
+        arrival, latency = False, (0.0, 0.0)
         if replay.sensors[j].arrival:
             arrival, latency, more = _arrivals(sen.name, s)
             notes += more
         latencies.append(latency)
-        sensors.append(_Sensor(at, s.values, cov, arrival))
-        series[j] = sensor_series[j] = s = None  # its times (8 bytes a reading) freed: `at` now
-    truth: dict = {}
+        sensors.append(_Sensor(s.rows, fill, arrival))
+    t = series[-1] if replay.truth is not None else None
+    cursor = TruthCursor(t.rows, replay.match, replay.max_diff_ns) if t is not None else None
+    count, first, last, n_matched = 0, 0, 0, 0
+    for m in merged_windows([s.rows for s in sensors]):
+        if not count:
+            first = int(m.instants[0])
+        count, last = count + len(m.instants), int(m.instants[-1])
+        if cursor is not None:
+            n_matched += int(np.isfinite(cursor.at(m.instants)).all(axis=1).sum())
     truth_info: dict = {}
-    if replay.truth is not None:
-        t = series[-1]
-        # a window of instants at a time: each instant's sample is found on its own, and the
-        # search's temporaries (~50 bytes per instant) stay a window's
-        at_instants = np.empty((len(instants), t.values.shape[1]))
-        for k0 in range(0, len(instants), _WINDOW):
-            at_instants[k0 : k0 + _WINDOW] = associate(
-                instants[k0 : k0 + _WINDOW], t.times_ns, t.values, replay.match, replay.max_diff_ns
-            )
-        matched = np.isfinite(at_instants).all(axis=1)
-        n_matched = int(matched.sum())
+    if t is not None:
         states = [system.state_names[i] for i in replay.truth_states]
-        truth_info = {"states": states, "matched": n_matched,
-                      "unmatched": int(len(instants) - n_matched)}  # fmt: skip
+        truth_info = {"states": states, "matched": n_matched, "unmatched": count - n_matched}
         if not n_matched:
             within = (
                 "at an instant"
@@ -261,18 +316,15 @@ def read_replay(scenario: Scenario) -> ReplayData:
                 else f"within max_diff = {replay.max_diff_ns / 1e9:g} s of an instant"
             )
             raise FusionlogError(
-                f"{replay.truth.source}: truth: none of its {len(t.times_ns)} samples is {within} "
+                f"{replay.truth.source}: truth: none of its {len(t)} samples is {within} "
                 f"of the sensors (match = {replay.match!r}; the sensors' instants span "
-                f"{instants[0]}..{instants[-1]} ns, the truth {t.times_ns[0]}..{t.times_ns[-1]} ns)"
+                f"{first}..{last} ns, the truth {t.rows.time_at(0)}..{t.rows.time_at(-1)} ns)"
             )
-        if n_matched < len(instants):
+        if n_matched < count:
             notes.append(
-                f"truth: {len(instants) - n_matched} of {len(instants)} instants without a truth "
+                f"truth: {count - n_matched} of {count} instants without a truth "
                 f"sample (match = {replay.match!r}): not in the truth metrics"
             )
-        values = np.full((n_matched, system.n), np.nan)
-        values[:, list(replay.truth_states)] = at_instants[matched]
-        truth = {"at": np.flatnonzero(matched), "values": values}
     new_sensors = tuple(
         dataclasses.replace(
             sen, R=np.asarray(R), timing=dataclasses.replace(sen.timing, latency=lat)
@@ -280,20 +332,15 @@ def read_replay(scenario: Scenario) -> ReplayData:
         for sen, R, lat in zip(system.sensors, nominal, latencies, strict=True)
     )
     sc = dataclasses.replace(scenario, system=dataclasses.replace(system, sensors=new_sensors))
-    sc = scenario_with(sc, steps=len(instants) - 1)
-    return ReplayData(sc, instants, sensors, truth, notes, truth_info)
+    sc = scenario_with(sc, steps=count - 1)
+    rows = t.rows if t is not None else None
+    return ReplayData(sc, count, first, notes, sensors, rows, truth_info)
 
 
 def import_to(data: ReplayData, w: McapWriter, *, command: str) -> int:
     """Write a replay's data as a sensors file into an open writer whose time_origin_ns is
-    the first instant (`run_import`); returns the message count."""
-    sc, instants, sensors, truth, notes = (
-        data.scenario,
-        data.instants,
-        data.sensors,
-        data.truth,
-        data.notes,
-    )
+    the first instant (`run_import`), window by window; returns the message count."""
+    sc, notes = data.scenario, data.notes
     kind = kind_of(sc.kind)
     check_budget(sc, kind.bytes_per_run_step(sc), "importing")
     meta = scenario_metadata(sc, kind.system_fields(sc))
@@ -306,34 +353,32 @@ def import_to(data: ReplayData, w: McapWriter, *, command: str) -> int:
     extra = {f"source_sha256:{p}": sha256_of_source(Path(p)) for p in sources}
     w.add_metadata(PROVENANCE_META, provenance(command, None, sources=json.dumps(sources), **extra))
     topics = [sensor_topic(s.name) for s in sc.system.sensors]
-    if any(s.arrival_ns is not None for s in sensors):  # late sensors: the schema says arrival
+    if any(s.arrival for s in data.sensors):  # late sensors: the schema says arrival
         w.declare_arrival()
     # every message in instant order, the truth first at an instant, then the sensors in
     # their order, each topic where it has a reading: a window of instants at a time, encoded
     # at once (`McapWriter.write_run_steps`, the bytes of one `write_values` per message)
-    streams = [(TRUTH, truth["at"], truth["values"], None, None)] if truth else []
-    streams += [(topics[j], s.at, s.values, s.cov, s.arrival_ns) for j, s in enumerate(sensors)]
     messages = 0
-    for k0 in range(0, len(instants), _WINDOW):
-        k1 = min(len(instants), k0 + _WINDOW)
-        columns, present = [], np.zeros((k1 - k0, len(streams)), dtype=bool)
-        for c, (topic, at, values, cov, arrival_ns) in enumerate(streams):
-            a, b = np.searchsorted(at, [k0, k1])
-            rows = at[a:b] - k0
+    for win in data.windows():
+        streams = [(TRUTH, *win.truth, None, None)] if win.truth is not None else []
+        streams += [(topics[j], *r) for j, r in enumerate(win.sensors)]
+        n = len(win.instants)
+        columns, present = [], np.zeros((n, len(streams)), dtype=bool)
+        for c, (topic, rows, values, cov, arrival_ns) in enumerate(streams):
             present[rows, c] = True
             parts = []
             for x in (values, cov, arrival_ns):
                 part = None
                 if x is not None:
-                    part = np.zeros((k1 - k0, *x.shape[1:]), dtype=x.dtype)
-                    part[rows] = x[a:b]
+                    part = np.zeros((n, *x.shape[1:]), dtype=x.dtype)
+                    part[rows] = x
                 parts.append(part)
             arrival = None
             if parts[2] is not None:  # s from the first instant, as the times
-                arrival = (parts[2] - instants[0]).astype(np.float64) / 1e9
+                arrival = (parts[2] - data.first_ns).astype(np.float64) / 1e9
             columns.append(RunColumn(topic, VALUES, parts[0], parts[1], arrival))
-        times = (instants[k0:k1] - instants[0]) / 1e9  # a window's: the same numbers
-        w.write_run_steps(k0, times, columns, present)
+        times = (win.instants - data.first_ns) / 1e9
+        w.write_run_steps(win.k0, times, columns, present)
         messages += int(np.count_nonzero(present))
     return messages
 
@@ -351,9 +396,8 @@ def run_import(
     inputs += replay_inputs(scenario)
     with Outputs([out], force=force, inputs=inputs) as outs:
         data = read_replay(scenario)
-        instants, notes = len(data.instants), data.notes
-        with McapWriter(outs.open(out), time_origin_ns=int(data.instants[0])) as w:
+        instants, notes = data.count, data.notes
+        with McapWriter(outs.open(out), time_origin_ns=data.first_ns) as w:
             messages = import_to(data, w, command=command)
-            data = None  # the readings freed before the writer's layout record is formed
         outs.commit()
     return ImportResult(out, instants, messages, notes)

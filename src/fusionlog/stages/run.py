@@ -65,7 +65,7 @@ def run_pipeline(
 
             data = read_replay(sc)
             sc, notes = data.scenario, data.notes
-            origin = int(data.instants[0])
+            origin = data.first_ns
             with McapWriter(o.open(outs["sensors.mcap"]), time_origin_ns=origin) as w:
                 import_to(data, w, command=command)
             del data  # the imported readings are in sensors.mcap: not held through the stages

@@ -174,25 +174,29 @@ def _recorded(scenario: Scenario) -> Simulation:
 
     data = read_replay(scenario)
     sc = data.scenario
-    K1, n = len(data.instants), sc.system.n
+    K1, n = data.count, sc.system.n
     measurements, scheduled, covariances, arrival = {}, {}, {}, {}
     for sen, r in zip(sc.system.sensors, data.sensors, strict=True):
-        if r.arrival_ns is not None:  # arrival = "log_time": when each reading was logged
+        if r.arrival:  # arrival = "log_time": when each reading was logged
             arrival[sen.name] = np.full((1, K1), np.nan)
-            arrival[sen.name][0, r.at] = (r.arrival_ns - data.instants[0]) / 1e9
-        z = np.full((1, K1, sen.dim), np.nan)
-        z[0, r.at] = r.values
-        measurements[sen.name] = z
+        measurements[sen.name] = np.full((1, K1, sen.dim), np.nan)
         scheduled[sen.name] = np.zeros(K1, dtype=bool)
-        scheduled[sen.name][r.at] = True
-        if r.cov is not None:
+        if r.fill is not None:
             covariances[sen.name] = np.full((K1, sen.dim, sen.dim), np.nan)
-            covariances[sen.name][r.at] = r.cov
-    truth = None
-    if data.truth:
-        truth = np.full((1, K1, n), np.nan)
-        truth[0, data.truth["at"]] = data.truth["values"]
-    times = (data.instants - data.instants[0]) / 1e9
+    truth = np.full((1, K1, n), np.nan) if data.truth_rows is not None else None
+    times = np.empty(K1)
+    for win in data.windows():
+        k = win.k0
+        times[k : k + len(win.instants)] = (win.instants - data.first_ns) / 1e9
+        for sen, (at, values, cov, arrival_ns) in zip(sc.system.sensors, win.sensors, strict=True):
+            measurements[sen.name][0, k + at] = values
+            scheduled[sen.name][k + at] = True
+            if cov is not None:
+                covariances[sen.name][k + at] = cov
+            if arrival_ns is not None:
+                arrival[sen.name][0, k + at] = (arrival_ns - data.first_ns) / 1e9
+        if win.truth is not None:
+            truth[0, k + win.truth[0]] = win.truth[1]
     info = data.truth_info or None
     sim = Simulation(sc, times, truth, measurements, scheduled, covariances, info)
     sim.arrival = arrival

@@ -20,10 +20,10 @@ import numpy as np
 
 from fusionlog.core.timing import regular_times
 
-from .layout import StepMask
+from .layout import LISTED, Layout, StepMask
 from .wire import encode_block_fields, encode_payload2_key
 
-__all__ = ["FirstTimes", "StepSet", "TopicState"]
+__all__ = ["FirstTimes", "StepCounts", "StepSet", "TopicState", "first_block_layout"]
 
 
 class StepSet:
@@ -116,20 +116,29 @@ class FirstTimes:
     """step -> time, each step's first time kept (``dict.setdefault``): steps 0..L-1 while
     t_k = k t_1 exactly (a simulation's k dt, which the layout records as ``dt``) as their
     count and t_1 alone, from the first other time on in a packed array of doubles; steps that
-    came before the ones below them in a dict until those come."""
+    came before the ones below them in a dict until those come. Past `LISTED` steps of other
+    times only their count (the layout record does not list them: issue 34, `.layout`)."""
 
-    __slots__ = ("_dense", "_ahead", "_n", "_dt")
+    __slots__ = ("_dense", "_ahead", "_n", "_dt", "_over")
 
     def __init__(self) -> None:
-        self._dense: array | None = None  # None: steps 0.._n-1 at k * _dt
+        self._dense: array | None = None  # None: steps 0.._n-1 at k * _dt, or _over
         self._n = 0
         self._dt = 0.0
         self._ahead: dict[int, float] = {}
+        self._over = False  # past LISTED steps not at k * _dt: _n counts them, times not kept
 
     def _len(self) -> int:
         return self._n if self._dense is None else len(self._dense)
 
+    def _cap(self) -> None:
+        if self._dense is not None and len(self._dense) > LISTED:
+            self._n, self._dense, self._over = len(self._dense), None, True
+
     def _append(self, t: float) -> None:
+        if self._over:
+            self._n += 1
+            return
         if self._dense is None:
             n = self._n
             if n == 1:
@@ -139,6 +148,7 @@ class FirstTimes:
                 return
             self._dense = array("d", [k * self._dt for k in range(n)])
         self._dense.append(t)
+        self._cap()
 
     def setdefault(self, step: int, time: float) -> None:
         ahead = self._ahead
@@ -158,6 +168,9 @@ class FirstTimes:
             for i, t in enumerate(times.tolist()):
                 self.setdefault(k0 + i, t)
             return
+        if self._over:
+            self._n += len(times)
+            return
         head = 2 if self._dense is None else 0  # t_0 and t_1 decide the regular steps
         for t in times[: max(0, head - self._n)].tolist():
             self._append(t)
@@ -171,15 +184,51 @@ class FirstTimes:
                 self._append(t)
             return
         self._dense.frombytes(np.ascontiguousarray(rest, "<f8").tobytes())
+        self._cap()
 
     def __len__(self) -> int:
         return self._len() + len(self._ahead)
 
+    def steps(self) -> int | None:
+        """S where the steps are exactly 0..S-1, else None."""
+        return None if self._ahead else self._len()
+
     def times(self) -> np.ndarray | array | None:
-        """The times of steps 0..S-1; None when the steps are not exactly those."""
-        if self._ahead:
+        """The times of steps 0..S-1; None when the steps are not exactly those or their
+        times were not kept (past `LISTED`)."""
+        if self._ahead or self._over:
             return None
         return regular_times(self._n, self._dt) if self._dense is None else self._dense
+
+
+class StepCounts:
+    """A topic's steps in the first block of runs: a `StepSet` up to `LISTED` instants, past
+    them only their count (the layout record does not list them: issue 34)."""
+
+    __slots__ = ("set",)
+
+    def __init__(self) -> None:
+        self.set: StepSet | int = StepSet()
+
+    def drop(self) -> None:
+        """Keep the count alone."""
+        if isinstance(self.set, StepSet):
+            self.set = len(self.set)
+
+    def add(self, step: int) -> None:
+        if isinstance(self.set, StepSet):
+            self.set.add(step)
+        else:
+            self.set += 1
+
+    def add_ranges(self, a: np.ndarray, b: np.ndarray) -> None:
+        if isinstance(self.set, StepSet):
+            self.set.add_ranges(a, b)
+        else:
+            self.set += int((b - a).sum())
+
+    def __len__(self) -> int:
+        return self.set if isinstance(self.set, int) else len(self.set)
 
 
 class TopicState:
@@ -199,3 +248,22 @@ class TopicState:
         self.mid = encode_block_fields(run_offset, runs, self.dim, runs * self.dim * 8)
         self.mid2 = encode_payload2_key(cov_len)
         self.mid_key = (run_offset, runs, cov_len)
+
+
+def first_block_layout(
+    first_times: FirstTimes, first_steps: dict[str, StepCounts], dims: dict[str, int],
+    runs: int, blocks: int,
+) -> Layout | None:  # fmt: skip
+    """A writer's layout record from its first block of runs; None where that block does not
+    have steps 0..K (the reader then scans, and says what is wrong). Past `LISTED` instants,
+    irregular times or a sparse topic are left out (`Layout.unlisted`, `.layout`)."""
+    steps = first_times.steps()
+    if steps is None:
+        return None
+    dense = first_times.times()
+    sparse = [t for t, s in first_steps.items() if len(s) != steps and t in dims]
+    if steps > LISTED and (dense is None or sparse):
+        unlisted = ("times",) * (dense is None) + ("sparse",) * bool(sparse)
+        return Layout(None, runs, blocks, dims, count=steps, unlisted=unlisted)
+    masks = {t: first_steps[t].set.mask(steps) for t in sparse}  # type: ignore[union-attr]
+    return Layout(np.asarray(dense, dtype=float), runs, blocks, dims, masks)

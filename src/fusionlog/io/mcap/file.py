@@ -29,6 +29,7 @@ from .chunk_rows import Rows, chunk_rows
 from .chunks import Container, linear_batches, open_container, open_error, read_chunk
 from .columns import BadMessage, Table, decode_rows, decode_table, gather
 from .layout import LAYOUT_META, Layout, StepMask
+from .scan import ScanSteps
 from .schema import ESTIMATE_SCHEMA, SENSOR_SCHEMA, VALUES
 from .wire import MessageFormat, format_of_schema_record
 
@@ -226,12 +227,15 @@ class McapFile:
         return _Structure(lay.times, dict(lay.dims), lay.runs, dict(lay.sparse))
 
     def _scan_structure(self, cids: set[int]) -> _Structure:
-        """Steps, times and dims from the first block of runs, reduced chunk by chunk to each
-        step's first time and each topic's first dim, since a one-run log's first block is the
-        whole file: memory grows with the steps only."""
+        """Steps, times, dims and the sparse topics' steps from the first block of runs,
+        reduced chunk by chunk to each step's first time, each topic's first dim and its steps'
+        bits (`ScanSteps`), since a one-run log's first block is the whole file: memory grows
+        with the steps only (their times, 8 bytes each, and a bit per topic)."""
         topic_of = self._topic_of()
-        step_parts: list[np.ndarray] = []
-        time_parts: list[np.ndarray] = []
+        names = sorted(set(topic_of.values()))
+        key_of = np.zeros(max(topic_of, default=0) + 1, np.int64)
+        key_of[list(topic_of)] = [names.index(t) for t in topic_of.values()]
+        scan = ScanSteps()
         dims: dict[str, int] = {}
         first: int | None = None
         for _, tab in self._tables(cids):
@@ -239,26 +243,17 @@ class McapFile:
                 first = int(tab.off[0])
             other = np.flatnonzero(tab.off != first)
             j = int(other[0]) if len(other) else len(tab)
-            steps, at = np.unique(tab.step[:j], return_index=True)
-            step_parts.append(steps)
-            time_parts.append(tab.time[at])
+            scan.add(tab.step[:j], tab.time[:j], key_of[tab.cid[:j]])
             _, at = np.unique(tab.cid[:j], return_index=True)
             for i in sorted(at.tolist()):
                 dims.setdefault(topic_of[int(tab.cid[i])], int(tab.dim[i]))
             if j < len(tab):
                 break
-        times = np.zeros(0)
-        if step_parts:
-            steps, at = np.unique(np.concatenate(step_parts), return_index=True)
-            if steps[-1] != len(steps) - 1:
-                raise FusionlogError(
-                    f"{self.path}: the steps of the first block of runs are not 0..K "
-                    f"(found {len(steps)} distinct steps, largest {steps[-1]})"
-                )
-            times = np.concatenate(time_parts)[at]
+        times, masks = scan.result(self.path)
         if first not in (None, 0):
             raise FusionlogError(f"{self.path}: the first block of runs starts at run {first}")
-        return _Structure(times, dims, self._last_run_end(cids))
+        sparse = {names[k]: m for k, m in masks.items() if m.count != len(times)}
+        return _Structure(times, dims, self._last_run_end(cids), sparse)
 
     def _last_run_end(self, cids: set[int]) -> int:
         """End of the last block of runs: the blocks are in order, so read only the last chunk."""

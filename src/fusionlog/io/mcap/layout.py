@@ -12,6 +12,17 @@ scans the file instead where it does not match or is absent (hand-written logs).
 Values are strings (MCAP metadata is a string map); times are JSON numbers, which round-trip
 doubles exactly.
 
+The lists are written for at most `LISTED` instants (issue 34). A longer log whose times are
+not k·dt or that has a sparse topic gets the record without them (its counts and dims, and
+``unlisted``: the lists left out), and the reader learns them from a scan of the file, as for
+a file without a record: the record was one metadata string that the foxglove SDK copies
+whole at close (~130 bytes of RSS per instant for an irregular 10^6-row import, the writer's
+times 8 more, all until the file closes), and the reader holds its text at open too. The scan
+costs ~0.8 s of CPU at open for 10^6 instants of three topics (1.4 s against 0.6 s through the
+record, `benchmarks/README.md` issue 34); a regular log's record (``dt``, every topic dense)
+stays bounded and is written as before, and files written with the lists still open through
+them.
+
 In memory (issue 34) a sparse topic's steps are a `StepMask`, one bit per instant, and the
 record's JSON lists are written and parsed a stretch of `_STRETCH` numbers at a time with numpy,
 the text the same as `json.dumps` of the lists: a Python list of the steps (a 36-byte int each,
@@ -31,10 +42,13 @@ import numpy as np
 
 from fusionlog.core.timing import regular_times
 
-__all__ = ["LAYOUT_META", "Layout", "StepMask"]
+__all__ = ["LAYOUT_META", "LISTED", "Layout", "StepMask"]
 
 LAYOUT_META = "fusionlog.layout"
 _FORMAT = "1"
+#: The most instants whose times (and sparse topics' steps) the record lists: ~2.3 MB of text
+#: at most; past it the reader scans (module docstring).
+LISTED = 1 << 16
 #: Numbers of a JSON list written or parsed at once (their text and arrays: some 10 kB).
 _STRETCH = 1 << 12
 
@@ -180,17 +194,21 @@ def _regular(t: np.ndarray, block: int = 1 << 16) -> bool:
 @dataclass(frozen=True)
 class Layout:
     """times (S,) of the instants k = 0..S-1; runs in total; blocks of runs; dims per topic;
-    the steps of the topics that do not have a message at every instant."""
+    the steps of the topics that do not have a message at every instant. A writer's layout
+    past `LISTED` instants may leave the lists out: `times` None, `count` the instants, and
+    `unlisted` names what the record does not list ("times", "sparse")."""
 
-    times: np.ndarray
+    times: np.ndarray | None
     runs: int
     blocks: int
     dims: dict[str, int]
     sparse: dict[str, StepMask] = field(default_factory=dict)
+    count: int = -1  # the instants, where `times` is None
+    unlisted: tuple[str, ...] = ()
 
     @property
     def instants(self) -> int:
-        return len(self.times)
+        return self.count if self.times is None else len(self.times)
 
     def steps_of(self, topic: str) -> np.ndarray:
         """(S,) bool: the instants at which `topic` has a message (in every block of runs)."""
@@ -206,11 +224,14 @@ class Layout:
         t = self.times
         out = {
             "format": _FORMAT,
-            "instants": str(len(t)),
+            "instants": str(self.instants),
             "runs": str(self.runs),
             "blocks": str(self.blocks),
             "topics": json.dumps(self.dims, sort_keys=True),
         }
+        if self.unlisted:  # the reader scans the file for them
+            out["unlisted"] = " ".join(self.unlisted)
+            return out
         if self.sparse:
             out["sparse"] = "{" + ", ".join(
                 f"{json.dumps(k)}: {_json_list(s.tolist() for s in self.sparse[k].stretches())}"
@@ -228,10 +249,13 @@ class Layout:
 
     @staticmethod
     def from_metadata(meta: dict[str, str]) -> Layout:
-        """Parse a record; ValueError if it is malformed or of another format."""
+        """Parse a record; ValueError if it is malformed or of another format, or does not
+        list the times and steps (``unlisted``: the reader scans the file)."""
         try:
             if meta.get("format") != _FORMAT:
                 raise ValueError(f"format {meta.get('format')!r}, not {_FORMAT}")
+            if "unlisted" in meta:
+                raise ValueError(f"lists left out: {meta['unlisted']}")
             instants, runs, blocks = (int(meta[k]) for k in ("instants", "runs", "blocks"))
             dims = json.loads(meta["topics"])
             if min(instants, runs, blocks) < 0:

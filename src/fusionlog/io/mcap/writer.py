@@ -33,9 +33,9 @@ from mcap.reader import SeekingReader
 from fusionlog.errors import OutputError
 
 from .arrival import arrival_field
-from .bookkeeping import FirstTimes, StepSet, TopicState
+from .bookkeeping import FirstTimes, StepCounts, StepSet, TopicState, first_block_layout
 from .chunks import one_line
-from .layout import LAYOUT_META, Layout
+from .layout import LAYOUT_META, LISTED, Layout
 from .run_steps import RunColumn, encode_run_steps, log_times, present_runs
 from .schema import ESTIMATE, ESTIMATE_SCHEMA, SENSOR_SCHEMA, VALUES, file_descriptor_set
 from .sink import SignalGuard, Sink
@@ -109,7 +109,7 @@ class McapWriter:
         self._block_offset, self._block_runs = -1, 0  # block of runs being written
         self._blocks = 0
         self._first_times = FirstTimes()  # step -> time, in the first block of runs
-        self._first_steps: dict[str, StepSet] = {}  # topic -> its steps in the first block
+        self._first_steps: dict[str, StepCounts] = {}  # topic -> its steps in the first block
         self._hstep: int = -1  # step and time whose encoded fields are in _head
         self._htime: float = math.nan
         self._head = b""
@@ -221,20 +221,18 @@ class McapWriter:
         for st in self._topic_states.values():
             st.seen = StepSet()
 
+    def _trim(self) -> None:
+        """Past `LISTED` instants the topics' steps are counted only (`.layout`)."""
+        if len(self._first_times) > LISTED:
+            for counts in self._first_steps.values():
+                counts.drop()
+
     def _layout(self) -> Layout | None:
-        """The file's structure as written; None where the first block of runs does not have
-        steps 0..K (the reader then scans, and says what is wrong)."""
-        dense = self._first_times.times()
-        if dense is None:
-            return None
-        steps = len(dense)
-        times = np.asarray(dense, dtype=float)
+        """The file's structure as written (`first_block_layout`)."""
+        self._trim()
         dims = {t: st.dim for t, st in self._topic_states.items()}
         runs = max(0, self._block_offset + self._block_runs)
-        sparse = {
-            t: s.mask(steps) for t, s in self._first_steps.items() if len(s) != steps and t in dims
-        }
-        return Layout(times, runs, self._blocks, dims, sparse)
+        return first_block_layout(self._first_times, self._first_steps, dims, runs, self._blocks)
 
     def _check_written(self) -> None:
         path = getattr(self.file, "tmp", None) or getattr(self.file, "name", None)
@@ -331,6 +329,8 @@ class McapWriter:
             raise ValueError(f"time must be finite and >= 0, got {time}")
         if self._block_offset == 0:  # the layout record's times: the first block's
             self._first_times.setdefault(step, time)
+            if step == LISTED + 1:
+                self._trim()
         self._hstep, self._htime = step, time
         self._head, self._t_ns = encode_step_time(step, time), self._origin + round(time * 1e9)
 
@@ -365,7 +365,7 @@ class McapWriter:
         if run_offset == 0:  # the steps a topic has (every instant, or its own: layout record)
             first = self._first_steps.get(topic)
             if first is None:
-                first = self._first_steps[topic] = StepSet()
+                first = self._first_steps[topic] = StepCounts()
             first.add(step)
         if st.mid_key != (run_offset, runs, len(p2)):
             st.set_mid(run_offset, runs, len(p2))
@@ -476,13 +476,14 @@ class McapWriter:
             st = self._topic_states.get(c.topic)
             st = states[ci] = st if st and (st.kind, st.dim) == (c.kind, d) else \
                 self._new_topic(c.topic, c.kind, d)  # fmt: skip
-            first = self._first_steps.setdefault(c.topic, StepSet())
+            first = self._first_steps.setdefault(c.topic, StepCounts())
             a, b = present_runs(keep[:, ci])
             twice = st.seen.add_ranges(k0 + a, k0 + b)
             if twice is not None:
                 raise ValueError(f"{c.topic}: step {twice} written twice for runs from 0")
             first.add_ranges(k0 + a, k0 + b)
         self._first_times.extend(k0, t)
+        self._trim()
         self._hstep = -1  # the one-message path's cached head is not these instants'
         logs = [None if st is None else st.log for st in states]
         for i in range(0, w, _WINDOW):

@@ -12,7 +12,6 @@ receiver's accuracy.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -24,18 +23,26 @@ __all__ = ["to_enu"]
 
 
 def _check_degrees(source: Path, what: str, s: Series) -> None:
-    lat, lon = s.values[:, 0], s.values[:, 1]
-    for name, v, bound in (("latitude", lat, 90.0), ("longitude", lon, 180.0)):
-        bad = np.flatnonzero(np.abs(v) > bound)
-        if bad.size:
-            i = int(bad[0])
+    """Latitudes within ±90, longitudes within ±180, block by block: the first reading
+    outside (in time order) named, with their count."""
+    d = s.rows.dtype["v"].shape[0]
+    for col, name, bound in ((0, "latitude", 90.0), (1, "longitude", 180.0)):
+        first, count, at = None, 0, 0
+        for b in s.rows.blocks():
+            bad = np.flatnonzero(np.abs(b["v"][:, col]) > bound)
+            if bad.size and first is None:
+                i = int(bad[0])
+                first = (at + i, float(b["v"][i, col]), int(b["t"][i]))
+            count, at = count + bad.size, at + len(b)
+        if first is not None:
+            i, v, t = first
             raise fail(
                 source,
                 what,
-                f"geodetic: {name} {v[i]:.10g} (reading {i + 1} in time order, "
-                f"{int(s.times_ns[i])} ns) is outside ±{bound:g}: values must be degrees "
-                f"[latitude, longitude{', altitude' if s.values.shape[1] == 3 else ''}]"
-                + (f" ({bad.size} readings)" if bad.size > 1 else ""),
+                f"geodetic: {name} {v:.10g} (reading {i + 1} in time order, "
+                f"{t} ns) is outside ±{bound:g}: values must be degrees "
+                f"[latitude, longitude{', altitude' if d == 3 else ''}]"
+                + (f" ({count} readings)" if count > 1 else ""),
             )
 
 
@@ -43,10 +50,9 @@ def to_enu(
     source: Path, what: str, s: Series, origin: Sequence[float] | None
 ) -> tuple[Series, tuple[float, float, float]]:
     """The fixes of ``s`` as east, north[, up] metres about ``origin`` (lat, lon, alt), and the
-    origin used. ``s.values`` has 2 (latitude, longitude) or 3 (and altitude) columns."""
-    import pymap3d  # needed only for geodetic sensors
-
-    d = s.values.shape[1]
+    origin used. ``s.values`` has 2 (latitude, longitude) or 3 (and altitude) columns. The
+    fixes are converted as they are read (`Rows.transform`), a block at a time."""
+    d = s.rows.dtype["v"].shape[0]
     if d not in (2, 3):
         raise fail(
             source,
@@ -56,10 +62,15 @@ def to_enu(
         )
     _check_degrees(source, what, s)
     if origin is None:
-        first = s.values[0]
+        first = s.rows.read(0, 1)["v"][0]
         origin = (float(first[0]), float(first[1]), float(first[2]) if d == 3 else 0.0)
     lat0, lon0, alt0 = (float(x) for x in origin)
-    alt = s.values[:, 2] if d == 3 else np.full(len(s.values), alt0)
-    e, n, u = pymap3d.geodetic2enu(s.values[:, 0], s.values[:, 1], alt, lat0, lon0, alt0)
-    enu = np.stack([e, n, u], axis=1)[:, :d]
-    return dataclasses.replace(s, values=np.ascontiguousarray(enu)), (lat0, lon0, alt0)
+
+    def enu(values: np.ndarray) -> np.ndarray:
+        import pymap3d  # needed only for geodetic sensors
+
+        alt = values[:, 2] if d == 3 else np.full(len(values), alt0)
+        e, n, u = pymap3d.geodetic2enu(values[:, 0], values[:, 1], alt, lat0, lon0, alt0)
+        return np.stack([e, n, u], axis=1)[:, :d]
+
+    return Series.of_rows(s.rows.with_transform(enu), s.notes, s.recorded), (lat0, lon0, alt0)
