@@ -386,6 +386,7 @@ class _StateEstimator(Estimator):
         (`core.latency_blocks`, `.late_blocks`); None otherwise (the whole run)."""
         from fusionlog.core.latency_blocks import LateBlocks
         from fusionlog.core.latency_long import late_steady_log
+        from fusionlog.core.retrodict_blocks import RetroBlocks
         from fusionlog.driver.long_log import long_estimates, spool_readings
 
         from .late_blocks import late_estimates
@@ -393,14 +394,15 @@ class _StateEstimator(Estimator):
         plans = self.plans
         system = plans.system
         log = late_steady_log(system, self.archs, plans.steps, plans.criterion, sensors.times())
-        if log is None and not LateBlocks.covers(system, self.archs):
+        kind = RetroBlocks if system.late == "retrodict" else LateBlocks
+        if log is None and not kind.covers(system, self.archs):
             return None  # the plans of the whole run
         spool = spool_readings(sensors.iter_time_blocks(self.topics, B), self.topics, system.m)
         if log is not None and not spool.missing:
             plans.patterns.append(np.packbits(np.ones((plans.steps + 1, system.m), bool)).tobytes())
             out = long_estimates(log, spool, B)
         else:
-            blocks = LateBlocks.of(
+            blocks = kind.of(
                 system, self.archs, plans.steps, sensors.times(), B, plans.criterion, spool.missing
             )
             if blocks is None:  # the plans of the whole run

@@ -316,6 +316,7 @@ class StateEvaluator(Evaluator):
         filters' model and `core.latency_blocks` takes every architecture; else None."""
         from fusionlog.core.exact_replay import truth_is_model
         from fusionlog.core.latency_blocks import LateBlocks
+        from fusionlog.core.retrodict_blocks import RetroBlocks
         from fusionlog.driver.long_log import time_block
 
         from .long_late import LongLateExact
@@ -323,9 +324,8 @@ class StateEvaluator(Evaluator):
         p, T = exact.plans, time_block()
         if self._sensors_file is None or not truth_is_model(p.system, exact.truth, self.K):
             return None
-        blocks = LateBlocks.of(
-            p.system, exact.known, self.K, self.times, T, p.criterion, exact=True
-        )
+        kind = RetroBlocks if p.system.late == "retrodict" else LateBlocks
+        blocks = kind.of(p.system, exact.known, self.K, self.times, T, p.criterion, exact=True)
         if blocks is None:
             return None
         topics = [sensor_topic(s.name) for s in p.system.sensors]
