@@ -76,21 +76,29 @@ class _Layout:
 
 
 class Transitions:
-    """F and Q (process noise in state space) from instant a to instant b >= a."""
+    """F and Q (process noise in state space) from instant a to instant b >= a, kept by the
+    pair -- by b - a alone where F and Q are the same over every interval (the same product,
+    whatever a: the same bits), so a long log's cache stays as small as its window."""
 
     def __init__(self, system: System):
         self.system, self.cache, self.inverses = system, {}, {}
+        self.invariant = system.Fs is None and system.Qs is None
+
+    def key(self, a: int, b: int) -> tuple[int, int]:
+        """The cache's key of the pair (a, b)."""
+        return (0, b - a) if self.invariant else (a, b)
 
     def __call__(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
         a, b = int(a), int(b)
-        got = self.cache.get((a, b))
+        key = self.key(a, b)
+        got = self.cache.get(key)
         if got is None:
             n = self.system.n
             F, Q = np.eye(n), np.zeros((n, n))
             for t in range(a + 1, b + 1):
                 Ft = self.system.F_at(t)
                 F, Q = Ft @ F, Ft @ Q @ Ft.T + self.system.GQG_at(t)
-            got = self.cache[a, b] = (F, sym(Q))
+            got = self.cache[key] = (F, sym(Q))
         return got
 
     def back(self, a: int, b: int) -> tuple[np.ndarray]:
@@ -98,17 +106,20 @@ class Transitions:
         ill-conditioned (cond > 1e8, its inverse would amplify rounding): that block of the
         error form D is then 0, as before (`error_form`)."""
         a, b = int(a), int(b)
-        got = self.inverses.get((a, b))
+        key = self.key(a, b)
+        got = self.inverses.get(key)
         if got is None:
             F = self(a, b)[0]
             usable = np.isfinite(F).all() and np.linalg.cond(F) <= 1e8
-            got = self.inverses[a, b] = (np.linalg.inv(F) if usable else np.zeros_like(F),)
+            got = self.inverses[key] = (np.linalg.inv(F) if usable else np.zeros_like(F),)
         return got
 
     def gathered(self, a: np.ndarray, b: np.ndarray | int, of=None) -> tuple[np.ndarray, ...]:
         """F, Q (or what `of`, default self, gives) from a[r] to b[r] for every run r, (R, n, n)
         each (one lookup per distinct pair)."""
         of = self if of is None else of
+        if a.size == 1:  # one run: a view (broadcast_to costs more than the products here)
+            return tuple(X[None] for X in of(a.flat[0], np.asarray(b).flat[0]))
         b = np.broadcast_to(b, a.shape)
         if (a == a.flat[0]).all() and (b == b.flat[0]).all():  # one pair (e.g. one pattern)
             return tuple(np.broadcast_to(X, a.shape + X.shape) for X in of(a.flat[0], b.flat[0]))

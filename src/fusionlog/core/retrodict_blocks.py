@@ -99,6 +99,8 @@ class _Filter:
     def _prune(trans: Transitions, k: int) -> None:
         """Forget the transitions that end before the instants still to come (a bounded cache;
         whatever is asked again is computed again, the same numbers)."""
+        if trans.invariant:  # kept by b - a: no more than the gaps between updates
+            return
         for cache in (trans.cache, trans.inverses):
             for key in [key for key in cache if key[1] < k - 1]:
                 del cache[key]
