@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_helpers import ok
-from test_long_late_random import EXACT_ATOL, RTOL, STEPS, _close, _recorded, _scenario
+from test_long_late_random import RTOL, STEPS, _close, _recorded, _scenario
 
 from fusionlog.core.retrodict_blocks import RetroBlocks
 from fusionlog.io.mcap import McapFile
