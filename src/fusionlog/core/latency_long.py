@@ -21,17 +21,18 @@ too: J is propagated from the covariance of [x_k; s_k - D_k x_k] (`retrodict_fus
 _error_moments`, D the plans' error form), which stays of the size of the errors and, with
 the locals' recursions, reaches its fixed point to the last bit past the latency window
 (pipeline/latency.toml retrodicted: every step from the 47th the same), so the rule's maps
-become steady and the short plans stand for the log (`tests/test_long_late_more.py`); a
-recursion that never repeats bit for bit has no steady middle and takes the whole run. Where
-D is 0 (a transition over the window singular or ill-conditioned, `retrodict._Transitions.
-back`) J carries the truth's covariance: where that grows, J never repeats, `steady_log`
-finds no steady middle and the log is taken whole.
+become steady and the short plans stand for the log (`tests/test_long_late_more.py`). Where
+D is 0 (a transition over the window ill-conditioned, `retrodict.Transitions.back`) J carries
+the truth's covariance: where that grows, J never repeats and `steady_log` finds no steady
+middle; such a log (None here) is retrodicted in blocks by `core.retrodict_blocks`, which
+needs nothing to repeat: each block's plans from the gain recursions carried.
 
 Not here: random delays and recorded arrivals (the plans differ per arrival pattern) and
 missing readings go to the plan-free stacked filters carried block to block
-(`core.latency_blocks`: CKF, HKF, SKF under reprocess and neglect; the per-sensor rules and
-retrodiction there take the whole run at once, as does HKF's exact analysis where correlated
-readings arrive apart); the cases just named take the whole run at once. Nonlinear late
+(`core.latency_blocks`: CKF, HKF, SKF under reprocess and neglect) and, retrodicted, to the
+plans of each block with the state of the block before (`core.retrodict_blocks`: every
+architecture); the per-sensor rules under reprocess and neglect there take the whole run at
+once, as does their HKF's exact analysis where correlated readings arrive apart. Nonlinear late
 sensors need no plans: the EKF/UKF lanes carry their late state from block to block
 themselves (`nonlinear.late_feed`, `nonlinear.long_log`).
 """

@@ -31,7 +31,10 @@ all distinct arrival patterns at once, as a batch: each run's readings of one in
 through the full H with the absent rows zeroed and R's absent rows and columns replaced by the
 identity, which gives them zero gain (S is block diagonal after the permutation to present /
 absent), so one batched solve serves every pattern; the branch (in sequence or Al1) and the
-transitions are taken per run.
+transitions are taken per run. The recursion of the gains (`Recursion`) keeps a bounded state
+-- each pattern's P, the instant of its last update and the stored estimates' covariances over
+the window -- so it is resumable: the whole run is one call, a long log one call per block of
+time (`core.retrodict_blocks`).
 """
 
 from __future__ import annotations

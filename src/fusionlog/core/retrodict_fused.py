@@ -26,6 +26,8 @@ computed on [x_k; s_k - D_k x_k] (D the locals' error forms, `retrodict._error_f
 terms stay of the size of the errors where x's grow like q k^3.
 Over several updates Al1 is an approximation, so J's diagonal blocks are the locals' true error
 covariances, not the ones they report. The locals keep one copy of the last W readings.
+J's recursion needs only cov([x_{k-1}; zeta_{k-1}]) and D_{k-1}: `FusedSteps` keeps them from
+call to call, so a long log's steps are made block by block (`core.retrodict_blocks`).
 """
 
 from __future__ import annotations

@@ -312,8 +312,9 @@ class StateEvaluator(Evaluator):
     def _late_exact(self, exact: ExactPart) -> Any:
         """The exact values of a long log with late sensors whose late plans of a short
         horizon do not stand for it (delays drawn or recorded, readings missing): the stacked
-        filters' error covariances block by block (`.long_late`), where the truth is the
-        filters' model and `core.latency_blocks` takes every architecture; else None."""
+        filters' error covariances block by block (`.long_late`; retrodicted, the moments
+        of each block's plans, `core.retrodict_blocks`), where the truth is the filters' model
+        and the path takes every architecture; else None."""
         from fusionlog.core.exact_replay import truth_is_model
         from fusionlog.core.latency_blocks import LateBlocks
         from fusionlog.core.retrodict_blocks import RetroBlocks
