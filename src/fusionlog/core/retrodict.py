@@ -218,6 +218,13 @@ class Recursion:
         L = W + 2
         eye, eye_m = np.eye(n), np.eye(m)
         R0 = system.R if system.Rs is None else None  # the property builds it on every call
+        # each component's arrival instant, and whether the filter takes it (its sensors')
+        comp = np.zeros(m, dtype=np.intp)
+        fused = np.zeros(m, dtype=bool)
+        for j in sensors:
+            comp[slices[j]], fused[slices[j]] = j, True
+        took = present & fused
+        when = arrive[..., comp]
         out = []
         for k in range(k0, k1):
             base = k - 1 - W
@@ -229,14 +236,12 @@ class Recursion:
             if k == 0:  # the prior: instant 0's stored estimate is the current one
                 sx[:, W + 1, :, :n] = eye
                 sP[:, W + 1], sval[:, W + 1] = prior.cov, True
-            for i in range(max(0, k - W), k + 1):
-                cm = np.zeros((M, m), dtype=bool)
-                for j in sensors:
-                    here = present[:, i - first, slices[j]]
-                    cm[:, slices[j]] = here & (arrive[:, i - first, j] == k)[:, None]
+            lo = max(0, k - W)
+            # the components of instants lo..k that arrive at k, (M, k+1-lo, m), at once
+            hits = took[:, lo - first : k + 1 - first] & (when[:, lo - first : k + 1 - first] == k)
+            for i in (np.flatnonzero(hits.any(axis=(0, 2))) + lo).tolist():
+                cm = hits[:, i - lo]
                 g = cm.any(axis=1)
-                if not g.any():
-                    continue
                 z = np.zeros((m, D))  # the rows of u that are z_i
                 c0 = d if i == k else lay.buffered(k - 1 - i).start
                 z[:, c0 : c0 + m] = eye_m
