@@ -302,51 +302,23 @@ def test_blocked_retrodiction_is_al1_from_the_formulas(tmp_path, monkeypatch) ->
 # --- memory ---------------------------------------------------------------------------------
 
 
-def test_peak_memory_does_not_grow_with_the_instants(tmp_path, monkeypatch) -> None:
-    """The Python allocations' peak (tracemalloc, numpy's arrays included) of a whole `run`
-    retrodicting with drawn delays and missing readings in blocks of 500 instants, a recording
-    decimated to 150 points per series: twice the instants, the same peak within 10 % (the
-    whole run holds the maps of every step, ~3 kB an instant here)."""
-    import tracemalloc
-
-    from fusionlog.core import decimate
-    from fusionlog.scenario import load_scenario
-    from fusionlog.stages.run import run_pipeline
-
-    monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", "500")
-    monkeypatch.setattr(decimate, "DECIMATE_ABOVE", 300)
-    monkeypatch.setattr(decimate, "BUCKETS", 50)
-    spy = _Spy(monkeypatch)
-    path = _scenario(tmp_path, "{min = 1.0, max = 3.0}", True, False, "retrodict",
-                     archs=["CKF", "MSC-GMF"])  # fmt: skip
-    peaks = []
-    for K in (1_000, 1_500, 3_000):  # the first: what is imported on first use
-        sc = load_scenario(path, steps=K)
-        tracemalloc.start()
-        try:
-            run_pipeline(sc, tmp_path / str(K), archs=["CKF", "MSC-GMF"], force=True)
-            peaks.append(tracemalloc.get_traced_memory()[1])
-        finally:
-            tracemalloc.stop()
-    assert spy.estimated == spy.exact == 3 + 4 + 7
-    assert peaks[2] <= 1.1 * peaks[1], peaks
-
-
-def test_exact_peak_is_block_size_independent_of_the_log(tmp_path) -> None:
-    """`RetroBlocks.error_covariances` on 3000 instants in blocks of 500 holds what a block
-    needs: its traced peak past the first block is that of 1000 instants within 10 %."""
+@pytest.mark.parametrize("what", ["estimates", "error_covariances"])
+def test_peak_is_independent_of_the_log_s_length(tmp_path, what) -> None:
+    """`RetroBlocks` (CKF and MSC-GMF, drawn delays, a fifth of the readings missing) on 3000
+    instants in blocks of 500 holds what a block needs: its traced peak is that of 1000
+    instants within 10 % (the whole run holds the maps of every step, ~3 kB an instant)."""
     import tracemalloc
 
     from fusionlog.scenario import load_scenario
 
-    path = _scenario(tmp_path, "{min = 1.0, max = 3.0}", True, False, "retrodict",
-                     archs=["CKF"])  # fmt: skip
+    archs = ["CKF", "MSC-GMF"]
+    path = _scenario(tmp_path, "{min = 1.0, max = 3.0}", True, False, "retrodict", archs=archs)
     system = load_scenario(path).system
     rng = np.random.default_rng(5)
     peaks = []
     for K in (999, 2999):
         times = np.arange(K + 1, dtype=float)
-        blocks = RetroBlocks.of(system, ["CKF"], K, times, 500)
+        blocks = RetroBlocks.of(system, archs, K, times, 500)
         tracemalloc.start()
         try:
             for k0 in range(0, K + 1, 500):
@@ -354,8 +326,11 @@ def test_exact_peak_is_block_size_independent_of_the_log(tmp_path) -> None:
                 arrival = np.repeat(times[k0 : k0 + w, None], 3, axis=1)
                 arrival[:, 1] += 1.0
                 arrival[:, 2] += rng.uniform(1.0, 3.0, w)
-                present = rng.random((w, 3)) > 0.2
-                blocks.error_covariances(k0, k0 + w, present, arrival)
+                z = np.where(rng.random((w, 3)) > 0.2, rng.normal(size=(w, 3)), np.nan)
+                if what == "estimates":
+                    blocks.estimates(k0, k0 + w, z, arrival)
+                else:
+                    blocks.error_covariances(k0, k0 + w, ~np.isnan(z), arrival)
             peaks.append(tracemalloc.get_traced_memory()[1])
         finally:
             tracemalloc.stop()

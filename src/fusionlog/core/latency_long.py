@@ -43,11 +43,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .architectures import Plan, build_plan
+from .architectures import Plan, build_plan, definition, long_log, parse_arch
 from .architectures.long_log import SteadyLog, steady_log
 from .late_policy import is_late, random_delays
 from .latency import LateModel
 from .model import System
+from .retrodict import Transitions
 
 __all__ = ["analysis_rtol", "late_steady_log"]
 
@@ -81,6 +82,8 @@ def late_steady_log(
         return None
     if not (system.linear and system.time_invariant):
         return None
+    if steps + 1 > long_log.HORIZONS[-1] and _j_without_error_form(system, archs):
+        return None
     models: dict[int, LateModel] = {}
 
     def build(arch: str, K: int) -> Plan:
@@ -93,6 +96,24 @@ def late_steady_log(
         return _repeats_shared(plan) if system.late == "retrodict" else plan
 
     return steady_log(system, archs, steps, criterion, build=build)
+
+
+def _j_without_error_form(system: System, archs: Sequence[str]) -> bool:
+    """Whether a rule reading J (MSC-GMF, AVG) retrodicts where the error form has a zero block
+    (a transition over the latency window ill-conditioned, `retrodict.Transitions.back`): J
+    then carries the truth's covariance, which grows with an unstable model, and never repeats,
+    so the plans of every horizon (up to 65 536 instants, ~1 GB of maps) would be built to
+    find no steady middle; the log goes to `core.retrodict_blocks` without them (a stable one
+    too: the same numbers as its steady plans', to rounding)."""
+    if system.late != "retrodict":
+        return False
+    names = [s.name for s in system.sensors]
+    if not any(definition(parse_arch(a, names)[0]).joint for a in archs):
+        return False
+    late = LateModel.of(system, 64, None)
+    assert late is not None
+    back = Transitions(system).back
+    return any(not back(0, q)[0].any() for q in range(1, late.window + 1))
 
 
 def analysis_rtol(truth: System, plans: SteadyLog, mse: float) -> float:
