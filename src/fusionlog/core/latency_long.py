@@ -29,10 +29,9 @@ needs nothing to repeat: each block's plans from the gain recursions carried.
 
 Not here: random delays and recorded arrivals (the plans differ per arrival pattern) and
 missing readings go to the plan-free stacked filters carried block to block
-(`core.latency_blocks`: CKF, HKF, SKF under reprocess and neglect) and, retrodicted, to the
-plans of each block with the state of the block before (`core.retrodict_blocks`: every
-architecture); the per-sensor rules under reprocess and neglect there take the whole run at
-once, as does their HKF's exact analysis where correlated readings arrive apart. Nonlinear late
+(`core.latency_blocks`: CKF, HKF, SKF and the per-sensor rules under reprocess and neglect)
+and, retrodicted, to the plans of each block with the state of the block before
+(`core.retrodict_blocks`: every architecture but FBS). Nonlinear late
 sensors need no plans: the EKF/UKF lanes carry their late state from block to block
 themselves (`nonlinear.late_feed`, `nonlinear.long_log`).
 """

@@ -133,12 +133,11 @@ class RetroBlocks:
         block: int,
         criterion: str | None = None,
         missing: bool = True,
-        exact: bool = False,
     ) -> RetroBlocks | None:
         """The blocked retrodiction of one run of instants 0..`steps` at `times` (s), the lags
         found in blocks of `block` instants (`LateBlocks.of`'s signature; every case is taken,
-        `missing` and `exact` change nothing); None where `covers` says no."""
-        del missing, exact
+        `missing` changes nothing); None where `covers` says no."""
+        del missing
         if not cls.covers(system, archs):
             return None
         times = np.asarray(times, dtype=float)
