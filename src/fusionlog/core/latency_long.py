@@ -21,17 +21,17 @@ too: J is propagated from the covariance of [x_k; s_k - D_k x_k] (`retrodict_fus
 _error_moments`, D the plans' error form), which stays of the size of the errors and, with
 the locals' recursions, reaches its fixed point to the last bit past the latency window
 (pipeline/latency.toml retrodicted: every step from the 47th the same), so the rule's maps
-become steady and the short plans stand for the log (`tests/test_long_late_more.py`); a
-recursion that never repeats bit for bit has no steady middle and takes the whole run. Where
-D is 0 (a transition over the window singular or ill-conditioned, `retrodict._Transitions.
-back`) J carries the truth's covariance: where that grows, J never repeats, `steady_log`
-finds no steady middle and the log is taken whole.
+become steady and the short plans stand for the log (`tests/test_long_late_more.py`). Where
+D is 0 (a transition over the window ill-conditioned, `retrodict.Transitions.back`) J carries
+the truth's covariance: where that grows, J never repeats and `steady_log` finds no steady
+middle; such a log (None here) is retrodicted in blocks by `core.retrodict_blocks`, which
+needs nothing to repeat: each block's plans from the gain recursions carried.
 
 Not here: random delays and recorded arrivals (the plans differ per arrival pattern) and
 missing readings go to the plan-free stacked filters carried block to block
-(`core.latency_blocks`: CKF, HKF, SKF under reprocess and neglect; the per-sensor rules and
-retrodiction there take the whole run at once, as does HKF's exact analysis where correlated
-readings arrive apart); the cases just named take the whole run at once. Nonlinear late
+(`core.latency_blocks`: CKF, HKF, SKF and the per-sensor rules under reprocess and neglect)
+and, retrodicted, to the plans of each block with the state of the block before
+(`core.retrodict_blocks`: every architecture but FBS). Nonlinear late
 sensors need no plans: the EKF/UKF lanes carry their late state from block to block
 themselves (`nonlinear.late_feed`, `nonlinear.long_log`).
 """
@@ -42,11 +42,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .architectures import Plan, build_plan
+from .architectures import Plan, build_plan, definition, long_log, parse_arch
 from .architectures.long_log import SteadyLog, steady_log
 from .late_policy import is_late, random_delays
 from .latency import LateModel
 from .model import System
+from .retrodict import Transitions
 
 __all__ = ["analysis_rtol", "late_steady_log"]
 
@@ -80,6 +81,8 @@ def late_steady_log(
         return None
     if not (system.linear and system.time_invariant):
         return None
+    if steps + 1 > long_log.HORIZONS[-1] and _j_without_error_form(system, archs):
+        return None
     models: dict[int, LateModel] = {}
 
     def build(arch: str, K: int) -> Plan:
@@ -92,6 +95,24 @@ def late_steady_log(
         return _repeats_shared(plan) if system.late == "retrodict" else plan
 
     return steady_log(system, archs, steps, criterion, build=build)
+
+
+def _j_without_error_form(system: System, archs: Sequence[str]) -> bool:
+    """Whether a rule reading J (MSC-GMF, AVG) retrodicts where the error form has a zero block
+    (a transition over the latency window ill-conditioned, `retrodict.Transitions.back`): J
+    then carries the truth's covariance, which grows with an unstable model, and never repeats,
+    so the plans of every horizon (up to 65 536 instants, ~1 GB of maps) would be built to
+    find no steady middle; the log goes to `core.retrodict_blocks` without them (a stable one
+    too: the same numbers as its steady plans', to rounding)."""
+    if system.late != "retrodict":
+        return False
+    names = [s.name for s in system.sensors]
+    if not any(definition(parse_arch(a, names)[0]).joint for a in archs):
+        return False
+    late = LateModel.of(system, 64, None)
+    assert late is not None
+    back = Transitions(system).back
+    return any(not back(0, q)[0].any() for q in range(1, late.window + 1))
 
 
 def analysis_rtol(truth: System, plans: SteadyLog, mse: float) -> float:

@@ -31,7 +31,10 @@ all distinct arrival patterns at once, as a batch: each run's readings of one in
 through the full H with the absent rows zeroed and R's absent rows and columns replaced by the
 identity, which gives them zero gain (S is block diagonal after the permutation to present /
 absent), so one batched solve serves every pattern; the branch (in sequence or Al1) and the
-transitions are taken per run.
+transitions are taken per run. The recursion of the gains (`Recursion`) keeps a bounded state
+-- each pattern's P, the instant of its last update and the stored estimates' covariances over
+the window -- so it is resumable: the whole run is one call, a long log one call per block of
+time (`core.retrodict_blocks`).
 """
 
 from __future__ import annotations
@@ -44,7 +47,14 @@ from .architectures import Plan, StepMap
 from .linalg import mT, sym
 from .model import System
 
-__all__ = ["initial_error_form", "retrodict_maps", "retrodict_plan"]
+__all__ = [
+    "Recursion",
+    "Transitions",
+    "initial_error_form",
+    "initial_state",
+    "retrodict_maps",
+    "retrodict_plan",
+]
 
 
 @dataclass
@@ -68,22 +78,30 @@ class _Layout:
         return slice(a, a + self.m)
 
 
-class _Transitions:
-    """F and Q (process noise in state space) from instant a to instant b >= a."""
+class Transitions:
+    """F and Q (process noise in state space) from instant a to instant b >= a, kept by the
+    pair -- by b - a alone where F and Q are the same over every interval (the same product,
+    whatever a: the same bits), so a long log's cache stays as small as its window."""
 
     def __init__(self, system: System):
         self.system, self.cache, self.inverses = system, {}, {}
+        self.invariant = system.Fs is None and system.Qs is None
+
+    def key(self, a: int, b: int) -> tuple[int, int]:
+        """The cache's key of the pair (a, b)."""
+        return (0, b - a) if self.invariant else (a, b)
 
     def __call__(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
         a, b = int(a), int(b)
-        got = self.cache.get((a, b))
+        key = self.key(a, b)
+        got = self.cache.get(key)
         if got is None:
             n = self.system.n
             F, Q = np.eye(n), np.zeros((n, n))
             for t in range(a + 1, b + 1):
                 Ft = self.system.F_at(t)
                 F, Q = Ft @ F, Ft @ Q @ Ft.T + self.system.GQG_at(t)
-            got = self.cache[a, b] = (F, sym(Q))
+            got = self.cache[key] = (F, sym(Q))
         return got
 
     def back(self, a: int, b: int) -> tuple[np.ndarray]:
@@ -91,17 +109,20 @@ class _Transitions:
         ill-conditioned (cond > 1e8, its inverse would amplify rounding): that block of the
         error form D is then 0, as before (`error_form`)."""
         a, b = int(a), int(b)
-        got = self.inverses.get((a, b))
+        key = self.key(a, b)
+        got = self.inverses.get(key)
         if got is None:
             F = self(a, b)[0]
             usable = np.isfinite(F).all() and np.linalg.cond(F) <= 1e8
-            got = self.inverses[a, b] = (np.linalg.inv(F) if usable else np.zeros_like(F),)
+            got = self.inverses[key] = (np.linalg.inv(F) if usable else np.zeros_like(F),)
         return got
 
     def gathered(self, a: np.ndarray, b: np.ndarray | int, of=None) -> tuple[np.ndarray, ...]:
         """F, Q (or what `of`, default self, gives) from a[r] to b[r] for every run r, (R, n, n)
         each (one lookup per distinct pair)."""
         of = self if of is None else of
+        if a.size == 1:  # one run: a view (broadcast_to costs more than the products here)
+            return tuple(X[None] for X in of(a.flat[0], np.asarray(b).flat[0]))
         b = np.broadcast_to(b, a.shape)
         if (a == a.flat[0]).all() and (b == b.flat[0]).all():  # one pair (e.g. one pattern)
             return tuple(np.broadcast_to(X, a.shape + X.shape) for X in of(a.flat[0], b.flat[0]))
@@ -156,97 +177,133 @@ def _last_valid(valid: np.ndarray) -> np.ndarray:
     return valid.shape[1] - 1 - np.argmax(valid[:, ::-1], axis=1)
 
 
+class Recursion:
+    """The retrodicting filter's gain recursion on `sensors` (window W) for M arrival patterns,
+    resumable: `steps` gives the (T, U, O, P, D) of instants k0..k1-1 and keeps what the next
+    instant needs -- each pattern's covariance P, the instant tau of its estimate and the
+    covariances of the estimates stored over the window (`sP`, `sval`) -- so the log can be
+    taken whole (`_batch`) or block by block (`core.retrodict_blocks`). During step k the
+    stored estimates are kept by instant t = k-1-W+r, r = 0..W+1 (`sval`: stored for that run;
+    their expressions `sx` rows over u = [s_{k-1}; z_k])."""
+
+    def __init__(self, system: System, sensors: list[int], W: int, M: int, trans: Transitions):
+        n = system.n
+        self.system, self.sensors, self.W, self.trans = system, sensors, W, trans
+        self.lay = _Layout(n, system.m, W)
+        self.H = system.linear_measurement()
+        assert system.prior is not None
+        L = W + 2
+        self.P = np.broadcast_to(system.prior.cov, (M, n, n)).copy()
+        self.tau = np.zeros(M, dtype=np.intp)  # the instant of each run's estimate
+        self.sP = np.zeros((M, L, n, n))
+        self.sval = np.zeros((M, L), dtype=bool)
+        self.next_instant = 0
+
+    def steps(
+        self, present: np.ndarray, arrive: np.ndarray, k0: int, k1: int, first: int = 0
+    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """(T, U, O, P, D), each (M, ...), of the steps k0..k1-1: `present` (M, rows, m) and
+        `arrive` (M, rows, S) (the instant each reading arrives by) of the instants first..,
+        from max(0, k0 - W) on at least."""
+        if k0 != self.next_instant or first > max(0, k0 - self.W):
+            raise ValueError(f"retrodiction's steps in order: {k0} after {self.next_instant}")
+        system, sensors, W, trans, lay = self.system, self.sensors, self.W, self.trans, self.lay
+        n, m = system.n, system.m
+        d = lay.d
+        D = d + m
+        H, slices = self.H, system.sensor_slices
+        prior = system.prior
+        P, tau, sP, sval = self.P, self.tau, self.sP, self.sval
+        M = P.shape[0]
+        L = W + 2
+        eye, eye_m = np.eye(n), np.eye(m)
+        R0 = system.R if system.Rs is None else None  # the property builds it on every call
+        # each component's arrival instant, and whether the filter takes it (its sensors')
+        comp = np.zeros(m, dtype=np.intp)
+        fused = np.zeros(m, dtype=bool)
+        for j in sensors:
+            comp[slices[j]], fused[slices[j]] = j, True
+        took = present & fused
+        when = arrive[..., comp]
+        out = []
+        for k in range(k0, k1):
+            base = k - 1 - W
+            cur = np.zeros((M, n, D))
+            cur[:, :, :n] = eye
+            sx = np.zeros((M, L, n, D))
+            for r in range(W + 1):
+                sx[:, r, :, lay.stored(W - r)] = eye
+            if k == 0:  # the prior: instant 0's stored estimate is the current one
+                sx[:, W + 1, :, :n] = eye
+                sP[:, W + 1], sval[:, W + 1] = prior.cov, True
+            lo = max(0, k - W)
+            # the components of instants lo..k that arrive at k, (M, k+1-lo, m), at once
+            hits = took[:, lo - first : k + 1 - first] & (when[:, lo - first : k + 1 - first] == k)
+            for i in (np.flatnonzero(hits.any(axis=(0, 2))) + lo).tolist():
+                cm = hits[:, i - lo]
+                g = cm.any(axis=1)
+                z = np.zeros((m, D))  # the rows of u that are z_i
+                c0 = d if i == k else lay.buffered(k - 1 - i).start
+                z[:, c0 : c0 + m] = eye_m
+                Hm, Rm = _masked(H, system.R_at(i) if R0 is None else R0, cm)
+                ins = np.flatnonzero(g & (i >= tau))  # in sequence: predict to i, Joseph update
+                if len(ins):
+                    F, Q = trans.gathered(tau[ins], i)
+                    c, Pp = F @ cur[ins], sym(F @ P[ins] @ mT(F)) + Q
+                    cur[ins], P[ins] = _update(c, Pp, Hm[ins], Rm[ins], z)
+                    tau[ins] = i
+                oos = np.flatnonzero(g & (i < tau))  # out of sequence: Al1
+                if len(oos):
+                    a = _last_valid(sval[oos] & (np.arange(L) <= i - base))
+                    t_a, t_k = a + base, tau[oos]
+                    Fa, Qa = trans.gathered(t_a, t_k)
+                    Fkd, Qkd = trans.gathered(np.full(len(oos), i), t_k)
+                    cur[oos], P[oos] = _al1(
+                        cur[oos], P[oos], Hm[oos], Rm[oos], z,
+                        sx[oos, a], sP[oos, a], Fa, Qa, Fkd, Qkd,
+                    )  # fmt: skip
+                got = np.flatnonzero(g)
+                r = tau[got] - base
+                sx[got, r], sP[got, r], sval[got, r] = cur[got], P[got], True
+            _keep_window(sx, sP, sval, k + 1 - W, base, trans)
+            # the new state: cur, the stored estimates of k-q, the readings z_k..z_{k-W+1}
+            rows = np.zeros((M, d, D))
+            rows[:, :n] = cur
+            for q in range(W + 1):
+                r = W + 1 - q  # instant k - q
+                rows[:, lay.stored(q)] = sx[:, r] * sval[:, r, None, None]
+            if W:
+                rows[:, lay.buffered(0), d:] = eye_m
+                for q in range(1, W):
+                    rows[:, lay.buffered(q), lay.buffered(q - 1)] = eye_m
+            Fo, Qo = trans.gathered(tau, k)
+            O = np.zeros((M, n, d))
+            O[:, :, :n] = Fo
+            T, U = np.ascontiguousarray(rows[:, :, :d]), np.ascontiguousarray(rows[:, :, d:])
+            Pk = sym(Fo @ P @ mT(Fo)) + Qo
+            out.append((T, U, O, Pk, _error_form(lay, H, k, tau, sval, trans)))
+            sP[:, :-1], sval[:, :-1] = sP[:, 1:], sval[:, 1:]  # to step k+1's instants
+            sval[:, -1] = False
+        self.next_instant = k1
+        return out
+
+
 def _batch(
     system: System,
     present: np.ndarray,
     arrive: np.ndarray,
     sensors: list[int],
     W: int,
-    trans: _Transitions,
-) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    trans: Transitions,
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """(T, U, O, P, D), each (M, ...), of every step for M arrival patterns at once: `present`
     (M, K+1, m), `arrive` (M, K+1, S) the instant each reading arrives by, the filter on
-    `sensors`. During step k the stored estimates are kept by instant t = k-1-W+r, r = 0..W+1
-    (`sval`: stored for that run; their expressions `sx` rows over u = [s_{k-1}; z_k])."""
-    n, m = system.n, system.m
-    lay = _Layout(n, m, W)
-    d = lay.d
-    D = d + m
-    H = system.linear_measurement()
-    slices = system.sensor_slices
-    prior = system.prior
-    assert prior is not None
+    `sensors` (`Recursion` over the whole horizon)."""
     M, K1 = present.shape[:2]
-    L = W + 2
-    eye, eye_m = np.eye(n), np.eye(m)
-    R0 = system.R if system.Rs is None else None  # the property builds it on every call
-    P = np.broadcast_to(prior.cov, (M, n, n)).copy()
-    tau = np.zeros(M, dtype=np.intp)  # the instant of each run's estimate
-    sP = np.zeros((M, L, n, n))
-    sval = np.zeros((M, L), dtype=bool)
-    out = []
-    for k in range(K1):
-        base = k - 1 - W
-        cur = np.zeros((M, n, D))
-        cur[:, :, :n] = eye
-        sx = np.zeros((M, L, n, D))
-        for r in range(W + 1):
-            sx[:, r, :, lay.stored(W - r)] = eye
-        if k == 0:  # the prior: instant 0's stored estimate is the current one
-            sx[:, W + 1, :, :n] = eye
-            sP[:, W + 1], sval[:, W + 1] = prior.cov, True
-        for i in range(max(0, k - W), k + 1):
-            cm = np.zeros((M, m), dtype=bool)
-            for j in sensors:
-                cm[:, slices[j]] = present[:, i, slices[j]] & (arrive[:, i, j] == k)[:, None]
-            g = cm.any(axis=1)
-            if not g.any():
-                continue
-            z = np.zeros((m, D))  # the rows of u that are z_i
-            c0 = d if i == k else lay.buffered(k - 1 - i).start
-            z[:, c0 : c0 + m] = eye_m
-            Hm, Rm = _masked(H, system.R_at(i) if R0 is None else R0, cm)
-            ins = np.flatnonzero(g & (i >= tau))  # in sequence: predict to i, Joseph update
-            if len(ins):
-                F, Q = trans.gathered(tau[ins], i)
-                c, Pp = F @ cur[ins], sym(F @ P[ins] @ mT(F)) + Q
-                cur[ins], P[ins] = _update(c, Pp, Hm[ins], Rm[ins], z)
-                tau[ins] = i
-            oos = np.flatnonzero(g & (i < tau))  # out of sequence: Al1
-            if len(oos):
-                a = _last_valid(sval[oos] & (np.arange(L) <= i - base))
-                t_a, t_k = a + base, tau[oos]
-                Fa, Qa = trans.gathered(t_a, t_k)
-                Fkd, Qkd = trans.gathered(np.full(len(oos), i), t_k)
-                cur[oos], P[oos] = _al1(
-                    cur[oos], P[oos], Hm[oos], Rm[oos], z,
-                    sx[oos, a], sP[oos, a], Fa, Qa, Fkd, Qkd,
-                )  # fmt: skip
-            got = np.flatnonzero(g)
-            r = tau[got] - base
-            sx[got, r], sP[got, r], sval[got, r] = cur[got], P[got], True
-        _keep_window(sx, sP, sval, k + 1 - W, base, trans)
-        # the new state: cur, the stored estimates of k-q, the readings z_k..z_{k-W+1}
-        rows = np.zeros((M, d, D))
-        rows[:, :n] = cur
-        for q in range(W + 1):
-            r = W + 1 - q  # instant k - q
-            rows[:, lay.stored(q)] = sx[:, r] * sval[:, r, None, None]
-        if W:
-            rows[:, lay.buffered(0), d:] = eye_m
-            for q in range(1, W):
-                rows[:, lay.buffered(q), lay.buffered(q - 1)] = eye_m
-        Fo, Qo = trans.gathered(tau, k)
-        O = np.zeros((M, n, d))
-        O[:, :, :n] = Fo
-        T, U = np.ascontiguousarray(rows[:, :, :d]), np.ascontiguousarray(rows[:, :, d:])
-        out.append((T, U, O, sym(Fo @ P @ mT(Fo)) + Qo, _error_form(lay, H, k, tau, sval, trans)))
-        sP[:, :-1], sval[:, :-1] = sP[:, 1:], sval[:, 1:]  # to step k+1's instants
-        sval[:, -1] = False
-    return out
+    return Recursion(system, sensors, W, M, trans).steps(present, arrive, 0, K1)
 
 
-def _error_form(lay: _Layout, H, k: int, tau, sval, trans: _Transitions) -> np.ndarray:
+def _error_form(lay: _Layout, H, k: int, tau, sval, trans: Transitions) -> np.ndarray:
     """D_k (M, d, n), s_k = D_k x_k without noise (`StepMap.D`): the current estimate is
     x_tau = F(tau, k)^-1 x_k (every update, in sequence or Al1, is unbiased), a stored one at
     instant k-q is x_{k-q} = F(k-q, k)^-1 x_k (0 where none is stored: its rows are 0), the
@@ -264,7 +321,7 @@ def _error_form(lay: _Layout, H, k: int, tau, sval, trans: _Transitions) -> np.n
     return D
 
 
-def _keep_window(sx, sP, sval, b: int, base: int, trans: _Transitions) -> None:
+def _keep_window(sx, sP, sval, b: int, base: int, trans: Transitions) -> None:
     """Keep the stored estimates a later OOSM can need (taken at b or later): those from b on,
     and the newest older one moved to b by prediction (no update between: the same equivalent
     measurement), so that every one sits in the plan's window. In place, per run."""
@@ -294,7 +351,7 @@ def retrodict_maps(
     `sensors`, and whether they are per run: `present` (K+1, m) or (M, K+1, m), `arrive`
     (K+1, S) or (M, K+1, S) the instant each reading arrives by; the recursion runs once on
     the distinct patterns."""
-    trans = _Transitions(system)
+    trans = Transitions(system)
     if present.ndim == 2 and arrive.ndim == 2:
         maps = _batch(system, present[None], arrive[None], sensors, W, trans)
         return [tuple(f[0] for f in mk) for mk in maps], False
@@ -324,15 +381,21 @@ def retrodict_plan(
 ) -> Plan:
     """The retrodicting filter on `sensors` as a plan (`retrodict_maps`): maps shared by all
     runs, or per run."""
+    s0, D0 = initial_state(system, W)
+    maps, per_run = retrodict_maps(system, present, arrive, sensors, W)
+    steps = [StepMap(*mk) for mk in maps]
+    return Plan(name, s0, steps, per_run=per_run, D0=D0, complete=False)
+
+
+def initial_state(system: System, W: int) -> tuple[np.ndarray, np.ndarray]:
+    """s_0 before step 0 (the prior's mean as the current estimate) and its error form D_0."""
     n = system.n
     lay = _Layout(n, system.m, W)
     assert system.prior is not None
     s0 = np.zeros(lay.d)
     s0[:n] = system.prior.mean
     s0[lay.stored(0)] = system.prior.mean  # unused: instant 0's stored estimate is cur's
-    maps, per_run = retrodict_maps(system, present, arrive, sensors, W)
-    steps = [StepMap(*mk) for mk in maps]
-    return Plan(name, s0, steps, per_run=per_run, D0=initial_error_form(lay.d, n), complete=False)
+    return s0, initial_error_form(lay.d, n)
 
 
 def initial_error_form(d: int, n: int) -> np.ndarray:

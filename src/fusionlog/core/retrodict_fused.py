@@ -26,6 +26,8 @@ computed on [x_k; s_k - D_k x_k] (D the locals' error forms, `retrodict._error_f
 terms stay of the size of the errors where x's grow like q k^3.
 Over several updates Al1 is an approximation, so J's diagonal blocks are the locals' true error
 covariances, not the ones they report. The locals keep one copy of the last W readings.
+J's recursion needs only cov([x_{k-1}; zeta_{k-1}]) and D_{k-1}: `FusedSteps` keeps them from
+call to call, so a long log's steps are made block by block (`core.retrodict_blocks`).
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ from .model import System
 from .moments import step_moments
 from .retrodict import retrodict_maps, retrodict_plan
 
-__all__ = ["late_retrodict_plan"]
+__all__ = ["FusedSteps", "late_retrodict_plan"]
 
 
 def late_retrodict_plan(
@@ -75,80 +77,104 @@ def _fused(
     criterion: str,
 ) -> Plan:
     """The locals (one retrodicting filter per sensor, local j keeping the window W_j of its
-    sensor's largest lag) and the rule as one plan: state [the locals' estimates and stored
-    estimates; the last W = max W_j readings, shared]."""
-    n, m = system.n, system.m
+    sensor's largest lag) and the rule as one plan (`FusedSteps` over the whole horizon)."""
     S = len(system.sensors)
     Ws = [int(lj.max()) for lj in lags]
-    W = max(Ws)
-    nbs = [n * (Wj + 2) for Wj in Ws]
-    at = np.concatenate([[0], np.cumsum(nbs)])  # local j's rows: at[j]:at[j+1]
-    B = W * m
-    dC = int(at[-1]) + B
     locs = [retrodict_maps(system, present, arrive, [j], Ws[j]) for j in range(S)]
     per_run = any(pr for _, pr in locs)
+    maps = [mk for mk, _ in locs]
     if per_run:  # every local's maps per run
         M = max(mk[0][0].shape[0] for mk, pr in locs if pr)
-        locs = [
-            (mk if pr else [tuple(np.broadcast_to(f, (M,) + f.shape) for f in st) for st in mk], pr)
+        maps = [
+            mk if pr else [tuple(np.broadcast_to(f, (M,) + f.shape) for f in st) for st in mk]
             for mk, pr in locs
         ]
-    else:
-        locs = [(mk, False) for mk, _ in locs]
-    arch_def = definition(base)
-    H, K1 = system.linear_measurement(), len(locs[0][0])
-    prior = system.prior
-    assert prior is not None
-    steps, omegas = [], []
-    cov = None  # cov([x_k; zeta_k]) when the rule reads J (`_error_moments`)
-    D_prev = np.zeros((dC, n))  # D0: every local's current estimate is the prior's mean
-    for j in range(S):
-        D_prev[at[j] : at[j] + n] = np.eye(n)
-    D0 = D_prev
-    for k in range(K1):
-        maps = [mk[k] for mk, _ in locs]
-        batch = maps[0][0].shape[:-2]
-        T = np.zeros(batch + (dC, dC))
-        U = np.zeros(batch + (dC, m))
-        Ol = np.zeros(batch + (S * n, dC))
-        D = np.zeros(batch + (dC, n))  # the error form: the locals' and the shared buffer's
-        for j, (Tj, Uj, Oj, _, Dj) in enumerate(maps):
-            nb, rows, buf = nbs[j], slice(at[j], at[j + 1]), at[-1]
-            T[..., rows, rows] = Tj[..., :nb, :nb]
-            T[..., rows, buf : buf + Ws[j] * m] = Tj[..., :nb, nb:]  # its newest W_j readings
-            U[..., rows, :] = Uj[..., :nb, :]
-            Ol[..., j * n : (j + 1) * n, rows] = Oj[..., :, :nb]
-            D[..., rows, :] = Dj[..., :nb, :]
-        wide = Ws.index(W)  # a local that keeps all W readings: their shift
-        nw, buf = nbs[wide], at[-1]
-        T[..., buf:, buf:] = maps[wide][0][..., nw:, nw:]
-        U[..., buf:, :] = maps[wide][1][..., nw:, :]
-        D[..., buf:, :] = maps[wide][4][..., nw:, :]
-        Ploc = np.stack([mp[3] for mp in maps], axis=-3)  # batch + (S, n, n)
-        st = StepMap(T, U, Ol, Ploc, D)  # the moments read T, U and D
-        J = None
-        if arch_def.joint:
-            cov = _error_moments(system, k, st, D_prev, cov, prior.cov, H)
-            E = np.zeros(batch + (S * n, n + dC))  # e_j = (I - O_j D_j) x_k - O_j zeta_j
-            E[..., :n] = np.tile(np.eye(n), (S, 1)) - Ol @ D
-            E[..., n:] = -Ol
-            J = sym(E @ cov @ mT(E))
-        D_prev = D
-        C, Pf, w = _rule(arch_def, Ploc, J, criterion)
-        omegas.append(w)
-        steps.append(StepMap(T, U, C @ Ol, Pf, D))
-    s0 = np.zeros(dC)
-    for j in range(S):
-        s0[at[j] : at[j] + n] = prior.mean
+    fuser = FusedSteps(system, base, Ws, criterion)
+    steps, omegas = fuser.steps(maps)
     omega = None
     if any(w is not None for w in omegas):
+        batch = steps[0].T.shape[:-2]
         omega = np.stack([np.broadcast_to(w, batch + (S,)) for w in omegas], axis=-2)
-    plan = Plan(arch, s0, steps, per_run=per_run, D0=D0, complete=False)
+    plan = Plan(arch, fuser.s0, steps, per_run=per_run, D0=fuser.D0, complete=False)
     # plan.system stays None: the exact analysis keeps the true state's terms
     # (`moments.coupling`), so it is exact with any D; D (`retrodict._error_form`) only keeps
     # s - D x of the size of the errors
     plan.omega = omega
     return plan
+
+
+class FusedSteps:
+    """The locals' maps (`retrodict_maps` on each sensor, local j keeping the window W_j of its
+    sensor's largest lag) and the rule as the steps of one plan, state [the locals' estimates
+    and stored estimates; the last W = max W_j readings, shared]; resumable: J's recursion
+    (`_error_moments`) and the error form of the step before are kept from call to call, so
+    the log can be taken whole (`_fused`) or block by block (`core.retrodict_blocks`)."""
+
+    def __init__(self, system: System, base: str, Ws: list[int], criterion: str) -> None:
+        n, m = system.n, system.m
+        S = len(system.sensors)
+        self.system, self.Ws, self.criterion = system, Ws, criterion
+        self.W = max(Ws)
+        self.nbs = [n * (Wj + 2) for Wj in Ws]
+        self.at = np.concatenate([[0], np.cumsum(self.nbs)])  # local j's rows: at[j]:at[j+1]
+        self.dC = int(self.at[-1]) + self.W * m
+        self.arch_def = definition(base)
+        self.H = system.linear_measurement()
+        prior = system.prior
+        assert prior is not None
+        self.cov = None  # cov([x_k; zeta_k]) when the rule reads J (`_error_moments`)
+        D0 = np.zeros((self.dC, n))  # every local's current estimate is the prior's mean
+        s0 = np.zeros(self.dC)
+        for j in range(S):
+            D0[self.at[j] : self.at[j] + n] = np.eye(n)
+            s0[self.at[j] : self.at[j] + n] = prior.mean
+        self.s0, self.D0, self.D_prev = s0, D0, D0
+        self.next_instant = 0
+
+    def steps(self, locs: list[list[tuple]], k0: int = 0) -> tuple[list[StepMap], list]:
+        """The steps k0, k0+1, ... of the locals' maps `locs[j]` (local j's (T, U, O, P, D) of
+        each step, all with the same batch shape), and the rule's weights (None where it has
+        none)."""
+        if k0 != self.next_instant:
+            raise ValueError(f"the rule's steps in order: {k0} after {self.next_instant}")
+        system, Ws, W, nbs, at, dC = self.system, self.Ws, self.W, self.nbs, self.at, self.dC
+        n, m = system.n, system.m
+        S = len(Ws)
+        steps, omegas = [], []
+        for k, maps in enumerate(zip(*locs, strict=True), start=k0):
+            batch = maps[0][0].shape[:-2]
+            T = np.zeros(batch + (dC, dC))
+            U = np.zeros(batch + (dC, m))
+            Ol = np.zeros(batch + (S * n, dC))
+            D = np.zeros(batch + (dC, n))  # the error form: the locals' and the shared buffer's
+            for j, (Tj, Uj, Oj, _, Dj) in enumerate(maps):
+                nb, rows, buf = nbs[j], slice(at[j], at[j + 1]), at[-1]
+                T[..., rows, rows] = Tj[..., :nb, :nb]
+                T[..., rows, buf : buf + Ws[j] * m] = Tj[..., :nb, nb:]  # its newest W_j readings
+                U[..., rows, :] = Uj[..., :nb, :]
+                Ol[..., j * n : (j + 1) * n, rows] = Oj[..., :, :nb]
+                D[..., rows, :] = Dj[..., :nb, :]
+            wide = Ws.index(W)  # a local that keeps all W readings: their shift
+            nw, buf = nbs[wide], at[-1]
+            T[..., buf:, buf:] = maps[wide][0][..., nw:, nw:]
+            U[..., buf:, :] = maps[wide][1][..., nw:, :]
+            D[..., buf:, :] = maps[wide][4][..., nw:, :]
+            Ploc = np.stack([mp[3] for mp in maps], axis=-3)  # batch + (S, n, n)
+            st = StepMap(T, U, Ol, Ploc, D)  # the moments read T, U and D
+            J = None
+            if self.arch_def.joint:
+                P0 = system.prior.cov
+                self.cov = _error_moments(system, k, st, self.D_prev, self.cov, P0, self.H)
+                E = np.zeros(batch + (S * n, n + dC))  # e_j = (I - O_j D_j) x_k - O_j zeta_j
+                E[..., :n] = np.tile(np.eye(n), (S, 1)) - Ol @ D
+                E[..., n:] = -Ol
+                J = sym(E @ self.cov @ mT(E))
+            self.D_prev = D
+            C, Pf, w = _rule(self.arch_def, Ploc, J, self.criterion)
+            omegas.append(w)
+            steps.append(StepMap(T, U, C @ Ol, Pf, D))
+        self.next_instant = k0 + len(steps)
+        return steps, omegas
 
 
 def _rule(arch_def, P: np.ndarray, J: np.ndarray | None, criterion: str):

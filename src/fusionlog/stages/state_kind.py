@@ -384,9 +384,12 @@ class _StateEstimator(Estimator):
         window) carried across the blocks (`core.latency_long`); with delays drawn or
         recorded, or readings missing, the plan-free stacked filters carried
         (`core.latency_blocks`, `.late_blocks`: CKF, HKF, SKF and the per-sensor rules, under
-        reprocess and neglect); None otherwise (retrodiction, FBS: the whole run)."""
+        reprocess and neglect), or, retrodicted (also where no short plans stand for the log),
+        each block's plans with the state of the block before (`core.retrodict_blocks`: every
+        architecture but FBS); None otherwise (FBS: the whole run)."""
         from fusionlog.core.latency_blocks import LateBlocks
         from fusionlog.core.latency_long import late_steady_log
+        from fusionlog.core.retrodict_blocks import RetroBlocks
         from fusionlog.driver.long_log import long_estimates, spool_readings
 
         from .late_blocks import late_estimates
@@ -394,14 +397,15 @@ class _StateEstimator(Estimator):
         plans = self.plans
         system = plans.system
         log = late_steady_log(system, self.archs, plans.steps, plans.criterion, sensors.times())
-        if log is None and not LateBlocks.covers(system, self.archs):
+        kind = RetroBlocks if system.late == "retrodict" else LateBlocks
+        if log is None and not kind.covers(system, self.archs):
             return None  # the plans of the whole run
         spool = spool_readings(sensors.iter_time_blocks(self.topics, B), self.topics, system.m)
         if log is not None and not spool.missing:
             plans.patterns.append(np.packbits(np.ones((plans.steps + 1, system.m), bool)).tobytes())
             out = long_estimates(log, spool, B)
         else:
-            blocks = LateBlocks.of(
+            blocks = kind.of(
                 system, self.archs, plans.steps, sensors.times(), B, plans.criterion, spool.missing
             )
             if blocks is None:  # the plans of the whole run

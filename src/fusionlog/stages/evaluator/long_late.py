@@ -1,11 +1,12 @@
 """The exact analysis of a long one-run log with late sensors in blocks of time (issue 34), for
 delays drawn or recorded and readings missing: the stacked filters' error covariances carried
 from block to block (`core.latency_blocks.LateBlocks.error_covariances`, the truth the filters'
-model), each block's readings (which were taken) and arrivals read from the sensors file as the
-blocks come (`..late_blocks.arrival_blocks`). With random delays the values are conditional on
-the drawn (or recorded) delays, as the whole run's analysis of the run's plans
-(`ExactPart`'s per-run route), and say so (`conditional`). The bound check's worst instant is
-followed as the blocks come (`.long_exact.BoundStream`)."""
+model; retrodicted, the moments of the plans of each block, `core.retrodict_blocks.
+RetroBlocks`, the same interface), each block's readings (which were taken) and arrivals read
+from the sensors file as the blocks come (`..late_blocks.arrival_blocks`). With random delays
+the values are conditional on the drawn (or recorded) delays, as the whole run's analysis of the
+run's plans (`ExactPart`'s per-run route), and say so (`conditional`). The bound check's worst
+instant is followed as the blocks come (`.long_exact.BoundStream`)."""
 
 from __future__ import annotations
 

@@ -315,10 +315,12 @@ class StateEvaluator(Evaluator):
     def _late_exact(self, exact: ExactPart) -> Any:
         """The exact values of a long log with late sensors whose late plans of a short
         horizon do not stand for it (delays drawn or recorded, readings missing): the stacked
-        filters' error covariances block by block (`.long_late`), where the truth is the
-        filters' model and `core.latency_blocks` takes every architecture; else None."""
+        filters' error covariances block by block (`.long_late`; retrodicted, the moments
+        of each block's plans, `core.retrodict_blocks`), where the truth is the filters' model
+        and the path takes every architecture; else None."""
         from fusionlog.core.exact_replay import truth_is_model
         from fusionlog.core.latency_blocks import LateBlocks
+        from fusionlog.core.retrodict_blocks import RetroBlocks
         from fusionlog.driver.long_log import time_block
 
         from .long_late import LongLateExact
@@ -326,7 +328,8 @@ class StateEvaluator(Evaluator):
         p, T = exact.plans, time_block()
         if self._sensors_file is None or not truth_is_model(p.system, exact.truth, self.K):
             return None
-        blocks = LateBlocks.of(p.system, exact.known, self.K, self.times, T, p.criterion)
+        kind = RetroBlocks if p.system.late == "retrodict" else LateBlocks
+        blocks = kind.of(p.system, exact.known, self.K, self.times, T, p.criterion)
         if blocks is None:
             return None
         topics = [sensor_topic(s.name) for s in p.system.sensors]
