@@ -34,7 +34,7 @@ from fusionlog.scenario.model_section import bytes_per_instant
 from .common import block_runs
 from .evaluator import SensorLog, StateEvaluator
 from .hooks import Estimator, Kind, Model, Prov, Sens, StepWriter
-from .noise import with_message_covariances
+from .noise import message_covariances, with_message_covariances
 
 
 def check_discretisable(system: System, truth: Scenario, model: str, where: str) -> None:
@@ -212,13 +212,14 @@ class StateKind(Kind):
         kept: KeptPlans | None = None,
     ) -> Estimator:
         topics = [sensor_topic(s.name) for s in system.sensors]
-        system = with_message_covariances(system.on_times(sensors.times()), sensors)
+        long = _long_one_run(steps, runs)  # its per-message R read block by block
+        system = with_message_covariances(system.on_times(sensors.times()), sensors, long)
         plans = PlanCache(system, steps, times=sensors.times(), one_run=runs == 1, kept=kept)
         est = _StateEstimator(plans, runs, archs, topics)
         # a long one-run log's arrivals are read block by block (`.late_blocks`); the whole
         # run's path reads them all on its first block
         est.load = lambda: recorded_arrivals(plans, sensors, topics, runs)
-        if not _long_one_run(plans.steps, runs):
+        if not long:
             est.arrivals()
         return est
 
@@ -246,8 +247,11 @@ class StateKind(Kind):
         ).on_times(times)
         log = None
         if sens is not None:  # an imported log's per-message R, for the filter and the truth
-            filter_sys = with_message_covariances(filter_sys, sens)
-            truth_sys = with_message_covariances(truth_sys, sens)
+            names = [s.name for s in (*filter_sys.sensors, *truth_sys.sensors)]
+            long = _long_one_run(len(times) - 1, est.runs())  # read block by block
+            covs = message_covariances(names, sens, long)
+            filter_sys = with_message_covariances(filter_sys, sens, covs=covs)
+            truth_sys = with_message_covariances(truth_sys, sens, covs=covs)
             log = _sensor_log(sc, filter_sys, sens)
         return StateEvaluator(
             sc, archs, filter_sys, truth_sys, est.runs(), times, prov, log, str(est.path), kept
