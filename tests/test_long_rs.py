@@ -257,3 +257,37 @@ def test_blocked_R_is_the_whole_logs(tmp_path, monkeypatch) -> None:
     r = mf.read_all(["/sensors/s1"])  # (the readings: the variances are the messages')
     assert r["/sensors/s1"].shape == (1, 2000, 1)
     assert len(np.unique(whole[:, 0, 0])) == 2000
+
+
+# -- a nonlinear late log's drawn arrivals ------------------------------------------------------
+
+
+def test_nonlinear_drawn_arrivals_are_read_per_block(tmp_path, monkeypatch) -> None:
+    """The EKF radar log with radar2's delays drawn per reading (0.5..2.5 s) and the camera
+    3 s late, estimated in blocks of 45 instants without the whole run's arrivals (the reader
+    of the whole run's fails here): the same estimates, bit for bit, as the whole run."""
+    from test_long_late_more import RADAR
+
+    import fusionlog.io.mcap.arrival as arrival
+
+    sc = tmp_path / "late.toml"
+    sc.write_text(
+        RADAR.format(
+            steps=150, archs='["CKF", "MSC"]', late="reprocess", latency="{min = 0.5, max = 2.5}"
+        )
+    )
+    ok("simulate", sc, "-o", tmp_path / "s.mcap")
+    monkeypatch.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
+    ok("estimate", tmp_path / "s.mcap", "-o", tmp_path / "whole.mcap")
+
+    def whole(*a, **kw):
+        raise AssertionError("the whole run's arrivals read")
+
+    monkeypatch.setattr(arrival, "read_arrivals", whole)
+    monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", "45")
+    ok("estimate", tmp_path / "s.mcap", "-o", tmp_path / "blocked.mcap")
+    a, b = (McapFile(tmp_path / f"{n}.mcap") for n in ("whole", "blocked"))
+    for topic in ("/estimates/CKF", "/estimates/MSC"):
+        (ma, ca), (mb, cb) = a.read_all([topic])[topic], b.read_all([topic])[topic]
+        np.testing.assert_array_equal(mb, ma, err_msg=topic)
+        np.testing.assert_array_equal(cb, ca, err_msg=topic)

@@ -422,26 +422,41 @@ class _StateEstimator(Estimator):
     def _nonlinear_windows(self, sensors: McapFile, B: int) -> Any:
         """A long nonlinear one-run log in blocks of time (`core.nonlinear.long_log`), its
         readings spooled (FBS reads them back in reverse; the late policies read the last W
-        instants again); late readings arrive when the log says (`recorded_arrivals`) or
-        with the sensors' fixed latencies."""
+        instants again); late readings arrive when the log says (drawn or recorded delays:
+        its arrival fields read block by block, `.late_blocks.arrival_blocks`, and spooled:
+        each architecture's policy reads them twice) or with the sensors' fixed latencies."""
         from fusionlog.core.nonlinear.long_log import estimate_blocks
-        from fusionlog.driver.long_log import spool_readings
+        from fusionlog.driver.long_log import Spool, spool_readings
 
-        plans, topics = self.plans, self.topics
+        from .late_blocks import arrival_blocks
+
+        plans, topics, system = self.plans, self.topics, self.plans.system
         blocks = sensors.iter_time_blocks(topics, B)
-        spool = spool_readings(blocks, topics, plans.system.m)
+        spools = [spool_readings(blocks, topics, system.m)]
         plans.patterns.append(None)  # per-run covariances (provenance), as the whole run's
+        arrival = None
+        if random_delays(system):  # (fixed latencies: the model says when)
+            spools.append(Spool(len(topics)))
+            try:
+                k0 = 0
+                for a in arrival_blocks(sensors, system, topics, B):
+                    spools[1].write(k0, a)
+                    k0 += len(a)
+            except BaseException:
+                for s in spools:
+                    s.close()
+                raise
+            arrival = lambda a, b: spools[1].read(a, b)[None]  # noqa: E731
 
         def windows() -> Any:
             try:
-                read = lambda a, b: spool.read(a, b)[None]  # noqa: E731
-                self.arrivals()  # drawn or recorded delays: the log's, read whole (8 S B/instant)
-                arrival = plans.block_arrivals(0, 1)
-                got = estimate_blocks(plans.system, self.archs, read, plans.times, B, arrival)
+                read = lambda a, b: spools[0].read(a, b)[None]  # noqa: E731
+                got = estimate_blocks(system, self.archs, read, plans.times, B, arrival)
                 for k0, k1, out in got:
                     yield k0, k1, {a: _estimate_writer(*e, False, k0) for a, e in out.items()}
             finally:
-                spool.close()
+                for s in spools:
+                    s.close()
 
         return windows()
 
