@@ -12,6 +12,10 @@ cached stretch of `STRETCH` intervals — from the instants' times, which the lo
 The numbers are those of forming every interval at once: `van_loan` computes each interval's
 F and Q from its Δ alone (elementwise powers and one product per row), so the distinct
 intervals of a stretch give the same bits as those of the whole log (tests/test_intervals.py).
+
+`PerInstant` does the same for a matrix per instant: the stacked R of eq. (31) of a long log whose
+messages carry their own covariance (`System.Rs`), formed from a source a block at a time
+(`stages.noise`: the messages' covariances spooled block of time by block).
 """
 
 from __future__ import annotations
