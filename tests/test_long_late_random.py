@@ -83,8 +83,8 @@ CASES = [
 
 
 def _archs(correlated: bool) -> list[str]:
-    """HKF fuses correlated readings arriving apart as independent: its exact analysis (the
-    error's correlation across instants) is the plans' (`test_hkf_with_correlated_...`)."""
+    """HKF fuses correlated readings arriving apart as independent (its error correlated
+    across instants): on its own in `test_hkf_with_correlated_readings_apart_in_blocks`."""
     return [a for a in ARCHS if a != "HKF"] if correlated else ARCHS
 
 
@@ -276,10 +276,11 @@ def test_sub_blocks_of_the_stacked_filters_change_no_number(tmp_path, monkeypatc
     _close(sb, sa)
 
 
-def test_hkf_with_correlated_readings_apart_is_evaluated_whole(tmp_path, monkeypatch) -> None:
-    """HKF on correlated sensors whose readings of one instant arrive apart: estimated in
-    blocks (its estimates the whole run's), evaluated on the whole run (the plans' exact
-    analysis: its error is correlated across instants), the summary the whole run's."""
+def test_hkf_with_correlated_readings_apart_in_blocks(tmp_path, monkeypatch) -> None:
+    """HKF on correlated sensors whose readings of one instant arrive apart: estimated and
+    evaluated in blocks (its error is correlated across instants: its recursion keeps the raw
+    noises still to be read, `core.latency_apart`), estimates and summary the whole run's
+    (the plans' exact analysis)."""
     sc = _scenario(tmp_path, "{min = 0.0, max = 2.0}", True, True, "reprocess", archs=ARCHS)
     mp = pytest.MonkeyPatch()
     try:
@@ -288,7 +289,7 @@ def test_hkf_with_correlated_readings_apart_is_evaluated_whole(tmp_path, monkeyp
         blocked = _run(sc, tmp_path / "blocked", BLOCK, mp)
     finally:
         mp.undo()
-    assert (spy.estimated, spy.evaluated, spy.exact) == (12, 0, 0)
+    assert (spy.estimated, spy.evaluated, spy.exact) == (12, 12, 12)
     a = McapFile(whole / "estimates.mcap").read_all(["/estimates/HKF"])["/estimates/HKF"]
     b = McapFile(blocked / "estimates.mcap").read_all(["/estimates/HKF"])["/estimates/HKF"]
     np.testing.assert_allclose(b[0], a[0], rtol=0, atol=RTOL * np.abs(a[0]).max())

@@ -21,11 +21,18 @@ the error covariances of the stacked filters under their own model (`ReplayBlock
 error_covariances`, `exact_replay`), the marginal of x_k -- the analysis conditional on the
 drawn or recorded delays, as the plans' of the run's arrival pattern.
 
-Covered: as `latency_replay` -- CKF (on the decorrelated readings where correlated ones arrive
-apart), HKF and SKF under reprocess and neglect. Not here (None: the whole run, the plans):
-retrodiction, the per-sensor rules (MSC, MSC-GMF, CI, AVG, ICI, EI fuse the locals' current
-blocks, `latency_stacked.fused_plan`), and fixed latencies on a steady model with every reading
-present (the steady plans of `latency_long`).
+Covered, under reprocess and neglect: as `latency_replay` -- CKF (on the decorrelated readings
+where correlated ones arrive apart), HKF and SKF -- and the per-sensor rules (MSC, MSC-GMF, CI,
+AVG, ICI, EI): one local stacked filter per sensor (neglect's acceptance per local), carried
+as `ReplayBlocks` carries the on-time locals with their joint error covariance J of eq. (35),
+the rule fusing their current blocks at each instant (`latency_stacked.current_block_rule`,
+the plans' `fused_plan` rule; no rule keeps a state of its own: CI's, ICI's and EI's weights
+are per instant). Where correlated readings of one instant arrive apart, the stacked noise is
+correlated across time: J (MSC-GMF's and AVG's weights, every rule's exact analysis) and HKF's
+error covariance then keep the raw noises still to be read (`core.latency_apart`, as the
+plans' `latency_joint` maps keep the readings). Not here (None: the whole run, the plans):
+retrodiction, FBS, and fixed latencies on a steady model with every reading present (the
+steady plans of `latency_long`).
 """
 
 from __future__ import annotations
@@ -37,12 +44,14 @@ import numpy as np
 
 from .architectures import definition, parse_arch
 from .architectures.plan import Estimate
+from .architectures.replay import _Replay
 from .architectures.replay_blocks import ReplayBlocks, system_window
 from .late_policy import arrival_steps, is_late, random_delays
 from .latency import LateModel, lag_pairs, lags_of
+from .latency_apart import ApartReplay, selection
 from .latency_corr import Conditions, apart_pairs, conditions_of, with_conditions
 from .latency_replay import stacked_readings
-from .latency_stacked import stacked_system
+from .latency_stacked import current_block_rule, stacked_system
 from .model import System
 
 __all__ = ["LATE_BLOCK_BYTES", "LateBlocks"]
@@ -51,6 +60,10 @@ __all__ = ["LATE_BLOCK_BYTES", "LateBlocks"]
 #: into sub-blocks below it (the stacked model has W + 1 times the states and a row block per
 #: lag).
 LATE_BLOCK_BYTES = 1 << 25
+
+#: The kinds of architecture (`definition.LOCALS`) the path takes: not the smoother, whose
+#: backward pass would run on the stacked model from the log's end.
+_KINDS = ("centralised", "hierarchical", "single", "per-sensor")
 
 
 def _geometry(
@@ -82,6 +95,17 @@ class _Stacked(ReplayBlocks):
 
     late: LateModel
     centre: tuple | None
+    #: `latency_apart.selection` where correlated readings arrive apart at the plain stacked
+    #: model's filters (HKF, the per-sensor locals), else None
+    apart: np.ndarray | None = None
+
+    def replay(self, system: System, z: np.ndarray, backward) -> _Replay:
+        if self.apart is None:
+            return super().replay(system, z, backward)
+        r = ApartReplay(system, z, self.need, self.criterion, self.carried, backward)
+        r.sel, r.W = self.apart, self.late.window
+        r.raw_R = self.late.system.R
+        return r
 
     def window_system(self, k0: int, k1: int, into_first: bool) -> System:
         if self.late.system.Fs is None and self.late.system.Qs is None:
@@ -126,15 +150,14 @@ class LateBlocks:
         block: int,
         criterion: str | None = None,
         missing: bool = True,
-        exact: bool = False,
     ) -> LateBlocks | None:
         """The blocked late path of one run of instants 0..`steps` at `times` (s), the lags found
         in blocks of `block` instants; None where it does not apply (module docstring;
         `missing`: some reading is missing -- with fixed latencies on a steady model and every
-        reading present the steady plans do it). `exact`: for the error covariances, which
-        take the stacked noises as white: not HKF where correlated readings of one instant may
-        arrive apart (it fuses them as independent, so its error has their correlation across
-        instants, which only the plans' analysis follows)."""
+        reading present the steady plans do it). Where correlated readings of one instant may
+        arrive apart, HKF (which fuses them as independent) and the per-sensor locals (which
+        they enter at different instants) have errors correlated across instants: their error
+        recursions keep the raw noises still to be read (`core.latency_apart`)."""
         if not cls.covers(system, archs):
             return None
         if not random_delays(system) and system.time_invariant and not missing:
@@ -146,20 +169,28 @@ class LateBlocks:
         late.system = system
         inner = {}
         for a in archs:
-            _, kind, filters = late.filters_of(a)
-            if kind not in ("centralised", "hierarchical", "single"):
+            base, kind, filters = late.filters_of(a)
+            if kind not in _KINDS:
                 return None
-            if exact and kind == "hierarchical" and apart_pairs(system):
+            apart = bool(apart_pairs(system)) and kind in ("hierarchical", "per-sensor")
+            if apart and system.Rs is not None:  # the raw noises kept need one R
                 return None
             centre = late.centre_model() if kind == "centralised" else None
             model = late.stacked if centre is None else centre[0]
-            m, N = model.m, model.n
-            per_instant = (2 * len(model.sensors) + 2) * m * (m + N) * 8
+            m, N, S = model.m, model.n, len(model.sensors)
+            per_instant = (2 * S + 2) * m * (m + N) * 8
+            if kind in ("per-sensor", "hierarchical"):  # eq. (35)'s J, HKF's E, A and C
+                d = S * N if kind == "per-sensor" else N
+                d += late.window * system.m if apart else 0  # the raw noises kept
+                per_instant += 4 * d * d * 8
             sub = max(1, min(block, LATE_BLOCK_BYTES // per_instant))
             got = _Stacked.of(model, [a], steps, sub, criterion)
             if got is None:
                 return None
+            if kind == "per-sensor":  # the rule fuses the locals' current blocks
+                got.bases = [(current_block_rule(base, system.n, N), None)]
             got.late, got.centre = late, centre
+            got.apart = selection(late.slots, system.m, late.window) if apart else None
             inner[a] = (got, filters, centre, sub)
         return cls(late, archs, inner, times)
 
@@ -177,7 +208,7 @@ class LateBlocks:
             kinds = [definition(parse_arch(a, names)[0]).locals for a in archs]
         except ValueError:
             return False
-        return all(k in ("centralised", "hierarchical", "single") for k in kinds)
+        return all(k in _KINDS for k in kinds)
 
     def _arrivals(self, k0: int, k1: int, arrival: np.ndarray | None) -> np.ndarray:
         """The arrival times (w, S) s of the block's readings: `arrival` (NaN: none taken),

@@ -15,7 +15,9 @@ rules fuse the locals' current blocks only (`latency_stacked.fused_plan`) and re
 a plan of its own: those go to the plans (None), as does a steady model with fixed
 latencies and every reading present (the plans' steady shortcut repeats one map,
 `filters.Steady`). A long log in blocks of time: the same filters carried from block to block
-(`core.latency_blocks`, `stacked_readings` of a window reaching W instants back).
+(`core.latency_blocks`, `stacked_readings` of a window reaching W instants back), the
+per-sensor rules there too (their stacked locals carried with eq. (35)'s J, the rule on their
+current blocks), which a log of one block still takes through the plans.
 """
 
 from __future__ import annotations

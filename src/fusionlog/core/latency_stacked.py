@@ -14,13 +14,14 @@ import dataclasses
 import numpy as np
 
 from .architectures import BlockDiagonal, BuildRequest, Plan, StepMap, definition
+from .architectures.definition import Architecture
 from .architectures.registry import group_by_history
 from .architectures.track_to_track import build_rule
 from .linalg import numerical_errors
 from .model import Prior, System
 from .models import LinearSensor
 
-__all__ = ["fused_plan", "stacked_system", "wrap"]
+__all__ = ["current_block_rule", "fused_plan", "stacked_system", "wrap"]
 
 
 def stacked_system(system: System, lags: list[np.ndarray]) -> System:
@@ -218,6 +219,18 @@ def first_blocks(rule, n: int, N: int):
     return fused
 
 
+def current_block_rule(arch: str, n: int, N: int) -> Architecture:
+    """The per-sensor architecture `arch` on locals of the stacked model (N states): its
+    registered rule applied to their current blocks (`first_blocks`, x_k's n states), taken
+    by the plans (`fused_plan`) and the plan-free blocks of time (`latency_blocks`) alike."""
+    base = definition(arch)
+    # `first_blocks` hands the rule mean-form covariances only: late sensors need a prior, so
+    # the locals never start in information form here (information=False).
+    return dataclasses.replace(
+        base, rule=first_blocks(base.rule, n, N), build=None, color=None, information=False
+    )
+
+
 def fused_plan(
     system: System,
     arch: str,
@@ -229,12 +242,7 @@ def fused_plan(
     """The track-to-track architecture `arch` on the stacked `system`: its local filters (one
     per sensor) and its registered rule applied to their current blocks (`first_blocks`),
     by the generic rule builder (`track_to_track.build_rule`)."""
-    base = definition(arch)
-    # `first_blocks` hands the rule mean-form covariances only: late sensors need a prior, so
-    # the locals never start in information form here (information=False).
-    stacked = dataclasses.replace(
-        base, rule=first_blocks(base.rule, n, system.n), build=None, color=None, information=False
-    )
+    stacked = current_block_rule(arch, n, system.n)
     request = BuildRequest(system, arch, present, None, criterion)
     if present.ndim == 3:
         request.nodes = group_by_history(present)

@@ -387,7 +387,8 @@ class _StateEstimator(Estimator):
         every reading present the late plans of a short horizon, their state (the latency
         window) carried across the blocks (`core.latency_long`); with delays drawn or
         recorded, or readings missing, the plan-free stacked filters carried
-        (`core.latency_blocks`, `.late_blocks`); None otherwise (the whole run)."""
+        (`core.latency_blocks`, `.late_blocks`: CKF, HKF, SKF and the per-sensor rules, under
+        reprocess and neglect); None otherwise (retrodiction, FBS: the whole run)."""
         from fusionlog.core.latency_blocks import LateBlocks
         from fusionlog.core.latency_long import late_steady_log
         from fusionlog.driver.long_log import long_estimates, spool_readings

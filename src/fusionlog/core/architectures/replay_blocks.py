@@ -85,6 +85,11 @@ class ReplayBlocks:
         is made per block, `core.latency_blocks`)."""
         return system_window(self.system, k0, k1, into_first)
 
+    def replay(self, system: System, z: np.ndarray, backward) -> _Replay:
+        """The recursions of one block from the carried state (a late model where correlated
+        readings arrive apart keeps their noises too, `core.latency_apart`)."""
+        return _Replay(system, z, self.need, self.criterion, self.carried, backward)
+
     def _block(self, k0: int, k1: int, z: np.ndarray, backward, what):
         """what(_Replay of the block from the carried state); the block's last state carried.
         A numerical failure names the block's instants (no plans to hand it to, as the
@@ -94,7 +99,7 @@ class ReplayBlocks:
         system = self.window_system(k0, k1, k0 > 0)
         try:
             with np.errstate(all="ignore"):
-                r = _Replay(system, z, self.need, self.criterion, self.carried, backward)
+                r = self.replay(system, z, backward)
                 out = what(r)
         except (NumericalError, *NUMERICAL_FAILURES) as e:
             raise NumericalError(f"instants {k0}..{k1 - 1}: {e}") from None

@@ -101,6 +101,8 @@ class StateEvaluator(Evaluator):
         #: EKF/UKF filters: nothing evaluated reads when the readings arrived (no exact
         #: analysis), so a late log is evaluated in blocks as an on-time one (issue 34)
         self.nonlinear = not filter_sys.linear
+        #: a covariance per message, which the late plans and stacked filters do not take
+        self.per_message_R = filter_sys.Rs is not None
         known = [a for a in self.archs if known_arch(a, filter_sys)]
         names = list(sc.state_names)
         truthed = (
@@ -304,10 +306,11 @@ class StateEvaluator(Evaluator):
         )  # fmt: skip
 
     def _late_whole(self) -> bool:
-        """Whether a log with late sensors takes the whole run: no exact analysis to decide
-        by, or per-message R (which the late plans do not take)."""
-        exact = next((p for p in self.parts if isinstance(p, ExactPart)), None)
-        return exact is None or exact.plans.system.Rs is not None
+        """Whether a log with late sensors takes the whole run: per-message R (which the late
+        plans do not take). Without an exact analysis (a truth whose model is nonlinear, or
+        whose sensors are not the filters') the metrics, NIS and trajectory parts read only
+        the estimates and readings, block by block as an on-time log's."""
+        return self.per_message_R
 
     def _late_exact(self, exact: ExactPart) -> Any:
         """The exact values of a long log with late sensors whose late plans of a short
@@ -323,9 +326,7 @@ class StateEvaluator(Evaluator):
         p, T = exact.plans, time_block()
         if self._sensors_file is None or not truth_is_model(p.system, exact.truth, self.K):
             return None
-        blocks = LateBlocks.of(
-            p.system, exact.known, self.K, self.times, T, p.criterion, exact=True
-        )
+        blocks = LateBlocks.of(p.system, exact.known, self.K, self.times, T, p.criterion)
         if blocks is None:
             return None
         topics = [sensor_topic(s.name) for s in p.system.sensors]
