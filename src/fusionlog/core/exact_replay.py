@@ -33,10 +33,6 @@ if TYPE_CHECKING:
     from .exact_mismatch import MismatchBlocks
 
 
-def _per_step(a: np.ndarray | None, default: np.ndarray, count: int) -> np.ndarray:
-    return np.broadcast_to(default if a is None else a, (count,) + default.shape)
-
-
 def truth_is_model(model: System, truth: System, steps: int) -> bool:
     """Whether `truth` (as the filters see it) is `model` on the instants k = 0..steps: the
     same matrices bit for bit and the prior as its initial distribution."""
@@ -49,15 +45,15 @@ def truth_is_model(model: System, truth: System, steps: int) -> bool:
         (model.linear_measurement(), truth.linear_measurement()),
         (model.prior.mean, init.mean),
         (model.prior.cov, init.cov),
-        (_per_step(model.Rs, model.R, steps + 1), _per_step(truth.Rs, truth.R, steps + 1)),
     ]
-    # F, Q of every interval a stretch at a time (`core.intervals`: not formed whole)
-    per = (("Fs", "F"), ("Qs", "GQG"))
+    # F, Q of every interval and R of every instant a stretch at a time (`core.intervals`:
+    # not formed whole)
+    per = (("Fs", "F", steps), ("Qs", "GQG", steps), ("Rs", "R", steps + 1))
     return all(a.shape == b.shape and np.array_equal(a, b) for a, b in same) and all(
         same_per_interval(
-            getattr(model, f), getattr(model, d), getattr(truth, f), getattr(truth, d), steps
+            getattr(model, f), getattr(model, d), getattr(truth, f), getattr(truth, d), count
         )
-        for f, d in per
+        for f, d, count in per
     )
 
 

@@ -12,11 +12,16 @@ cached stretch of `STRETCH` intervals — from the instants' times, which the lo
 The numbers are those of forming every interval at once: `van_loan` computes each interval's
 F and Q from its Δ alone (elementwise powers and one product per row), so the distinct
 intervals of a stretch give the same bits as those of the whole log (tests/test_intervals.py).
+
+`PerInstant` does the same for a matrix per instant: the stacked R of eq. (31) of a long log whose
+messages carry their own covariance (`System.Rs`), formed from a source a block at a time
+(`stages.noise`: the messages' covariances spooled block of time by block).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -25,6 +30,7 @@ from .timing import van_loan
 __all__ = [
     "STRETCH",
     "MotionNoise",
+    "PerInstant",
     "PerInterval",
     "Transitions",
     "VanLoan",
@@ -113,7 +119,40 @@ class Transitions:
         return out
 
 
-class PerInterval(np.lib.mixins.NDArrayOperatorsMixin):
+class _Formed(np.lib.mixins.NDArrayOperatorsMixin):
+    """What an array of per-step matrices formed on demand does as an array: `np.asarray(x)`
+    and arithmetic form every step; `x[k]` and `x[a:b]` (`__getitem__`) form those."""
+
+    __slots__ = ()
+
+    def __getitem__(self, key) -> np.ndarray:  # pragma: no cover - each kind forms its own
+        raise NotImplementedError
+
+    def __len__(self) -> int:  # pragma: no cover
+        raise NotImplementedError
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        for k in range(len(self)):
+            yield self[k]
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        out = self[:]
+        return out if dtype is None else out.astype(dtype)
+
+    def __array_ufunc__(self, ufunc, method, *inputs, **kwargs):
+        args = [np.asarray(x) if isinstance(x, _Formed) else x for x in inputs]
+        return getattr(ufunc, method)(*args, **kwargs)
+
+    @property
+    def ndim(self) -> int:
+        return 1 + self[0].ndim if len(self) else 3
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return (len(self),) + self[0].shape if len(self) else (0, 0, 0)
+
+
+class PerInterval(_Formed):
     """F (`which` 0) or Q (1) of every interval of a `Transitions`, indexed like the (K, n, n)
     array it stands for: `x[k]`, `x[a:b]`, `x[int_array]` form those intervals (read only);
     `np.asarray(x)` and arithmetic (`3.0 * x`) form them all."""
@@ -135,34 +174,109 @@ class PerInterval(np.lib.mixins.NDArrayOperatorsMixin):
     def __getitem__(self, key) -> np.ndarray:
         return self.source.of(key)[self.which]
 
-    def __iter__(self) -> Iterator[np.ndarray]:
-        for k in range(len(self)):
-            yield self[k]
 
-    def __array__(self, dtype=None, copy=None) -> np.ndarray:
-        out = self[:]
-        return out if dtype is None else out.astype(dtype)
+class PerInstant(_Formed):
+    """A matrix per instant of a long log (the stacked R of eq. (31) where a recorded log's
+    messages carry their own covariance, `System.Rs`), indexed like the (K+1, m, m) array it
+    stands for and formed for the instants asked for by `source.form(k0, k1)` ((k1 - k0, m, m),
+    the same bits whatever the range; `source.key` names them: equal keys, equal matrices).
+    `x[k]` forms a cached stretch of `STRETCH` instants (an instant-by-instant loop forms each
+    once), `x[a:b]` those instants, `x[:, rows][:, :, rows]` (a subset of the sensors) and
+    `x.map(f)` stand for the arrays of the stretches `f` or the index makes, formed likewise."""
 
-    def __array_ufunc__(self, ufunc, method, *inputs, **kwargs):
-        args = [np.asarray(x) if isinstance(x, PerInterval) else x for x in inputs]
-        return getattr(ufunc, method)(*args, **kwargs)
+    __slots__ = ("source", "post")
+
+    def __init__(self, source: Any, post: tuple = ()) -> None:
+        self.source, self.post = source, post
+
+    def __len__(self) -> int:
+        return len(self.source)
 
     @property
-    def ndim(self) -> int:
-        return 3
+    def key(self) -> Any:
+        """What names these matrices bit for bit (None: only this object is known to)."""
+        key = getattr(self.source, "key", None)
+        return None if key is None else (key, self.post)
 
-    @property
-    def shape(self) -> tuple[int, int, int]:
-        return (len(self),) + self[0].shape if len(self) else (0, 0, 0)
+    def map(self, f: Callable[[np.ndarray], np.ndarray]) -> PerInstant:
+        """`f` of every stretch ((w, m, m) -> (w, ...)), formed when asked for."""
+        return PerInstant(self.source, self.post + (f,))
+
+    def _formed(self, k0: int, k1: int) -> np.ndarray:
+        if k1 - k0 == 1:  # one instant: from the cached stretch around it
+            c = k0 // STRETCH
+            got = getattr(self.source, "cached", None)
+            if got is None or got[0] != c:
+                a = c * STRETCH
+                got = self.source.cached = (c, self.source.form(a, min(a + STRETCH, len(self))))
+            j = k0 - c * STRETCH
+            out = got[1][j : j + 1]
+        else:
+            out = self.source.form(k0, k1)
+        for p in self.post:
+            out = p(out)
+        return out
+
+    def __getitem__(self, key) -> np.ndarray:
+        if isinstance(key, tuple):
+            first, rest = (key[0], key[1:]) if key else (slice(None), ())
+            if not rest:
+                return self[first]
+            if isinstance(first, slice) and first == slice(None):
+                return self.map(_Index(rest))
+            got = self[first]
+            return got[rest] if isinstance(first, (int, np.integer)) else got[(slice(None), *rest)]
+        K1 = len(self)
+        if isinstance(key, (int, np.integer)):
+            k = int(key) + K1 if key < 0 else int(key)
+            if not 0 <= k < K1:
+                raise IndexError(f"instant {key} of {K1}")
+            return self._formed(k, k + 1)[0]
+        if isinstance(key, slice) and key.indices(K1)[2] == 1:
+            a, b, _ = key.indices(K1)
+            return self._formed(a, max(a, b))
+        idx = np.arange(K1)[key]  # numpy's meaning (steps, arrays, masks): their range formed
+        if not idx.size:
+            return self._formed(0, 0)[idx]
+        lo = int(idx.min())
+        return self._formed(lo, int(idx.max()) + 1)[idx - lo]
+
+
+class _Index:
+    """The index `rest` of every instant's matrix (`PerInstant`'s `x[:, rows]`)."""
+
+    __slots__ = ("rest",)
+
+    def __init__(self, rest: tuple) -> None:
+        self.rest = rest
+
+    def __call__(self, a: np.ndarray) -> np.ndarray:
+        return a[(slice(None),) + self.rest]
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, _Index) and _same_index(self.rest, other.rest)
+
+    def __hash__(self) -> int:
+        return hash(len(self.rest))
+
+
+def _same_index(a: tuple, b: tuple) -> bool:
+    return len(a) == len(b) and all(
+        (x == y) if isinstance(x, slice) or isinstance(y, slice) else np.array_equal(x, y)
+        for x, y in zip(a, b, strict=True)
+    )
 
 
 def same_per_interval(a, default_a: np.ndarray, b, default_b: np.ndarray, count: int) -> bool:
     """Whether two systems' matrices of the `count` intervals are equal bit for bit: `a`, `b`
     are (count, ...) arrays or `PerInterval`s, or None (`default_a`, `default_b` at every
     interval); compared a stretch at a time, two `PerInterval`s of the same model and times
-    without forming them."""
+    (two `PerInstant`s of the same key) without forming them."""
     if any(x is not None and len(x) != count for x in (a, b)):
         return False
+    if isinstance(a, PerInstant) and isinstance(b, PerInstant):
+        if a is b or (a.key is not None and a.key == b.key):
+            return True
     if isinstance(a, PerInterval) and isinstance(b, PerInterval) and a.which == b.which:
         sa, sb = a.source, b.source
         same = sa.key is not None and sa.key == sb.key

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .intervals import MotionNoise, PerInterval, Transitions, VanLoan
+from .intervals import MotionNoise, PerInstant, PerInterval, Transitions, VanLoan
 from .models import LinearMotion, LinearSensor, MotionModel, NotLinear, SensorModel
 from .timing import Schedule, schedule
 
@@ -60,7 +60,8 @@ class System:
     Qs: np.ndarray | PerInterval | None = None  # (K, n, n)
     #: The stacked measurement noise covariance of eq. (31) at each instant (K+1, m, m), where
     #: it varies (a recorded log whose messages carry their own covariance); None: R always.
-    Rs: np.ndarray | None = None
+    #: A long log's is a `core.intervals.PerInstant`, formed for the instants asked for.
+    Rs: np.ndarray | PerInstant | None = None
     #: A nonlinear motion model (`core.models`, e.g. the coordinated turn), which then replaces
     #: F, Q (kept as its linearisation at the zero state over dt and its Q(dt)); None: F, Q.
     motion_model: MotionModel | None = None

@@ -34,7 +34,7 @@ from fusionlog.scenario.model_section import bytes_per_instant
 from .common import block_runs
 from .evaluator import SensorLog, StateEvaluator
 from .hooks import Estimator, Kind, Model, Prov, Sens, StepWriter
-from .noise import with_message_covariances
+from .noise import message_covariances, with_message_covariances
 
 
 def check_discretisable(system: System, truth: Scenario, model: str, where: str) -> None:
@@ -212,13 +212,14 @@ class StateKind(Kind):
         kept: KeptPlans | None = None,
     ) -> Estimator:
         topics = [sensor_topic(s.name) for s in system.sensors]
-        system = with_message_covariances(system.on_times(sensors.times()), sensors)
+        long = _long_one_run(steps, runs)  # its per-message R read block by block
+        system = with_message_covariances(system.on_times(sensors.times()), sensors, long)
         plans = PlanCache(system, steps, times=sensors.times(), one_run=runs == 1, kept=kept)
         est = _StateEstimator(plans, runs, archs, topics)
         # a long one-run log's arrivals are read block by block (`.late_blocks`); the whole
         # run's path reads them all on its first block
         est.load = lambda: recorded_arrivals(plans, sensors, topics, runs)
-        if not _long_one_run(plans.steps, runs):
+        if not long:
             est.arrivals()
         return est
 
@@ -246,8 +247,11 @@ class StateKind(Kind):
         ).on_times(times)
         log = None
         if sens is not None:  # an imported log's per-message R, for the filter and the truth
-            filter_sys = with_message_covariances(filter_sys, sens)
-            truth_sys = with_message_covariances(truth_sys, sens)
+            names = [s.name for s in (*filter_sys.sensors, *truth_sys.sensors)]
+            long = _long_one_run(len(times) - 1, est.runs())  # read block by block
+            covs = message_covariances(names, sens, long)
+            filter_sys = with_message_covariances(filter_sys, sens, covs=covs)
+            truth_sys = with_message_covariances(truth_sys, sens, covs=covs)
             log = _sensor_log(sc, filter_sys, sens)
         return StateEvaluator(
             sc, archs, filter_sys, truth_sys, est.runs(), times, prov, log, str(est.path), kept
@@ -423,26 +427,41 @@ class _StateEstimator(Estimator):
     def _nonlinear_windows(self, sensors: McapFile, B: int) -> Any:
         """A long nonlinear one-run log in blocks of time (`core.nonlinear.long_log`), its
         readings spooled (FBS reads them back in reverse; the late policies read the last W
-        instants again); late readings arrive when the log says (`recorded_arrivals`) or
-        with the sensors' fixed latencies."""
+        instants again); late readings arrive when the log says (drawn or recorded delays:
+        its arrival fields read block by block, `.late_blocks.arrival_blocks`, and spooled:
+        each architecture's policy reads them twice) or with the sensors' fixed latencies."""
         from fusionlog.core.nonlinear.long_log import estimate_blocks
-        from fusionlog.driver.long_log import spool_readings
+        from fusionlog.driver.long_log import Spool, spool_readings
 
-        plans, topics = self.plans, self.topics
+        from .late_blocks import arrival_blocks
+
+        plans, topics, system = self.plans, self.topics, self.plans.system
         blocks = sensors.iter_time_blocks(topics, B)
-        spool = spool_readings(blocks, topics, plans.system.m)
+        spools = [spool_readings(blocks, topics, system.m)]
         plans.patterns.append(None)  # per-run covariances (provenance), as the whole run's
+        arrival = None
+        if random_delays(system):  # (fixed latencies: the model says when)
+            spools.append(Spool(len(topics)))
+            try:
+                k0 = 0
+                for a in arrival_blocks(sensors, system, topics, B):
+                    spools[1].write(k0, a)
+                    k0 += len(a)
+            except BaseException:
+                for s in spools:
+                    s.close()
+                raise
+            arrival = lambda a, b: spools[1].read(a, b)[None]  # noqa: E731
 
         def windows() -> Any:
             try:
-                read = lambda a, b: spool.read(a, b)[None]  # noqa: E731
-                self.arrivals()  # drawn or recorded delays: the log's, read whole (8 S B/instant)
-                arrival = plans.block_arrivals(0, 1)
-                got = estimate_blocks(plans.system, self.archs, read, plans.times, B, arrival)
+                read = lambda a, b: spools[0].read(a, b)[None]  # noqa: E731
+                got = estimate_blocks(system, self.archs, read, plans.times, B, arrival)
                 for k0, k1, out in got:
                     yield k0, k1, {a: _estimate_writer(*e, False, k0) for a, e in out.items()}
             finally:
-                spool.close()
+                for s in spools:
+                    s.close()
 
         return windows()
 

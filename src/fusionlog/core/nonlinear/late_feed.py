@@ -47,23 +47,32 @@ def arrival_instants(system: System, times: np.ndarray, arrival: np.ndarray | No
             f"arrival: shape {arrival.shape}, expected (runs, {K1}, {S}): when each reading "
             "of each sensor arrived (s)"
         )
-    early = arrival < times[None, :, None] - 1e-9
-    if early.any():
-        raise FusionlogError("arrival: a reading arrives before it is taken")
-    return arrival_steps(times, arrival)
+    return _instants(times, arrival, 0)
 
 
-def fixed_arrivals(system: System, times: np.ndarray, arrival: np.ndarray | None) -> Reader:
+def fixed_arrivals(
+    system: System, times: np.ndarray, arrival: np.ndarray | Reader | None
+) -> Reader:
     """The arrival instants of the readings of k0..k1-1, (runs or 1, w, S): from `arrival`
-    (runs, K+1, S) s (checked and taken whole, as the log gives them), or where it is None
-    the sensors' fixed latencies on the clock `times` (`arrival_instants`' numbers, a
-    block at a time)."""
+    (runs, K+1, S) s (checked and taken whole, as the log gives them), or a block of time at a
+    time from `arrival(k0, k1)` ((runs or 1, w, S) s: a long log's, read per block, issue 34),
+    or where it is None the sensors' fixed latencies on the clock `times`
+    (`arrival_instants`' numbers, a block at a time)."""
     times = np.asarray(times, float)
+    if callable(arrival):
+        return lambda k0, k1: _instants(times, arrival(k0, k1), k0)
     if arrival is not None:
         got = arrival_instants(system, times, arrival)
         return lambda k0, k1: got[:, k0:k1]
     lat = np.array([s.timing.latency[0] for s in system.sensors])
     return lambda k0, k1: arrival_steps(times, (times[k0:k1, None] + lat[None, :])[None])
+
+
+def _instants(times: np.ndarray, arrival: np.ndarray, k0: int) -> np.ndarray:
+    """`arrival_instants` of the block of arrivals (runs, w, S) s of the instants k0.. ."""
+    if (arrival < times[None, k0 : k0 + arrival.shape[1], None] - 1e-9).any():
+        raise FusionlogError("arrival: a reading arrives before it is taken")
+    return arrival_steps(times, arrival)
 
 
 def _masked(z: np.ndarray, arrive: np.ndarray, cols: list, used: np.ndarray, K1: int):

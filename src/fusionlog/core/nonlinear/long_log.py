@@ -19,8 +19,8 @@ readings read back block by block (`read`), one block in memory; the same operat
 same numbers as the whole run's smoother.
 
 A log whose messages carry their own covariance (`System.Rs`) goes the same way: every update
-takes R of its instant (`local.stacked`), in blocks as in the whole run. The array Rs itself
-(K+1, m, m) is the system's, made by the estimate stage from the whole file.
+takes R of its instant (`local.stacked`), in blocks as in the whole run; a long log's Rs is
+formed a stretch of instants at a time (`core.intervals.PerInstant`), not held whole.
 """
 
 from __future__ import annotations
@@ -57,12 +57,12 @@ def estimate_blocks(
     read: Reader,
     times: np.ndarray,
     block: int,
-    arrival: np.ndarray | None = None,
+    arrival: np.ndarray | Reader | None = None,
 ) -> Iterator[tuple[int, int, dict[str, tuple[np.ndarray, np.ndarray]]]]:
     """(k0, k1, {arch: (mean (1, w, n), cov (1, w, n, n))}) of each block of `block` instants
     of a one-run log on the instants `times` (K+1,) s, in order (`estimate_steps`' numbers).
-    Late sensors: each reading arrives at `arrival` (1, K+1, S) s, default the sensors' fixed
-    latencies (`_late`)."""
+    Late sensors: each reading arrives at `arrival` (1, K+1, S) s, or `arrival(k0, k1)`
+    (1, k1 - k0, S) s read a block at a time, default the sensors' fixed latencies (`_late`)."""
     K1 = len(times)
     edges = [(k0, min(k0 + block, K1)) for k0 in range(0, K1, block)]
     z0 = read(*edges[0])

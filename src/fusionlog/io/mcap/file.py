@@ -27,7 +27,7 @@ from fusionlog.inputs import check_input
 from .blocks import Assembly, Cursor, Window
 from .chunk_rows import Rows, chunk_rows
 from .chunks import Container, linear_batches, open_container, open_error, read_chunk
-from .columns import BadMessage, Table, decode_rows, decode_table, gather
+from .columns import BadMessage, Table, decode_rows, decode_table
 from .layout import LAYOUT_META, Layout, StepMask
 from .scan import ScanSteps
 from .schema import ESTIMATE_SCHEMA, SENSOR_SCHEMA, VALUES
@@ -76,8 +76,7 @@ class McapFile:
         self.path = Path(path)
         self._structure: _Structure | None = None
         self._origin: int | None = None  # time_origin_ns, read once
-        #: topics whose messages carry no covariance (`message_covariances_of`, a pass over
-        #: the file, asked for the filter's and the truth's model: one pass, not two)
+        #: topics whose messages carry no covariance (`covariance_blocks`: not read again)
         self._no_covariances: set[str] = set()
         check_input(self.path)  # a FIFO or a device would block or never end
         try:
@@ -299,37 +298,38 @@ class McapFile:
         return self.message_covariances_of([topic])[topic]
 
     def message_covariances_of(self, topics: Sequence[str]) -> dict[str, np.ndarray | None]:
-        """`message_covariances` of several topics from one pass over the file. A file of
-        several runs has none and is not read here: per-message covariances are for one-run
-        logs, and the block reader refuses a message that carries one in such a file."""
-        infos = {t: self._readable(t) for t in topics}
+        """`message_covariances` of several topics from one pass over the file (one window of
+        `covariance_blocks`). A file of several runs has none (the block reader refuses a
+        message that carries one in such a file)."""
+        out: dict[str, np.ndarray | None] = dict.fromkeys(topics)
+        carried: set[str] = set()
+        for _, _, got in self.covariance_blocks(topics, self.steps(), carried):
+            out.update((t, got[t]) for t in carried)
+        return out
+
+    def covariance_blocks(
+        self, topics: Sequence[str], block: int, carried: set[str]
+    ) -> Iterator[tuple[int, int, dict[str, np.ndarray]]]:
+        """`covariance.covariance_blocks` of values topics of a one-run log (none of more
+        runs), `carried` given the topics that carry one; the others are not read again."""
+        from .covariance import covariance_blocks
+
+        infos = {t: self._readable(t) for t in dict.fromkeys(topics)}
         for t, info in infos.items():
             if info.format.kind != VALUES:  # type: ignore[union-attr]
                 raise ValueError(f"{t} is not a values topic")
-        st = self._get_structure()
-        out: dict[str, np.ndarray | None] = dict.fromkeys(topics)
-        infos = {t: i for t, i in infos.items() if t not in self._no_covariances}
-        if not infos or st.runs != 1:
-            return out
-        dims = {t: self.dim_of(t) for t in topics}
-        for _, tab in self._tables({c for i in infos.values() for c in i.channel_ids}):
-            for t, info in infos.items():
-                d = dims[t]
-                rows = np.flatnonzero(np.isin(tab.cid, info.channel_ids) & (tab.n2 > 0))
-                if not len(rows):
-                    continue
-                if (tab.runs[rows] != 1).any() or (tab.n2[rows] != d * d * 8).any():
-                    raise FusionlogError(
-                        f"{self.path}: {t}: a message covariance of {tab.n2[rows[0]] // 8} "
-                        f"doubles, not {d}x{d} of one run (per-message covariances are for "
-                        "one-run logs)"
-                    )
-                c = out[t]
-                if c is None:
-                    c = out[t] = np.full((len(st.times), d, d), np.nan)
-                c[tab.step[rows]] = gather(tab.raw, tab.p2[rows], d * d).reshape(-1, d, d)
-        self._no_covariances.update(t for t in infos if out[t] is None)
-        return out
+        names = [t for t in infos if t not in self._no_covariances]
+        if not names or self.runs() != 1:
+            return
+        topic_index, tables = self.topic_tables(names)
+        try:
+            yield from covariance_blocks(
+                self.path, tables, topic_index, names, [self.dim_of(t) for t in names],
+                self.steps(), max(1, block), carried,
+            )  # fmt: skip
+        finally:
+            tables.close()
+        self._no_covariances.update(t for t in names if t not in carried)
 
     def lost_share(self, topic: str, block_runs: int = 1 << 14) -> float:
         """Share of a values topic's readings that are NaN (lost: a dropout) over the runs and
