@@ -81,14 +81,11 @@ def stack_rows(X: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # Batch kernels: large batches of small matrices, one elementwise numpy operation per entry.
 #
-# numpy's stacked routines cost about a microsecond per matrix, an elementwise operation on a
-# contiguous vector of 10^4 doubles a few microseconds in all: a 2 x 2 product of 10^4 runs is
-# 1.4 ms as np.matmul and ~0.07 ms as eight multiplications and four additions over the runs.
-# The kernels below take and return arrays of the usual shape batch + (p, q) in the batch-last
-# ("lanes") memory layout, see the module docstring; inputs in any layout work, lanes are the
-# fast case. A matrix the kernels cannot factor safely (a pivot below PIVOT_RTOL of its scale,
-# a non-finite entry) is recomputed on its own by the LAPACK routine the shared path uses, so
-# a (nearly) singular matrix gets exactly the shared path's treatment.
+# A 2 x 2 product of 10^4 runs is 1.4 ms as np.matmul (~1 us a matrix) and ~0.07 ms as eight
+# multiplications and four additions over the runs. The kernels take and return the usual shape
+# batch + (p, q) in the lanes layout (module docstring; any layout works). A matrix they cannot
+# factor safely (a pivot below PIVOT_RTOL of its scale, a non-finite entry) is recomputed alone
+# by the shared path's LAPACK routine: a (nearly) singular matrix gets exactly its treatment.
 
 #: Batches of at least this many matrices go through the kernels (tests lower it to send small
 #: batches through them as well).
@@ -460,27 +457,23 @@ def solve_spd_or_flag(
     """A^-1 B for a batch of symmetric positive definite A by the Cholesky kernel, and
     whether each A could be factored safely (every pivot above `rtol`, default PIVOT_RTOL,
     times its diagonal entry): where not, the result is not a solution and the caller
-    computes that matrix its own way. A few matrices (fewer than KERNEL_MIN_BATCH) by
-    LAPACK's Cholesky, the pivots read off its diagonal, and LU's solve: the kernel makes
-    ~n^3 numpy calls whatever the batch (a one-run nonlinear log's every instant)."""
+    computes that matrix its own way. Fewer than KERNEL_MIN_BATCH by LAPACK (`_spd_lapack`):
+    the kernel makes ~n^3 numpy calls whatever the batch (a one-run nonlinear log's instant)."""
     batch = _batch_shape(A.shape[:-2], B.shape[:-2])
     if not many_matrices(batch):
-        got = _solve_spd_or_flag_lapack(A, B, PIVOT_RTOL if rtol is None else rtol)
+        got = _spd_lapack(A, B, PIVOT_RTOL if rtol is None else rtol)
         if got is not None:
             return got
-    nb = len(batch)
     with np.errstate(all="ignore"):
-        L, ok = cholesky(lanes_of(A, nb), rtol)
-        X = cholesky_solve(L, lanes_of(B, nb))
+        L, ok = cholesky(lanes_of(A, len(batch)), rtol)
+        X = cholesky_solve(L, lanes_of(B, len(batch)))
         ok = ok & _finite(X)  # (A may have fewer runs than B)
     return unlanes(X), ok
 
 
-def _solve_spd_or_flag_lapack(
-    A: np.ndarray, B: np.ndarray, rtol: float
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """`solve_spd_or_flag` by LAPACK for a few matrices (None where one of them is not
-    positive definite: the kernel then flags each on its own). The pivots are L_jj^2."""
+def _spd_lapack(A: np.ndarray, B: np.ndarray, rtol: float) -> tuple[np.ndarray, ...] | None:
+    """`solve_spd_or_flag` by LAPACK's Cholesky (pivots L_jj^2) and LU solve for a few matrices;
+    None where one is not positive definite (the kernel then flags each on its own)."""
     with np.errstate(all="ignore"):
         try:
             L = np.linalg.cholesky(A)
