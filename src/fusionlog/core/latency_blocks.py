@@ -89,6 +89,42 @@ def _geometry(
     return lags, Conditions(system, tuple(tuple(sorted(b)) for b in before))
 
 
+def late_model(system: System, steps: int, times: np.ndarray, block: int, conditions: bool):
+    """The late model of one run of instants 0..`steps` at `times` (s) for the blocked paths
+    (this module's and `retrodict_blocks`'): each sensor's lags found in blocks of `block`
+    instants (`_geometry`), with the centre's decorrelation conditions where `conditions`."""
+    lags, cond = _geometry(system, times, block)
+    shape = dataclasses.replace(system, Fs=None, Qs=None, intervals=None, Rs=None)
+    late = LateModel.of_lags(shape, steps, lags, times, cond if conditions else None)
+    late.system = system
+    return late
+
+
+def late_kinds(system: System, archs: Sequence[str], retrodict: bool) -> list[str] | None:
+    """The kinds of locals of `archs` (`definition.locals`) where a blocked late path may take
+    them: late sensors of a linear model with a prior, retrodicted or not (`retrodict`);
+    None otherwise (before any reading is seen)."""
+    if not is_late(system) or (system.late == "retrodict") != retrodict:
+        return None
+    if system.prior is None or not system.linear or system.motion_model is not None:
+        return None
+    names = [s.name for s in system.sensors]
+    try:
+        return [definition(parse_arch(a, names)[0]).locals for a in archs]
+    except ValueError:
+        return None
+
+
+def check_lags(late: LateModel, arrive: np.ndarray, first: int, K1: int) -> None:
+    """ValueError naming the sensor where a reading of the rows from instant `first` arrives
+    (instant indices `arrive` (w, S), K1: never) at a lag outside its latency range."""
+    for j, lj in enumerate(late.lags):  # the readings' own lags among the model's
+        i = np.flatnonzero(arrive[:, j] < K1)
+        if not np.isin(arrive[i, j] - (i + first), lj).all():
+            name = late.system.sensors[j].name
+            raise ValueError(f"sensor {name}: a reading arrives outside its latency range")
+
+
 class _Stacked(ReplayBlocks):
     """`ReplayBlocks` of the stacked model of one architecture, made per block of time from
     the raw system's window (its per-interval F, Q: nothing of the log's length is stacked)."""
@@ -163,10 +199,7 @@ class LateBlocks:
         if not random_delays(system) and system.time_invariant and not missing:
             return None
         times = np.asarray(times, dtype=float)
-        lags, cond = _geometry(system, times, block)
-        shape = dataclasses.replace(system, Fs=None, Qs=None, intervals=None, Rs=None)
-        late = LateModel.of_lags(shape, steps, lags, times, cond)
-        late.system = system
+        late = late_model(system, steps, times, block, conditions=True)
         inner = {}
         for a in archs:
             base, kind, filters = late.filters_of(a)
@@ -198,17 +231,9 @@ class LateBlocks:
     def covers(system: System, archs: Sequence[str]) -> bool:
         """Whether the path may take `archs` on `system` at all (before any reading is seen):
         late sensors of a linear model with a prior, reprocess or neglect, and filters fusing
-        every sensor or one."""
-        if not is_late(system) or system.late == "retrodict" or system.prior is None:
-            return False
-        if not system.linear or system.motion_model is not None:
-            return False
-        names = [s.name for s in system.sensors]
-        try:
-            kinds = [definition(parse_arch(a, names)[0]).locals for a in archs]
-        except ValueError:
-            return False
-        return all(k in _KINDS for k in kinds)
+        every sensor or one, or the per-sensor rules (`_KINDS`)."""
+        kinds = late_kinds(system, archs, retrodict=False)
+        return kinds is not None and all(k in _KINDS for k in kinds)
 
     def _arrivals(self, k0: int, k1: int, arrival: np.ndarray | None) -> np.ndarray:
         """The arrival times (w, S) s of the block's readings: `arrival` (NaN: none taken),
@@ -227,12 +252,7 @@ class LateBlocks:
         aw = np.concatenate([self.window.arrival, self._arrivals(k0, k1, arrival)])
         s = k0 - len(self.window.z)
         arrive = arrival_steps(self.times, aw)  # the log's instant indices
-        K1 = len(self.times)
-        for j, lj in enumerate(late.lags):  # the readings' own lags among the model's
-            i = np.flatnonzero(arrive[:, j] < K1)
-            if not np.isin(arrive[i, j] - (i + s), lj).all():
-                name = late.system.sensors[j].name
-                raise ValueError(f"sensor {name}: a reading arrives outside its latency range")
+        check_lags(late, arrive, s, len(self.times))
         present = ~np.isnan(zw)
         out = {}
         for a in self.archs:

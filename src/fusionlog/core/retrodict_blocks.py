@@ -32,12 +32,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .architectures import Plan, StepMap, definition, parse_arch
+from .architectures import Plan, StepMap
 from .architectures.hkf import independent_noise
 from .architectures.plan import Estimate
-from .late_policy import arrival_steps, is_late
+from .late_policy import arrival_steps
 from .latency import LateModel
-from .latency_blocks import _geometry
+from .latency_blocks import check_lags, late_kinds, late_model
 from .linalg import sym
 from .model import System
 from .moments import congruences, hcat, initial_moments, mv, step_moments
@@ -141,26 +141,15 @@ class RetroBlocks:
         if not cls.covers(system, archs):
             return None
         times = np.asarray(times, dtype=float)
-        lags, _ = _geometry(system, times, block)
-        shape = dataclasses.replace(system, Fs=None, Qs=None, intervals=None, Rs=None)
-        late = LateModel.of_lags(shape, steps, lags, times, None)
-        late.system = system
+        late = late_model(system, steps, times, block, conditions=False)
         return cls(late, archs, times, criterion or "trace")
 
     @staticmethod
     def covers(system: System, archs: Sequence[str]) -> bool:
         """Whether the path takes `archs` on `system`: late sensors of a linear model with a
         prior, retrodicted, by any architecture but the smoother (refused with late sensors)."""
-        if not is_late(system) or system.late != "retrodict" or system.prior is None:
-            return False
-        if not system.linear or system.motion_model is not None:
-            return False
-        names = [s.name for s in system.sensors]
-        try:
-            kinds = [definition(parse_arch(a, names)[0]).locals for a in archs]
-        except ValueError:
-            return False
-        return all(k != "smoother" for k in kinds)
+        kinds = late_kinds(system, archs, retrodict=True)
+        return kinds is not None and all(k != "smoother" for k in kinds)
 
     def _arrivals(self, k0: int, k1: int, arrival: np.ndarray | None) -> np.ndarray:
         """The arrival instants (w, S) of the block's readings (`arrival` s, NaN: none taken;
@@ -168,12 +157,7 @@ class RetroBlocks:
         if arrival is None:
             arrival = self.times[k0:k1, None] + self.fixed[None, :]
         arrive = arrival_steps(self.times, np.asarray(arrival, dtype=float))
-        K1 = len(self.times)
-        for j, lj in enumerate(self.late.lags):  # the readings' own lags among the model's
-            i = np.flatnonzero(arrive[:, j] < K1)
-            if not np.isin(arrive[i, j] - (i + k0), lj).all():
-                name = self.late.system.sensors[j].name
-                raise ValueError(f"sensor {name}: a reading arrives outside its latency range")
+        check_lags(self.late, arrive, k0, len(self.times))
         return arrive
 
     def _spans(self, k0: int, k1: int, present: np.ndarray, arrival: np.ndarray | None):
