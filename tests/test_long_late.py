@@ -156,6 +156,7 @@ def test_the_sensors_log_is_the_whole_runs(late_runs) -> None:
     np.testing.assert_array_equal(got["/sensors/s3"][0], t + 3.0)
 
 
+@pytest.mark.memory
 @pytest.mark.parametrize("late", ["reprocess", "retrodict"])
 def test_peak_memory_does_not_grow_with_the_instants(tmp_path, monkeypatch, late) -> None:
     """The Python allocations' peak (tracemalloc: numpy's arrays included) of a whole `run`

@@ -230,6 +230,7 @@ def test_nonlinear_late_summary_and_recording_equal_the_whole_run(nonlinear_runs
 # --- memory --------------------------------------------------------------------------------
 
 
+@pytest.mark.memory
 def test_peak_memory_of_retrodiction_with_j_does_not_grow(tmp_path, monkeypatch) -> None:
     """MSC-GMF and AVG retrodicting in blocks of 1000 instants, late plans of 512 standing for
     the log: twice the instants, the same peak within 10 % (the whole run holds its plans'
@@ -245,6 +246,7 @@ def test_peak_memory_of_retrodiction_with_j_does_not_grow(tmp_path, monkeypatch)
     assert peaks[2] <= 1.1 * peaks[1], peaks
 
 
+@pytest.mark.memory
 def test_peak_memory_of_a_nonlinear_late_log_does_not_grow(tmp_path, monkeypatch) -> None:
     """The EKF radar log reprocessing its late readings (CKF, radar2 1 s and the camera 3 s
     late) in blocks of 60 instants: twice the instants, the same peak within 10 %. Measured:

@@ -320,6 +320,7 @@ def test_a_recorded_replay_in_blocks_equals_the_whole_log(tmp_path, late, gaps):
     series_close(whole, blocked, 1e-9, 1e-12)
 
 
+@pytest.mark.memory
 def test_peak_memory_does_not_grow_with_the_instants(tmp_path, monkeypatch) -> None:
     """The Python allocations' peak (tracemalloc: numpy's arrays included) of a whole `run`
     with random delays and missing readings in blocks of 1000 instants, a recording decimated

@@ -131,6 +131,7 @@ def test_a_recorded_replay_in_blocks_equals_the_whole_log(tmp_path, late) -> Non
     assert "nis" in sb["architectures"]["MSC"]
 
 
+@pytest.mark.memory
 def test_peak_memory_does_not_grow_with_the_instants(tmp_path, monkeypatch) -> None:
     """The Python allocations' peak (tracemalloc) of a whole `run` of the rules with random
     delays, missing readings and correlated readings arriving apart, in blocks of 1000

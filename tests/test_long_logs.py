@@ -137,6 +137,7 @@ def test_a_replay_in_blocks_equals_the_whole_log(tmp_path, truth) -> None:
     _series_close(*dirs)
 
 
+@pytest.mark.memory
 def test_peak_memory_does_not_grow_with_the_instants(tmp_path, monkeypatch) -> None:
     """The Python allocations' peak (tracemalloc: numpy's arrays included) of a whole `run`
     in blocks of 1000 instants, with a recording decimated to 150 points per series: twice

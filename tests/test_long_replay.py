@@ -161,6 +161,7 @@ def _blocked_peak(K1: int, block: int) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 def test_peak_memory_of_a_blocked_replay_does_not_grow_with_the_instants() -> None:
     """Blocks of 300 instants: twice the instants, the same peak within 10 % (the system's
     per-instant F, Q, R and the readings are the caller's, made before; the whole log at once
@@ -250,6 +251,7 @@ def _sparse_open_peak(path: Path, K1: int, block: int) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 def test_opening_a_sparse_log_does_not_grow_with_the_instants(tmp_path) -> None:
     """Four times the instants, the same peak within 10 % when a log whose sensors have
     readings at some instants is opened and read in blocks of 500 instants. The layout kept

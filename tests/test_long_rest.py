@@ -200,6 +200,7 @@ def _drawn_peak(folder: Path, steps: int, block: int) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 def test_peak_memory_of_a_blocked_draw_does_not_grow_with_the_instants(tmp_path) -> None:
     """Blocks of 5 000 instants, one run a stream (more than 2^17 instants): twice the
     instants, the same peak within 10 % (the whole draw keeps x and z, 64 bytes an instant

@@ -239,6 +239,7 @@ def test_blocked_retrodiction_is_al1_from_the_formulas(tmp_path, monkeypatch) ->
 # --- memory ---------------------------------------------------------------------------------
 
 
+@pytest.mark.memory
 @pytest.mark.parametrize("what", ["estimates", "error_covariances"])
 def test_peak_is_independent_of_the_log_s_length(tmp_path, what) -> None:
     """`RetroBlocks` (CKF and MSC-GMF, drawn delays, a fifth of the readings missing) on 3000

@@ -208,6 +208,7 @@ def _peak(path: Path, block: int) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 def test_the_peak_does_not_grow_with_the_log(tmp_path, monkeypatch) -> None:
     """Four times the instants (blocks of 500), the peak grows by less than 8 bytes per added
     instant; the stacked R held whole is 8 m^2 = 32 bytes an instant here (and the messages'

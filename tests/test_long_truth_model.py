@@ -218,6 +218,7 @@ def _peak(K1: int, block: int) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 def test_peak_memory_does_not_grow_with_the_instants() -> None:
     """Blocks of 200 instants: four times the instants, the same peak within 10 % (the whole
     log's plans keep every instant's maps and moments: its peak grows fourfold)."""
