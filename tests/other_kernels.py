@@ -4,7 +4,8 @@ OpenBLAS picks its kernels by CPU, and they sum in different orders; a tolerance
 machine's order passes there and fails on the next. Forcing the generic (Prescott) kernels and,
 where this CPU can run them, the Haswell (AVX2) and SkylakeX (AVX-512) ones makes such a
 tolerance fail here first. A kernel set the CPU cannot execute is skipped (forcing it would
-crash with an illegal instruction), and so is everything on a CPU that is not x86-64.
+crash with an illegal instruction), and so is everything on a CPU that is not x86-64; so are
+the tests marked `memory` (`DESELECT`).
 
     python tests/other_kernels.py tests/test_exact.py ...   # pytest arguments
 """
@@ -20,9 +21,9 @@ from pathlib import Path
 #: OPENBLAS_CORETYPE -> the CPU flags its kernels need.
 KERNELS = {"Prescott": set(), "Haswell": {"avx2", "fma"}, "SkylakeX": {"avx512f", "avx512bw"}}
 
-#: What a kernel cannot change is not rerun: the memory tests (`memory` marker: tracemalloc
-#: peaks of whole runs at two lengths, a few numerical modules' slowest tests) allocate the
-#: same whatever the kernel's order of sums.
+#: What a kernel cannot change is not rerun: the tests marked `memory` check only tracemalloc
+#: peaks (whole runs at two lengths, among the long-log modules' slowest tests), and a kernel's
+#: order of sums allocates the same.
 DESELECT = ["-m", "not memory"]
 
 
