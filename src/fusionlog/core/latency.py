@@ -27,6 +27,10 @@ of the measurements as taken once the plan keeps the W last readings in its inte
 z~_k (what arrives at k) being a selection of z_k and the kept readings. So the executor, the
 per-run and history-node paths and the exact analysis (`core.exact`: the joint moments of the
 true state and s_k) take it as any other plan, the truth being the scenario's own model.
+
+Where each message carries its own R (`System.Rs`, eq. 31 per instant), the stacked model's
+noise at k is that of the readings arriving then: a slot of lag l has the R of instant k - l,
+the instant it was taken (`latency_stacked.stacked_noise`).
 """
 
 from __future__ import annotations

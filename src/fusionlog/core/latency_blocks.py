@@ -30,9 +30,13 @@ the plans' `fused_plan` rule; no rule keeps a state of its own: CI's, ICI's and 
 are per instant). Where correlated readings of one instant arrive apart, the stacked noise is
 correlated across time: J (MSC-GMF's and AVG's weights, every rule's exact analysis) and HKF's
 error covariance then keep the raw noises still to be read (`core.latency_apart`, as the
-plans' `latency_joint` maps keep the readings). Not here (None: the whole run, the plans):
-retrodiction, FBS, and fixed latencies on a steady model with every reading present (the
-steady plans of `latency_long`).
+plans' `latency_joint` maps keep the readings). A log whose messages carry their own R
+(`System.Rs`, read per block from its spool): the stacked R of each block from the raw R of
+its instants and the W before (`latency_stacked.stacked_noise`: a slot of lag l at k has the
+R of instant k - l), the raw noises kept with the R of their instant. Not here (None: the
+whole run, the plans): retrodiction, FBS, fixed latencies on a steady model with every
+reading present (the steady plans of `latency_long`), and the centre where correlated
+readings arrive apart with each message's R (`LateBlocks.of`).
 """
 
 from __future__ import annotations
