@@ -390,6 +390,7 @@ def _peak(path: Path, block: int) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 def test_the_peak_does_not_grow_with_the_log(tmp_path, monkeypatch) -> None:
     """Four times the instants (blocks of 250), the peak grows by less than 8 bytes per added
     instant; the raw R held whole is 8 m^2 = 72 bytes an instant here, the stacked R~ of
