@@ -5,15 +5,17 @@ peak grew by ~60 bytes an instant to 4*10^6 rows, set by the evaluate stage).
 What it held besides a block, per instant, before: the instants' times twice (the sensors and
 the estimates file each their own, 8 bytes each), the estimates' measurement mask as its
 provenance text (3m + 2 bytes: 8 here) and parsed (m bytes), and each sensor's scheduled
-instants (1 byte each); ~30 bytes an instant of two sensors, measured 30.7 between 1.5*10^5 and
-10^6 instants. Now: one array of times, the parsed mask (m bytes) and a bit per sensor, ~11.
-Measured with tracemalloc (Python and numpy allocations) while the blocks come: the traced
-memory when each block of estimates is handed over (`McapFile.iter_time_blocks`), its median
-over the blocks, at two lengths of the same log; its growth per added instant is bounded by
-20 bytes (between the two). The log: 5 ms +- 40 % intervals, each sensor's reading missing at
-5 % of the rows, the truth of the position only, CKF and FBS (its backward pass spooled), in
-blocks of 1024 instants; both lengths past the recording's decimation (30 000 instants), so
-its series are a fixed number of buckets.
+instants (1 byte each): 30.5 bytes an instant of two sensors between 1.5*10^5 and 10^6
+instants; now one array of times, the parsed mask and a bit per sensor, 12.4. Measured here
+with tracemalloc (Python and numpy allocations) while the blocks come: the traced memory when
+each block of estimates is handed over (`McapFile.iter_time_blocks`), its median over the
+blocks, at two lengths of the same log, the smaller within the layout record's lists (65 536
+instants), the larger past them (times from the scan, which over-allocates as it grows). Its
+growth per added instant: 37.3 bytes on main (`2afb56b`), 19.2 now; bound 28, between the two.
+The log: 5 ms +- 40 % intervals, each sensor's reading missing at 5 % of the rows, the truth
+of the position only, CKF and FBS (its backward pass spooled), in blocks of 1024 instants;
+both lengths past the recording's decimation (30 000 instants), so its series are a fixed
+number of buckets. ~50 s of CPU.
 """
 
 import statistics
@@ -115,5 +117,4 @@ def test_what_a_long_replay_s_evaluation_holds_does_not_grow_with_its_instants(
     K_small = McapFile(tmp_path / str(small) / "sensors.mcap").steps()
     K_large = McapFile(tmp_path / str(large) / "sensors.mcap").steps()
     per_instant = (held[large] - held[small]) / (K_large - K_small)
-    print(f"{per_instant:.1f} bytes held per added instant ({held})")
-    assert per_instant < 20, f"{per_instant:.1f} bytes held per added instant ({held})"
+    assert per_instant < 28, f"{per_instant:.1f} bytes held per added instant ({held})"
