@@ -43,10 +43,11 @@ __all__ = ["SensorLog", "StateEvaluator"]
 @dataclass(frozen=True)
 class SensorLog:
     """What an evaluation knows of the sensors log besides its arrays: whether it has the
-    truth, and each sensor's scheduled instants (K+1,) bool where it has them (availability)."""
+    truth, and each sensor's scheduled instants where it has them (availability): (K+1,) bool
+    or its bits (`io.mcap.layout.StepMask`), either sliced `[k0:k1]`."""
 
     has_truth: bool = True
-    scheduled: dict[str, np.ndarray] | None = None
+    scheduled: dict[str, Any] | None = None
     #: a replay's truth: {"states": [names], "matched": N, "unmatched": N} (instants with and
     #: without a truth sample); its states may be some of the state's (partial truth)
     truth: dict[str, Any] | None = None
