@@ -101,29 +101,33 @@ def _agree(got: np.ndarray, want: np.ndarray, what: str, scale: float | None = N
     np.testing.assert_allclose(got, want, rtol=0, atol=RTOL * scale, err_msg=what)
 
 
+def _against_the_plans(got, model, truth, times, present, arrival, what: str) -> None:
+    """`got` (`_blocked`'s) as the whole run's plans of the arrivals analysed with `truth`."""
+    from fusionlog.core.exact import analyse
+    from fusionlog.driver import PlanCache
+
+    cache = PlanCache(model, len(times) - 1, clock=times)
+    cache.arrivals = arrival[None]
+    plans, _ = cache.block_plans(list(got), np.where(present, 0.0, np.nan)[None], 0)
+    for a in got:
+        whole = analyse(plans[a], truth)
+        rms = math.sqrt(np.abs(whole.mse).max())
+        for i, f in enumerate(("mse", "bias", "P")):  # a per-run plan's: (1, K1, ...)
+            want = getattr(whole, f).reshape(got[a][i].shape)
+            _agree(got[a][i], want, f"{what} {a} {f}", rms if f == "bias" else None)
+
+
 @pytest.mark.parametrize("kind", ["noise", "dynamics"])
 @pytest.mark.parametrize("late", ["reprocess", "neglect", "retrodict"])
 def test_blocks_equal_the_plans_of_the_whole_run(late, kind) -> None:
     """90 instants in blocks of 25 (s3's readings cross the edges), drawn delays, a fifth of
     the readings missing: each architecture's MSE, bias and P as the whole run's route (its
     plans, conditional on the drawn delays, analysed with the truth apart)."""
-    from fusionlog.core.exact import analyse
-    from fusionlog.driver import PlanCache
-
     model = _model(late)
     truth = _truth(model, kind)
     times, present, arrival = _log(90)
-    K1 = len(times)
     got = _blocked(model, truth, ARCHS, times, present, arrival, 25)
-    cache = PlanCache(model, K1 - 1, clock=times)
-    cache.arrivals = arrival[None]
-    plans, _ = cache.block_plans(ARCHS, np.where(present, 0.0, np.nan)[None], 0)
-    for a in ARCHS:
-        whole = analyse(plans[a], truth)
-        rms = math.sqrt(np.abs(whole.mse).max())
-        _agree(got[a][0], whole.mse[0], f"{late} {kind} {a} mse")
-        _agree(got[a][1], whole.bias[0], f"{late} {kind} {a} bias", rms)
-        _agree(got[a][2], whole.P[0], f"{late} {kind} {a} P")
+    _against_the_plans(got, model, truth, times, present, arrival, f"{late} {kind}")
     # the truth is not the model: the errors are biased or their covariance is not P
     mse, bias, P = got["CKF"]
     assert np.abs(bias).max() > 0.1 or np.abs(mse - P).max() > 0.1 * np.abs(P).max()
@@ -331,6 +335,27 @@ def _close(a, b, path="") -> None:
         assert same or math.isclose(a, b, rel_tol=RTOL, abs_tol=1e-12), (path, a, b)
     else:
         assert a == b, (path, a, b)
+
+
+def test_correlated_readings_apart_stay_whole() -> None:
+    """s1 and s3 correlated (under the model, or under the truth only) with s3's readings
+    arriving apart from s1's: the stacked noise is correlated across instants, which the
+    stacked filters' joint moments do not hold, so the blocked route refuses the truth (the
+    evaluator then takes the whole run); correlated readings arriving together (s3 on time)
+    are taken, as the plans' analysis."""
+    model = _model("reprocess")
+    cross = {(0, 2): np.array([[0.3 * math.sqrt(model.R[0, 0] * model.R[2, 2])]])}
+    times = np.arange(50.0)
+    for m, t in ((dataclasses.replace(model, cross_R=cross), model),
+                 (model, dataclasses.replace(model, cross_R=cross))):  # fmt: skip
+        blocks = LateBlocks.of(m, ["CKF", "MSC"], 49, times, 20)
+        assert blocks is not None and not blocks.takes(_truth(t, "noise"))
+    # on time together: the stacked noise of one instant correlated, white across instants
+    together = _model("reprocess", s3=(0.0, 0.0))
+    truth = dataclasses.replace(_truth(together, "dynamics"), cross_R=cross)
+    times, present, arrival = _log(40, s3=(0.0, 0.0))
+    got = _blocked(together, truth, ["CKF", "MSC-GMF"], times, present, arrival, 15)
+    _against_the_plans(got, together, truth, times, present, arrival, "together")
 
 
 def _expected_everywhere(summary: dict) -> None:

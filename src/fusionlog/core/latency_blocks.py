@@ -19,7 +19,9 @@ Estimates: each block's stacked readings through `ReplayBlocks.estimates`; the e
 is the stacked one's first block. The exact analysis, where the truth is the filters' model:
 the error covariances of the stacked filters under their own model (`ReplayBlocks.
 error_covariances`, `exact_replay`), the marginal of x_k -- the analysis conditional on the
-drawn or recorded delays, as the plans' of the run's arrival pattern.
+drawn or recorded delays, as the plans' of the run's arrival pattern. Where the truth is not
+the model (`mismatch`), the joint moments of the truth and each stacked filter carried
+(`core.latency_mismatch`).
 
 Covered, under reprocess and neglect: as `latency_replay` -- CKF (on the decorrelated readings
 where correlated ones arrive apart), HKF and SKF -- and the per-sensor rules (MSC, MSC-GMF, CI,
