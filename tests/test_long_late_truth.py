@@ -133,6 +133,24 @@ def test_blocks_equal_the_plans_of_the_whole_run(late, kind) -> None:
     assert np.abs(bias).max() > 0.1 or np.abs(mse - P).max() > 0.1 * np.abs(P).max()
 
 
+def test_irregular_instants_with_other_dynamics() -> None:
+    """Irregular instants (a continuous model discretised per interval: F, Q per instant, the
+    truth's stacked per block of time) and a truth of another A and Qc, 60 instants in blocks
+    of 20 under reprocess: as the whole run's plans."""
+    rng = np.random.default_rng(4)
+    times = np.concatenate([[0.0], np.cumsum(rng.uniform(0.5, 1.5, 59))])
+    base = _model("reprocess")
+    A = 0.3 * rng.standard_normal((2, 2)) - 0.3 * np.eye(2)
+    base = dataclasses.replace(base, continuous=(A, base.Q), initial=None)
+    model = base.on_times(times)
+    truth = dataclasses.replace(base, continuous=(A - 0.2 * np.eye(2), 1.5 * base.Q))
+    truth = truth.on_times(times)
+    _, present, arrival = _log(60, seed=6)
+    arrival = arrival - np.arange(60.0)[:, None] + times[:, None]  # the same delays
+    got = _blocked(model, truth, ["CKF", "HKF", "MSC-GMF"], times, present, arrival, 20)
+    _against_the_plans(got, model, truth, times, present, arrival, "irregular")
+
+
 def _batch(model: System, truth: System, arrived, K1: int):
     """The reprocess filter's values from the batch: (MSE, bias, P) (K1, ...) of x_hat_k =
     E_model[x_k | the readings arrived by k] (`arrived(k)`: a boolean (K1, S) of the readings
