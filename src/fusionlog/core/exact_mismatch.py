@@ -28,6 +28,8 @@ recursion of `exact._analyse`, run here from the log's end block by block first 
 the caller spools each instant's S, B and cov(eta) and hands them back to `window`).
 
 Same formulas as the plans', not the same order of operations: the two agree to rounding.
+Late sensors' stacked filters take the same definitions on the stacked model, x_k's error its
+first `keep` rows (`core.latency_mismatch`).
 """
 
 from __future__ import annotations
