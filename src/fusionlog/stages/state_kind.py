@@ -386,11 +386,12 @@ class _StateEstimator(Estimator):
         """A long one-run log with late sensors in blocks of time: at fixed latencies with
         every reading present the late plans of a short horizon, their state (the latency
         window) carried across the blocks (`core.latency_long`); with delays drawn or
-        recorded, or readings missing, the plan-free stacked filters carried
-        (`core.latency_blocks`, `.late_blocks`: CKF, HKF, SKF and the per-sensor rules, under
-        reprocess and neglect), or, retrodicted (also where no short plans stand for the log),
-        each block's plans with the state of the block before (`core.retrodict_blocks`: every
-        architecture but FBS); None otherwise (FBS: the whole run)."""
+        recorded, or readings missing, or a covariance per message, the plan-free stacked
+        filters carried (`core.latency_blocks`, `.late_blocks`: CKF, HKF, SKF and the
+        per-sensor rules, under reprocess and neglect), or, retrodicted (also where no short
+        plans stand for the log), each block's plans with the state of the block before
+        (`core.retrodict_blocks`: every architecture but FBS); None otherwise (FBS, the CKF
+        of correlated readings arriving apart with each message's R: the whole run)."""
         from fusionlog.core.latency_blocks import LateBlocks
         from fusionlog.core.latency_long import late_steady_log
         from fusionlog.core.retrodict_blocks import RetroBlocks

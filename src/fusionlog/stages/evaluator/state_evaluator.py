@@ -98,11 +98,6 @@ class StateEvaluator(Evaluator):
         self._load_arrivals, self._sensors_file = log.load_arrivals, log.sensors
         #: the policy for late measurements where some sensor is late (summary.json "late")
         self.late = filter_sys.late if is_late(filter_sys) else None
-        #: EKF/UKF filters: nothing evaluated reads when the readings arrived (no exact
-        #: analysis), so a late log is evaluated in blocks as an on-time one (issue 34)
-        self.nonlinear = not filter_sys.linear
-        #: a covariance per message, which the late plans and stacked filters do not take
-        self.per_message_R = filter_sys.Rs is not None
         known = [a for a in self.archs if known_arch(a, filter_sys)]
         names = list(sc.state_names)
         truthed = (
@@ -217,8 +212,6 @@ class StateEvaluator(Evaluator):
 
         if self.M != 1 or self.K + 1 <= time_block() or reference_paths():
             return None
-        if self.late is not None and not self.nonlinear and self._late_whole():  # issue 30
-            return None
         parts = {MetricsPart, ExactPart, SamplesPart, NisPart, BoundPart, PcrbPart, TrajectoryPart}
         parts |= {PlanePart}
         if not {type(p) for p in self.parts} <= parts:
@@ -305,21 +298,17 @@ class StateEvaluator(Evaluator):
             )
         )  # fmt: skip
 
-    def _late_whole(self) -> bool:
-        """Whether a log with late sensors takes the whole run: per-message R (which the late
-        plans do not take). Without an exact analysis (a truth whose model is nonlinear, or
-        whose sensors are not the filters') the metrics, NIS and trajectory parts read only
-        the estimates and readings, block by block as an on-time log's."""
-        return self.per_message_R
-
     def _late_exact(self, exact: ExactPart) -> Any:
         """The exact values of a long log with late sensors whose late plans of a short
         horizon do not stand for it (delays drawn or recorded, readings missing): the stacked
         filters' error covariances block by block (`.long_late`; retrodicted, the moments
-        of each block's plans, `core.retrodict_blocks`), where the path takes every
-        architecture; where the truth is not the filters' model, the joint moments of the
-        truth and the filters carried (`LateBlocks.mismatch`, `RetroBlocks.mismatch`) where
-        the path takes that truth (`takes`); else None."""
+        of each block's plans, `core.retrodict_blocks`; each message's own R read per block),
+        where the path takes every architecture; where the truth is not the filters' model,
+        the joint moments of the truth and the filters carried (`LateBlocks.mismatch`,
+        `RetroBlocks.mismatch`) where the path takes that truth (`takes`); else None.
+        Without an exact analysis (a truth whose model is nonlinear, or whose sensors are not
+        the filters') the metrics, NIS and trajectory parts read only the estimates and
+        readings, block by block as an on-time log's."""
         from fusionlog.core.exact_replay import truth_is_model
         from fusionlog.core.latency_blocks import LateBlocks
         from fusionlog.core.retrodict_blocks import RetroBlocks
