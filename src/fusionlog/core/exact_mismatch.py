@@ -28,6 +28,8 @@ recursion of `exact._analyse`, run here from the log's end block by block first 
 the caller spools each instant's S, B and cov(eta) and hands them back to `window`).
 
 Same formulas as the plans', not the same order of operations: the two agree to rounding.
+Late sensors' stacked filters take the same definitions on the stacked model, x_k's error its
+first `keep` rows (`core.latency_mismatch`).
 """
 
 from __future__ import annotations
@@ -63,17 +65,16 @@ def _masked(R: np.ndarray, present: np.ndarray) -> np.ndarray:
     return R + np.eye(pf.shape[1]) * (1 - pf)[:, None]
 
 
-def _windows(system: System, k0: int, k1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _windows(sw: System, k0: int, k1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """F, G Q G' into each instant k0..k1-1 (the log's instant 0: I and 0, no prediction) and
-    R there (w, ...) of `system`."""
-    w, n = k1 - k0, system.n
-    sw = system_window(system, k0, k1, k0 > 0)
+    R there (w, ...) of `sw`, a system on those instants (`system_window`'s)."""
+    w, n = k1 - k0, sw.n
     p0 = 1 if k0 == 0 else 0
     Fs, Qs = sw.transitions(0, w - p0)
     if p0:
         Fs = np.concatenate([np.eye(n)[None], Fs])
         Qs = np.concatenate([np.zeros((1, n, n)), Qs])
-    R = sw.Rs if sw.Rs is not None else np.broadcast_to(sw.R, (w, system.m, system.m))
+    R = sw.Rs if sw.Rs is not None else np.broadcast_to(sw.R, (w, sw.m, sw.m))
     return Fs, Qs, R
 
 
@@ -84,12 +85,18 @@ class MismatchBlocks:
     (`backward`). `mismatch_blocks` says whether the path takes them (the caller:
     `exact_replay.replay_expected_blocks`)."""
 
-    def __init__(self, model: System, truth: System, blocks: ReplayBlocks) -> None:
+    def __init__(
+        self, model: System, truth: System, blocks: ReplayBlocks, coupled: bool | None = None
+    ) -> None:
         self.model, self.truth, self.blocks = model, truth, blocks
         self.archs, self.steps = blocks.archs, blocks.steps
         self.n = n = model.n
-        self.nx = n if coupling_of(model, truth) else 0
+        #: x stays in the joint (`coupling_of`, unless the caller knows: a stacked model's
+        #: per-block F is not the one `model` holds, `core.latency_mismatch`)
+        self.nx = n if (coupling_of(model, truth) if coupled is None else coupled) else 0
         self.Ht = truth.linear_measurement()
+        #: the error's leading rows the values are of (a stacked model's: x_k's n)
+        self.keep = n
         self.moments: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     @property
@@ -209,11 +216,31 @@ class MismatchBlocks:
         hand = None if Sb is None else (np.zeros((k1 - k0, self.n)), Sb[0])
         return self.blocks._block(k0, k1, z, hand, lambda r: self._expected(r, k0, k1, Sb))
 
+    def values(self, k0: int, k1: int, present: np.ndarray) -> dict[str, tuple]:
+        """Each architecture's (MSE matrix, bias, reported covariance) (w, ...) at the instants
+        k0..k1-1 (no smoother), `present` (w, m) their readings: `window` without the NEES and
+        DM, for a caller that cuts its blocks finer than the values it reports."""
+        z = np.where(present, 0.0, np.nan)
+        return self.blocks._block(k0, k1, z, None, lambda r: self._values(r, k0, k1, None))
+
+    def truth_window(self, k0: int, k1: int) -> System:
+        """The truth on the instants k0..k1-1 (`system_window`, into k0 from the block
+        before)."""
+        return system_window(self.truth, k0, k1, k0 > 0)
+
     def _expected(self, r, k0: int, k1: int, Sb) -> dict[str, Expected]:
         """The block's values from its filters `r` (`replay._Replay`)."""
+        out = {}
+        for a, (mse, bias, P) in self._values(r, k0, k1, Sb).items():
+            nees, dm, _ = shared_nees_and_dm(P, bias, mse)
+            out[a] = Expected(mse, bias, P, nees, dm)
+        return out
+
+    def _values(self, r, k0: int, k1: int, Sb) -> dict[str, tuple]:
+        """The block's (MSE, bias, P) of the error's first `keep` rows from its filters `r`."""
         n, nx, w = self.n, self.nx, k1 - k0
         b = r.bank
-        Ft, Qt, Rt = _windows(self.truth, k0, k1)
+        Ft, Qt, Rt = _windows(self.truth_window(k0, k1), k0, k1)
         Rt = _masked(Rt, r.present)
         F = r.Fs if not r.p0 else np.concatenate([np.eye(n)[None], r.Fs])
         groups: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -256,13 +283,12 @@ class MismatchBlocks:
             else:  # a fusion rule of the local filters
                 (mu, C), (O, P) = groups["loc"], r._weights(arch)
                 L = self._readout(O, r.S, w)
+            L, P = L[:, : self.keep], P[:, : self.keep, : self.keep]
             bias = (L @ mu[..., None])[..., 0]
             mse = L @ C @ mT(L)
             if extra is not None:
                 mse = mse + extra[0] @ extra[1] @ mT(extra[0])
-            mse = sym(mse) + bias[:, :, None] * bias[:, None, :]
-            nees, dm, _ = shared_nees_and_dm(P, bias, mse)
-            out[a] = Expected(mse, bias, P, nees, dm)
+            out[a] = (sym(mse) + bias[:, :, None] * bias[:, None, :], bias, P)
         return out
 
     def _readout(self, O: np.ndarray, filters: int, w: int) -> np.ndarray:

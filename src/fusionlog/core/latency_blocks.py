@@ -19,7 +19,9 @@ Estimates: each block's stacked readings through `ReplayBlocks.estimates`; the e
 is the stacked one's first block. The exact analysis, where the truth is the filters' model:
 the error covariances of the stacked filters under their own model (`ReplayBlocks.
 error_covariances`, `exact_replay`), the marginal of x_k -- the analysis conditional on the
-drawn or recorded delays, as the plans' of the run's arrival pattern.
+drawn or recorded delays, as the plans' of the run's arrival pattern. Where the truth is not
+the model (`mismatch`), the joint moments of the truth and each stacked filter carried
+(`core.latency_mismatch`).
 
 Covered, under reprocess and neglect: as `latency_replay` -- CKF (on the decorrelated readings
 where correlated ones arrive apart), HKF and SKF -- and the per-sensor rules (MSC, MSC-GMF, CI,
@@ -194,6 +196,8 @@ class LateBlocks:
         self.next_instant = 0
         lat = np.array([s.timing.latency for s in late.system.sensors])
         self.fixed = lat[:, 0]  # the fixed latencies (random delays come with the readings)
+        #: each architecture's joint moments with a truth not the model (`mismatch`)
+        self.mismatched: dict = {}
 
     @classmethod
     def of(
@@ -326,4 +330,30 @@ class LateBlocks:
                 a, k0, k1, mask, lambda b, b0, b1, r: b.error_covariances(b0, b1, r)
             )
             out[a] = tuple(np.concatenate([g[a][i][:, :n, :n] for g in got]) for i in (0, 1))
+        return out
+
+    def takes(self, truth: System) -> bool:
+        """Whether `mismatch` takes the data's model `truth` (`latency_mismatch.takes_truth`)."""
+        from .latency_mismatch import takes_truth
+
+        return takes_truth(self.late.system, truth)
+
+    def mismatch(
+        self, k0: int, k1: int, present: np.ndarray, arrival: np.ndarray | None, truth: System
+    ) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """`error_covariances` where the data come from `truth`, not the model (`takes`):
+        each architecture's MSE matrix, error mean and reported covariance (w, ...), the
+        joint moments of the truth and its stacked filters carried (`core.latency_mismatch`)."""
+        from .latency_mismatch import StackedMismatch
+
+        z = np.where(present, 0.0, np.nan)
+        out = {}
+        for a, (_, mask) in self._masks(k0, k1, z, arrival).items():
+            if a not in self.mismatched:
+                self.mismatched[a] = StackedMismatch(self.inner[a][0], self.late.system, truth)
+            ex = self.mismatched[a]
+            got = self._sub_blocks(
+                a, k0, k1, mask, lambda _, b0, b1, r, ex=ex: ex.values(b0, b1, r)
+            )
+            out[a] = tuple(np.concatenate([g[a][i] for g in got]) for i in range(3))
         return out

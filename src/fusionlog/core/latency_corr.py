@@ -224,12 +224,13 @@ def correlated_refusal(system: System, locals_kind: str, arch: str) -> str | Non
     return None
 
 
-def apart_pairs(system: System) -> list[tuple[int, int]]:
+def apart_pairs(system: System, cross_R: dict | None = None) -> list[tuple[int, int]]:
     """The pairs of correlated sensors whose readings of one instant may arrive at different
-    instants (different latencies, or a latency range)."""
+    instants (different latencies, or a latency range); correlated as `cross_R` says where
+    given (another model's, a truth's), else as the system's."""
     lat = [s.timing.latency for s in system.sensors]
     return [
         (i, j)
-        for (i, j), Rij in system.cross_R.items()
+        for (i, j), Rij in (system.cross_R if cross_R is None else cross_R).items()
         if np.any(Rij) and (lat[i] != lat[j] or lat[i][0] != lat[i][1])
     ]

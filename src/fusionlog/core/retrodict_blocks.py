@@ -207,12 +207,27 @@ class RetroBlocks:
         covariance (w, n, n) at the instants k0..k1-1 under the model (the truth), `present`
         (w, m) the readings taken there and `arrival` (w, S) their arrival times (None: the
         fixed latencies'): the moments of [x_k; s_k - D_k x_k] carried (`moments`)."""
-        truth = self.late.system
+        got = self.mismatch(k0, k1, present, arrival, self.late.system)
+        return {a: (mse, P) for a, (mse, _, P) in got.items()}
+
+    def takes(self, truth: System) -> bool:
+        """Whether `mismatch` takes the data's model `truth`: linear, of the filters' sizes,
+        without a motion model (the moments are the plans' own, `moments.step_moments`)."""
+        model = self.late.system
+        dims = [s.dim for s in truth.sensors] == [s.dim for s in model.sensors]
+        return truth.linear and truth.motion_model is None and truth.n == model.n and dims
+
+    def mismatch(
+        self, k0: int, k1: int, present: np.ndarray, arrival: np.ndarray | None, truth: System
+    ) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """`error_covariances` where the data come from `truth` (its model, initial
+        distribution, noises; `takes`): the MSE matrix, error mean and reported covariance
+        (w, ...) of each architecture, the joint moments under `truth` carried."""
         n, w = truth.n, k1 - k0
         Ht = truth.linear_measurement()
-        out = {a: (np.empty((w, n, n)), np.empty((w, n, n))) for a in self.archs}
+        out = {a: (np.empty((w, n, n)), np.empty((w, n)), np.empty((w, n, n))) for a in self.archs}
         for a, b0, _, steps in self._spans(k0, k1, present, arrival):
-            f, (mse, P) = self.filters[a], out[a]
+            f, (mse, mean, P) = self.filters[a], out[a]
             if f.moments is None:
                 start = Plan(a, f.s0, [], D0=f.D0)
                 mu, C, nx = initial_moments(start, truth)  # nx = n: x's terms kept
@@ -222,7 +237,7 @@ class RetroBlocks:
             for k, st in enumerate(steps, start=b0):
                 mu, C = step_moments(st, k, mu, C, D_prev, truth, n, Ht)
                 L = hcat(np.eye(n) - st.O @ st.D, -st.O)  # e = (I - O D) x - O zeta, `exact`
-                bias = mv(L, mu)
+                mean[k - k0] = bias = mv(L, mu)
                 mse[k - k0] = sym(congruences([(L, C)])) + np.outer(bias, bias)
                 P[k - k0] = st.P
                 D_prev = st.D

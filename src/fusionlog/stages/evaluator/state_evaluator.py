@@ -304,10 +304,12 @@ class StateEvaluator(Evaluator):
         horizon do not stand for it (delays drawn or recorded, readings missing): the stacked
         filters' error covariances block by block (`.long_late`; retrodicted, the moments
         of each block's plans, `core.retrodict_blocks`; each message's own R read per block),
-        where the truth is the filters' model and the path takes every architecture; else
-        None. Without an exact analysis (a truth whose model is nonlinear, or whose sensors
-        are not the filters') the metrics, NIS and trajectory parts read only the estimates
-        and readings, block by block as an on-time log's."""
+        where the path takes every architecture; where the truth is not the filters' model,
+        the joint moments of the truth and the filters carried (`LateBlocks.mismatch`,
+        `RetroBlocks.mismatch`) where the path takes that truth (`takes`); else None.
+        Without an exact analysis (a truth whose model is nonlinear, or whose sensors are not
+        the filters') the metrics, NIS and trajectory parts read only the estimates and
+        readings, block by block as an on-time log's."""
         from fusionlog.core.exact_replay import truth_is_model
         from fusionlog.core.latency_blocks import LateBlocks
         from fusionlog.core.retrodict_blocks import RetroBlocks
@@ -316,14 +318,16 @@ class StateEvaluator(Evaluator):
         from .long_late import LongLateExact
 
         p, T = exact.plans, time_block()
-        if self._sensors_file is None or not truth_is_model(p.system, exact.truth, self.K):
+        if self._sensors_file is None:
             return None
+        truth = None if truth_is_model(p.system, exact.truth, self.K) else exact.truth
         kind = RetroBlocks if p.system.late == "retrodict" else LateBlocks
         blocks = kind.of(p.system, exact.known, self.K, self.times, T, p.criterion)
-        if blocks is None:
+        if blocks is None or (truth is not None and not blocks.takes(truth)):
             return None
         topics = [sensor_topic(s.name) for s in p.system.sensors]
-        return LongLateExact(blocks, self._sensors_file, topics, exact.route == "per-run", T)
+        per_run = exact.route == "per-run"
+        return LongLateExact(blocks, self._sensors_file, topics, per_run, T, truth)
 
     def _steady_log(self, plans: PlanCache, archs: Sequence[str]) -> Any:
         """The short plans standing for the log (`long_log.steady_log`; with late sensors
