@@ -22,6 +22,7 @@ import statistics
 import tracemalloc
 
 import numpy as np
+import pytest
 
 from fusionlog.io.mcap import McapFile
 from fusionlog.scenario import load_scenario
@@ -99,6 +100,7 @@ def _held_while_blocks(folder, monkeypatch) -> float:
     return statistics.median(seen) - base
 
 
+@pytest.mark.memory
 def test_what_a_long_replay_s_evaluation_holds_does_not_grow_with_its_instants(
     tmp_path, monkeypatch
 ):

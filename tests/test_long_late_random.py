@@ -14,25 +14,27 @@ whose rounding grows with the truth's variance: `EXACT_ATOL`).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 from long_helpers import (
+    NS,
+    T0,
     OfLargest,
     Spy,
     estimates_close,
     late_toml,
     pipeline_peaks,
     position_sensor,
+    recorded_toml,
     run,
     series_close,
+    stamped_mcap,
     summaries,
     summaries_close,
     whole_and_blocked,
 )
-from mcap.writer import Writer
 
 import fusionlog.stages.late_blocks as late_blocks
 from fusionlog.io.mcap import McapFile
@@ -239,8 +241,6 @@ def test_a_recorded_log_s_route_takes_late_sensors_into_account() -> None:
 
 # -- a recorded replay: arrivals from the messages' log times ---------------------------------
 
-NS = 1_000_000_000
-T0 = 1_700_000_000 * NS
 #: the recorded replay's architectures
 RECORDED_ARCHS = ["CKF", "HKF", "SKF:b"]
 
@@ -260,45 +260,10 @@ def _recorded(tmp: Path, late: str, gaps: bool) -> Path:
             continue
         logged = stamp + round(rng.uniform(0, 0.3) * NS)
         b.append((stamp, logged, x[2 * i + 1] + rng.normal(0, 0.4)))
-    schema = {"type": "object", "properties": {"header": {"type": "object"},
-                                               "v": {"type": "number"}}}  # fmt: skip
-    with open(tmp / "log.mcap", "wb") as f:
-        w = Writer(f)
-        w.start()
-        sid = w.register_schema("Reading", "jsonschema", json.dumps(schema).encode())
-        ch = {t: w.register_channel(t, "json", sid) for t in ("/a", "/b")}
-        events = sorted([(lg, "/a", s, v) for s, lg, v in a] + [(lg, "/b", s, v) for s, lg, v in b])
-        for lg, t, stamp, v in events:
-            body = {"header": {"stamp": {"sec": stamp // NS, "nanosec": stamp % NS}}, "v": v}
-            w.add_message(ch[t], log_time=lg, data=json.dumps(body).encode(), publish_time=lg)
-        w.finish()
-    sensor = 'source = "log.mcap"\nvalues = ["v"]\ntime = "header.stamp"\nH = [[1.0]]\n'
-    text = f"""
-[scenario]
-name = "recorded_late"
-state_names = ["x"]
-[model]
-kind = "continuous"
-A = [[0.0]]
-Qc = [[0.4]]
-[prior]
-mean = [0.0]
-cov = [[4.0]]
-[[sensors]]
-name = "a"
-topic = "/a"
-{sensor}R = 0.49
-[[sensors]]
-name = "b"
-topic = "/b"
-{sensor}R = 0.16
-arrival = "log_time"
-[estimate]
-architectures = {json.dumps(RECORDED_ARCHS)}
-late = "{late}"
-"""
+    events = [(lg, "/a", s, v) for s, lg, v in a] + [(lg, "/b", s, v) for s, lg, v in b]
+    stamped_mcap(tmp / "log.mcap", ("/a", "/b"), events)
     path = tmp / "recorded.toml"
-    path.write_text(text)
+    path.write_text(recorded_toml("recorded_late", RECORDED_ARCHS, late))
     return path
 
 

@@ -30,7 +30,6 @@ tests/test_long_*.py).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import tracemalloc
 from pathlib import Path
@@ -38,47 +37,23 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_helpers import ok
+from long_helpers import (
+    OfLargest,
+    Spy,
+    estimates_close,
+    late_toml,
+    position_sensor,
+    summaries,
+    summaries_close,
+    time_block,
+    whole_and_blocked,
+)
 from test_long_late_random import EXACT_ATOL, RTOL
 
 from fusionlog.io.mcap import McapFile
 
 STEPS = 299
 BLOCK = 40
-
-SCENARIO = """
-[scenario]
-name = "long_late_rs"
-steps = {steps}
-runs = 1
-seed = 343
-dt = 1.0
-state_names = ["position", "velocity"]
-[model]
-kind = "constant-velocity"
-n0 = 0.16
-[prior]
-mean = [100.0, -1.0]
-cov = [[1.0, 0.0], [0.0, 1.0]]
-[[sensors]]
-name = "s1"
-H = [[1.0, 0.0]]
-R = 1.0
-[[sensors]]
-name = "s2"
-H = [[1.0, 0.0]]
-R = 2.0
-latency = 1.0
-period = 2.0
-[[sensors]]
-name = "s3"
-H = [[1.0, 0.0]]
-R = 0.5
-latency = {s3}
-{correlated}
-[estimate]
-architectures = {archs}
-late = "{late}"
-"""
 
 #: The architectures of the blocked late paths: the filters fusing every sensor and one
 #: sensor's, and per-sensor rules (MSC-GMF reads the locals' joint J).
@@ -91,11 +66,16 @@ NOISY = ("s1", "s3")
 CORRELATED = '[[correlations]]\nsensors = ["s1", "s3"]\ncov = [[0.1]]\n'
 
 
-def _scenario(tmp: Path, s3: str, late: str, archs=ARCHS, correlated=False, steps=STEPS) -> Path:
-    corr = CORRELATED if correlated else ""
-    text = SCENARIO.format(steps=steps, s3=s3, late=late, archs=json.dumps(archs), correlated=corr)
+def _text(s3: str, late: str, archs=ARCHS, correlated: str = "", steps=STEPS) -> str:
+    """s1 on time, s2 1 s late every 2 s, s3 late by `s3`; `correlated` after the sensors."""
+    sensors = (position_sensor("s1", 1.0) + position_sensor("s2", 2.0, "1.0", "period = 2.0\n")
+               + position_sensor("s3", 0.5, s3) + correlated)  # fmt: skip
+    return late_toml("long_late_rs", 343, steps, sensors, archs, late)
+
+
+def _scenario(tmp: Path, s3: str, late: str, archs=ARCHS, correlated=False) -> Path:
     path = tmp / "late_rs.toml"
-    path.write_text(text)
+    path.write_text(_text(s3, late, archs, CORRELATED if correlated else ""))
     return path
 
 
@@ -140,10 +120,7 @@ def _per_message(sim: Path, out: Path, seed: int = 34) -> np.ndarray:
 
 
 def _estimate_and_evaluate(sens: Path, out: Path, block: int | None, mp) -> Path:
-    if block is None:
-        mp.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
-    else:
-        mp.setenv("FUSIONLOG_TIME_BLOCK", str(block))
+    time_block(mp, block)
     out.mkdir()
     ok("estimate", sens, "-o", out / "estimates.mcap")
     ok("evaluate", sens, out / "estimates.mcap", "-o", out / "eval.rrd",
@@ -151,27 +128,25 @@ def _estimate_and_evaluate(sens: Path, out: Path, block: int | None, mp) -> Path
     return out
 
 
-class _Spy:
+def _spy(mp: pytest.MonkeyPatch) -> Spy:
     """Counts the blocks of time the late paths estimated and the exact blocks evaluated."""
+    import fusionlog.stages.late_blocks as late_blocks
+    from fusionlog.stages.evaluator.long_late import LongLateExact
 
-    def __init__(self, mp: pytest.MonkeyPatch) -> None:
-        import fusionlog.stages.late_blocks as late_blocks
-        from fusionlog.stages.evaluator.long_late import LongLateExact
+    return Spy(mp, blocks={"estimated": (late_blocks, "late_estimates")},
+               calls={"exact": (LongLateExact, "window")})  # fmt: skip
 
-        self.estimated, self.exact = 0, 0
-        inner, window = late_blocks.late_estimates, LongLateExact.window
 
-        def late_estimates(*a, **kw):
-            for got in inner(*a, **kw):
-                self.estimated += 1
-                yield got
-
-        def exact(ev, *a, **kw):
-            self.exact += 1
-            return window(ev, *a, **kw)
-
-        mp.setattr(late_blocks, "late_estimates", late_estimates)
-        mp.setattr(LongLateExact, "window", exact)
+def _whole_and_blocked(sens: Path, tmp: Path) -> tuple[Path, Path, Spy]:
+    """`sens` estimated and evaluated whole (tmp/whole) and in blocks of `BLOCK` instants."""
+    mp = pytest.MonkeyPatch()
+    try:
+        whole = _estimate_and_evaluate(sens, tmp / "whole", None, mp)
+        spy = _spy(mp)
+        blocked = _estimate_and_evaluate(sens, tmp / "blocked", BLOCK, mp)
+    finally:
+        mp.undo()
+    return whole, blocked, spy
 
 
 def _log(tmp: Path, s3: str, late: str, **kw) -> tuple[Path, np.ndarray]:
@@ -196,41 +171,32 @@ def runs(request, tmp_path_factory):
     """The log estimated and evaluated whole and in blocks of `BLOCK` instants."""
     _, s3, late, archs = request.param
     tmp = tmp_path_factory.mktemp("late_rs")
-    mp = pytest.MonkeyPatch()
-    try:
-        sens, r = _log(tmp, s3, late, archs=archs)
-        whole = _estimate_and_evaluate(sens, tmp / "whole", None, mp)
-        spy = _Spy(mp)
-        blocked = _estimate_and_evaluate(sens, tmp / "blocked", BLOCK, mp)
-    finally:
-        mp.undo()
+    sens, r = _log(tmp, s3, late, archs=archs)
+    whole, blocked, spy = _whole_and_blocked(sens, tmp)
     return {"whole": whole, "blocked": blocked, "spy": spy, "sensors": sens, "r": r,
             "late": late, "s3": s3, "archs": archs}  # fmt: skip
 
 
-def _estimates(path: Path) -> dict:
-    mf = McapFile(path)
-    return {t: mf.read_all([t])[t] for t in mf.topics if t.startswith("/estimates/")}
+#: blocked = whole: the means within `RTOL` relative and of their largest entry, the
+#: covariances within `RTOL` relative and 1e-12
+TOLERANCES = {"mean": OfLargest(RTOL, rtol=RTOL), "cov": (RTOL, 1e-12)}
 
 
-def _close(a, b, path=""):
-    """summary.json's values within `RTOL` relative (exact ones and the bound's also
-    `EXACT_ATOL` absolute, the Monte Carlo metrics 1e-9), the rest equal."""
-    if isinstance(a, dict):
-        assert a.keys() == b.keys(), path
-        for k in a:
-            if k not in ("worst_step", "provenance", "timing"):
-                _close(a[k], b[k], f"{path}.{k}")
-    elif isinstance(a, list):
-        assert len(a) == len(b), path
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            _close(x, y, f"{path}[{i}]")
-    elif isinstance(a, float) and isinstance(b, float):
-        exact = ".expected." in path or ".bound." in path
-        tol = EXACT_ATOL if exact else 1e-9
-        assert math.isclose(a, b, rel_tol=RTOL, abs_tol=tol), (path, a, b)
-    else:
-        assert a == b, (path, a, b)
+def _archs(folder: Path) -> list[str]:
+    """The architectures of folder/estimates.mcap."""
+    topics = McapFile(folder / "estimates.mcap").topics
+    return [t.removeprefix("/estimates/") for t in topics if t.startswith("/estimates/")]
+
+
+def _blocked_equals_whole(whole: Path, blocked: Path, *, mean, cov) -> tuple[dict, dict]:
+    """Each architecture's estimates within `mean`, `cov` (long_helpers.estimates_close) and
+    the summaries within `RTOL` relative (exact ones and the bound's also `EXACT_ATOL`
+    absolute, the Monte Carlo metrics 1e-9), the rest equal: the two summaries."""
+    estimates_close(whole, blocked, _archs(whole), mean, cov)
+    a, b = summaries(whole, blocked)
+    summaries_close(a, b, rtol=RTOL, atol=1e-9, exact_atol=EXACT_ATOL,
+                    skip=("worst_step", "provenance", "timing"))  # fmt: skip
+    return a, b
 
 
 def test_the_log_spans_several_blocks_with_late_readings_of_their_own_R(runs) -> None:
@@ -246,16 +212,9 @@ def test_blocked_estimates_and_summary_equal_the_whole_run(runs) -> None:
     spy = runs["spy"]
     assert spy.estimated == math.ceil((STEPS + 1) / BLOCK)  # estimated in blocks
     assert spy.exact == math.ceil((STEPS + 1) / BLOCK)  # and its exact analysis
-    whole = _estimates(runs["whole"] / "estimates.mcap")
-    blocked = _estimates(runs["blocked"] / "estimates.mcap")
-    assert whole.keys() == blocked.keys() and len(whole) == len(runs["archs"])
-    for topic, (mean, cov) in whole.items():
-        scale = np.abs(mean).max()
-        np.testing.assert_allclose(blocked[topic][0], mean, rtol=RTOL, atol=RTOL * scale,
-                                   err_msg=topic)  # fmt: skip
-        np.testing.assert_allclose(blocked[topic][1], cov, rtol=RTOL, atol=1e-12, err_msg=topic)
-    a, b = (json.loads((runs[k] / "summary.json").read_text()) for k in ("whole", "blocked"))
-    _close(a, b)
+    whole, blocked = _archs(runs["whole"]), _archs(runs["blocked"])
+    assert set(whole) == set(blocked) and len(whole) == len(runs["archs"])
+    a, _ = _blocked_equals_whole(runs["whole"], runs["blocked"], **TOLERANCES)
     assert a["late"] == runs["late"]
     for arch in runs["archs"]:
         assert a["architectures"][arch]["expected"]["mse"] is not None, arch
@@ -313,7 +272,8 @@ def test_ckf_is_the_kalman_filter_of_the_arrived_readings_with_each_messages_R(r
         pytest.skip("the reference is written for reprocess")
     means, covs = _reference_ckf(runs["sensors"], runs["r"], runs["s3"])
     for k in ("blocked", "whole"):
-        mean, cov = _estimates(runs[k] / "estimates.mcap")["/estimates/CKF"]
+        topic = "/estimates/CKF"
+        mean, cov = McapFile(runs[k] / "estimates.mcap").read_all([topic])[topic]
         np.testing.assert_allclose(mean[0], means, rtol=1e-9, atol=1e-9 * 100, err_msg=k)
         np.testing.assert_allclose(cov, covs, rtol=1e-9, atol=1e-12, err_msg=k)
 
@@ -326,7 +286,7 @@ def test_the_exact_analysis_takes_each_messages_R(runs) -> None:
     if runs["late"] == "retrodict":
         pytest.skip("Al1 over several updates is not the Kalman filter (core.retrodict)")
     for k in ("blocked", "whole"):
-        s = json.loads((runs[k] / "summary.json").read_text())
+        (s,) = summaries(runs[k])
         for arch in ("CKF", "SKF:s3"):
             bound = s["architectures"][arch]["bound"]
             assert bound["holds"], (k, arch, bound)
@@ -367,9 +327,7 @@ def _peak(path: Path, block: int) -> int:
 
     mf = McapFile(path)
     times, K1 = np.asarray(mf.times()), mf.steps()
-    text = SCENARIO.format(steps=K1 - 1, s3=FIXED, late="reprocess", archs='["CKF"]',
-                           correlated="")  # fmt: skip
-    system = scenario_from_text(text).system
+    system = scenario_from_text(_text(FIXED, "reprocess", ["CKF"], steps=K1 - 1)).system
     topics = [f"/sensors/{s}" for s in ("s1", "s2", "s3")]
     archs = ["CKF", "HKF", "MSC-GMF"]
     tracemalloc.start()
@@ -419,22 +377,10 @@ def test_correlated_readings_apart_with_each_messages_R_in_blocks(tmp_path, monk
     variances 0.2..5), s3 late by 1..3 s drawn per reading: blocked = whole (estimates,
     summary), estimated and analysed in blocks; MSC-GMF and AVG report their true error
     covariance (their bound ratio 1), which a recursion with one R would not find."""
-    mp = pytest.MonkeyPatch()
-    try:
-        sens, _ = _log(tmp_path, DRAWN, "reprocess", archs=APART, correlated=True)
-        whole = _estimate_and_evaluate(sens, tmp_path / "whole", None, mp)
-        spy = _Spy(mp)
-        blocked = _estimate_and_evaluate(sens, tmp_path / "blocked", BLOCK, mp)
-    finally:
-        mp.undo()
+    sens, _ = _log(tmp_path, DRAWN, "reprocess", archs=APART, correlated=True)
+    whole, blocked, spy = _whole_and_blocked(sens, tmp_path)
     assert spy.estimated == spy.exact == math.ceil((STEPS + 1) / BLOCK)
-    a, b = (_estimates(d / "estimates.mcap") for d in (whole, blocked))
-    for topic, (mean, cov) in a.items():
-        scale = np.abs(mean).max()
-        np.testing.assert_allclose(b[topic][0], mean, rtol=RTOL, atol=RTOL * scale, err_msg=topic)
-        np.testing.assert_allclose(b[topic][1], cov, rtol=RTOL, atol=1e-12, err_msg=topic)
-    sa, sb = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
-    _close(sa, sb)
+    _, sb = _blocked_equals_whole(whole, blocked, **TOLERANCES)
     for arch in ("MSC-GMF", "AVG"):
         bound = sb["architectures"][arch]["bound"]
         assert abs(bound["worst"] - 1.0) < 1e-6, (arch, bound)
@@ -447,10 +393,7 @@ def test_the_centre_with_correlated_readings_apart_and_each_messages_R_runs_whol
     from fusionlog.core.latency_blocks import LateBlocks
     from fusionlog.scenario import scenario_from_text
 
-    text = SCENARIO.format(
-        steps=99, s3=DRAWN, late="reprocess", archs='["CKF"]', correlated=CORRELATED
-    )
-    system = scenario_from_text(text).system
+    system = scenario_from_text(_text(DRAWN, "reprocess", ["CKF"], CORRELATED, 99)).system
     times = np.arange(100.0)
     rng = np.random.default_rng(3)
     Rs = np.repeat(system.R[None], 100, axis=0)
@@ -517,27 +460,9 @@ def test_a_recorded_replay_with_each_messages_R_in_blocks(tmp_path, monkeypatch)
     exact values). (Retrodiction's blocks are the simulated logs' `runs`. HKF is left out:
     on this log's intervals of 5e-5 s its information-form fusion of the stacked locals
     diverges, |mean| ~ 1e9, whole and blocked alike, with one R as with each message's.)"""
-    replay = _recording(tmp_path, 250)
-    out = {}
-    mp = pytest.MonkeyPatch()
-    try:
-        for name, block in (("whole", None), ("blocked", BLOCK)):
-            if block is None:
-                mp.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
-            else:
-                mp.setenv("FUSIONLOG_TIME_BLOCK", str(block))
-                spy = _Spy(mp)
-            ok("run", replay, "--out-dir", tmp_path / name)
-            out[name] = tmp_path / name
-    finally:
-        mp.undo()
-    K1 = McapFile(out["whole"] / "sensors.mcap").steps()
+    whole, blocked, spy = whole_and_blocked(_recording(tmp_path, 250), tmp_path, BLOCK, spy=_spy)
+    K1 = McapFile(whole / "sensors.mcap").steps()
     assert K1 > 6 * BLOCK and spy.estimated == spy.exact == math.ceil(K1 / BLOCK)
-    assert McapFile(out["whole"] / "sensors.mcap").message_covariances("/sensors/a") is not None
-    a, b = (_estimates(d / "estimates.mcap") for d in out.values())
-    for topic, (mean, cov) in a.items():
-        np.testing.assert_allclose(b[topic][0], mean, rtol=RTOL, atol=1e-12, err_msg=topic)
-        np.testing.assert_allclose(b[topic][1], cov, rtol=RTOL, atol=1e-15, err_msg=topic)
-    sa, sb = (json.loads((d / "summary.json").read_text()) for d in out.values())
-    _close(sa, sb)
+    assert McapFile(whole / "sensors.mcap").message_covariances("/sensors/a") is not None
+    _, sb = _blocked_equals_whole(whole, blocked, mean=(RTOL, 1e-12), cov=(RTOL, 1e-15))
     assert "nis" in sb["architectures"]["CKF"] and sb["late"] == "reprocess"

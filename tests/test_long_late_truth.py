@@ -25,7 +25,6 @@ whose covariances are well conditioned (R >= 0.1, prior of order 1): 1e-9 too.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from pathlib import Path
 
@@ -33,6 +32,18 @@ import numpy as np
 import pytest
 from cli_helpers import ok
 from conftest import random_system
+from long_helpers import (
+    NS,
+    T0,
+    Spy,
+    late_toml,
+    position_sensor,
+    recorded_toml,
+    stamped_mcap,
+    summaries,
+    summaries_close,
+    time_block,
+)
 
 from fusionlog.core.latency_blocks import LateBlocks
 from fusionlog.core.model import Prior, System
@@ -243,6 +254,7 @@ def _peak(K1: int, block: int) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 def test_peak_memory_does_not_grow_with_the_instants() -> None:
     """Blocks of 75 instants: four times the instants, the same peak within 10 % (the whole
     run's plans hold every instant's maps and moments)."""
@@ -253,39 +265,6 @@ def test_peak_memory_does_not_grow_with_the_instants() -> None:
 
 # -- the CLI ----------------------------------------------------------------------------------
 
-SCENARIO = """
-[scenario]
-name = "long_late_truth"
-steps = 199
-runs = 1
-seed = 343
-dt = 1.0
-state_names = ["position", "velocity"]
-[model]
-{model}
-[prior]
-mean = [100.0, -1.0]
-cov = [[1.0, 0.0], [0.0, 1.0]]
-[[sensors]]
-name = "s1"
-H = [[1.0, 0.0]]
-R = 1.0
-dropout = 0.2
-[[sensors]]
-name = "s2"
-H = [[1.0, 0.0]]
-R = {r2}
-latency = 1.0
-[[sensors]]
-name = "s3"
-H = [[1.0, 0.0]]
-R = 0.5
-latency = {s3}
-[estimate]
-architectures = ["CKF", "HKF", "SKF:s3", "MSC", "CI"]
-late = "{late}"
-{extra}"""
-
 CV = 'kind = "constant-velocity"\nn0 = 0.16'
 #: another F (the velocity decays) and Q
 DECAY = "F = [[1.0, 1.0], [0.0, 0.9]]\nQ = [[0.05, 0.08], [0.08, 0.16]]"
@@ -293,26 +272,13 @@ DECAY = "F = [[1.0, 1.0], [0.0, 0.9]]\nQ = [[0.05, 0.08], [0.08, 0.16]]"
 
 def _scenario(path: Path, model=CV, r2="2.0", s3="{min = 1.0, max = 3.0}", late="reprocess",
               extra="") -> Path:  # fmt: skip
+    """s1 (dropping out) on time, s2 one instant late, s3 late by `s3`; `extra` after it."""
     path.parent.mkdir(exist_ok=True, parents=True)
-    text = SCENARIO.format(model=model, r2=r2, s3=s3, late=late, extra=extra)
-    path.write_text(text)
+    s1 = position_sensor("s1", 1.0, extra="dropout = 0.2\n")
+    sensors = s1 + position_sensor("s2", r2, "1.0") + position_sensor("s3", 0.5, s3)
+    archs = ["CKF", "HKF", "SKF:s3", "MSC", "CI"]
+    path.write_text(late_toml("long_late_truth", 343, 199, sensors, archs, late, model) + extra)
     return path
-
-
-class _Calls:
-    """Counts the blocks of the late mismatch route (`LateBlocks.mismatch`,
-    `RetroBlocks.mismatch`)."""
-
-    def __init__(self, mp: pytest.MonkeyPatch) -> None:
-        self.count = 0
-        for kind in (LateBlocks, RetroBlocks):
-            inner = kind.mismatch
-
-            def wrapped(*a, _inner=inner, **kw):
-                self.count += 1
-                return _inner(*a, **kw)
-
-            mp.setattr(kind, "mismatch", wrapped)
 
 
 def _summaries(tmp: Path, block: int, *commands) -> tuple[dict, dict, int]:
@@ -324,35 +290,24 @@ def _summaries(tmp: Path, block: int, *commands) -> tuple[dict, dict, int]:
         folder.mkdir()
         with pytest.MonkeyPatch.context() as m:
             m.chdir(folder)
-            if b is None:
-                m.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
-            else:
-                m.setenv("FUSIONLOG_TIME_BLOCK", str(b))
-            calls = _Calls(m)
+            time_block(m, b)
+            # the blocks of the late mismatch route
+            calls = Spy(
+                m, calls={"late": (LateBlocks, "mismatch"), "retro": (RetroBlocks, "mismatch")}
+            )
             for c in commands:
                 ok(*c)
-            count = calls.count if b is not None else count
-            assert b is not None or calls.count == 0
-        out.append(json.loads((folder / "summary.json").read_text()))
+            n = calls.late + calls.retro
+            count = n if b is not None else count
+            assert b is not None or n == 0
+        out += summaries(folder)
     return out[0], out[1], count
 
 
-def _close(a, b, path="") -> None:
+def _close(a, b) -> None:
     """Summaries equal to RTOL (the Monte Carlo metrics' means move by the blocks' roundings,
     the exact values by the two routes')."""
-    if isinstance(a, dict):
-        assert a.keys() == b.keys(), path
-        for k in a:
-            _close(a[k], b[k], f"{path}.{k}")
-    elif isinstance(a, list):
-        assert len(a) == len(b), path
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            _close(x, y, f"{path}[{i}]")
-    elif isinstance(a, float) and isinstance(b, float):
-        same = math.isnan(a) and math.isnan(b)
-        assert same or math.isclose(a, b, rel_tol=RTOL, abs_tol=1e-12), (path, a, b)
-    else:
-        assert a == b, (path, a, b)
+    summaries_close(a, b, rtol=RTOL, atol=1e-12, nan=True)
 
 
 def test_correlated_readings_apart_stay_whole() -> None:
@@ -420,17 +375,12 @@ def test_fixed_latencies_and_a_truth_not_the_prior(tmp_path) -> None:
 
 # -- a recorded replay: arrivals from the messages' log times, a truth --------------------------
 
-NS = 1_000_000_000
-T0 = 1_700_000_000 * NS
-
 
 def _recorded(tmp: Path) -> Path:
     """A JSON MCAP of two sensors of one random walk and its truth: a on time every 0.1 s, b
     stamped at 0.05 + 0.1 i and logged 0 to 0.3 s late (uniform), a fifth of b's readings
     left out, the walk at every instant (/truth). The scenario replays it with b's arrival
     its log time (Qc 0.4, R 0.49 and 0.16)."""
-    from mcap.writer import Writer
-
     rng = np.random.default_rng(9)
     N = 150
     x = np.cumsum(rng.normal(0, 0.2, 2 * N))
@@ -442,48 +392,10 @@ def _recorded(tmp: Path) -> Path:
         if rng.random() >= 0.2:
             logged = tb + round(rng.uniform(0, 0.3) * NS)
             events += [(logged, "/b", tb, x[2 * i + 1] + rng.normal(0, 0.4))]
-    schema = {"type": "object", "properties": {"header": {"type": "object"},
-                                               "v": {"type": "number"}}}  # fmt: skip
-    with open(tmp / "log.mcap", "wb") as f:
-        w = Writer(f)
-        w.start()
-        sid = w.register_schema("Reading", "jsonschema", json.dumps(schema).encode())
-        ch = {t: w.register_channel(t, "json", sid) for t in ("/a", "/b", "/truth")}
-        for lg, t, stamp, v in sorted(events):
-            body = {"header": {"stamp": {"sec": stamp // NS, "nanosec": stamp % NS}}, "v": v}
-            w.add_message(ch[t], log_time=lg, data=json.dumps(body).encode(), publish_time=lg)
-        w.finish()
-    sensor = 'source = "log.mcap"\nvalues = ["v"]\ntime = "header.stamp"\nH = [[1.0]]\n'
-    text = f"""
-[scenario]
-name = "recorded_late_truth"
-state_names = ["x"]
-[model]
-kind = "continuous"
-A = [[0.0]]
-Qc = [[0.4]]
-[prior]
-mean = [0.0]
-cov = [[4.0]]
-[[sensors]]
-name = "a"
-topic = "/a"
-{sensor}R = 0.49
-[[sensors]]
-name = "b"
-topic = "/b"
-{sensor}R = 0.16
-arrival = "log_time"
-[truth]
-source = "log.mcap"
-topic = "/truth"
-values = ["v"]
-time = "header.stamp"
-states = ["x"]
-[estimate]
-architectures = ["CKF", "HKF", "SKF:b", "MSC"]
-late = "reprocess"
-"""
+    stamped_mcap(tmp / "log.mcap", ("/a", "/b", "/truth"), events)
+    truth = ('[truth]\nsource = "log.mcap"\ntopic = "/truth"\nvalues = ["v"]\n'
+             'time = "header.stamp"\nstates = ["x"]\n')  # fmt: skip
+    text = recorded_toml("recorded_late_truth", ["CKF", "HKF", "SKF:b", "MSC"], "reprocess", truth)
     path = tmp / "recorded.toml"
     path.write_text(text)
     # the filters' model (Qc doubled, b's R 0.3), b late by up to the delays recorded
