@@ -309,3 +309,59 @@ arrival = "log_time"
 architectures = {json.dumps(list(archs))}
 late = "{late}"
 """
+
+
+#: the per-message recordings' clock (s)
+T0_S = 1_700_000_000
+
+
+def per_message_recording(folder: Path, per_sensor: int, seed: int, name: str, archs,
+                          late: bool = False) -> tuple[Path, dict]:  # fmt: skip
+    """A replay of two position sensors at their own irregular instants: `a` in a JSON MCAP
+    whose messages carry their own variance (0.05..5, the field `c`) -- with `late`, logged
+    0..0.12 s after their stamp `t` (``arrival = "log_time"``) --, `b` in a CSV with one R,
+    on time; the truth (p, v) at every instant in a CSV (constant velocity, n0 0.5). Returns
+    the replay file and a's data {"t", "z", "r"}."""
+    from test_replay_sources import write_json_mcap
+
+    rng = np.random.default_rng(seed)
+    ta = np.round(np.cumsum(rng.uniform(0.02, 0.06, per_sensor)), 4)
+    tb = np.round(np.cumsum(rng.uniform(0.02, 0.06, per_sensor)) + 0.00005, 5)
+    t = np.union1d(ta, tb)
+    v = 1.0 + 0.2 * np.cumsum(rng.normal(size=len(t))) * 0.05
+    p = np.concatenate([[0.0], np.cumsum(v[:-1] * np.diff(t))])
+    ra = np.exp(rng.uniform(np.log(0.05), np.log(5.0), per_sensor))
+    za = p[np.searchsorted(t, ta)] + np.sqrt(ra) * rng.normal(size=per_sensor)
+    zb = p[np.searchsorted(t, tb)] + np.sqrt(0.5) * rng.normal(size=per_sensor)
+    msgs = [
+        (int((T0_S + x) * 1e9), {"t": T0_S + float(x), "z": float(z), "c": [float(r)]})
+        for x, z, r in zip(ta, za, ra, strict=True)
+    ]
+    if late:
+        logged = ta + rng.uniform(0.0, 0.12, per_sensor)
+        msgs = sorted(
+            (int(round((T0_S + g) * 1e9)), m) for g, (_, m) in zip(logged, msgs, strict=True)
+        )
+    write_json_mcap(folder / "a.mcap", {"/a": msgs})
+    (folder / "b.csv").write_text(
+        "time,b\n" + "".join(f"{T0_S + x:.5f},{float(z)!r}\n" for x, z in zip(tb, zb, strict=True))
+    )
+    rows = zip(t, p, v, strict=True)
+    (folder / "truth.csv").write_text(
+        "time,p,v\n" + "".join(f"{T0_S + x:.5f},{float(a)!r},{float(b)!r}\n" for x, a, b in rows)
+    )
+    arrival = 'arrival = "log_time"\n' if late else ""
+    replay = folder / "replay.toml"
+    replay.write_text(
+        f'[scenario]\nname = "{name}"\nstate_names = ["p", "v"]\n'
+        '[model]\nkind = "constant-velocity"\nn0 = 0.5\n'
+        "[prior]\nmean = [0.0, 1.0]\ncov = [[1.0, 0.0], [0.0, 1.0]]\n"
+        '[[sensors]]\nname = "a"\nsource = "a.mcap"\ntopic = "/a"\nvalues = ["z"]\n'
+        f'time = "t"\ncovariance = "c"\n{arrival}H = [[1.0, 0.0]]\nR = 1.0\n'
+        '[[sensors]]\nname = "b"\nsource = "b.csv"\nvalues = ["b"]\nH = [[1.0, 0.0]]\n'
+        "R = 0.5\n"
+        '[truth]\nsource = "truth.csv"\nvalues = ["p", "v"]\nstates = ["p", "v"]\n'
+        'match = "exact"\n'
+        f"[estimate]\narchitectures = {json.dumps(list(archs))}\n"
+    )  # fmt: skip
+    return replay, {"t": ta, "z": za, "r": ra}

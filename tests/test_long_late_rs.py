@@ -42,6 +42,7 @@ from long_helpers import (
     Spy,
     estimates_close,
     late_toml,
+    per_message_recording,
     position_sensor,
     summaries,
     summaries_close,
@@ -406,52 +407,15 @@ def test_the_centre_with_correlated_readings_apart_and_each_messages_R_runs_whol
 
 # -- a recorded replay ------------------------------------------------------------------------
 
-T0 = 1_700_000_000  # s: the recording's clock
-
 
 def _recording(folder: Path, per_sensor: int, seed: int = 34) -> Path:
     """A replay of two position sensors at their own irregular instants: `a` in a JSON MCAP
     whose messages carry their own variance (0.05..5, the field `c`) and are logged 0..0.12 s
     after their stamp `t` (``arrival = "log_time"``: a lag of up to ~4 instants), `b` in a CSV
     with one R, on time; the truth (p, v) at every instant in a CSV."""
-    from test_replay_sources import write_json_mcap
-
-    rng = np.random.default_rng(seed)
-    ta = np.round(np.cumsum(rng.uniform(0.02, 0.06, per_sensor)), 4)
-    tb = np.round(np.cumsum(rng.uniform(0.02, 0.06, per_sensor)) + 0.00005, 5)
-    t = np.union1d(ta, tb)
-    v = 1.0 + 0.2 * np.cumsum(rng.normal(size=len(t))) * 0.05
-    p = np.concatenate([[0.0], np.cumsum(v[:-1] * np.diff(t))])
-    ra = np.exp(rng.uniform(np.log(0.05), np.log(5.0), per_sensor))
-    za = p[np.searchsorted(t, ta)] + np.sqrt(ra) * rng.normal(size=per_sensor)
-    zb = p[np.searchsorted(t, tb)] + np.sqrt(0.5) * rng.normal(size=per_sensor)
-    logged = ta + rng.uniform(0.0, 0.12, per_sensor)
-    msgs = sorted(
-        (int(round((T0 + g) * 1e9)), {"t": T0 + float(x), "z": float(z), "c": [float(r)]})
-        for x, g, z, r in zip(ta, logged, za, ra, strict=True)
-    )
-    write_json_mcap(folder / "a.mcap", {"/a": msgs})
-    (folder / "b.csv").write_text(
-        "time,b\n" + "".join(f"{T0 + x:.5f},{float(z)!r}\n" for x, z in zip(tb, zb, strict=True))
-    )
-    rows = zip(t, p, v, strict=True)
-    (folder / "truth.csv").write_text(
-        "time,p,v\n" + "".join(f"{T0 + x:.5f},{float(a)!r},{float(b)!r}\n" for x, a, b in rows)
-    )
-    replay = folder / "replay.toml"
-    replay.write_text(
-        '[scenario]\nname = "long_late_rs_replay"\nstate_names = ["p", "v"]\n'
-        '[model]\nkind = "constant-velocity"\nn0 = 0.5\n'
-        "[prior]\nmean = [0.0, 1.0]\ncov = [[1.0, 0.0], [0.0, 1.0]]\n"
-        '[[sensors]]\nname = "a"\nsource = "a.mcap"\ntopic = "/a"\nvalues = ["z"]\n'
-        'time = "t"\ncovariance = "c"\narrival = "log_time"\nH = [[1.0, 0.0]]\nR = 1.0\n'
-        '[[sensors]]\nname = "b"\nsource = "b.csv"\nvalues = ["b"]\nH = [[1.0, 0.0]]\n'
-        "R = 0.5\n"
-        '[truth]\nsource = "truth.csv"\nvalues = ["p", "v"]\nstates = ["p", "v"]\n'
-        'match = "exact"\n'
-        '[estimate]\narchitectures = ["CKF", "SKF:a", "MSC", "CI"]\n'
-    )  # fmt: skip
-    return replay
+    archs = ["CKF", "SKF:a", "MSC", "CI"]
+    name = "long_late_rs_replay"
+    return per_message_recording(folder, per_sensor, seed, name, archs, late=True)[0]
 
 
 def test_a_recorded_replay_with_each_messages_R_in_blocks(tmp_path, monkeypatch):

@@ -24,16 +24,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_helpers import ok
-from long_helpers import time_block, whole_and_blocked
+from long_helpers import per_message_recording, time_block, whole_and_blocked
 from test_long_replay import _close
-from test_replay_sources import write_json_mcap
 
 from fusionlog.io.mcap import McapFile
 from fusionlog.io.mcap.topics import sensor_topic
 
 ARCHS = ["CKF", "HKF", "MSC-GMF", "MSC", "SKF:a", "CI", "FBS", "AVG"]
 N0 = 0.5
-T0 = 1_700_000_000  # s: the recording's clock
 RTOL = 1e-9
 
 
@@ -41,41 +39,7 @@ def _recording(folder: Path, per_sensor: int, seed: int = 34) -> tuple[Path, dic
     """A replay of two position sensors at their own irregular instants: `a` in a JSON MCAP
     whose messages carry their own variance (0.05..5, the field `c`), `b` in a CSV with one R;
     the truth (p, v) at every instant in a CSV. Returns the replay file and a's data."""
-    rng = np.random.default_rng(seed)
-    ta = np.round(np.cumsum(rng.uniform(0.02, 0.06, per_sensor)), 4)
-    tb = np.round(np.cumsum(rng.uniform(0.02, 0.06, per_sensor)) + 0.00005, 5)
-    t = np.union1d(ta, tb)
-    v = 1.0 + 0.2 * np.cumsum(rng.normal(size=len(t))) * 0.05
-    p = np.concatenate([[0.0], np.cumsum(v[:-1] * np.diff(t))])
-    ra = np.exp(rng.uniform(np.log(0.05), np.log(5.0), per_sensor))
-    za = p[np.searchsorted(t, ta)] + np.sqrt(ra) * rng.normal(size=per_sensor)
-    zb = p[np.searchsorted(t, tb)] + np.sqrt(0.5) * rng.normal(size=per_sensor)
-    msgs = [
-        (int((T0 + x) * 1e9), {"t": T0 + float(x), "z": float(z), "c": [float(r)]})
-        for x, z, r in zip(ta, za, ra, strict=True)
-    ]
-    write_json_mcap(folder / "a.mcap", {"/a": msgs})
-    (folder / "b.csv").write_text(
-        "time,b\n" + "".join(f"{T0 + x:.5f},{float(z)!r}\n" for x, z in zip(tb, zb, strict=True))
-    )
-    rows = zip(t, p, v, strict=True)
-    (folder / "truth.csv").write_text(
-        "time,p,v\n" + "".join(f"{T0 + x:.5f},{float(a)!r},{float(b)!r}\n" for x, a, b in rows)
-    )
-    replay = folder / "replay.toml"
-    replay.write_text(
-        '[scenario]\nname = "long_rs"\nstate_names = ["p", "v"]\n'
-        f'[model]\nkind = "constant-velocity"\nn0 = {N0}\n'
-        "[prior]\nmean = [0.0, 1.0]\ncov = [[1.0, 0.0], [0.0, 1.0]]\n"
-        '[[sensors]]\nname = "a"\nsource = "a.mcap"\ntopic = "/a"\nvalues = ["z"]\n'
-        'time = "t"\ncovariance = "c"\nH = [[1.0, 0.0]]\nR = 1.0\n'
-        '[[sensors]]\nname = "b"\nsource = "b.csv"\nvalues = ["b"]\nH = [[1.0, 0.0]]\n'
-        "R = 0.5\n"
-        '[truth]\nsource = "truth.csv"\nvalues = ["p", "v"]\nstates = ["p", "v"]\n'
-        'match = "exact"\n'
-        f"[estimate]\narchitectures = {json.dumps(ARCHS)}\n"
-    )  # fmt: skip
-    return replay, {"t": ta, "z": za, "r": ra}
+    return per_message_recording(folder, per_sensor, seed, "long_rs", ARCHS)
 
 
 @pytest.fixture(scope="module")
