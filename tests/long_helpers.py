@@ -281,6 +281,12 @@ def stamped_mcap(path: Path, topics: Sequence[str], events) -> None:
         w.finish()
 
 
+def random_walk(qc: float) -> str:
+    """`[model]` and `[prior]` of the recorded replays' random walk (A 0, Qc `qc`)."""
+    return (f'[model]\nkind = "continuous"\nA = [[0.0]]\nQc = [[{qc}]]\n'
+            "[prior]\nmean = [0.0]\ncov = [[4.0]]\n")  # fmt: skip
+
+
 def recorded_toml(name: str, archs: Sequence[str], late: str, truth: str = "") -> str:
     """The scenario of `stamped_mcap`'s log.mcap: a random walk (Qc 0.4) seen by a on time
     (R 0.49) and b (R 0.16) arriving at its messages' log times; `truth` its `[truth]`."""
@@ -289,14 +295,7 @@ def recorded_toml(name: str, archs: Sequence[str], late: str, truth: str = "") -
 [scenario]
 name = "{name}"
 state_names = ["x"]
-[model]
-kind = "continuous"
-A = [[0.0]]
-Qc = [[0.4]]
-[prior]
-mean = [0.0]
-cov = [[4.0]]
-[[sensors]]
+{random_walk(0.4)}[[sensors]]
 name = "a"
 topic = "/a"
 {sensor}R = 0.49

@@ -38,6 +38,7 @@ from long_helpers import (
     Spy,
     late_toml,
     position_sensor,
+    random_walk,
     recorded_toml,
     stamped_mcap,
     summaries,
@@ -399,31 +400,13 @@ def _recorded(tmp: Path) -> Path:
     path = tmp / "recorded.toml"
     path.write_text(text)
     # the filters' model (Qc doubled, b's R 0.3), b late by up to the delays recorded
-    model = """[scenario]
-name = "recorded_model"
-state_names = ["x"]
-dt = 0.05
-steps = 1
-runs = 1
-[model]
-kind = "continuous"
-A = [[0.0]]
-Qc = [[0.8]]
-[prior]
-mean = [0.0]
-cov = [[4.0]]
-[[sensors]]
-name = "a"
-H = [[1.0]]
-R = 0.49
-[[sensors]]
-name = "b"
-H = [[1.0]]
-R = 0.3
-latency = {min = 0.0, max = 0.3}
-[estimate]
-late = "reprocess"
-"""
+    model = (
+        '[scenario]\nname = "recorded_model"\nstate_names = ["x"]\ndt = 0.05\nsteps = 1\nruns = 1\n'
+        + random_walk(0.8)
+        + '[[sensors]]\nname = "a"\nH = [[1.0]]\nR = 0.49\n'
+        + '[[sensors]]\nname = "b"\nH = [[1.0]]\nR = 0.3\nlatency = {min = 0.0, max = 0.3}\n'
+        + '[estimate]\nlate = "reprocess"\n'
+    )
     (tmp / "model.toml").write_text(model)
     return path
 
