@@ -32,7 +32,8 @@ NUMERIC := tests/test_retrodict_t2t.py tests/test_exact.py tests/test_exact_per_
 	tests/test_long_more.py tests/test_long_replay.py tests/test_replay_kernels.py \
 	tests/test_long_rest.py tests/test_long_truth_model.py tests/test_long_late_random.py \
 	tests/test_long_retrodict.py \
-	tests/test_long_late_more.py tests/test_long_late_rules.py tests/test_long_rs.py
+	tests/test_long_late_more.py tests/test_long_late_rules.py tests/test_long_rs.py \
+	tests/test_long_late_rs.py
 
 # The goldens and the exactness tests once more with every fast path sent to its plain
 # reference path (core/reference.py; benchmarks/README.md "Fast paths").

@@ -115,6 +115,7 @@ def test_filter_runs_seed_steps_are_named_as_arguments(small) -> None:
     _refused(lambda: fl.simulate(sc, seed="3"), " seed: expected an integer")
 
 
+@pytest.mark.memory
 def test_runs_beyond_memory_are_refused_before_allocating() -> None:
     """runs=10**8 grew to 3.7 GB and ended in MemoryError: refused by the count, as the CLI
     refuses instants that do not fit, with next to nothing allocated."""

@@ -285,6 +285,7 @@ def _peak(path: Path) -> tuple[int, int]:
     return peak, sum(s.times_ns.nbytes + s.values.nbytes for s in out)
 
 
+@pytest.mark.memory
 def test_reading_in_blocks_holds_arrays_not_rows(tmp_path: Path) -> None:
     """The peak grows with the rows as the returned arrays do (their collection and one copy:
     ≤ 2.5x), not as per-row Python objects (a float and its list slot: 4x an 8-byte value);

@@ -21,6 +21,7 @@ between the two sizes, so the constant costs (a block, imports) cancel.
 import tracemalloc
 
 import numpy as np
+import pytest
 
 from fusionlog.scenario import load_scenario
 from fusionlog.stages.import_data import run_import
@@ -82,6 +83,7 @@ def _peak(scenario, out) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 def test_the_import_peak_does_not_grow_with_the_rows(tmp_path):
     small, large = 200_000, 400_000
     peaks = []

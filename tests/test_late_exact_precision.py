@@ -24,39 +24,18 @@ import json
 
 import pytest
 from cli_helpers import ok
+from long_helpers import late_toml, position_sensor
 
-SCENARIO = """
-[scenario]
-name = "late_precision"
-steps = 1200
-runs = 1
-seed = 2009
-dt = 1.0
-state_names = ["position", "velocity"]
-[model]
-kind = "constant-velocity"
-n0 = 0.16
-[prior]
-mean = [100.0, -1.0]
-cov = [[1.0, 0.0], [0.0, 1.0]]
-[[sensors]]
-name = "s1"
-H = [[1.0, 0.0]]
-R = 1.0
-[[sensors]]
-name = "s2"
-H = [[1.0, 0.0]]
-R = 1.0
-[[sensors]]
-name = "s3"
-H = [[1.0, 0.0]]
-R = 1.0
-latency = 2.0
-{extra}
-[estimate]
-architectures = {archs}
-late = "{late}"
-"""
+#: s1 and s2 on time, s3 2 s late, each of R = 1
+SENSORS = (
+    position_sensor("s1", 1.0) + position_sensor("s2", 1.0) + position_sensor("s3", 1.0, "2.0")
+)
+
+
+def _scenario(late: str, archs: list[str], extra: str = "") -> str:
+    """A constant-velocity target over 1200 instants (`extra`: the sensors' correlations)."""
+    return late_toml("late_precision", 2009, 1200, SENSORS + extra, archs, late)
+
 
 #: The tolerance of the optimal filter's bound ratio (module docstring).
 RATIO_TOL = 1e-9
@@ -74,7 +53,7 @@ def test_optimal_late_filter_bound_ratio_is_one_on_a_long_log(tmp_path, late, ar
     retrodict, MSC-GMF are optimal for what they fuse or report their error covariance: their
     worst bound ratio over 1201 instants is 1 to rounding."""
     scenario = tmp_path / "late.toml"
-    scenario.write_text(SCENARIO.format(late=late, archs=json.dumps(archs), extra=""))
+    scenario.write_text(_scenario(late, archs))
     out = tmp_path / "out"
     ok("run", scenario, "--out-dir", out)
     summary = json.loads((out / "summary.json").read_text())
@@ -100,8 +79,7 @@ def test_joint_rules_on_correlated_readings_arriving_apart_keep_ratio_one(tmp_pa
     the error form): MSC-GMF 1 + 3.5e-8."""
     scenario = tmp_path / "corr.toml"
     archs = ["MSC-GMF", "AVG"]
-    text = SCENARIO.format(late="reprocess", archs=json.dumps(archs), extra=CORRELATED)
-    scenario.write_text(text)
+    scenario.write_text(_scenario("reprocess", archs, CORRELATED))
     out = tmp_path / "out"
     ok("run", scenario, "--out-dir", out)
     summary = json.loads((out / "summary.json").read_text())

@@ -11,6 +11,7 @@ import json
 import tracemalloc
 
 import numpy as np
+import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.writer import Writer
 from mcap_helpers import mcap_writer
@@ -154,6 +155,7 @@ def _writer_peak(tmp_path, steps: int) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 def test_writing_a_long_sparse_irregular_log_holds_no_lists(tmp_path):
     """What grows with the instants in the writer is only its check that no step is written
     twice (`StepSet`: 12 bytes for each run of consecutive steps of a topic; here ~0.2 + 0.67

@@ -45,6 +45,7 @@ def test_a_complete_pattern_is_named_so() -> None:
     assert _record(mask) == "complete"
 
 
+@pytest.mark.memory
 def test_writing_and_reading_the_pattern_take_a_few_times_its_text() -> None:
     """tracemalloc's peak of `pattern_record` and of `pattern_mask` on 3*10^5 instants of three
     sensors, against the text's length: the mask (3 bytes an instant), the text and one copy

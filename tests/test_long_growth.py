@@ -83,6 +83,7 @@ def _transitions_peak(K: int, block: int) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 @pytest.mark.parametrize("block", [500, 2000])
 def test_the_per_interval_transitions_do_not_grow_with_the_log(block: int) -> None:
     """Putting the model on 4K instants instead of K, and walking them block by block, adds
@@ -124,6 +125,7 @@ def _held_after_opening(path) -> tuple[int, McapFile]:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 @pytest.mark.parametrize("base, K", [(0, 15_000), (LISTED, 30_000)])
 def test_an_opened_long_sparse_log_holds_its_times_not_the_layout_record_s_text(tmp_path, base, K):
     """An opened file of 4K instants holds at most its times (8 bytes per instant) and a bit

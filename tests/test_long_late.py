@@ -12,52 +12,28 @@ order of roundings), the summary's sums by the order of their terms.
 
 from __future__ import annotations
 
-import json
-import math
 from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_helpers import ok
+from long_helpers import (
+    EQUAL,
+    LATE_SENSORS,
+    OfLargest,
+    Spy,
+    estimates_close,
+    late_toml,
+    pipeline_peaks,
+    series_close,
+    summaries,
+    summaries_close,
+    whole_and_blocked,
+)
 
 import fusionlog.driver.long_log as driver_long_log
 from fusionlog.io.mcap import McapFile
 from fusionlog.io.mcap.arrival import read_arrivals
-from fusionlog.io.rrd import read_recording
 from fusionlog.stages.evaluator.long_evaluator import LongEvaluator
-
-SCENARIO = """
-[scenario]
-name = "long_late"
-steps = {steps}
-runs = 1
-seed = 34
-dt = 1.0
-state_names = ["position", "velocity"]
-[model]
-kind = "constant-velocity"
-n0 = 0.16
-[prior]
-mean = [100.0, -1.0]
-cov = [[1.0, 0.0], [0.0, 1.0]]
-[[sensors]]
-name = "s1"
-H = [[1.0, 0.0]]
-R = 1.0
-[[sensors]]
-name = "s2"
-H = [[1.0, 0.0]]
-R = 2.0
-latency = 1.0
-[[sensors]]
-name = "s3"
-H = [[1.0, 0.0]]
-R = 0.5
-latency = 3.0
-[estimate]
-architectures = {archs}
-late = "{late}"
-"""
 
 #: The paper's architectures with late sensors (FBS: a latency has no meaning for a
 #: fixed-interval smoother, refused) and the other rules. Retrodiction with MSC-GMF and AVG
@@ -83,38 +59,16 @@ RTOL = 1e-12
 
 
 def _scenario(tmp: Path, late: str, archs: list[str], steps: int = STEPS) -> Path:
+    """Two sensors late by fixed latencies of 3 and 1 instants, a third on time."""
     path = tmp / f"{late}.toml"
-    path.write_text(SCENARIO.format(steps=steps, archs=json.dumps(archs), late=late))
+    path.write_text(late_toml("long_late", 34, steps, LATE_SENSORS, archs, late))
     return path
 
 
-class _Spy:
+def _spy(mp: pytest.MonkeyPatch) -> Spy:
     """Counts the blocks of time the estimate and evaluate stages took (the blocked path)."""
-
-    def __init__(self, mp: pytest.MonkeyPatch) -> None:
-        self.estimated, self.evaluated = 0, 0
-        inner, add = driver_long_log.long_estimates, LongEvaluator.add
-
-        def long_estimates(*a, **kw):
-            for got in inner(*a, **kw):
-                self.estimated += 1
-                yield got
-
-        def evaluated(ev, *a, **kw):
-            self.evaluated += 1
-            return add(ev, *a, **kw)
-
-        mp.setattr(driver_long_log, "long_estimates", long_estimates)
-        mp.setattr(LongEvaluator, "add", evaluated)
-
-
-def _run(scenario: Path, out: Path, block: int | None, mp: pytest.MonkeyPatch, *extra) -> Path:
-    if block is None:
-        mp.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
-    else:
-        mp.setenv("FUSIONLOG_TIME_BLOCK", str(block))
-    ok("run", scenario, "--out-dir", out, "--force", *extra)
-    return out
+    return Spy(mp, blocks={"estimated": (driver_long_log, "long_estimates")},
+               calls={"evaluated": (LongEvaluator, "add")})  # fmt: skip
 
 
 @pytest.fixture(
@@ -126,21 +80,12 @@ def late_runs(tmp_path_factory, request):
     """One policy's log of 1200 instants taken whole and in blocks of 50: with late plans over
     all of it, and with late plans of 512 instants standing for it (their steady middle
     repeated, what a log longer than the horizons takes)."""
-    import fusionlog.core.architectures.long_log as long_log
-
     late, variant = request.param
     archs = archs_of(late, ARCHS if variant == "plans of the whole log" else STEADY_ARCHS)
-    mp = pytest.MonkeyPatch()
     tmp = tmp_path_factory.mktemp(f"late-{late}")
     sc = _scenario(tmp, late, archs)
-    try:
-        whole = _run(sc, tmp / "whole", None, mp)
-        if variant != "plans of the whole log":
-            mp.setattr(long_log, "HORIZONS", (512,))
-        spy = _Spy(mp)
-        blocked = _run(sc, tmp / "blocked", 50, mp)
-    finally:
-        mp.undo()
+    horizons = None if variant == "plans of the whole log" else (512,)
+    whole, blocked, spy = whole_and_blocked(sc, tmp, 50, horizons=horizons, spy=_spy)
     return late, archs, whole, blocked, spy
 
 
@@ -154,13 +99,7 @@ def test_blocked_estimates_equal_the_whole_log(late_runs) -> None:
     """Every architecture's means (to rounding) and covariances (to the bit), across edges
     that late readings cross."""
     _, archs, whole, blocked, _ = late_runs
-    topics = [f"/estimates/{a}" for a in archs]
-    a = McapFile(whole / "estimates.mcap").read_all(topics)
-    b = McapFile(blocked / "estimates.mcap").read_all(topics)
-    for t in topics:
-        scale = np.abs(a[t][0]).max()
-        np.testing.assert_allclose(b[t][0], a[t][0], rtol=0, atol=RTOL * scale, err_msg=t)
-        np.testing.assert_array_equal(b[t][1], a[t][1], err_msg=t)
+    estimates_close(whole, blocked, archs, mean=OfLargest(RTOL), cov=EQUAL)
     prov = McapFile(blocked / "estimates.mcap").metadata["fusionlog.provenance"]
     assert prov["measurement_pattern"] == "complete"
 
@@ -173,23 +112,12 @@ def test_blocked_estimates_equal_the_whole_log(late_runs) -> None:
 EXACT_ATOL = 32 * np.finfo(float).eps * 0.16 * STEPS**3 / 3
 
 
-def _close(a, b, steady: bool, path=""):
-    if isinstance(a, dict):
-        assert a.keys() == b.keys(), path
-        for k in a:
-            if steady and k == "worst_step":  # argmax over ratios equal to roundings
-                continue
-            _close(a[k], b[k], steady, f"{path}.{k}")
-    elif isinstance(a, list):
-        assert len(a) == len(b), path
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            _close(x, y, steady, f"{path}[{i}]")
-    elif isinstance(a, float) and isinstance(b, float):
-        exact = steady and (".expected." in path or ".bound." in path)
-        atol = EXACT_ATOL if exact else 1e-15
-        assert math.isclose(a, b, rel_tol=RTOL, abs_tol=atol), (path, a, b)
-    else:
-        assert a == b, (path, a, b)
+def _close(a, b, steady: bool) -> None:
+    """RTOL relative, 1e-15 absolute; with short plans standing for the log, the exact values
+    within `EXACT_ATOL` and the bound's worst step passed over (an argmax over ratios equal to
+    roundings)."""
+    exact_atol, skip = (EXACT_ATOL, ("worst_step",)) if steady else (None, ())
+    summaries_close(a, b, rtol=RTOL, atol=1e-15, exact_atol=exact_atol, skip=skip)
 
 
 def test_blocked_summary_equals_the_whole_log(late_runs) -> None:
@@ -197,7 +125,7 @@ def test_blocked_summary_equals_the_whole_log(late_runs) -> None:
     instants), the bound check and the policy, as from the whole log; with short plans standing
     for it, the exact values within the whole log's own rounding (`EXACT_ATOL`)."""
     late, archs, whole, blocked, _ = late_runs
-    a, b = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
+    a, b = summaries(whole, blocked)
     _close(b, a, steady=archs != archs_of(late))  # the short plans
     assert b["late"] == late
     for arch in archs:
@@ -212,13 +140,7 @@ def test_blocked_recording_equals_the_whole_log(late_runs) -> None:
     late, archs, whole, blocked, _ = late_runs
     steady = archs != archs_of(late)
     atol = 2 * 5 * RTOL * (100 + STEPS)
-    a, b = (read_recording(d / "evaluation.rrd") for d in (whole, blocked))
-    np.testing.assert_array_equal(a["steps"], b["steps"])
-    assert a["series"].keys() == b["series"].keys()
-    for key, v in a["series"].items():
-        exact = steady and ("expected" in key or "bound" in key)
-        tol = EXACT_ATOL if exact else atol
-        np.testing.assert_allclose(b["series"][key], v, rtol=1e-9, atol=tol, err_msg=key)
+    series_close(whole, blocked, 1e-9, atol, EXACT_ATOL if steady else None)
 
 
 def test_the_sensors_log_is_the_whole_runs(late_runs) -> None:
@@ -234,34 +156,20 @@ def test_the_sensors_log_is_the_whole_runs(late_runs) -> None:
     np.testing.assert_array_equal(got["/sensors/s3"][0], t + 3.0)
 
 
+@pytest.mark.memory
 @pytest.mark.parametrize("late", ["reprocess", "retrodict"])
 def test_peak_memory_does_not_grow_with_the_instants(tmp_path, monkeypatch, late) -> None:
     """The Python allocations' peak (tracemalloc: numpy's arrays included) of a whole `run`
     with late sensors in blocks of 1000 instants, a recording decimated to 150 points per
     series: twice the instants, the same peak within 10 % (the whole run holds its plans'
     maps, estimates and per-instant sums)."""
-    import tracemalloc
-
     import fusionlog.core.architectures.long_log as long_log
-    from fusionlog.core import decimate
-    from fusionlog.scenario import load_scenario
-    from fusionlog.stages.run import run_pipeline
 
-    monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", "1000")
     monkeypatch.setattr(long_log, "HORIZONS", (512,))
-    monkeypatch.setattr(decimate, "DECIMATE_ABOVE", 500)
-    monkeypatch.setattr(decimate, "BUCKETS", 50)
-    spy = _Spy(monkeypatch)
+    spy = _spy(monkeypatch)
     archs = ["CKF", "MSC", "SKF:s3"]
     path = _scenario(tmp_path, late, archs)
-    peaks = []
-    for K in (2_000, 10_000, 20_000):  # the first: what is imported on first use
-        sc = load_scenario(path, steps=K)
-        tracemalloc.start()
-        try:
-            run_pipeline(sc, tmp_path / str(K), archs=archs, force=True)
-            peaks.append(tracemalloc.get_traced_memory()[1])
-        finally:
-            tracemalloc.stop()
+    sizes = (2_000, 10_000, 20_000)
+    peaks = pipeline_peaks(tmp_path, monkeypatch, path, archs, sizes, 1000, 500, 50)
     assert spy.estimated == spy.evaluated == 3 + 11 + 21  # every log in blocks (K + 1 instants)
     assert peaks[2] <= 1.1 * peaks[1], peaks

@@ -16,27 +16,22 @@ tests/test_retrodict_t2t.py and tests/test_latency_nonlinear.py.
 from __future__ import annotations
 
 import json
-import math
-from pathlib import Path
 
-import numpy as np
 import pytest
-from cli_helpers import ok
-from test_long_late import EXACT_ATOL, JOINT, RTOL, _close, _scenario, _Spy
+from long_helpers import (
+    EQUAL,
+    OfLargest,
+    Spy,
+    estimates_close,
+    pipeline_peaks,
+    series_close,
+    summaries,
+    summaries_close,
+    whole_and_blocked,
+)
+from test_long_late import EXACT_ATOL, JOINT, RTOL, _close, _scenario, _spy
 
-from fusionlog.io.mcap import McapFile
-from fusionlog.io.rrd import read_recording
 from fusionlog.stages.evaluator.long_evaluator import LongEvaluator
-
-
-def _run(scenario: Path, out: Path, block: int | None, mp: pytest.MonkeyPatch) -> Path:
-    if block is None:
-        mp.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
-    else:
-        mp.setenv("FUSIONLOG_TIME_BLOCK", str(block))
-    ok("run", scenario, "--out-dir", out, "--force")
-    return out
-
 
 # --- retrodiction with MSC-GMF and AVG ---------------------------------------------------
 
@@ -49,20 +44,12 @@ def retro_runs(tmp_path_factory, request):
     """test_long_late's log (s2 1 s late, s3 3 s, 1200 instants) retrodicted by MSC-GMF and
     AVG, taken whole and in blocks of 50: with late plans over all of it, and with late plans
     of 512 instants standing for it (their steady middle repeated)."""
-    import fusionlog.core.architectures.long_log as long_log
-
-    mp = pytest.MonkeyPatch()
+    steady = request.param != "plans of the whole log"
     tmp = tmp_path_factory.mktemp("retro-joint")
     sc = _scenario(tmp, "retrodict", JOINT)
-    try:
-        whole = _run(sc, tmp / "whole", None, mp)
-        if request.param != "plans of the whole log":
-            mp.setattr(long_log, "HORIZONS", (512,))
-        spy = _Spy(mp)
-        blocked = _run(sc, tmp / "blocked", 50, mp)
-    finally:
-        mp.undo()
-    return request.param != "plans of the whole log", whole, blocked, spy
+    horizons = (512,) if steady else None
+    whole, blocked, spy = whole_and_blocked(sc, tmp, 50, horizons=horizons, spy=_spy)
+    return steady, whole, blocked, spy
 
 
 def test_retrodiction_with_j_goes_in_blocks(retro_runs) -> None:
@@ -75,13 +62,7 @@ def test_retrodiction_with_j_estimates_equal_the_whole_log(retro_runs) -> None:
     """MSC-GMF's and AVG's means (to rounding: test_long_late.RTOL) and covariances (the same
     maps: to the bit) across edges that late readings cross."""
     _, whole, blocked, _ = retro_runs
-    topics = [f"/estimates/{a}" for a in JOINT]
-    a = McapFile(whole / "estimates.mcap").read_all(topics)
-    b = McapFile(blocked / "estimates.mcap").read_all(topics)
-    for t in topics:
-        scale = np.abs(a[t][0]).max()
-        np.testing.assert_allclose(b[t][0], a[t][0], rtol=0, atol=RTOL * scale, err_msg=t)
-        np.testing.assert_array_equal(b[t][1], a[t][1], err_msg=t)
+    estimates_close(whole, blocked, JOINT, mean=OfLargest(RTOL), cov=EQUAL)
 
 
 def test_retrodiction_with_j_summary_equals_the_whole_log(retro_runs) -> None:
@@ -89,7 +70,7 @@ def test_retrodiction_with_j_summary_equals_the_whole_log(retro_runs) -> None:
     (short plans: the exact values within the whole log's own rounding, `EXACT_ATOL`); the
     bound holds (the rules fuse with the true J)."""
     steady, whole, blocked, _ = retro_runs
-    a, b = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
+    a, b = summaries(whole, blocked)
     _close(b, a, steady=steady)
     assert b["late"] == "retrodict"
     for arch in JOINT:
@@ -101,12 +82,7 @@ def test_retrodiction_with_j_recording_equals_the_whole_log(retro_runs) -> None:
     """The recording's series (test_long_late's tolerances)."""
     steady, whole, blocked, _ = retro_runs
     atol = 2 * 5 * RTOL * (100 + 1199)
-    a, b = (read_recording(d / "evaluation.rrd") for d in (whole, blocked))
-    np.testing.assert_array_equal(a["steps"], b["steps"])
-    assert a["series"].keys() == b["series"].keys()
-    for key, v in a["series"].items():
-        tol = EXACT_ATOL if steady and ("expected" in key or "bound" in key) else atol
-        np.testing.assert_allclose(b["series"][key], v, rtol=1e-9, atol=tol, err_msg=key)
+    series_close(whole, blocked, 1e-9, atol, EXACT_ATOL if steady else None)
 
 
 # --- nonlinear late sensors ----------------------------------------------------------------
@@ -210,35 +186,22 @@ def nonlinear_runs(tmp_path_factory, request):
     text = (RADAR if filt == "EKF" else TURN).format(
         steps=STEPS, archs=json.dumps(archs), late=late, latency=latency
     )
-    mp = pytest.MonkeyPatch()
     tmp = tmp_path_factory.mktemp("nonlinear-late")
     sc = tmp / "late.toml"
     sc.write_text(text)
-    spied = {"estimated": 0, "evaluated": 0}
-    try:
-        whole = _run(sc, tmp / "whole", None, mp)
-        inner, add = nl_long.estimate_blocks, LongEvaluator.add
 
-        def estimate_blocks(*a, **kw):
-            for got in inner(*a, **kw):
-                spied["estimated"] += 1
-                yield got
+    def spy(mp):
+        return Spy(mp, blocks={"estimated": (nl_long, "estimate_blocks")},
+                   calls={"evaluated": (LongEvaluator, "add")})  # fmt: skip
 
-        def evaluated(ev, *a, **kw):
-            spied["evaluated"] += 1
-            return add(ev, *a, **kw)
-
-        mp.setattr(nl_long, "estimate_blocks", estimate_blocks)
-        mp.setattr(LongEvaluator, "add", evaluated)
-        blocked = _run(sc, tmp / "blocked", BLOCK, mp)
-    finally:
-        mp.undo()
+    whole, blocked, spied = whole_and_blocked(sc, tmp, BLOCK, spy=spy)
     return archs, whole, blocked, spied
 
 
 def test_nonlinear_late_log_goes_in_blocks(nonlinear_runs) -> None:
     """Both stages took the log's 4 blocks of time (not the whole run at once)."""
-    assert nonlinear_runs[-1] == {"estimated": 4, "evaluated": 4}
+    spy = nonlinear_runs[-1]
+    assert (spy.estimated, spy.evaluated) == (4, 4)
 
 
 def test_nonlinear_late_estimates_equal_the_whole_run(nonlinear_runs) -> None:
@@ -246,76 +209,28 @@ def test_nonlinear_late_estimates_equal_the_whole_run(nonlinear_runs) -> None:
     readings in the same order (the rewinds, Al1 and neglect's drops included), so equal to
     rounding (1e-12 of the largest mean, far above it: the blocks cut no sum)."""
     archs, whole, blocked, _ = nonlinear_runs
-    topics = [f"/estimates/{a}" for a in archs]
-    a = McapFile(whole / "estimates.mcap").read_all(topics)
-    b = McapFile(blocked / "estimates.mcap").read_all(topics)
-    for t in topics:
-        scale = np.abs(a[t][0]).max()
-        np.testing.assert_allclose(b[t][0], a[t][0], rtol=0, atol=1e-12 * scale, err_msg=t)
-        cs = np.abs(a[t][1]).max()
-        np.testing.assert_allclose(b[t][1], a[t][1], rtol=0, atol=1e-12 * cs, err_msg=t)
+    estimates_close(whole, blocked, archs, mean=OfLargest(1e-12), cov=OfLargest(1e-12))
 
 
-def _near(a, b, path=""):
+def _near(a, b) -> None:
     """Sums over 151 instants in another order: 1e-12 relative."""
-    if isinstance(a, dict):
-        assert a.keys() == b.keys(), path
-        for k in a:
-            _near(a[k], b[k], f"{path}.{k}")
-    elif isinstance(a, list):
-        assert len(a) == len(b), path
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            _near(x, y, f"{path}[{i}]")
-    elif isinstance(a, float) and isinstance(b, float):
-        if math.isnan(a):
-            assert math.isnan(b), path
-        else:
-            assert math.isclose(a, b, rel_tol=1e-12, abs_tol=1e-15), (path, a, b)
-    else:
-        assert a == b, (path, a, b)
+    summaries_close(a, b, rtol=1e-12, atol=1e-15, nan=True)
 
 
 def test_nonlinear_late_summary_and_recording_equal_the_whole_run(nonlinear_runs) -> None:
     """The Monte Carlo metrics, the PCRB, APE/RPE, the policy, and the recording's series."""
     archs, whole, blocked, _ = nonlinear_runs
-    a, b = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
+    a, b = summaries(whole, blocked)
     _near(b, a)
     assert b["late"] == a["late"] and b["pcrb"] is not None
     assert list(b["architectures"]) == archs
-    x, y = (read_recording(d / "evaluation.rrd") for d in (whole, blocked))
-    np.testing.assert_array_equal(x["steps"], y["steps"])
-    assert x["series"].keys() == y["series"].keys()
-    for key, v in x["series"].items():
-        np.testing.assert_allclose(y["series"][key], v, rtol=1e-9, atol=1e-9, err_msg=key)
+    series_close(whole, blocked, 1e-9, 1e-9)
 
 
 # --- memory --------------------------------------------------------------------------------
 
 
-def _peaks(tmp_path, monkeypatch, path: Path, archs, sizes, block: int) -> list[int]:
-    """The Python allocations' peak (tracemalloc) of a whole `run` of each size in blocks of
-    `block` instants, a recording decimated to 20 buckets per series."""
-    import tracemalloc
-
-    from fusionlog.core import decimate
-    from fusionlog.scenario import load_scenario
-    from fusionlog.stages.run import run_pipeline
-
-    monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", str(block))
-    monkeypatch.setattr(decimate, "DECIMATE_ABOVE", 100)
-    monkeypatch.setattr(decimate, "BUCKETS", 20)
-    peaks = []
-    for K in sizes:  # the first: what is imported on first use
-        sc = load_scenario(path, steps=K)
-        tracemalloc.start()
-        try:
-            run_pipeline(sc, tmp_path / str(K), archs=archs, force=True)
-            peaks.append(tracemalloc.get_traced_memory()[1])
-        finally:
-            tracemalloc.stop()
-    return peaks
-
-
+@pytest.mark.memory
 def test_peak_memory_of_retrodiction_with_j_does_not_grow(tmp_path, monkeypatch) -> None:
     """MSC-GMF and AVG retrodicting in blocks of 1000 instants, late plans of 512 standing for
     the log: twice the instants, the same peak within 10 % (the whole run holds its plans'
@@ -323,13 +238,15 @@ def test_peak_memory_of_retrodiction_with_j_does_not_grow(tmp_path, monkeypatch)
     import fusionlog.core.architectures.long_log as long_log
 
     monkeypatch.setattr(long_log, "HORIZONS", (512,))
-    spy = _Spy(monkeypatch)
+    spy = _spy(monkeypatch)
     path = _scenario(tmp_path, "retrodict", JOINT)
-    peaks = _peaks(tmp_path, monkeypatch, path, JOINT, (2_000, 10_000, 20_000), 1000)
+    sizes = (2_000, 10_000, 20_000)
+    peaks = pipeline_peaks(tmp_path, monkeypatch, path, JOINT, sizes, 1000, 100, 20)
     assert spy.estimated == spy.evaluated == 3 + 11 + 21  # every log in blocks
     assert peaks[2] <= 1.1 * peaks[1], peaks
 
 
+@pytest.mark.memory
 def test_peak_memory_of_a_nonlinear_late_log_does_not_grow(tmp_path, monkeypatch) -> None:
     """The EKF radar log reprocessing its late readings (CKF, radar2 1 s and the camera 3 s
     late) in blocks of 60 instants: twice the instants, the same peak within 10 %. Measured:
@@ -337,5 +254,5 @@ def test_peak_memory_of_a_nonlinear_late_log_does_not_grow(tmp_path, monkeypatch
     (not yet traced: the on-time log's test bounds its growth below 100 bytes an instant)."""
     path = tmp_path / "late.toml"
     path.write_text(RADAR.format(steps=10, archs='["CKF"]', late="reprocess", latency="1.0"))
-    peaks = _peaks(tmp_path, monkeypatch, path, ["CKF"], (200, 500, 1000), 60)
+    peaks = pipeline_peaks(tmp_path, monkeypatch, path, ["CKF"], (200, 500, 1000), 60, 100, 20)
     assert peaks[2] <= 1.1 * peaks[1], peaks

@@ -11,15 +11,15 @@ when every reading arrives at its instant.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 from cli_helpers import ok
+from long_helpers import OfLargest, arrays_close, summaries, time_block
 from mcap.reader import make_reader
 from mcap.writer import Writer
-from test_long_late_random import ARCHS, BLOCK, RTOL, STEPS, _close, _scenario, _Spy
+from test_long_late_random import ARCHS, BLOCK, RTOL, STEPS, _close, _scenario, _spy
 
 from fusionlog.io.mcap import McapFile
 from fusionlog.io.mcap.arrival import iter_arrival_blocks, read_arrivals
@@ -56,10 +56,7 @@ def _without_arrival(src: Path, dst: Path) -> None:
 
 
 def _estimate_and_evaluate(sensors: Path, out: Path, block: int | None, mp, *model) -> Path:
-    if block is None:
-        mp.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
-    else:
-        mp.setenv("FUSIONLOG_TIME_BLOCK", str(block))
+    time_block(mp, block)
     out.mkdir()
     ok("estimate", sensors, "-o", out / "estimates.mcap", *model)
     ok("evaluate", sensors, out / "estimates.mcap", "-o", out / "evaluation.rrd",
@@ -79,7 +76,7 @@ def test_a_late_sensor_without_arrivals_is_on_time_in_blocks_as_whole(tmp_path, 
     sc = _scenario(tmp_path, "{min = 0.0, max = 2.0}", True, False, late)
     mp = pytest.MonkeyPatch()
     try:
-        mp.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
+        time_block(mp, None)
         ok("run", sc, "--out-dir", tmp_path / "sim", "--force")
         src, sensors = tmp_path / "sim" / "sensors.mcap", tmp_path / "on_time.mcap"
         topics = ["/sensors/s1", "/sensors/s2", LATE]
@@ -95,7 +92,7 @@ def test_a_late_sensor_without_arrivals_is_on_time_in_blocks_as_whole(tmp_path, 
         np.testing.assert_array_equal(got, want)
 
         whole = _estimate_and_evaluate(sensors, tmp_path / "whole", None, mp)
-        spy = _Spy(mp)
+        spy = _spy(mp)
         blocked = _estimate_and_evaluate(sensors, tmp_path / "blocked", BLOCK, mp)
         assert (spy.estimated, spy.evaluated) == (12, 12)
         if late == "reprocess":
@@ -108,7 +105,7 @@ def test_a_late_sensor_without_arrivals_is_on_time_in_blocks_as_whole(tmp_path, 
     refs = [a] if late != "reprocess" else [a, _estimates(ref, ARCHS)]
     for t in a:
         for r in refs:
-            np.testing.assert_allclose(b[t][0], r[t][0], rtol=0, atol=RTOL * np.abs(r[t][0]).max())
-            np.testing.assert_allclose(b[t][1], r[t][1], rtol=0, atol=RTOL * np.abs(r[t][1]).max())
-    sa, sb = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
+            arrays_close(b[t][0], r[t][0], OfLargest(RTOL), t)
+            arrays_close(b[t][1], r[t][1], OfLargest(RTOL), t)
+    sa, sb = summaries(whole, blocked)
     _close(sb, sa)

@@ -15,57 +15,30 @@ whose rounding grows with the truth's variance: `EXACT_ATOL`).
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_helpers import ok
+from long_helpers import (
+    OfLargest,
+    Spy,
+    estimates_close,
+    late_toml,
+    pipeline_peaks,
+    position_sensor,
+    run,
+    series_close,
+    summaries,
+    summaries_close,
+    whole_and_blocked,
+)
 from mcap.writer import Writer
 
 import fusionlog.stages.late_blocks as late_blocks
 from fusionlog.io.mcap import McapFile
 from fusionlog.io.mcap.arrival import read_arrivals
-from fusionlog.io.rrd import read_recording
 from fusionlog.stages.evaluator.long_evaluator import LongEvaluator
 from fusionlog.stages.evaluator.long_late import LongLateExact
-
-SCENARIO = """
-[scenario]
-name = "long_late_random"
-steps = {steps}
-runs = 1
-seed = 341
-dt = 1.0
-state_names = ["position", "velocity"]
-[model]
-kind = "constant-velocity"
-n0 = 0.16
-[prior]
-mean = [100.0, -1.0]
-cov = [[1.0, 0.0], [0.0, 1.0]]
-[[sensors]]
-name = "s1"
-H = [[1.0, 0.0]]
-R = 1.0
-{drop1}
-[[sensors]]
-name = "s2"
-H = [[1.0, 0.0]]
-R = 2.0
-latency = 1.0
-{drop2}
-[[sensors]]
-name = "s3"
-H = [[1.0, 0.0]]
-R = 0.5
-latency = {s3}
-{drop3}
-{correlated}
-[estimate]
-architectures = {archs}
-late = "{late}"
-"""
 
 #: The architectures the blocked late path covers (`core.latency_blocks`): the filters fusing
 #: every sensor and one sensor's.
@@ -90,70 +63,48 @@ def _archs(correlated: bool) -> list[str]:
 
 def _scenario(tmp: Path, s3: str, missing: bool, correlated: bool, late: str, steps=STEPS,
               archs: list[str] | None = None) -> Path:  # fmt: skip
+    """s1 on time, s2 1 s late, s3 late by `s3` (TOML: a latency or its range); with `missing`,
+    readings dropped (s1 20 %, s3 30 %) and s2 every other instant; s1 and s3 `correlated`."""
     archs = _archs(correlated) if archs is None else archs
-    drops = ("dropout = 0.2", "period = 2.0", "dropout = 0.3") if missing else ("", "", "")
+    drops = ("dropout = 0.2\n", "period = 2.0\n", "dropout = 0.3\n") if missing else ("",) * 3
     corr = '[[correlations]]\nsensors = ["s1", "s3"]\ncov = [[0.4]]\n' if correlated else ""
-    text = SCENARIO.format(
-        steps=steps, s3=s3, late=late, correlated=corr, archs=json.dumps(archs),
-        drop1=drops[0], drop2=drops[1], drop3=drops[2],
-    )  # fmt: skip
+    sensors = (
+        position_sensor("s1", 1.0, None, drops[0])
+        + position_sensor("s2", 2.0, "1.0", drops[1])
+        + position_sensor("s3", 0.5, s3, drops[2])
+        + corr
+    )
     path = tmp / f"{late}.toml"
-    path.write_text(text)
+    path.write_text(late_toml("long_late_random", 341, steps, sensors, archs, late))
     return path
 
 
-class _Spy:
+def _spy(mp: pytest.MonkeyPatch) -> Spy:
     """Counts the blocks of time the late path estimated and evaluated, and the exact blocks."""
-
-    def __init__(self, mp: pytest.MonkeyPatch) -> None:
-        self.estimated, self.evaluated, self.exact = 0, 0, 0
-        inner, add, window = late_blocks.late_estimates, LongEvaluator.add, LongLateExact.window
-
-        def late_estimates(*a, **kw):
-            for got in inner(*a, **kw):
-                self.estimated += 1
-                yield got
-
-        def evaluated(ev, *a, **kw):
-            self.evaluated += 1
-            return add(ev, *a, **kw)
-
-        def exact(ev, *a, **kw):
-            self.exact += 1
-            return window(ev, *a, **kw)
-
-        mp.setattr(late_blocks, "late_estimates", late_estimates)
-        mp.setattr(LongEvaluator, "add", evaluated)
-        mp.setattr(LongLateExact, "window", exact)
+    calls = {"evaluated": (LongEvaluator, "add"), "exact": (LongLateExact, "window")}
+    return Spy(mp, blocks={"estimated": (late_blocks, "late_estimates")}, calls=calls)
 
 
-def _run(path: Path, out: Path, block: int | None, mp: pytest.MonkeyPatch) -> Path:
-    if block is None:
-        mp.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
-    else:
-        mp.setenv("FUSIONLOG_TIME_BLOCK", str(block))
-    ok("run", path, "--out-dir", out, "--force")
-    return out
+def each_case(cases) -> dict:
+    """The module-scoped fixture's parameters: each case under each policy."""
+    params = [(c, p) for c in cases for p in ("reprocess", "neglect")]
+    return dict(scope="module", params=params, ids=lambda p: f"{p[0][0]}, {p[1]}")
 
 
-@pytest.fixture(
-    scope="module",
-    params=[(c, p) for c in CASES for p in ("reprocess", "neglect")],
-    ids=lambda p: f"{p[0][0]}, {p[1]}",
-)
+def case_runs(tmp: Path, case, late: str, archs: list[str]):
+    """One case's log of 600 instants taken whole and in blocks of 50: (its name, the policy,
+    whole, blocked, the blocked run's spy, the architectures)."""
+    name, s3, missing, correlated = case
+    sc = _scenario(tmp, s3, missing, correlated, late, archs=archs)
+    whole, blocked, spy = whole_and_blocked(sc, tmp, BLOCK, spy=_spy)
+    return name, late, whole, blocked, spy, archs
+
+
+@pytest.fixture(**each_case(CASES))
 def runs(tmp_path_factory, request):
     """One case's log of 600 instants taken whole and in blocks of 50."""
-    (name, s3, missing, correlated), late = request.param
-    mp = pytest.MonkeyPatch()
-    tmp = tmp_path_factory.mktemp("late-random")
-    sc = _scenario(tmp, s3, missing, correlated, late)
-    try:
-        whole = _run(sc, tmp / "whole", None, mp)
-        spy = _Spy(mp)
-        blocked = _run(sc, tmp / "blocked", BLOCK, mp)
-    finally:
-        mp.undo()
-    return name, late, whole, blocked, spy, _archs(correlated)
+    case, late = request.param
+    return case_runs(tmp_path_factory.mktemp("late-random"), case, late, _archs(case[3]))
 
 
 def test_the_blocked_log_went_in_blocks(runs) -> None:
@@ -194,12 +145,7 @@ def test_blocked_estimates_equal_the_whole_log(runs) -> None:
     """Every architecture's means and covariances across edges that late readings cross; the
     measurement pattern recorded as the whole run's."""
     _, _, whole, blocked, _, archs = runs
-    topics = [f"/estimates/{a}" for a in archs]
-    a = McapFile(whole / "estimates.mcap").read_all(topics)
-    b = McapFile(blocked / "estimates.mcap").read_all(topics)
-    for t in topics:
-        np.testing.assert_allclose(b[t][0], a[t][0], rtol=0, atol=RTOL * np.abs(a[t][0]).max())
-        np.testing.assert_allclose(b[t][1], a[t][1], rtol=0, atol=RTOL * np.abs(a[t][1]).max())
+    estimates_close(whole, blocked, archs, mean=OfLargest(RTOL), cov=OfLargest(RTOL))
     pa, pb = (McapFile(d / "estimates.mcap").metadata["fusionlog.provenance"] for d in runs[2:4])
     assert pa["measurement_pattern"] == pb["measurement_pattern"]
 
@@ -210,31 +156,18 @@ def test_blocked_estimates_equal_the_whole_log(runs) -> None:
 EXACT_ATOL = 32 * np.finfo(float).eps * 0.16 * STEPS**3 / 3
 
 
-def _close(a, b, path=""):
-    if isinstance(a, dict):
-        assert a.keys() == b.keys(), path
-        for k in a:
-            # the filters' bound ratio is 1 at every instant (P their error covariance):
-            # its argmax is among ratios equal to roundings
-            if k != "worst_step":
-                _close(a[k], b[k], f"{path}.{k}")
-    elif isinstance(a, list):
-        assert len(a) == len(b), path
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            _close(x, y, f"{path}[{i}]")
-    elif isinstance(a, float) and isinstance(b, float):
-        exact = ".expected." in path or ".bound." in path
-        assert math.isclose(a, b, rel_tol=RTOL, abs_tol=EXACT_ATOL if exact else 1e-15), (
-            path, a, b)  # fmt: skip
-    else:
-        assert a == b, (path, a, b)
+def _close(a, b) -> None:
+    """RTOL relative, 1e-15 absolute, the exact values within `EXACT_ATOL`; the bound's worst
+    step passed over (the filters' bound ratio is 1 at every instant, P their error
+    covariance: its argmax is among ratios equal to roundings)."""
+    summaries_close(a, b, rtol=RTOL, atol=1e-15, exact_atol=EXACT_ATOL, skip=("worst_step",))
 
 
 def test_blocked_summary_equals_the_whole_log(runs) -> None:
     """Monte Carlo metrics, the exact values (conditional on the drawn delays where they are
     drawn), the bound check and the policy, as from the whole log."""
     name, late, whole, blocked, _, archs = runs
-    a, b = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
+    a, b = summaries(whole, blocked)
     _close(b, a)
     assert b["late"] == late
     for arch in archs:
@@ -248,12 +181,7 @@ def test_blocked_recording_equals_the_whole_log(runs) -> None:
     the means' delta <= RTOL * max |mean| (< 100 + STEPS); the exact series as the summary's."""
     _, _, whole, blocked, *_ = runs
     atol = 2 * 10 * RTOL * (100 + STEPS)
-    a, b = (read_recording(d / "evaluation.rrd") for d in (whole, blocked))
-    np.testing.assert_array_equal(a["steps"], b["steps"])
-    assert a["series"].keys() == b["series"].keys()
-    for key, v in a["series"].items():
-        tol = EXACT_ATOL if ("expected" in key or "bound" in key) else atol
-        np.testing.assert_allclose(b["series"][key], v, rtol=1e-9, atol=tol, err_msg=key)
+    series_close(whole, blocked, 1e-9, atol, EXACT_ATOL)
 
 
 def test_sub_blocks_of_the_stacked_filters_change_no_number(tmp_path, monkeypatch) -> None:
@@ -263,16 +191,11 @@ def test_sub_blocks_of_the_stacked_filters_change_no_number(tmp_path, monkeypatc
     import fusionlog.core.latency_blocks as latency_blocks
 
     sc = _scenario(tmp_path, "{min = 1.0, max = 3.0}", True, False, "reprocess")
-    whole = _run(sc, tmp_path / "whole", None, monkeypatch)
+    whole = run(sc, tmp_path / "whole", None, monkeypatch)
     monkeypatch.setattr(latency_blocks, "LATE_BLOCK_BYTES", 1 << 15)
-    blocked = _run(sc, tmp_path / "blocked", BLOCK, monkeypatch)
-    topics = [f"/estimates/{a}" for a in ARCHS]
-    a = McapFile(whole / "estimates.mcap").read_all(topics)
-    b = McapFile(blocked / "estimates.mcap").read_all(topics)
-    for t in topics:
-        np.testing.assert_allclose(b[t][0], a[t][0], rtol=0, atol=RTOL * np.abs(a[t][0]).max())
-        np.testing.assert_allclose(b[t][1], a[t][1], rtol=0, atol=RTOL * np.abs(a[t][1]).max())
-    sa, sb = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
+    blocked = run(sc, tmp_path / "blocked", BLOCK, monkeypatch)
+    estimates_close(whole, blocked, ARCHS, mean=OfLargest(RTOL), cov=OfLargest(RTOL))
+    sa, sb = summaries(whole, blocked)
     _close(sb, sa)
 
 
@@ -282,18 +205,12 @@ def test_hkf_with_correlated_readings_apart_in_blocks(tmp_path, monkeypatch) -> 
     noises still to be read, `core.latency_apart`), estimates and summary the whole run's
     (the plans' exact analysis)."""
     sc = _scenario(tmp_path, "{min = 0.0, max = 2.0}", True, True, "reprocess", archs=ARCHS)
-    mp = pytest.MonkeyPatch()
-    try:
-        whole = _run(sc, tmp_path / "whole", None, mp)
-        spy = _Spy(mp)
-        blocked = _run(sc, tmp_path / "blocked", BLOCK, mp)
-    finally:
-        mp.undo()
+    whole, blocked, spy = whole_and_blocked(sc, tmp_path, BLOCK, spy=_spy)
     assert (spy.estimated, spy.evaluated, spy.exact) == (12, 12, 12)
     a = McapFile(whole / "estimates.mcap").read_all(["/estimates/HKF"])["/estimates/HKF"]
     b = McapFile(blocked / "estimates.mcap").read_all(["/estimates/HKF"])["/estimates/HKF"]
     np.testing.assert_allclose(b[0], a[0], rtol=0, atol=RTOL * np.abs(a[0]).max())
-    sa, sb = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
+    sa, sb = summaries(whole, blocked)
     _close(sb, sa)
 
 
@@ -324,6 +241,8 @@ def test_a_recorded_log_s_route_takes_late_sensors_into_account() -> None:
 
 NS = 1_000_000_000
 T0 = 1_700_000_000 * NS
+#: the recorded replay's architectures
+RECORDED_ARCHS = ["CKF", "HKF", "SKF:b"]
 
 
 def _recorded(tmp: Path, late: str, gaps: bool) -> Path:
@@ -375,7 +294,7 @@ topic = "/b"
 {sensor}R = 0.16
 arrival = "log_time"
 [estimate]
-architectures = ["CKF", "HKF", "SKF:b"]
+architectures = {json.dumps(RECORDED_ARCHS)}
 late = "{late}"
 """
     path = tmp / "recorded.toml"
@@ -385,59 +304,31 @@ late = "{late}"
 
 @pytest.mark.parametrize("gaps", [False, True], ids=["every reading", "gaps"])
 @pytest.mark.parametrize("late", ["reprocess", "neglect"])
-def test_a_recorded_replay_in_blocks_equals_the_whole_log(tmp_path, monkeypatch, late, gaps):
+def test_a_recorded_replay_in_blocks_equals_the_whole_log(tmp_path, late, gaps):
     """A replay whose late sensor's arrivals are its messages' log times (600 instants, blocks
     of 50): estimates, summary (mean trace, NIS per sensor) and recording as the whole log's,
     the arrivals read block by block."""
     sc = _recorded(tmp_path, late, gaps)
-    mp = pytest.MonkeyPatch()
-    try:
-        whole = _run(sc, tmp_path / "whole", None, mp)
-        spy = _Spy(mp)
-        blocked = _run(sc, tmp_path / "blocked", BLOCK, mp)
-    finally:
-        mp.undo()
+    whole, blocked, spy = whole_and_blocked(sc, tmp_path, BLOCK, spy=_spy)
     K1 = McapFile(whole / "sensors.mcap").steps()
     assert spy.estimated == spy.evaluated == -(-K1 // BLOCK) > 1
-    topics = ["/estimates/CKF", "/estimates/HKF", "/estimates/SKF:b"]
-    a = McapFile(whole / "estimates.mcap").read_all(topics)
-    b = McapFile(blocked / "estimates.mcap").read_all(topics)
-    for t in topics:  # a random walk of std < 10: 1e-12 absolute
-        np.testing.assert_allclose(b[t][0], a[t][0], rtol=0, atol=1e-12, err_msg=t)
-        np.testing.assert_allclose(b[t][1], a[t][1], rtol=0, atol=1e-12, err_msg=t)
-    sa, sb = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
+    # a random walk of std < 10: 1e-12 absolute
+    estimates_close(whole, blocked, RECORDED_ARCHS, mean=(0, 1e-12), cov=(0, 1e-12))
+    sa, sb = summaries(whole, blocked)
     _close(sb, sa)
     assert "nis" in sb["architectures"]["CKF"]
-    ra, rb = (read_recording(d / "evaluation.rrd") for d in (whole, blocked))
-    assert ra["series"].keys() == rb["series"].keys()
-    for key, v in ra["series"].items():
-        np.testing.assert_allclose(rb["series"][key], v, rtol=1e-9, atol=1e-12, err_msg=key)
+    series_close(whole, blocked, 1e-9, 1e-12)
 
 
+@pytest.mark.memory
 def test_peak_memory_does_not_grow_with_the_instants(tmp_path, monkeypatch) -> None:
     """The Python allocations' peak (tracemalloc: numpy's arrays included) of a whole `run`
     with random delays and missing readings in blocks of 1000 instants, a recording decimated
     to 150 points per series: twice the instants, the same peak within 10 % (the whole run
     holds its per-run plans' maps, estimates and per-instant sums)."""
-    import tracemalloc
-
-    from fusionlog.core import decimate
-    from fusionlog.scenario import load_scenario
-    from fusionlog.stages.run import run_pipeline
-
-    monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", "1000")
-    monkeypatch.setattr(decimate, "DECIMATE_ABOVE", 500)
-    monkeypatch.setattr(decimate, "BUCKETS", 50)
-    spy = _Spy(monkeypatch)
+    spy = _spy(monkeypatch)
     path = _scenario(tmp_path, "{min = 1.0, max = 3.0}", True, False, "reprocess")
-    peaks = []
-    for K in (2_000, 10_000, 20_000):  # the first: what is imported on first use
-        sc = load_scenario(path, steps=K)
-        tracemalloc.start()
-        try:
-            run_pipeline(sc, tmp_path / str(K), archs=ARCHS, force=True)
-            peaks.append(tracemalloc.get_traced_memory()[1])
-        finally:
-            tracemalloc.stop()
+    sizes = (2_000, 10_000, 20_000)
+    peaks = pipeline_peaks(tmp_path, monkeypatch, path, ARCHS, sizes, 1000, 500, 50)
     assert spy.estimated == spy.evaluated == spy.exact == 3 + 11 + 21
     assert peaks[2] <= 1.1 * peaks[1], peaks

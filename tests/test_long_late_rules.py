@@ -20,21 +20,28 @@ instants, so readings cross the edges. Tolerances as tests/test_long_late_random
 from __future__ import annotations
 
 import json
-import math
-from pathlib import Path
 
-import numpy as np
 import pytest
 from cli_helpers import ok
+from long_helpers import (
+    OfLargest,
+    estimates_close,
+    pipeline_peaks,
+    summaries,
+    summaries_close,
+    time_block,
+    whole_and_blocked,
+)
 from test_long_late_random import (
     BLOCK,
     EXACT_ATOL,
     RTOL,
     STEPS,
     _recorded,
-    _run,
     _scenario,
-    _Spy,
+    _spy,
+    case_runs,
+    each_case,
 )
 
 from fusionlog.io.mcap import McapFile
@@ -56,49 +63,22 @@ CASES = [
 METRIC_ATOL = 2 * 10 * RTOL * (100 + STEPS)
 
 
-def _close(a, b, path=""):
+def _close(a, b) -> None:
     """summary.json's values: exact ones (and the bound's) within `EXACT_ATOL`, the Monte
-    Carlo metrics within `METRIC_ATOL` (relative RTOL either way), the rest equal."""
-    if isinstance(a, dict):
-        assert a.keys() == b.keys(), path
-        for k in a:
-            if k != "worst_step":  # an argmax among ratios equal to rounding
-                _close(a[k], b[k], f"{path}.{k}")
-    elif isinstance(a, list):
-        assert len(a) == len(b), path
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            _close(x, y, f"{path}[{i}]")
-    elif isinstance(a, float) and isinstance(b, float):
-        exact = ".expected." in path or ".bound." in path
-        tol = EXACT_ATOL if exact else METRIC_ATOL
-        assert math.isclose(a, b, rel_tol=RTOL, abs_tol=tol), (path, a, b)
-    else:
-        assert a == b, (path, a, b)
+    Carlo metrics within `METRIC_ATOL` (relative RTOL either way), the rest equal but the
+    bound's worst step (an argmax among ratios equal to rounding)."""
+    summaries_close(a, b, rtol=RTOL, atol=METRIC_ATOL, exact_atol=EXACT_ATOL, skip=("worst_step",))
 
 
 def _archs(correlated: bool) -> list[str]:
     return RULES + ["HKF"] if correlated else RULES
 
 
-@pytest.fixture(
-    scope="module",
-    params=[(c, p) for c in CASES for p in ("reprocess", "neglect")],
-    ids=lambda p: f"{p[0][0]}, {p[1]}",
-)
+@pytest.fixture(**each_case(CASES))
 def runs(tmp_path_factory, request):
     """One case's log of 600 instants taken whole and in blocks of 50."""
-    (name, s3, missing, correlated), late = request.param
-    archs = _archs(correlated)
-    mp = pytest.MonkeyPatch()
-    tmp = tmp_path_factory.mktemp("late-rules")
-    sc = _scenario(tmp, s3, missing, correlated, late, archs=archs)
-    try:
-        whole = _run(sc, tmp / "whole", None, mp)
-        spy = _Spy(mp)
-        blocked = _run(sc, tmp / "blocked", BLOCK, mp)
-    finally:
-        mp.undo()
-    return name, late, whole, blocked, spy, archs
+    case, late = request.param
+    return case_runs(tmp_path_factory.mktemp("late-rules"), case, late, _archs(case[3]))
 
 
 def test_the_blocked_log_went_in_blocks(runs) -> None:
@@ -107,21 +87,11 @@ def test_the_blocked_log_went_in_blocks(runs) -> None:
     assert (spy.estimated, spy.evaluated, spy.exact) == (12, 12, 12)
 
 
-def _estimates_equal(whole: Path, blocked: Path, archs: list[str], atol=None) -> None:
-    topics = [f"/estimates/{a}" for a in archs]
-    a = McapFile(whole / "estimates.mcap").read_all(topics)
-    b = McapFile(blocked / "estimates.mcap").read_all(topics)
-    for t in topics:
-        for i in (0, 1):  # means, covariances
-            tol = RTOL * np.abs(a[t][i]).max() if atol is None else atol
-            np.testing.assert_allclose(b[t][i], a[t][i], rtol=0, atol=tol, err_msg=t)
-
-
 def test_blocked_estimates_equal_the_whole_log(runs) -> None:
     """Every rule's means and covariances across edges that late readings cross (the means
     grow to ~|100 - 600|: 1e-12 of the largest); the measurement pattern as the whole run's."""
     _, _, whole, blocked, _, archs = runs
-    _estimates_equal(whole, blocked, archs)
+    estimates_close(whole, blocked, archs, mean=OfLargest(RTOL), cov=OfLargest(RTOL))
     pa, pb = (McapFile(d / "estimates.mcap").metadata["fusionlog.provenance"] for d in runs[2:4])
     assert pa["measurement_pattern"] == pb["measurement_pattern"]
 
@@ -131,7 +101,7 @@ def test_blocked_summary_equals_the_whole_log(runs) -> None:
     policy as from the whole log; MSC-GMF's and AVG's P their true error covariance (ratio 1),
     CI's an upper bound."""
     name, late, whole, blocked, _, archs = runs
-    a, b = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
+    a, b = summaries(whole, blocked)
     _close(b, a)
     assert b["late"] == late
     for arch in archs:
@@ -145,53 +115,33 @@ def test_blocked_summary_equals_the_whole_log(runs) -> None:
 
 
 @pytest.mark.parametrize("late", ["reprocess", "neglect"])
-def test_a_recorded_replay_in_blocks_equals_the_whole_log(tmp_path, monkeypatch, late) -> None:
+def test_a_recorded_replay_in_blocks_equals_the_whole_log(tmp_path, late) -> None:
     """A replay whose late sensor's arrivals are its messages' log times, with gaps, through
     the rules: estimates and summary (with its NIS per sensor) as the whole log's."""
     sc = _recorded(tmp_path, late, True)
     archs = RULES
     sc.write_text(sc.read_text().replace('["CKF", "HKF", "SKF:b"]', json.dumps(archs)))
-    mp = pytest.MonkeyPatch()
-    try:
-        whole = _run(sc, tmp_path / "whole", None, mp)
-        spy = _Spy(mp)
-        blocked = _run(sc, tmp_path / "blocked", BLOCK, mp)
-    finally:
-        mp.undo()
+    whole, blocked, spy = whole_and_blocked(sc, tmp_path, BLOCK, spy=_spy)
     K1 = McapFile(whole / "sensors.mcap").steps()
     assert spy.estimated == spy.evaluated == -(-K1 // BLOCK) > 1
-    _estimates_equal(whole, blocked, archs, atol=1e-12)  # a random walk of std < 10
-    sa, sb = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
+    # a random walk of std < 10
+    estimates_close(whole, blocked, archs, mean=(0, 1e-12), cov=(0, 1e-12))
+    sa, sb = summaries(whole, blocked)
     _close(sb, sa)
     assert "nis" in sb["architectures"]["MSC"]
 
 
+@pytest.mark.memory
 def test_peak_memory_does_not_grow_with_the_instants(tmp_path, monkeypatch) -> None:
     """The Python allocations' peak (tracemalloc) of a whole `run` of the rules with random
     delays, missing readings and correlated readings arriving apart, in blocks of 1000
     instants, a recording decimated to 150 points per series: twice the instants, the same
     peak within 10 % (the whole run holds its per-run plans' maps)."""
-    import tracemalloc
-
-    from fusionlog.core import decimate
-    from fusionlog.scenario import load_scenario
-    from fusionlog.stages.run import run_pipeline
-
-    monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", "1000")
-    monkeypatch.setattr(decimate, "DECIMATE_ABOVE", 500)
-    monkeypatch.setattr(decimate, "BUCKETS", 50)
-    spy = _Spy(monkeypatch)
+    spy = _spy(monkeypatch)
     archs = ["MSC-GMF", "CI", "EI", "HKF"]
     path = _scenario(tmp_path, "{min = 0.0, max = 2.0}", True, True, "reprocess", archs=archs)
-    peaks = []
-    for K in (2_000, 10_000, 20_000):  # the first: what is imported on first use
-        sc = load_scenario(path, steps=K)
-        tracemalloc.start()
-        try:
-            run_pipeline(sc, tmp_path / str(K), archs=archs, force=True)
-            peaks.append(tracemalloc.get_traced_memory()[1])
-        finally:
-            tracemalloc.stop()
+    sizes = (2_000, 10_000, 20_000)
+    peaks = pipeline_peaks(tmp_path, monkeypatch, path, archs, sizes, 1000, 500, 50)
     assert spy.estimated == spy.evaluated == spy.exact == 3 + 11 + 21
     assert peaks[2] <= 1.1 * peaks[1], peaks
 
@@ -245,19 +195,19 @@ def test_a_late_log_without_exact_analysis_is_evaluated_in_blocks(tmp_path, monk
     truth.write_text(TURN.format(model=COORDINATED, filter='filter = "EKF"'))
     model.write_text(TURN.format(model=LINEAR, filter=""))
     sensors, est = tmp_path / "s.mcap", tmp_path / "e.mcap"
-    monkeypatch.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
+    time_block(monkeypatch, None)
     ok("simulate", truth, "-o", sensors)
     ok("estimate", sensors, "--model", model, "-o", est)
-    summaries = {}
+    got = {}
     for block in (None, BLOCK):
         if block is not None:
-            monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", str(block))
-            spy = _Spy(monkeypatch)
+            time_block(monkeypatch, block)
+            spy = _spy(monkeypatch)
         out = tmp_path / f"{block}.json"
         ok("evaluate", sensors, est, "-o", tmp_path / f"{block}.rrd", "--summary", out)
-        summaries[block] = json.loads(out.read_text())
+        got[block] = json.loads(out.read_text())
     assert spy.evaluated == 12 and spy.exact == 0
-    whole, blocked = summaries[None], summaries[BLOCK]
+    whole, blocked = got[None], got[BLOCK]
     _close(blocked, whole)
     assert blocked["architectures"]["CKF"]["expected"] is None and blocked["late"] == "reprocess"
     assert blocked["pcrb"]

@@ -9,16 +9,20 @@ Python allocations (tracemalloc), which must not grow with the instants.
 
 from __future__ import annotations
 
-import json
-import math
 from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_helpers import ok
+from long_helpers import (
+    estimates_close,
+    pipeline_peaks,
+    series_close,
+    summaries,
+    summaries_close,
+    whole_and_blocked,
+)
 
 from fusionlog.io.mcap import McapFile
-from fusionlog.io.rrd import read_recording
 
 PAPER = Path(__file__).resolve().parents[1] / "pipeline" / "ajgl2009.toml"
 ARCHS = ["CKF", "HKF", "MSC-GMF", "MSC", "SKF", "CI", "FBS"]
@@ -28,29 +32,8 @@ ARCHS = ["CKF", "HKF", "MSC-GMF", "MSC", "SKF", "CI", "FBS"]
 RTOL = 1e-9
 
 
-def _run(tmp: Path, name: str, steps: int, block: int | None, monkeypatch, *extra) -> Path:
-    if block is None:
-        monkeypatch.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
-    else:
-        monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", str(block))
-    out = tmp / name
-    ok("run", PAPER, "--runs", "1", "--steps", steps, "--out-dir", out, "--force", *extra)
-    return out
-
-
-def _close(a, b, path=""):
-    if isinstance(a, dict):
-        assert a.keys() == b.keys(), path
-        for k in a:
-            _close(a[k], b[k], f"{path}.{k}")
-    elif isinstance(a, list):
-        assert len(a) == len(b), path
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            _close(x, y, f"{path}[{i}]")
-    elif isinstance(a, float) and isinstance(b, float):
-        assert math.isclose(a, b, rel_tol=RTOL, abs_tol=1e-12), (path, a, b)
-    else:
-        assert a == b, (path, a, b)
+def _close(a, b):
+    summaries_close(a, b, rtol=RTOL, atol=1e-12)
 
 
 @pytest.fixture(scope="module", params=["plans of the whole log", "steady plans of 512"])
@@ -58,36 +41,24 @@ def paper_runs(tmp_path_factory, request):
     """The paper's example, one run of 3000 steps, whole and in blocks of 500 instants: with
     plans over all of it, and with plans of 512 instants standing for it (their steady middle
     repeated, `core.architectures.long_log`: what a log longer than the horizons takes)."""
-    import fusionlog.core.architectures.long_log as long_log
-
-    mp = pytest.MonkeyPatch()
     tmp = tmp_path_factory.mktemp("long")
-    try:
-        whole = _run(tmp, "whole", 3000, None, mp)
-        if request.param != "plans of the whole log":
-            mp.setattr(long_log, "HORIZONS", (512,))
-        blocked = _run(tmp, "blocked", 3000, 500, mp)
-    finally:
-        mp.undo()
+    horizons = None if request.param == "plans of the whole log" else (512,)
+    extra = ("--runs", "1", "--steps", 3000)
+    whole, blocked, _ = whole_and_blocked(PAPER, tmp, 500, *extra, horizons=horizons)
     return whole, blocked
 
 
 def test_blocked_estimates_equal_the_whole_run(paper_runs) -> None:
     """Every architecture's means and covariances, FBS's backward pass across the blocks."""
-    whole, blocked = (McapFile(d / "estimates.mcap") for d in paper_runs)
-    topics = [f"/estimates/{a}" for a in ARCHS]
-    a, b = whole.read_all(topics), blocked.read_all(topics)
-    for t in topics:
-        np.testing.assert_allclose(b[t][0], a[t][0], rtol=0, atol=1e-9, err_msg=t)
-        np.testing.assert_allclose(b[t][1], a[t][1], rtol=RTOL, atol=1e-15, err_msg=t)
-    prov = blocked.metadata["fusionlog.provenance"]
+    estimates_close(*paper_runs, ARCHS, mean=(0, 1e-9), cov=(RTOL, 1e-15))
+    prov = McapFile(paper_runs[1] / "estimates.mcap").metadata["fusionlog.provenance"]
     assert prov["measurement_pattern"] == "complete"
 
 
 def test_blocked_summary_equals_the_whole_run(paper_runs) -> None:
     """Monte Carlo metrics over every instant and the exact analysis (the shared plan's
     covariances at each block's instants) as from the whole run."""
-    whole, blocked = (json.loads((d / "summary.json").read_text()) for d in paper_runs)
+    whole, blocked = summaries(*paper_runs)
     _close(blocked, whole)
     for a in ARCHS:
         assert whole["architectures"][a]["expected"]["mse"] is not None
@@ -95,11 +66,7 @@ def test_blocked_summary_equals_the_whole_run(paper_runs) -> None:
 
 def _series_close(whole: Path, blocked: Path) -> None:
     """The two recordings draw the same series (a log below the decimation threshold)."""
-    a, b = (read_recording(d / "evaluation.rrd") for d in (whole, blocked))
-    np.testing.assert_array_equal(a["steps"], b["steps"])
-    assert a["series"].keys() == b["series"].keys()
-    for key, v in a["series"].items():
-        np.testing.assert_allclose(b["series"][key], v, rtol=RTOL, atol=1e-9, err_msg=key)
+    series_close(whole, blocked, RTOL, 1e-9)
 
 
 def test_blocked_recording_equals_the_whole_run(paper_runs) -> None:
@@ -145,7 +112,7 @@ match = "exact"
 
 
 @pytest.mark.parametrize("truth", [False, True], ids=["no truth: NIS", "truth"])
-def test_a_replay_in_blocks_equals_the_whole_log(tmp_path, monkeypatch, truth) -> None:
+def test_a_replay_in_blocks_equals_the_whole_log(tmp_path, truth) -> None:
     """A recorded CSV log at a regular rate (a replay: its instants from the data) estimated
     and evaluated in blocks of time equals the whole log: every architecture's estimates, the
     summary (NIS per sensor with its whiteness across blocks; with truth, the metrics and
@@ -161,51 +128,24 @@ def test_a_replay_in_blocks_equals_the_whole_log(tmp_path, monkeypatch, truth) -
     )
     (tmp_path / "log.csv").write_text("time,a,b,p,v\n" + rows + "\n")
     (tmp_path / "replay.toml").write_text(CSV_REPLAY + (TRUTH if truth else ""))
-    outs = []
-    for name, block in (("whole", None), ("blocked", "400")):
-        if block is None:
-            monkeypatch.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
-        else:
-            monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", block)
-        ok("run", tmp_path / "replay.toml", "--out-dir", tmp_path / name, "--force")
-        outs.append(McapFile(tmp_path / name / "estimates.mcap"))
-    topics = [f"/estimates/{a}" for a in ARCHS]
-    a, b = (f.read_all(topics) for f in outs)
-    for t in topics:
-        np.testing.assert_allclose(b[t][0], a[t][0], rtol=0, atol=1e-9, err_msg=t)
-        np.testing.assert_allclose(b[t][1], a[t][1], rtol=RTOL, atol=1e-15, err_msg=t)
-    whole, blocked = (
-        json.loads((tmp_path / d / "summary.json").read_text()) for d in ("whole", "blocked")
-    )
+    dirs = whole_and_blocked(tmp_path / "replay.toml", tmp_path, 400)[:2]
+    estimates_close(*dirs, ARCHS, mean=(0, 1e-9), cov=(RTOL, 1e-15))
+    whole, blocked = summaries(*dirs)
     _close(blocked, whole)
     assert ("expected" in whole["architectures"]["CKF"]) == truth
     assert "nis" in whole["architectures"]["CKF"]
-    _series_close(tmp_path / "whole", tmp_path / "blocked")
+    _series_close(*dirs)
 
 
+@pytest.mark.memory
 def test_peak_memory_does_not_grow_with_the_instants(tmp_path, monkeypatch) -> None:
     """The Python allocations' peak (tracemalloc: numpy's arrays included) of a whole `run`
     in blocks of 1000 instants, with a recording decimated to 150 points per series: twice
     the instants, the same peak within 10 % (the whole run at once holds its estimates and
     per-instant sums: +50 % here from 10^4 to 2*10^4 instants)."""
-    import tracemalloc
-
     import fusionlog.core.architectures.long_log as long_log
-    from fusionlog.core import decimate
-    from fusionlog.scenario import load_scenario
-    from fusionlog.stages.run import run_pipeline
 
-    monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", "1000")
     monkeypatch.setattr(long_log, "HORIZONS", (512,))
-    monkeypatch.setattr(decimate, "DECIMATE_ABOVE", 500)
-    monkeypatch.setattr(decimate, "BUCKETS", 50)
-    peaks = []
-    for K in (2_000, 10_000, 20_000):  # the first: what is imported on first use
-        sc = load_scenario(PAPER, runs=1, steps=K)
-        tracemalloc.start()
-        try:
-            run_pipeline(sc, tmp_path / str(K), archs=["CKF", "MSC-GMF", "FBS"], force=True)
-            peaks.append(tracemalloc.get_traced_memory()[1])
-        finally:
-            tracemalloc.stop()
+    archs, sizes = ["CKF", "MSC-GMF", "FBS"], (2_000, 10_000, 20_000)
+    peaks = pipeline_peaks(tmp_path, monkeypatch, PAPER, archs, sizes, 1000, 500, 50, runs=1)
     assert peaks[2] <= 1.1 * peaks[1], peaks

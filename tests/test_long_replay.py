@@ -18,10 +18,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_helpers import ok
+from long_helpers import (
+    estimates_close,
+    series_close,
+    summaries,
+    summaries_close,
+    whole_and_blocked,
+)
 
 from fusionlog.io.mcap import McapFile
-from fusionlog.io.rrd import read_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 ROBOT = ROOT / "pipeline" / "replay_robot.toml"
@@ -53,40 +58,15 @@ def _robot_partial(folder: Path) -> Path:
     return path
 
 
-def _close(a, b, path=""):
-    if isinstance(a, dict):
-        assert a.keys() == b.keys(), path
-        for k in a:
-            _close(a[k], b[k], f"{path}.{k}")
-    elif isinstance(a, list):
-        assert len(a) == len(b), path
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            _close(x, y, f"{path}[{i}]")
-    elif isinstance(a, float) and isinstance(b, float):
-        same = math.isnan(a) and math.isnan(b)
-        assert same or math.isclose(a, b, rel_tol=RTOL, abs_tol=1e-12), (path, a, b)
-    else:
-        assert a == b, (path, a, b)
+def _close(a, b) -> None:
+    summaries_close(a, b, rtol=RTOL, atol=1e-12, nan=True)
 
 
 @pytest.fixture(scope="module")
 def robot_runs(tmp_path_factory):
     """The replay run whole and in blocks of 500 instants."""
     tmp = tmp_path_factory.mktemp("long_replay")
-    replay = _robot_partial(tmp)
-    mp = pytest.MonkeyPatch()
-    outs = []
-    try:
-        for name, block in (("whole", None), ("blocked", "500")):
-            if block is None:
-                mp.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
-            else:
-                mp.setenv("FUSIONLOG_TIME_BLOCK", block)
-            ok("run", replay, "--out-dir", tmp / name, "--force")
-            outs.append(tmp / name)
-    finally:
-        mp.undo()
-    return outs
+    return whole_and_blocked(_robot_partial(tmp), tmp, 500)[:2]
 
 
 def test_the_log_is_what_this_file_tests(robot_runs) -> None:
@@ -107,12 +87,8 @@ def test_the_log_is_what_this_file_tests(robot_runs) -> None:
 def test_blocked_estimates_equal_the_whole_replay(robot_runs) -> None:
     """Every architecture's means and covariances (FBS's backward pass across the blocks, the
     local filters' joint covariance of the rules that read it), and the measurement pattern."""
+    estimates_close(*robot_runs, ARCHS, mean=(RTOL, 1e-12), cov=(RTOL, 1e-15))
     whole, blocked = (McapFile(d / "estimates.mcap") for d in robot_runs)
-    topics = [f"/estimates/{a}" for a in ARCHS]
-    a, b = whole.read_all(topics), blocked.read_all(topics)
-    for t in topics:
-        np.testing.assert_allclose(b[t][0], a[t][0], rtol=RTOL, atol=1e-12, err_msg=t)
-        np.testing.assert_allclose(b[t][1], a[t][1], rtol=RTOL, atol=1e-15, err_msg=t)
     pa, pb = (f.metadata["fusionlog.provenance"] for f in (whole, blocked))
     assert pb["measurement_pattern"] == pa["measurement_pattern"] != "complete"
 
@@ -120,7 +96,7 @@ def test_blocked_estimates_equal_the_whole_replay(robot_runs) -> None:
 def test_blocked_summary_equals_the_whole_replay(robot_runs) -> None:
     """Metrics over the truthed states, the exact values of the one-log route with its bound
     check, NIS per sensor with its whiteness: as from the whole log."""
-    whole, blocked = (json.loads((d / "summary.json").read_text()) for d in robot_runs)
+    whole, blocked = summaries(*robot_runs)
     _close(blocked, whole)
     for a in ARCHS:
         entry = whole["architectures"][a]
@@ -130,11 +106,7 @@ def test_blocked_summary_equals_the_whole_replay(robot_runs) -> None:
 
 
 def test_blocked_recording_equals_the_whole_replay(robot_runs) -> None:
-    a, b = (read_recording(d / "evaluation.rrd") for d in robot_runs)
-    np.testing.assert_array_equal(a["steps"], b["steps"])
-    assert a["series"].keys() == b["series"].keys()
-    for key, v in a["series"].items():
-        np.testing.assert_allclose(b["series"][key], v, rtol=RTOL, atol=1e-12, err_msg=key)
+    series_close(*robot_runs, RTOL, 1e-12)
 
 
 def _varying(rng, K1: int):
@@ -189,6 +161,7 @@ def _blocked_peak(K1: int, block: int) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 def test_peak_memory_of_a_blocked_replay_does_not_grow_with_the_instants() -> None:
     """Blocks of 300 instants: twice the instants, the same peak within 10 % (the system's
     per-instant F, Q, R and the readings are the caller's, made before; the whole log at once
@@ -278,6 +251,7 @@ def _sparse_open_peak(path: Path, K1: int, block: int) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 def test_opening_a_sparse_log_does_not_grow_with_the_instants(tmp_path) -> None:
     """Four times the instants, the same peak within 10 % when a log whose sensors have
     readings at some instants is opened and read in blocks of 500 instants. The layout kept

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_helpers import ok
+from long_helpers import count_calls, summaries, summaries_close, time_block
 from test_latency_nonlinear import Filter, readings
 from test_nis_nonlinear import MODEL, REPLAY, write_log
 
@@ -41,19 +42,6 @@ EPS = np.finfo(float).eps
 RTOL = 1e-9
 
 
-class Calls:
-    """Wraps `module.name` (a public function of one path) and counts its calls."""
-
-    def __init__(self, monkeypatch, module, name: str) -> None:
-        self.count, inner = 0, getattr(module, name)
-
-        def wrapped(*a, **kw):
-            self.count += 1
-            return inner(*a, **kw)
-
-        monkeypatch.setattr(module, name, wrapped)
-
-
 def _fusionlog(folder: Path, block: int | None, mp, *args) -> None:
     """`fusionlog ARGS` run in `folder` (relative outputs: the provenance's command is the
     same text for the whole and blocked runs), blocks of time of `block` instants (None: the
@@ -61,10 +49,7 @@ def _fusionlog(folder: Path, block: int | None, mp, *args) -> None:
     folder.mkdir(exist_ok=True)
     with mp.context() as m:
         m.chdir(folder)
-        if block is None:
-            m.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
-        else:
-            m.setenv("FUSIONLOG_TIME_BLOCK", str(block))
+        time_block(m, block)
         ok(*args)
 
 
@@ -109,7 +94,7 @@ def test_a_simulation_with_dropouts_in_blocks_is_the_whole_draw(
     args = ("simulate", scenario, "--runs", "1", "--steps", steps, "-o", "s.mcap")
     _fusionlog(tmp_path / "whole", None, monkeypatch, *args)
     with monkeypatch.context() as m:
-        calls = Calls(m, simulate, "one_run_blocks")
+        calls = count_calls(m, simulate, "one_run_blocks")
         _fusionlog(tmp_path / "blocked", block, m, *args)
         assert calls.count == 1
     whole, blocked = ((tmp_path / d / "s.mcap").read_bytes() for d in ("whole", "blocked"))
@@ -126,26 +111,11 @@ def test_a_simulation_with_dropouts_in_blocks_is_the_whole_draw(
         assert np.ptp(np.diff(mf.times())) > 0.01  # 0.05 s and 0.1 s apart
 
 
-def _close(a, b, path=""):
+def _close(a, b) -> None:
     """Summaries equal to RTOL; the bound's worst ratio to 1e-7: the plans' analysis of
     MSC-GMF on multirate's correlated radar and odometer leaves 4e-8 (its worst instant then
     another one within BOUND_TOL of 1), the filters' covariances 4e-16."""
-    if isinstance(a, dict):
-        assert a.keys() == b.keys(), path
-        if path.endswith(".bound"):
-            assert math.isclose(a["worst"], b["worst"], rel_tol=1e-7), (path, a, b)
-            return
-        for k in a:
-            _close(a[k], b[k], f"{path}.{k}")
-    elif isinstance(a, list):
-        assert len(a) == len(b), path
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            _close(x, y, f"{path}[{i}]")
-    elif isinstance(a, float) and isinstance(b, float):
-        same = math.isnan(a) and math.isnan(b)
-        assert same or math.isclose(a, b, rel_tol=RTOL, abs_tol=1e-12), (path, a, b)
-    else:
-        assert a == b, (path, a, b)
+    summaries_close(a, b, rtol=RTOL, atol=1e-12, nan=True, bound_rtol=1e-7)
 
 
 @pytest.fixture(scope="module", params=["ajgl2009_dropout", "multirate"])
@@ -161,8 +131,8 @@ def dropout_runs(tmp_path_factory, request):
     mp = pytest.MonkeyPatch()
     try:
         _fusionlog(tmp / "whole", None, mp, *args)
-        est = Calls(mp, long_log, "replay_long_estimates")
-        exact = Calls(mp, exact_replay, "replay_expected_blocks")
+        est = count_calls(mp, long_log, "replay_long_estimates")
+        exact = count_calls(mp, exact_replay, "replay_expected_blocks")
         _fusionlog(tmp / "blocked", 70, mp, *args)
     finally:
         mp.undo()
@@ -197,7 +167,7 @@ def test_blocked_estimates_of_a_dropout_log_equal_the_whole_run(dropout_runs) ->
 def test_blocked_summary_of_a_dropout_log_equals_the_whole_run(dropout_runs) -> None:
     """The Monte Carlo metrics, the exact values (given the drawn pattern) and the bound."""
     whole, blocked, _ = dropout_runs
-    a, b = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
+    a, b = summaries(whole, blocked)
     _close(b, a)
     for arch, entry in b["architectures"].items():
         assert entry["expected"]["mse"] > 0, arch
@@ -230,6 +200,7 @@ def _drawn_peak(folder: Path, steps: int, block: int) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 def test_peak_memory_of_a_blocked_draw_does_not_grow_with_the_instants(tmp_path) -> None:
     """Blocks of 5 000 instants, one run a stream (more than 2^17 instants): twice the
     instants, the same peak within 10 % (the whole draw keeps x and z, 64 bytes an instant
@@ -338,7 +309,7 @@ def covariance_runs(tmp_path_factory, request):
         for name, block, sensors in (("whole", None, "s"), ("blocked", 8, "s"),
                                      ("plain", None, "plain_s")):  # fmt: skip
             d = tmp / name
-            calls = Calls(mp, long_log, "estimate_blocks")
+            calls = count_calls(mp, long_log, "estimate_blocks")
             est = ("estimate", tmp / f"{sensors}.mcap", "--model", tmp / "model.toml", *archs)
             _fusionlog(d, block, mp, *est, "-o", "e.mcap")
             _fusionlog(d, block, mp, "evaluate", tmp / f"{sensors}.mcap", "e.mcap", "-o",
@@ -370,6 +341,6 @@ def test_nonlinear_blocks_with_per_message_r_equal_the_whole_run(covariance_runs
     for t in topics:
         np.testing.assert_array_equal(y[t][0], x[t][0], err_msg=t)
         np.testing.assert_array_equal(y[t][1], x[t][1], err_msg=t)
-    sa, sb = (json.loads((outs[n] / "summary.json").read_text()) for n in ("whole", "blocked"))
+    sa, sb = summaries(outs["whole"], outs["blocked"])
     _close(sb, sa)
     assert all("nis" in sa["architectures"][arch] for arch in NL_ARCHS)

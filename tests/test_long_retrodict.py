@@ -17,13 +17,22 @@ tolerances).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 from cli_helpers import ok
-from test_long_late_random import RTOL, STEPS, _close, _recorded, _scenario
+from long_helpers import (
+    LATE_SENSORS,
+    OfLargest,
+    Spy,
+    estimates_close,
+    late_toml,
+    summaries,
+    time_block,
+    whole_and_blocked,
+)
+from test_long_late_random import RECORDED_ARCHS, RTOL, STEPS, _close, _recorded, _scenario
 
 from fusionlog.core.retrodict_blocks import RetroBlocks
 from fusionlog.io.mcap import McapFile
@@ -40,61 +49,22 @@ CASES = [
 ]  # correlated readings arriving apart: retrodiction refuses them (Al1 takes them independent)
 
 
-class _Spy:
+def _spy(mp: pytest.MonkeyPatch) -> Spy:
     """Counts the blocks of time the retrodiction path estimated and evaluated."""
-
-    def __init__(self, mp: pytest.MonkeyPatch) -> None:
-        self.estimated, self.exact = 0, 0
-        est, cov = RetroBlocks.estimates, RetroBlocks.error_covariances
-
-        def estimates(blocks, *a, **kw):
-            self.estimated += 1
-            return est(blocks, *a, **kw)
-
-        def error_covariances(blocks, *a, **kw):
-            self.exact += 1
-            return cov(blocks, *a, **kw)
-
-        mp.setattr(RetroBlocks, "estimates", estimates)
-        mp.setattr(RetroBlocks, "error_covariances", error_covariances)
+    calls = {"estimated": (RetroBlocks, "estimates"), "exact": (RetroBlocks, "error_covariances")}
+    return Spy(mp, calls=calls)
 
 
-def _run(path: Path, out: Path, block: int | None, mp: pytest.MonkeyPatch) -> Path:
-    if block is None:
-        mp.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
-    else:
-        mp.setenv("FUSIONLOG_TIME_BLOCK", str(block))
-    ok("run", path, "--out-dir", out, "--force")
-    return out
-
-
-def _whole_and_blocked(path: Path, tmp: Path, horizons=None) -> tuple[Path, Path, _Spy]:
+def _whole_and_blocked(path: Path, tmp: Path, horizons=None) -> tuple[Path, Path, Spy]:
     """The log run whole and in blocks of `BLOCK` (`horizons`: the steady plans' horizons of
     the blocked run, `long_log.HORIZONS`)."""
-    import fusionlog.core.architectures.long_log as long_log
-
-    mp = pytest.MonkeyPatch()
-    try:
-        whole = _run(path, tmp / "whole", None, mp)
-        if horizons is not None:
-            mp.setattr(long_log, "HORIZONS", horizons)
-        spy = _Spy(mp)
-        blocked = _run(path, tmp / "blocked", BLOCK, mp)
-    finally:
-        mp.undo()
-    return whole, blocked, spy
+    return whole_and_blocked(path, tmp, BLOCK, horizons=horizons, spy=_spy)
 
 
 def _same_estimates(whole: Path, blocked: Path, archs: list[str]) -> None:
     """Means to rounding of the largest (`test_long_late_random.RTOL`), covariances too (the
     same maps: in practice to the bit)."""
-    topics = [f"/estimates/{a}" for a in archs]
-    a = McapFile(whole / "estimates.mcap").read_all(topics)
-    b = McapFile(blocked / "estimates.mcap").read_all(topics)
-    for t in topics:
-        for i in (0, 1):
-            scale = np.abs(a[t][i]).max()
-            np.testing.assert_allclose(b[t][i], a[t][i], rtol=0, atol=RTOL * scale, err_msg=t)
+    estimates_close(whole, blocked, archs, mean=OfLargest(RTOL), cov=OfLargest(RTOL))
 
 
 @pytest.fixture(scope="module", params=CASES, ids=lambda c: c[0])
@@ -123,7 +93,7 @@ def test_blocked_summary_equals_the_whole_log(runs) -> None:
     """The Monte Carlo metrics, the exact values (conditional on the drawn delays where they
     are drawn), NEES/DM and the bound check as from the whole log's plans."""
     name, archs, whole, blocked, _ = runs
-    a, b = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
+    a, b = summaries(whole, blocked)
     _close(b, a)
     assert b["late"] == "retrodict"
     for arch in archs:
@@ -138,50 +108,16 @@ def test_a_recorded_replay_retrodicted_in_blocks_equals_the_whole_log(tmp_path) 
     whole, blocked, spy = _whole_and_blocked(path, tmp_path)
     K1 = McapFile(whole / "sensors.mcap").steps()
     assert spy.estimated == -(-K1 // BLOCK) > 1
-    topics = ["/estimates/CKF", "/estimates/HKF", "/estimates/SKF:b"]
-    a = McapFile(whole / "estimates.mcap").read_all(topics)
-    b = McapFile(blocked / "estimates.mcap").read_all(topics)
-    for t in topics:  # a random walk of std < 10: 1e-12 absolute
-        np.testing.assert_allclose(b[t][0], a[t][0], rtol=0, atol=1e-12, err_msg=t)
-        np.testing.assert_allclose(b[t][1], a[t][1], rtol=0, atol=1e-12, err_msg=t)
-    sa, sb = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
+    # a random walk of std < 10: 1e-12 absolute
+    estimates_close(whole, blocked, RECORDED_ARCHS, mean=(0, 1e-12), cov=(0, 1e-12))
+    sa, sb = summaries(whole, blocked)
     _close(sb, sa)
 
 
 # --- J where the error form is 0 ------------------------------------------------------------
 
-ILL = """
-[scenario]
-name = "retro_ill"
-steps = {steps}
-runs = 1
-seed = 343
-dt = 1.0
-state_names = ["position", "velocity"]
-[model]
-F = [[1.0, 1.0], [0.0, 0.001]]
-Q = [[0.05, 0.0], [0.0, 1.0]]
-[prior]
-mean = [100.0, -1.0]
-cov = [[1.0, 0.0], [0.0, 1.0]]
-[[sensors]]
-name = "s1"
-H = [[1.0, 0.0]]
-R = 1.0
-[[sensors]]
-name = "s2"
-H = [[1.0, 0.0]]
-R = 2.0
-latency = 1.0
-[[sensors]]
-name = "s3"
-H = [[1.0, 0.0]]
-R = 0.5
-latency = 3.0
-[estimate]
-architectures = ["CKF", "MSC-GMF", "AVG"]
-late = "retrodict"
-"""
+#: velocity damped by 1e-3 a step
+ILL_MODEL = "F = [[1.0, 1.0], [0.0, 0.001]]\nQ = [[0.05, 0.0], [0.0, 1.0]]"
 
 
 def test_j_where_the_error_form_is_zero_goes_in_blocks(tmp_path) -> None:
@@ -193,11 +129,12 @@ def test_j_where_the_error_form_is_zero_goes_in_blocks(tmp_path) -> None:
     F = np.array([[1.0, 1.0], [0.0, 0.001]])
     assert np.linalg.cond(np.linalg.matrix_power(F, 3)) > 1e8  # the premise: D = 0 there
     path = tmp_path / "ill.toml"
-    path.write_text(ILL.format(steps=STEPS))
+    archs = ["CKF", "MSC-GMF", "AVG"]
+    path.write_text(late_toml("retro_ill", 343, STEPS, LATE_SENSORS, archs, "retrodict", ILL_MODEL))
     whole, blocked, spy = _whole_and_blocked(path, tmp_path, horizons=(64,))
     assert (spy.estimated, spy.exact) == (12, 12)
     _same_estimates(whole, blocked, ["CKF", "MSC-GMF", "AVG"])
-    a, b = (json.loads((d / "summary.json").read_text()) for d in (whole, blocked))
+    a, b = summaries(whole, blocked)
     _close(b, a)
     assert b["architectures"]["MSC-GMF"]["expected"]["mse"] is not None
 
@@ -273,8 +210,8 @@ def test_blocked_retrodiction_is_al1_from_the_formulas(tmp_path, monkeypatch) ->
 
     path = _scenario(tmp_path, "{min = 1.0, max = 3.0}", True, False, "retrodict", steps=119,
                      archs=["CKF"])  # fmt: skip
-    monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", "25")
-    spy = _Spy(monkeypatch)
+    time_block(monkeypatch, 25)
+    spy = _spy(monkeypatch)
     ok("run", path, "--out-dir", tmp_path / "o", "--force")
     assert spy.estimated == 5
     system = load_scenario(path).system
@@ -302,6 +239,7 @@ def test_blocked_retrodiction_is_al1_from_the_formulas(tmp_path, monkeypatch) ->
 # --- memory ---------------------------------------------------------------------------------
 
 
+@pytest.mark.memory
 @pytest.mark.parametrize("what", ["estimates", "error_covariances"])
 def test_peak_is_independent_of_the_log_s_length(tmp_path, what) -> None:
     """`RetroBlocks` (CKF and MSC-GMF, drawn delays, a fifth of the readings missing) on 3000

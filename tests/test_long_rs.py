@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_helpers import ok
+from long_helpers import time_block, whole_and_blocked
 from test_long_replay import _close
 from test_replay_sources import write_json_mcap
 
@@ -82,20 +83,8 @@ def runs(tmp_path_factory):
     """The replay of 2 x 700 readings run whole and in blocks of 230 instants (7 blocks)."""
     tmp = tmp_path_factory.mktemp("long_rs")
     replay, a = _recording(tmp, 700)
-    mp = pytest.MonkeyPatch()
-    out = {}
-    try:
-        for name, block in (("whole", None), ("blocked", "230")):
-            with mp.context() as m:
-                if block is None:
-                    m.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
-                else:
-                    m.setenv("FUSIONLOG_TIME_BLOCK", block)
-                ok("run", replay, "--out-dir", tmp / name)
-            out[name] = tmp / name
-    finally:
-        mp.undo()
-    return out, a
+    whole, blocked, _ = whole_and_blocked(replay, tmp, 230)
+    return {"whole": whole, "blocked": blocked}, a
 
 
 def _estimates(folder: Path) -> dict:
@@ -219,12 +208,13 @@ def _peak(path: Path, block: int) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 def test_the_peak_does_not_grow_with_the_log(tmp_path, monkeypatch) -> None:
     """Four times the instants (blocks of 500), the peak grows by less than 8 bytes per added
     instant; the stacked R held whole is 8 m^2 = 32 bytes an instant here (and the messages'
     covariances read whole 8 more), and the whole log's gains and covariances far more. (Both
     logs span several of the file's chunks, whose decoding sets the reading's peak.)"""
-    monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", "500")
+    time_block(monkeypatch, 500)
     small, large = tmp_path / "small.mcap", tmp_path / "large.mcap"
     K = 20_000
     _sensors_file(small, K)
@@ -240,7 +230,7 @@ def test_blocked_R_is_the_whole_logs(tmp_path, monkeypatch) -> None:
     from fusionlog.core.model import ajgl2009
     from fusionlog.stages.noise import with_message_covariances
 
-    monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", "300")
+    time_block(monkeypatch, 300)
     path = tmp_path / "log.mcap"
     _sensors_file(path, 2_000)
     mf = McapFile(path)
@@ -277,14 +267,14 @@ def test_nonlinear_drawn_arrivals_are_read_per_block(tmp_path, monkeypatch) -> N
         )
     )
     ok("simulate", sc, "-o", tmp_path / "s.mcap")
-    monkeypatch.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
+    time_block(monkeypatch, None)
     ok("estimate", tmp_path / "s.mcap", "-o", tmp_path / "whole.mcap")
 
     def whole(*a, **kw):
         raise AssertionError("the whole run's arrivals read")
 
     monkeypatch.setattr(arrival, "read_arrivals", whole)
-    monkeypatch.setenv("FUSIONLOG_TIME_BLOCK", "45")
+    time_block(monkeypatch, 45)
     ok("estimate", tmp_path / "s.mcap", "-o", tmp_path / "blocked.mcap")
     a, b = (McapFile(tmp_path / f"{n}.mcap") for n in ("whole", "blocked"))
     for topic in ("/estimates/CKF", "/estimates/MSC"):

@@ -31,6 +31,7 @@ import numpy as np
 import pytest
 from cli_helpers import ok
 from conftest import random_system
+from long_helpers import count_calls, summaries_close, time_block
 
 from fusionlog.core.model import Prior, System
 
@@ -217,6 +218,7 @@ def _peak(K1: int, block: int) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.memory
 def test_peak_memory_does_not_grow_with_the_instants() -> None:
     """Blocks of 200 instants: four times the instants, the same peak within 10 % (the whole
     log's plans keep every instant's maps and moments: its peak grows fourfold)."""
@@ -228,56 +230,25 @@ def test_peak_memory_does_not_grow_with_the_instants() -> None:
 # -- the CLI ----------------------------------------------------------------------------------
 
 
-class Calls:
-    """Counts the calls of `core.exact_mismatch.mismatch_blocks` (the blocked route)."""
-
-    def __init__(self, mp) -> None:
-        from fusionlog.core import exact_mismatch
-
-        self.count, inner = 0, exact_mismatch.mismatch_blocks
-
-        def wrapped(*a, **kw):
-            self.count += 1
-            return inner(*a, **kw)
-
-        mp.setattr(exact_mismatch, "mismatch_blocks", wrapped)
-
-
 def _fusionlog(folder: Path, block: int | None, *args) -> int:
     """`fusionlog ARGS` in `folder` (relative outputs: the provenance's command is the same text
     whole and blocked) in blocks of time of `block` instants (None: the default, longer than
     these logs); how many times the blocked route was entered."""
+    from fusionlog.core import exact_mismatch
+
     folder.mkdir(exist_ok=True)
     with pytest.MonkeyPatch.context() as m:
         m.chdir(folder)
-        if block is None:
-            m.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
-        else:
-            m.setenv("FUSIONLOG_TIME_BLOCK", str(block))
-        calls = Calls(m)
+        time_block(m, block)
+        calls = count_calls(m, exact_mismatch, "mismatch_blocks")
         ok(*args)
         return calls.count
 
 
-def _close(a, b, path="") -> None:
+def _close(a, b) -> None:
     """Summaries equal to RTOL; the bound's worst ratio to 1e-7 (the plans' analysis of
     MSC-GMF on multirate's correlated radar and odometer leaves 4e-8 there, test_long_rest)."""
-    if isinstance(a, dict):
-        assert a.keys() == b.keys(), path
-        if path.endswith(".bound"):
-            assert math.isclose(a["worst"], b["worst"], rel_tol=1e-7), (path, a, b)
-            return
-        for k in a:
-            _close(a[k], b[k], f"{path}.{k}")
-    elif isinstance(a, list):
-        assert len(a) == len(b), path
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            _close(x, y, f"{path}[{i}]")
-    elif isinstance(a, float) and isinstance(b, float):
-        same = math.isnan(a) and math.isnan(b)
-        assert same or math.isclose(a, b, rel_tol=RTOL, abs_tol=1e-12), (path, a, b)
-    else:
-        assert a == b, (path, a, b)
+    summaries_close(a, b, rtol=RTOL, atol=1e-12, nan=True, bound_rtol=1e-7)
 
 
 def _multirate(folder: Path, extra: str = "", **changes: str) -> Path:

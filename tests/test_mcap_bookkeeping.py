@@ -35,6 +35,7 @@ def _held_per_message(path, steps: int) -> float:
     return held / (steps * len(TOPICS))
 
 
+@pytest.mark.memory
 def test_a_long_log_costs_the_writer_a_few_bytes_per_message(tmp_path) -> None:
     # Nothing per message now: a topic's steps are one range, and the instants' times k dt
     # their count and dt (~0.04 byte per message, the writer's fixed state, at 2*10^5

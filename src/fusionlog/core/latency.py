@@ -27,10 +27,15 @@ of the measurements as taken once the plan keeps the W last readings in its inte
 z~_k (what arrives at k) being a selection of z_k and the kept readings. So the executor, the
 per-run and history-node paths and the exact analysis (`core.exact`: the joint moments of the
 true state and s_k) take it as any other plan, the truth being the scenario's own model.
+
+Where each message carries its own R (`System.Rs`, eq. 31 per instant), the stacked model's
+noise at k is that of the readings arriving then: a slot of lag l has the R of instant k - l,
+the instant it was taken (`latency_stacked.stacked_noise`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,7 +45,7 @@ from .architectures.filters import constant_tail
 from .late_policy import accepted, arrival_steps, is_late, random_delays
 from .latency_corr import Conditions, apart_pairs, conditions_of, with_conditions
 from .latency_joint import joint_fused_plan
-from .latency_stacked import fused_plan, stacked_system, wrap
+from .latency_stacked import fused_plan, stacked_noise, stacked_system, wrap
 from .model import System
 
 __all__ = ["LateModel", "lag_pairs", "lags_of", "stacked_system"]
@@ -77,6 +82,15 @@ class LateModel:
             for lag in lj:
                 rows += [(j, int(lag), o) for o in range(sl.start, sl.stop)]
         self.slots = np.array(rows, dtype=np.intp).reshape(-1, 3)
+        if self.system.Rs is not None:  # each reading's own R, on the stacked slots
+            self.stacked = self.with_noise(self.stacked, self.slots, None)
+
+    def with_noise(self, stacked: System, slots: np.ndarray, coef: np.ndarray | None) -> System:
+        """`stacked` (slots (m~, 3+), `coef`) with the per-instant R of the whole run's
+        readings (`latency_stacked.stacked_noise`; a long log's blocks form theirs per block,
+        `core.latency_blocks`)."""
+        Rs = np.asarray(self.system.Rs)
+        return dataclasses.replace(stacked, Rs=stacked_noise(Rs, self.system.R, slots, coef, 0))
 
     @classmethod
     def of(cls, system: System, steps: int, times: np.ndarray | None) -> LateModel | None:
@@ -270,4 +284,11 @@ def _centre_model(model: LateModel) -> tuple | None:
     cond = conditions_of(model.system, model.arrive, last, list(range(S)))
     if cond is None:
         return None
-    return (*with_conditions(model.stacked, cond, model.lags, model.slots), cond)
+    stacked, slots, coef = with_conditions(model.stacked, cond, model.lags, model.slots)
+    if model.system.Rs is not None:
+        # the decorrelating A = R_jE R_EE^-1 are the nominal R's: with each message's own R
+        # the decorrelated readings are not white across instants, so this filter is not the
+        # batch-optimal one (its P is not its error covariance); it stays an affine map of
+        # the readings, which the plans' exact analysis takes as any other
+        stacked = model.with_noise(stacked, slots, coef)
+    return stacked, slots, coef, cond

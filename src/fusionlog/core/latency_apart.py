@@ -42,8 +42,9 @@ def selection(slots: np.ndarray, m: int, W: int) -> np.ndarray:
 
 class ApartReplay(_Replay):
     """`replay._Replay` on the stacked model whose error recursions keep the raw noises not yet
-    read (module docstring): `sel` (`selection`), `raw_R` (m, m) the joint R of one instant,
-    `W` the window, set before the first error covariance is asked for."""
+    read (module docstring): `sel` (`selection`), `raw_R` (m, m) the joint R of one instant
+    (or (K+1, m, m), each instant's: a recorded log's per-message covariances, v_k entering
+    with R_k), `W` the window, set before the first error covariance is asked for."""
 
     sel: np.ndarray
     raw_R: np.ndarray
@@ -59,7 +60,7 @@ class ApartReplay(_Replay):
         and cov(xi) at the last instant. `start`: cov(xi_{-1}) (D, D), or the first block's
         (d, d) error covariance (no readings before the log: its raw noises are zero)."""
         K1, d = A.shape[:2]
-        m, W = self.raw_R.shape[0], self.W
+        m, W = self.raw_R.shape[-1], self.W
         D = d + W * m
         if start.shape[0] == d:  # before instant 0: no reading's noise yet
             start = np.pad(start, ((0, W * m), (0, W * m)))

@@ -30,9 +30,13 @@ the plans' `fused_plan` rule; no rule keeps a state of its own: CI's, ICI's and 
 are per instant). Where correlated readings of one instant arrive apart, the stacked noise is
 correlated across time: J (MSC-GMF's and AVG's weights, every rule's exact analysis) and HKF's
 error covariance then keep the raw noises still to be read (`core.latency_apart`, as the
-plans' `latency_joint` maps keep the readings). Not here (None: the whole run, the plans):
-retrodiction, FBS, and fixed latencies on a steady model with every reading present (the
-steady plans of `latency_long`).
+plans' `latency_joint` maps keep the readings). A log whose messages carry their own R
+(`System.Rs`, read per block from its spool): the stacked R of each block from the raw R of
+its instants and the W before (`latency_stacked.stacked_noise`: a slot of lag l at k has the
+R of instant k - l), the raw noises kept with the R of their instant. Not here (None: the
+whole run, the plans): retrodiction, FBS, fixed latencies on a steady model with every
+reading present (the steady plans of `latency_long`), and the centre where correlated
+readings arrive apart with each message's R (`LateBlocks.of`).
 """
 
 from __future__ import annotations
@@ -51,7 +55,7 @@ from .latency import LateModel, lag_pairs, lags_of
 from .latency_apart import ApartReplay, selection
 from .latency_corr import Conditions, apart_pairs, conditions_of, with_conditions
 from .latency_replay import stacked_readings
-from .latency_stacked import current_block_rule, stacked_system
+from .latency_stacked import current_block_rule, stacked_noise, stacked_system
 from .model import System
 
 __all__ = ["LATE_BLOCK_BYTES", "LateBlocks"]
@@ -134,23 +138,38 @@ class _Stacked(ReplayBlocks):
     #: `latency_apart.selection` where correlated readings arrive apart at the plain stacked
     #: model's filters (HKF, the per-sensor locals), else None
     apart: np.ndarray | None = None
+    #: the raw R (w, m, m) of the instants of the block `window_system` made last, where each
+    #: message carries its own (None: one R)
+    raw_Rs: np.ndarray | None = None
 
     def replay(self, system: System, z: np.ndarray, backward) -> _Replay:
         if self.apart is None:
             return super().replay(system, z, backward)
         r = ApartReplay(system, z, self.need, self.criterion, self.carried, backward)
         r.sel, r.W = self.apart, self.late.window
-        r.raw_R = self.late.system.R
+        # the joint R of each instant the noises enter at: one, or each message's own
+        r.raw_R = self.late.system.R if self.raw_Rs is None else self.raw_Rs
         return r
 
     def window_system(self, k0: int, k1: int, into_first: bool) -> System:
-        if self.late.system.Fs is None and self.late.system.Qs is None:
-            return self.system  # one F, Q: the stacked model made once
-        raw = system_window(self.late.system, k0, k1, into_first)
-        stacked = stacked_system(raw, self.late.lags)
-        if self.centre is None:
+        raw = self.late.system
+        if raw.Fs is None and raw.Qs is None:
+            stacked = self.system  # one F, Q: the stacked model made once
+        else:
+            stacked = stacked_system(system_window(raw, k0, k1, into_first), self.late.lags)
+            if self.centre is not None:
+                cond, lags, slots = self.centre[3], self.late.lags, self.late.slots
+                stacked = with_conditions(stacked, cond, lags, slots)[0]
+        if raw.Rs is None:
             return stacked
-        return with_conditions(stacked, self.centre[3], self.late.lags, self.late.slots)[0]
+        # each reading's own R: the slots of lag l read the R of instant k - l, so the raw R
+        # of the W instants before the block too (`stacked_noise`; no centre here, `of`)
+        a = max(0, k0 - self.late.window)
+        Rs = np.asarray(raw.Rs[a:k1])
+        self.raw_Rs = Rs[k0 - a :]  # the block's own, for the raw noises kept (`replay`)
+        return dataclasses.replace(
+            stacked, Rs=stacked_noise(Rs, raw.R, self.late.slots, None, k0 - a)
+        )
 
 
 @dataclasses.dataclass
@@ -206,9 +225,15 @@ class LateBlocks:
             if kind not in _KINDS:
                 return None
             apart = bool(apart_pairs(system)) and kind in ("hierarchical", "per-sensor")
-            if apart and system.Rs is not None:  # the raw noises kept need one R
-                return None
             centre = late.centre_model() if kind == "centralised" else None
+            if system.Rs is not None and centre is not None:
+                # correlated readings of one instant arriving apart at the centre, each
+                # message with its own R: the decorrelated readings z_j - A z_E have
+                # A = R_jE R_EE^-1 of each instant's R, so the stacked filter on fixed
+                # coefficients is not the Kalman filter of the arrived readings (its P, which
+                # the exact analysis here reads, is not its error covariance): the whole run's
+                # plans, an affine map analysed exactly with each instant's R (`latency`)
+                return None
             model = late.stacked if centre is None else centre[0]
             m, N, S = model.m, model.n, len(model.sensors)
             per_instant = (2 * S + 2) * m * (m + N) * 8

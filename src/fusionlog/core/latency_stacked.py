@@ -21,7 +21,7 @@ from .linalg import numerical_errors
 from .model import Prior, System
 from .models import LinearSensor
 
-__all__ = ["current_block_rule", "fused_plan", "stacked_system", "wrap"]
+__all__ = ["current_block_rule", "fused_plan", "stacked_noise", "stacked_system", "wrap"]
 
 
 def stacked_system(system: System, lags: list[np.ndarray]) -> System:
@@ -85,6 +85,35 @@ def stacked_system(system: System, lags: list[np.ndarray]) -> System:
         Rs=None,
         late="reprocess",
     )
+
+
+def stacked_noise(
+    Rs: np.ndarray, R: np.ndarray, slots: np.ndarray, coef: np.ndarray | None, before: int
+) -> np.ndarray:
+    """The stacked model's noise covariance (w, m~, m~) at w instants where each reading
+    carries its own R (a recorded log's per-message covariances, `System.Rs`, eq. 31): slot c
+    (sensor, lag l, component o) read at k is the reading of instant k - l (`coef[c]`: its
+    combination of that instant's readings, `latency_corr`; default component o), so
+
+        R~_k[c, c'] = coef_c R_{k-l} coef_c'^T  where l_c = l_c',   0 otherwise
+
+    (readings of different instants are independent: `stacked_system`'s R, instant by
+    instant). `Rs` (before + w, m, m): the raw R of the instants k0 - before..k1-1; an
+    instant before its first row (before the log: never measured, masked) takes `R`."""
+    w, mt = len(Rs) - before, len(slots)
+    out = np.zeros((w, mt, mt))
+    for lag in np.unique(slots[:, 1]).tolist():
+        cols = np.flatnonzero(slots[:, 1] == lag)
+        src = np.arange(w) + before - lag  # the rows of the readings' own instants
+        Rl = Rs[np.maximum(src, 0)]
+        Rl[src < 0] = R
+        if coef is None:
+            o = slots[cols, 2]
+            out[:, cols[:, None], cols] = Rl[:, o[:, None], o]
+        else:
+            C = coef[cols]
+            out[:, cols[:, None], cols] = C @ Rl @ C.T
+    return out
 
 
 def _dense(A):

@@ -41,7 +41,7 @@ from fusionlog.core.late_policy import system_refusal
 from fusionlog.core.model import Prior, System
 from fusionlog.core.models import SensorModel
 from fusionlog.core.names import STATE_ARCHITECTURES, known_arch, parse_arch_of
-from fusionlog.core.timing import Schedule, SensorTiming
+from fusionlog.core.timing import Schedule, SensorTiming, instant_counts
 
 from . import estimate_keys, toml, trajectory
 from . import nonlinear_syntax as nonlinear
@@ -86,6 +86,13 @@ class StateScenario(Scenario):
 
     @property
     def instants(self) -> int:
+        """K + 1 on the regular grid (every sensor's period and offset whole dt), counted
+        without the schedule: a replay's scenario keeps its own instants' times, so a schedule
+        built only to count them would be held beside them, 8 bytes an instant (issue 34)."""
+        if "schedule" not in self.__dict__:
+            timings = tuple(s.timing for s in self.system.sensors)
+            if instant_counts(self.system.dt, self.steps, timings) is None:
+                return self.steps + 1
         return len(self.schedule.times)
 
     def check_horizon(self, ctx: Ctx, steps_key: str) -> None:

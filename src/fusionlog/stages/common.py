@@ -165,4 +165,5 @@ def open_evaluation_inputs(
             f"{estimates_path}: step {k} is at {float(t_est[k])!r} s, in {sensors_path} at "
             f"{float(t_sens[k])!r} s"
         )
+    est.share_times(t_sens)  # the same instants: one array of their times for both files
     return sens, est, prov, sc

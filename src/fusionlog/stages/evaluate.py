@@ -13,15 +13,18 @@ from fusionlog.driver import KeptPlans
 from fusionlog.driver.long_log import time_block
 from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
-from fusionlog.io.mcap import TRUTH
+from fusionlog.io.mcap import TRUTH, McapFile, read_metadata
 from fusionlog.jsonout import dumps
 from fusionlog.memory import release_freed_memory
 from fusionlog.report import model_sensors
 from fusionlog.scenario import Scenario
 from fusionlog.scenario.trajectory import with_align
 
-from .common import open_evaluation_inputs, progress
+from .common import PROVENANCE_META, open_evaluation_inputs, progress
 from .kinds import kind_of
+
+#: the estimates' provenance field of their measurement mask (DESIGN.md "MCAP files")
+PATTERN = "measurement_pattern"
 
 
 @dataclass
@@ -75,11 +78,13 @@ def evaluate_into(
             est.iter_time_blocks(ev.topics, T),
             strict=True,
         )
+        keys = _pattern_aside(prov)
         for (k0, k1, sdata), (_, _, edata) in windows:
             for topic, e in edata.items():
                 _check_variances(estimates_name or estimates_path, topic, e[1])
             long.add(k0, k1, sdata.pop(TRUTH, None), edata, sdata)
         del windows, sdata, edata
+        _pattern_back(prov, keys, est)
         return _written(long.evaluation(), kind, outs, out, summary_path, prov)
     blocks = zip(
         sens.iter_run_blocks(truth + list(ev.sensor_topics), B),
@@ -101,6 +106,27 @@ def evaluate_into(
     # log's times, twice) are not kept while the recording is encoded, the run's peak.
     del ev, sens, est
     return _written(evaluation, kind, outs, out, summary_path, prov)
+
+
+def _pattern_aside(prov: dict[str, str]) -> list[str] | None:
+    """Drop the estimates' ``measurement_pattern`` mask from `prov` (the dict the estimates
+    file and the evaluator hold) while a long log's blocks are evaluated: the evaluator has
+    read it, and its text, 3m + 2 bytes an instant, would be held through every block only
+    for the recording's properties (issue 34). The keys' order for `_pattern_back`; None
+    where the pattern is no mask."""
+    if prov.get(PATTERN, "complete") in ("complete", "per-run"):
+        return None
+    keys = list(prov)
+    del prov[PATTERN]
+    return keys
+
+
+def _pattern_back(prov: dict[str, str], keys: list[str] | None, est: McapFile) -> None:
+    """The mask `_pattern_aside` dropped, read again from the estimates file, in its place."""
+    if keys is not None:
+        prov[PATTERN] = read_metadata(est.path, PROVENANCE_META)[PATTERN]
+        for k in keys:  # the record's order, as the recording lists it
+            prov[k] = prov.pop(k)
 
 
 def _nothing(instants: int, T: int):

@@ -26,6 +26,7 @@ from fusionlog.core.simulate import simulate
 from fusionlog.driver import KeptPlans, PlanCache, estimate_block
 from fusionlog.errors import FusionlogError, NumericalError
 from fusionlog.io.mcap import ESTIMATE, TRUTH, McapFile, McapWriter, arch_of, sensor_topic
+from fusionlog.io.mcap.layout import StepMask
 from fusionlog.io.mcap.run_steps import RunColumn
 from fusionlog.io.mcap.topics import ESTIMATES_PREFIX
 from fusionlog.scenario import Scenario, load_model, system_from_dict, system_to_dict
@@ -291,8 +292,9 @@ def _sensor_log(sc: Scenario, filter_sys: System, sens: McapFile) -> SensorLog:
     topics = [sensor_topic(s.name) for s in filter_sys.sensors]
     scheduled = None
     if timed and all(t in sens.topics for t in topics):
-        scheduled = {
-            s.name: sens.topic_steps(t) for s, t in zip(filter_sys.sensors, topics, strict=True)
+        scheduled = {  # bits: a long log's blocks unpack their own (issue 34)
+            s.name: StepMask.of_mask(sens.topic_steps(t))
+            for s, t in zip(filter_sys.sensors, topics, strict=True)
         }
     truth = sens.metadata.get("fusionlog.scenario", {}).get("replay_truth")
     late = PlanCache(filter_sys, sens.steps() - 1, clock=sens.times())
@@ -386,11 +388,12 @@ class _StateEstimator(Estimator):
         """A long one-run log with late sensors in blocks of time: at fixed latencies with
         every reading present the late plans of a short horizon, their state (the latency
         window) carried across the blocks (`core.latency_long`); with delays drawn or
-        recorded, or readings missing, the plan-free stacked filters carried
-        (`core.latency_blocks`, `.late_blocks`: CKF, HKF, SKF and the per-sensor rules, under
-        reprocess and neglect), or, retrodicted (also where no short plans stand for the log),
-        each block's plans with the state of the block before (`core.retrodict_blocks`: every
-        architecture but FBS); None otherwise (FBS: the whole run)."""
+        recorded, or readings missing, or a covariance per message, the plan-free stacked
+        filters carried (`core.latency_blocks`, `.late_blocks`: CKF, HKF, SKF and the
+        per-sensor rules, under reprocess and neglect), or, retrodicted (also where no short
+        plans stand for the log), each block's plans with the state of the block before
+        (`core.retrodict_blocks`: every architecture but FBS); None otherwise (FBS, the CKF
+        of correlated readings arriving apart with each message's R: the whole run)."""
         from fusionlog.core.latency_blocks import LateBlocks
         from fusionlog.core.latency_long import late_steady_log
         from fusionlog.core.retrodict_blocks import RetroBlocks

@@ -13,6 +13,7 @@ The file format is the contract in DESIGN.md ("MCAP files"). One module per conc
 - :mod:`.recover` what is still readable from a damaged file.
 """
 
+from .chunks import read_metadata
 from .file import McapFile
 from .layout import LAYOUT_META
 from .recover import recover
@@ -53,5 +54,6 @@ __all__ = [
     "encode_values_message",
     "file_descriptor_set",
     "protobuf_classes",
+    "read_metadata",
     "recover",
 ]

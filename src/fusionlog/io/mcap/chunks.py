@@ -199,6 +199,16 @@ class Container:
     linear: bool = False  # no usable index: read the records from the start
 
 
+def read_metadata(path: Path, name: str) -> dict[str, str]:
+    """The metadata record `name` of the MCAP file at `path` (opened and checked before), read
+    again through its summary's index (the whole file where it has none); {} if absent."""
+    with open(path, "rb") as f:
+        for m in SeekingReader(f).iter_metadata():
+            if m.name == name:
+                return dict(m.metadata)
+    return {}
+
+
 def open_container(f: BinaryIO, path: Path) -> Container:
     """Open and check an MCAP file: magic bytes, footer, CRCs, summary or linear scan.
 

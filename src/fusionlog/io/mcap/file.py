@@ -348,11 +348,16 @@ class McapFile:
 
     def times(self) -> np.ndarray:
         """(K + 1,) time in seconds of each step (first message of that step in the file), read
-        only: one array however often it is asked for (8 bytes per instant each copy would
-        cost a 4*10^6-instant log 32 MB)."""
+        only: one array however often asked for (a copy costs 8 bytes an instant)."""
         t = self._get_structure().times
         t.flags.writeable = False
         return t
+
+    def share_times(self, times: np.ndarray) -> None:
+        """Hold `times` for this file's where equal (one array for a log's two files, issue 34)."""
+        s = self._get_structure()
+        if np.array_equal(s.times, times):
+            s.times = times
 
     def time_origin_ns(self) -> int:
         """The clock of the file's messages: log_time - round(time * 1e9) of its first fusionlog

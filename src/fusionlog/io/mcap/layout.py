@@ -78,6 +78,11 @@ class StepMask:
             last, count = int(steps[-1]), count + len(steps)
         return StepMask(bits, instants, count)
 
+    @staticmethod
+    def of_mask(mask: np.ndarray) -> StepMask:
+        """The (S,) bool `mask` as bits."""
+        return StepMask(np.packbits(mask), len(mask), int(np.count_nonzero(mask)))
+
     def __getitem__(self, window: slice) -> np.ndarray:
         k0, k1, step = window.indices(self.instants)
         if step != 1 or k1 <= k0:

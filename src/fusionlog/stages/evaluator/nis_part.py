@@ -18,8 +18,9 @@ __all__ = ["NisPart"]
 
 
 class NisPart(Part):
-    """`scheduled` {sensor: (K+1,) bool}, each sensor's scheduled instants; `recorded`: a
-    replay (NIS of the architectures `known`, and the first run's normalised innovations)."""
+    """`scheduled` {sensor: (K+1,) bool or its `StepMask` (`[k0:k1]`: a bool array)}, each
+    sensor's scheduled instants; `recorded`: a replay (NIS of the architectures `known`, and the
+    first run's normalised innovations)."""
 
     def __init__(
         self,
@@ -80,7 +81,7 @@ class NisPart(Part):
                 if a in into.archs:
                     into.archs[a]["nis"] = entry
         into.fields["availability"] = {
-            name: availability(self.measured[name], self.scheduled[name], self.M)
+            name: availability(self.measured[name], self.scheduled[name][:], self.M)
             for name in self.measured
         }
         into.fields["measured"] = self.measured_points

@@ -43,10 +43,11 @@ __all__ = ["SensorLog", "StateEvaluator"]
 @dataclass(frozen=True)
 class SensorLog:
     """What an evaluation knows of the sensors log besides its arrays: whether it has the
-    truth, and each sensor's scheduled instants (K+1,) bool where it has them (availability)."""
+    truth, and each sensor's scheduled instants where it has them (availability): (K+1,) bool
+    or its bits (`io.mcap.layout.StepMask`), either sliced `[k0:k1]`."""
 
     has_truth: bool = True
-    scheduled: dict[str, np.ndarray] | None = None
+    scheduled: dict[str, Any] | None = None
     #: a replay's truth: {"states": [names], "matched": N, "unmatched": N} (instants with and
     #: without a truth sample); its states may be some of the state's (partial truth)
     truth: dict[str, Any] | None = None
@@ -98,11 +99,6 @@ class StateEvaluator(Evaluator):
         self._load_arrivals, self._sensors_file = log.load_arrivals, log.sensors
         #: the policy for late measurements where some sensor is late (summary.json "late")
         self.late = filter_sys.late if is_late(filter_sys) else None
-        #: EKF/UKF filters: nothing evaluated reads when the readings arrived (no exact
-        #: analysis), so a late log is evaluated in blocks as an on-time one (issue 34)
-        self.nonlinear = not filter_sys.linear
-        #: a covariance per message, which the late plans and stacked filters do not take
-        self.per_message_R = filter_sys.Rs is not None
         known = [a for a in self.archs if known_arch(a, filter_sys)]
         names = list(sc.state_names)
         truthed = (
@@ -217,8 +213,6 @@ class StateEvaluator(Evaluator):
 
         if self.M != 1 or self.K + 1 <= time_block() or reference_paths():
             return None
-        if self.late is not None and not self.nonlinear and self._late_whole():  # issue 30
-            return None
         parts = {MetricsPart, ExactPart, SamplesPart, NisPart, BoundPart, PcrbPart, TrajectoryPart}
         parts |= {PlanePart}
         if not {type(p) for p in self.parts} <= parts:
@@ -305,19 +299,15 @@ class StateEvaluator(Evaluator):
             )
         )  # fmt: skip
 
-    def _late_whole(self) -> bool:
-        """Whether a log with late sensors takes the whole run: per-message R (which the late
-        plans do not take). Without an exact analysis (a truth whose model is nonlinear, or
-        whose sensors are not the filters') the metrics, NIS and trajectory parts read only
-        the estimates and readings, block by block as an on-time log's."""
-        return self.per_message_R
-
     def _late_exact(self, exact: ExactPart) -> Any:
         """The exact values of a long log with late sensors whose late plans of a short
         horizon do not stand for it (delays drawn or recorded, readings missing): the stacked
         filters' error covariances block by block (`.long_late`; retrodicted, the moments
-        of each block's plans, `core.retrodict_blocks`), where the truth is the filters' model
-        and the path takes every architecture; else None."""
+        of each block's plans, `core.retrodict_blocks`; each message's own R read per block),
+        where the truth is the filters' model and the path takes every architecture; else
+        None. Without an exact analysis (a truth whose model is nonlinear, or whose sensors
+        are not the filters') the metrics, NIS and trajectory parts read only the estimates
+        and readings, block by block as an on-time log's."""
         from fusionlog.core.exact_replay import truth_is_model
         from fusionlog.core.latency_blocks import LateBlocks
         from fusionlog.core.retrodict_blocks import RetroBlocks

@@ -1,0 +1,254 @@
+"""What the long-log tests (tests/test_long_*.py, issue 34) share: a log run whole and in blocks
+of time (the hidden setting FUSIONLOG_TIME_BLOCK), the two runs' files compared (summaries,
+estimates, recordings) at the tolerances each test states, counts of the blocks a path took,
+the tracemalloc peaks of whole `run`s at several lengths, and the late sensors' scenario text.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tracemalloc
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cli_helpers import ok
+
+from fusionlog.io.mcap import McapFile
+from fusionlog.io.rrd import read_recording
+
+# -- running whole and in blocks ---------------------------------------------------------------
+
+
+def time_block(mp: pytest.MonkeyPatch, block: int | str | None) -> None:
+    """Blocks of time of `block` instants (None: the default, longer than the tests' logs)."""
+    if block is None:
+        mp.delenv("FUSIONLOG_TIME_BLOCK", raising=False)
+    else:
+        mp.setenv("FUSIONLOG_TIME_BLOCK", str(block))
+
+
+def run(scenario: Path, out: Path, block: int | str | None, mp: pytest.MonkeyPatch, *extra) -> Path:
+    """`fusionlog run SCENARIO --out-dir OUT --force EXTRA` in blocks of `block` instants."""
+    time_block(mp, block)
+    ok("run", scenario, "--out-dir", out, "--force", *extra)
+    return out
+
+
+def whole_and_blocked(scenario: Path, tmp: Path, block: int | str, *extra, horizons=None,
+                      spy: Callable | None = None):  # fmt: skip
+    """`run` of `scenario` whole (tmp/whole) and in blocks of `block` instants (tmp/blocked);
+    for the blocked run only, steady plans of `horizons` (`long_log.HORIZONS`) and `spy(mp)`
+    (what counts its blocks). Returns (whole, blocked, what `spy` returned)."""
+    import fusionlog.core.architectures.long_log as long_log
+
+    mp = pytest.MonkeyPatch()
+    try:
+        whole = run(scenario, tmp / "whole", None, mp, *extra)
+        if horizons is not None:
+            mp.setattr(long_log, "HORIZONS", horizons)
+        spied = None if spy is None else spy(mp)
+        blocked = run(scenario, tmp / "blocked", block, mp, *extra)
+    finally:
+        mp.undo()
+    return whole, blocked, spied
+
+
+class Spy:
+    """Counts, while the monkeypatch lasts, the calls of the functions or methods named in
+    `calls` and what the generator functions named in `blocks` yield (the blocks of time a
+    path took), each as an attribute of its keyword: ``Spy(mp, calls={"evaluated":
+    (LongEvaluator, "add")}).evaluated``."""
+
+    def __init__(self, mp: pytest.MonkeyPatch, *, calls=None, blocks=None) -> None:
+        for key, (owner, name) in (calls or {}).items():
+            mp.setattr(owner, name, self._calls(key, getattr(owner, name)))
+        for key, (owner, name) in (blocks or {}).items():
+            mp.setattr(owner, name, self._yields(key, getattr(owner, name)))
+
+    def _add(self, key: str) -> None:
+        setattr(self, key, getattr(self, key) + 1)
+
+    def _calls(self, key: str, inner: Callable) -> Callable:
+        setattr(self, key, 0)
+
+        def wrapped(*a, **kw):
+            self._add(key)
+            return inner(*a, **kw)
+
+        return wrapped
+
+    def _yields(self, key: str, inner: Callable) -> Callable:
+        setattr(self, key, 0)
+
+        def wrapped(*a, **kw):
+            for got in inner(*a, **kw):
+                self._add(key)
+                yield got
+
+        return wrapped
+
+
+def count_calls(mp: pytest.MonkeyPatch, owner, name: str) -> Spy:
+    """A `Spy` of the calls of `owner.name` (a public function of one path): its `count`."""
+    return Spy(mp, calls={"count": (owner, name)})
+
+
+# -- comparing the two runs' files ---------------------------------------------------------------
+
+
+def summaries_close(a, b, *, rtol: float, atol: float, nan: bool = False, exact_atol=None,
+                    skip: Sequence[str] = (), bound_rtol=None, path: str = "") -> None:  # fmt: skip
+    """Two summaries (JSON trees) alike: the same keys, lengths and other values; floats within
+    `rtol` relative or `atol` absolute (`exact_atol` for the exact values and the bound's,
+    paths holding ``.expected.`` or ``.bound.``); NaN equal to NaN where `nan`; dict keys in
+    `skip` passed over; with `bound_rtol`, of a ``.bound`` entry its keys and its worst ratio
+    (within `bound_rtol`) only."""
+    kw = dict(rtol=rtol, atol=atol, nan=nan, exact_atol=exact_atol, skip=skip)
+    kw["bound_rtol"] = bound_rtol
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), path
+        if bound_rtol is not None and path.endswith(".bound"):
+            assert math.isclose(a["worst"], b["worst"], rel_tol=bound_rtol), (path, a, b)
+            return
+        for k in a:
+            if k not in skip:
+                summaries_close(a[k], b[k], path=f"{path}.{k}", **kw)
+    elif isinstance(a, list):
+        assert len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            summaries_close(x, y, path=f"{path}[{i}]", **kw)
+    elif isinstance(a, float) and isinstance(b, float):
+        if nan and math.isnan(a):
+            assert math.isnan(b), path
+            return
+        exact = exact_atol is not None and (".expected." in path or ".bound." in path)
+        tol = exact_atol if exact else atol
+        assert math.isclose(a, b, rel_tol=rtol, abs_tol=tol), (path, a, b)
+    else:
+        assert a == b, (path, a, b)
+
+
+def summaries(*folders: Path) -> list[dict]:
+    """Each folder's summary.json."""
+    return [json.loads((d / "summary.json").read_text()) for d in folders]
+
+
+#: A tolerance of estimates_close: bit for bit
+EQUAL = "equal"
+
+
+@dataclass(frozen=True)
+class OfLargest:
+    """A tolerance of estimates_close: `r` times the largest entry of the whole run's, absolute."""
+
+    r: float
+
+
+def estimates_close(whole: Path, blocked: Path, archs: Sequence[str], mean, cov) -> None:
+    """Each architecture's means and covariances in blocked/estimates.mcap against whole's:
+    `mean`, `cov` each `EQUAL`, `OfLargest(r)` or (rtol, atol)."""
+    topics = [f"/estimates/{a}" for a in archs]
+    a = McapFile(whole / "estimates.mcap").read_all(topics)
+    b = McapFile(blocked / "estimates.mcap").read_all(topics)
+    for t in topics:
+        for i, tol in ((0, mean), (1, cov)):
+            arrays_close(b[t][i], a[t][i], tol, t)
+
+
+def arrays_close(got, want, tol, what: str = "") -> None:
+    """`got` against `want` within `tol` (`EQUAL`, `OfLargest(r)` or (rtol, atol))."""
+    if tol == EQUAL:
+        np.testing.assert_array_equal(got, want, err_msg=what)
+    elif isinstance(tol, OfLargest):
+        atol = tol.r * np.abs(want).max()
+        np.testing.assert_allclose(got, want, rtol=0, atol=atol, err_msg=what)
+    else:
+        np.testing.assert_allclose(got, want, rtol=tol[0], atol=tol[1], err_msg=what)
+
+
+def series_close(whole: Path, blocked: Path, rtol: float, atol: float, exact_atol=None) -> None:
+    """The two recordings draw the same series at the same steps: within `rtol` relative or
+    `atol` absolute (`exact_atol` for the exact values' and the bound's series)."""
+    a, b = (read_recording(d / "evaluation.rrd") for d in (whole, blocked))
+    np.testing.assert_array_equal(a["steps"], b["steps"])
+    assert a["series"].keys() == b["series"].keys()
+    for key, v in a["series"].items():
+        exact = exact_atol is not None and ("expected" in key or "bound" in key)
+        tol = exact_atol if exact else atol
+        np.testing.assert_allclose(b["series"][key], v, rtol=rtol, atol=tol, err_msg=key)
+
+
+# -- memory ------------------------------------------------------------------------------------
+
+
+def pipeline_peaks(tmp: Path, mp: pytest.MonkeyPatch, scenario: Path, archs, sizes, block: int,
+                   above: int, buckets: int, **load) -> list[int]:  # fmt: skip
+    """The Python allocations' peak (tracemalloc: numpy's arrays included) of a whole `run`
+    of `scenario` with each number of steps in `sizes` (`load`: load_scenario's other
+    arguments), in blocks of `block` instants, a recording decimated to `buckets` buckets
+    (three points each) above `above` instants. The first size's peak holds what is imported
+    on first use."""
+    from fusionlog.core import decimate
+    from fusionlog.scenario import load_scenario
+    from fusionlog.stages.run import run_pipeline
+
+    time_block(mp, block)
+    mp.setattr(decimate, "DECIMATE_ABOVE", above)
+    mp.setattr(decimate, "BUCKETS", buckets)
+    peaks = []
+    for K in sizes:
+        sc = load_scenario(scenario, steps=K, **load)
+        tracemalloc.start()
+        try:
+            run_pipeline(sc, tmp / str(K), archs=archs, force=True)
+            peaks.append(tracemalloc.get_traced_memory()[1])
+        finally:
+            tracemalloc.stop()
+    return peaks
+
+
+# -- the late sensors' scenario ------------------------------------------------------------------
+
+#: A constant-velocity target (q = 0.16) seen by position sensors, one run at 1 s instants.
+LATE_HEADER = """
+[scenario]
+name = "{name}"
+steps = {steps}
+runs = 1
+seed = {seed}
+dt = 1.0
+state_names = ["position", "velocity"]
+[model]
+{model}
+[prior]
+mean = [100.0, -1.0]
+cov = [[1.0, 0.0], [0.0, 1.0]]
+"""
+
+CONSTANT_VELOCITY = 'kind = "constant-velocity"\nn0 = 0.16'
+
+
+def position_sensor(name: str, R: float, latency: str | None = None, extra: str = "") -> str:
+    """A `[[sensors]]` table of a position sensor (H = [1, 0]), late by `latency` (TOML)."""
+    late = "" if latency is None else f"latency = {latency}\n"
+    return f'[[sensors]]\nname = "{name}"\nH = [[1.0, 0.0]]\nR = {R}\n{late}{extra}'
+
+
+#: s1 on time, s2 1 s late and s3 3 s late (R 1, 2 and 0.5)
+LATE_SENSORS = (
+    position_sensor("s1", 1.0)
+    + position_sensor("s2", 2.0, "1.0")
+    + position_sensor("s3", 0.5, "3.0")
+)
+
+
+def late_toml(name: str, seed: int, steps: int, sensors: str, archs: Sequence[str], late: str,
+              model: str = CONSTANT_VELOCITY) -> str:  # fmt: skip
+    """The scenario's text: `LATE_HEADER`, the sensors' tables and `[estimate]`."""
+    head = LATE_HEADER.format(name=name, steps=steps, seed=seed, model=model)
+    estimate = f'[estimate]\narchitectures = {json.dumps(list(archs))}\nlate = "{late}"\n'
+    return head + sensors + estimate
