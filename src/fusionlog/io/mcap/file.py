@@ -25,7 +25,7 @@ from fusionlog.errors import FusionlogError
 from fusionlog.inputs import check_input
 
 from .blocks import Assembly, Cursor, Window
-from .chunk_rows import Rows, chunk_rows
+from .chunk_rows import Rows, chunk_rows, first_message
 from .chunks import Container, linear_batches, open_container, open_error, read_chunk
 from .columns import BadMessage, Table, decode_rows, decode_table
 from .layout import LAYOUT_META, Layout, StepMask
@@ -374,7 +374,8 @@ class McapFile:
                 else:
                     ci = next((c for c, ids in self._container.chunks if ids is None or ids & cids),
                               None)  # fmt: skip
-                    first = [] if ci is None else read_chunk(f, self.path, ci)
+                    one = None if ci is None else first_message(f, self.path, ci, cids)
+                    first = [one] if one else [] if ci is None else read_chunk(f, self.path, ci)
             first = [m for m in first if m.channel_id in cids][:1]
             tab = self._table(first, self._formats) if first else None
             origin = 0 if tab is None else first[0].log_time - round(float(tab.time[0]) * 1e9)
