@@ -363,9 +363,8 @@ class McapFile:
         """The clock of the file's messages: log_time - round(time * 1e9) of its first fusionlog
         message, i.e. the absolute time of instant 0 (0 for a simulation, a replay's recorded
         time of its first instant). Files written from this one take it as their writer's
-        `time_origin_ns`, so that they carry the same log_time at each instant (DESIGN.md "MCAP
-        files": the outputs of a replay keep the recording's clock). A first message whose
-        log_time precedes its `time` (a hand-written log) gives 0."""
+        `time_origin_ns`: the same log_time at each instant (DESIGN.md "MCAP files": a replay's
+        outputs keep its clock). A log_time before its `time` (hand-written) gives 0."""
         if self._origin is None:
             cids, first = set(self._formats), []
             with open(self.path, "rb") as f:
