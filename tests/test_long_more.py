@@ -258,13 +258,6 @@ def test_peak_memory_of_a_nonlinear_log_stays_near_one_block_s(tmp_path, monkeyp
     assert peaks[2] <= 1.1 * peaks[1], peaks
 
 
-@pytest.mark.xfail(
-    reason="issue 34, open: a nonlinear one-run log's peak still grows with its length "
-    "(radar FBS, blocks of 60, 6000 -> 12000 instants: estimate ~230 B and evaluate ~640 B "
-    "per instant, the same before this session; at 500 -> 1000 the first chunk's decode, "
-    "growing until it holds 1 MiB, adds to it)",
-    strict=False,
-)
 def test_peak_memory_of_a_nonlinear_log_does_not_grow_with_the_instants(
     tmp_path, monkeypatch
 ) -> None:

@@ -79,6 +79,10 @@ def _reduce(v: np.ndarray) -> np.ndarray:
     return np.stack([first, mean, second], axis=1).reshape(-1, *v.shape[2:])
 
 
+#: Parts (each block's points) a `Decimator` keeps apart before joining them into one array.
+_PARTS = 8
+
+
 class Decimator:
     """One series (w, ...) handed over in order, block by block, reduced to its points."""
 
@@ -97,6 +101,8 @@ class Decimator:
         full = len(v) // self.b * self.b
         if full:
             self.parts.append(_reduce(v[:full].reshape(-1, self.b, *v.shape[1:])))
+            if len(self.parts) > _PARTS:  # one array: a part per block would grow with them
+                self.parts = [np.concatenate(self.parts)]
         self.rest = v[full:].copy()
 
     def result(self) -> np.ndarray:

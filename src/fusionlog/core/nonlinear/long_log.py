@@ -144,7 +144,9 @@ class _Smoother:
         for b in range(len(edges) - 1, -1, -1):
             self.after[b] = carried
             mean, cov = self.block(b)
-            carried = (mean[:, 0], cov[:, 0])
+            # copies: views of the block's first instant would keep its whole arrays (mean
+            # and covariances of every instant of it) alive for the rest of the log
+            carried = (mean[:, 0].copy(), cov[:, 0].copy())
 
     def block(self, b: int) -> tuple[np.ndarray, np.ndarray]:
         """Block b's forward pass recomputed from its checkpoint, then smoothed backwards from

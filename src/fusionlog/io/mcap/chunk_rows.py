@@ -26,11 +26,21 @@ from typing import Any, BinaryIO
 
 import numpy as np
 from mcap.opcode import Opcode
-from mcap.records import ChunkIndex
+from mcap.records import ChunkIndex, Message
 
-from .chunks import _CHUNK_HEAD, _U64, _damaged, _messages_only, one_line, read_chunk
+from .chunks import (
+    _CHUNK_HEAD,
+    _MESSAGE_HEAD,
+    _RECORD_HEAD,
+    _U64,
+    _crc_range,
+    _damaged,
+    _messages_only,
+    one_line,
+    read_chunk,
+)
 
-__all__ = ["Rows", "chunk_rows", "message_rows"]
+__all__ = ["Rows", "chunk_rows", "first_message", "message_rows"]
 
 _INDEX_HEAD = struct.Struct("<BQHI")  # opcode, record length, channel_id, records length
 _MESSAGE_FIXED = 22  # channel_id (2), sequence (4), log_time (8), publish_time (8)
@@ -146,3 +156,57 @@ def _only_other_records(data: bytes, off: np.ndarray, stop: np.ndarray) -> bool:
         if _messages_only(data[a:b]) != []:  # a message the index misses, or no records
             return False
     return True
+
+
+#: Bytes read at a time while checking a chunk's CRC without holding it (`first_message`).
+_CRC_STEP = 1 << 16
+
+
+def first_message(f: BinaryIO, path: Path, ci: ChunkIndex, cids: set[int]) -> Message | None:
+    """The first message (in file order) of the channels `cids` in the uncompressed, indexed
+    chunk `ci`, read alone: its offset from the first entry of each channel's message index,
+    the chunk's CRC checked a stretch at a time. No other message is read or kept (issue 34:
+    reading the whole chunk as mcap ``Message`` objects for one message held ~5 MB for a
+    1 MiB chunk, growing with a short log). None where the chunk is compressed, not indexed,
+    or its index does not point at such a message: then `read_chunk` reads it (and says what
+    is wrong)."""
+    if ci.compression != "" or not ci.message_index_offsets:
+        return None
+    first = None
+    for cid in sorted(cids & set(ci.message_index_offsets)):
+        f.seek(ci.message_index_offsets[cid])
+        head = f.read(_INDEX_HEAD.size + 16)  # the record's head and its first (time, offset)
+        if len(head) < _INDEX_HEAD.size:
+            return None
+        op, length, channel, rlen = _INDEX_HEAD.unpack_from(head)
+        if op != Opcode.MESSAGE_INDEX or channel != cid or length != 6 + rlen or rlen % 16:
+            return None
+        if rlen and len(head) == _INDEX_HEAD.size + 16:
+            at = _U64.unpack_from(head, _INDEX_HEAD.size + 8)[0]
+            first = at if first is None else min(first, at)
+    if first is None:
+        return None
+    start = ci.chunk_start_offset
+    f.seek(start)
+    op, length, _, _, _, ucrc, clen = _CHUNK_HEAD.unpack(f.read(_CHUNK_HEAD.size))
+    if op != Opcode.CHUNK or 9 + length != ci.chunk_length or clen:
+        return None
+    (dlen,) = _U64.unpack(f.read(_U64.size))
+    data_at = start + _CHUNK_HEAD.size + _U64.size
+    if data_at + dlen > start + ci.chunk_length or first + 9 + _MESSAGE_FIXED > dlen:
+        return None
+    try:
+        crc = _crc_range(f, data_at, data_at + dlen, 0, _CRC_STEP)
+        if ucrc and crc != ucrc:
+            raise ValueError(f"chunk CRC {crc:08x} where the file records {ucrc:08x}")
+    except (ValueError, EOFError) as e:
+        raise _damaged(path, f"corrupt MCAP chunk at byte {start} ({one_line(e)})") from e
+    f.seek(data_at + first)
+    head = f.read(9 + _MESSAGE_FIXED)
+    op, length = _RECORD_HEAD.unpack_from(head)
+    cid, seq, log_time, publish_time = _MESSAGE_HEAD.unpack_from(head, 9)
+    if op != Opcode.MESSAGE or length < _MESSAGE_FIXED or first + 9 + length > dlen:
+        return None
+    if cid not in cids:
+        return None
+    return Message(cid, log_time, f.read(length - _MESSAGE_FIXED), publish_time, seq)

@@ -167,11 +167,11 @@ class CRCMismatch(ValueError):
         )
 
 
-def _crc_range(f: BinaryIO, start: int, end: int, crc: int) -> int:
+def _crc_range(f: BinaryIO, start: int, end: int, crc: int, step: int = _READ) -> int:
     f.seek(start)
     left = end - start
     while left > 0:
-        data = f.read(min(left, _READ))
+        data = f.read(min(left, step))
         if not data:
             raise EOFError(f"file ends at byte {end - left}")
         crc = zlib.crc32(data, crc)

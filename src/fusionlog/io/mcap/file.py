@@ -25,7 +25,7 @@ from fusionlog.errors import FusionlogError
 from fusionlog.inputs import check_input
 
 from .blocks import Assembly, Cursor, Window
-from .chunk_rows import Rows, chunk_rows
+from .chunk_rows import Rows, chunk_rows, first_message
 from .chunks import Container, linear_batches, open_container, open_error, read_chunk
 from .columns import BadMessage, Table, decode_rows, decode_table
 from .layout import LAYOUT_META, Layout, StepMask
@@ -363,9 +363,8 @@ class McapFile:
         """The clock of the file's messages: log_time - round(time * 1e9) of its first fusionlog
         message, i.e. the absolute time of instant 0 (0 for a simulation, a replay's recorded
         time of its first instant). Files written from this one take it as their writer's
-        `time_origin_ns`, so that they carry the same log_time at each instant (DESIGN.md "MCAP
-        files": the outputs of a replay keep the recording's clock). A first message whose
-        log_time precedes its `time` (a hand-written log) gives 0."""
+        `time_origin_ns`: the same log_time at each instant (DESIGN.md "MCAP files": a replay's
+        outputs keep its clock). A log_time before its `time` (hand-written) gives 0."""
         if self._origin is None:
             cids, first = set(self._formats), []
             with open(self.path, "rb") as f:
@@ -374,7 +373,8 @@ class McapFile:
                 else:
                     ci = next((c for c, ids in self._container.chunks if ids is None or ids & cids),
                               None)  # fmt: skip
-                    first = [] if ci is None else read_chunk(f, self.path, ci)
+                    one = None if ci is None else first_message(f, self.path, ci, cids)
+                    first = [one] if one else [] if ci is None else read_chunk(f, self.path, ci)
             first = [m for m in first if m.channel_id in cids][:1]
             tab = self._table(first, self._formats) if first else None
             origin = 0 if tab is None else first[0].log_time - round(float(tab.time[0]) * 1e9)

@@ -20,7 +20,7 @@ import numpy as np
 from fusionlog.core.decimate import TreeDecimator
 from fusionlog.core.trajectory import Alignment, AlignmentError, fit_count, summary_entries
 from fusionlog.core.trajectory_blocks import ErrorSums, Moments, RpeTaker, select
-from fusionlog.driver.long_log import Spool
+from fusionlog.driver.long_log import Spool, time_block
 from fusionlog.errors import FusionlogError
 
 __all__ = ["LongTrajectory"]
@@ -150,8 +150,9 @@ def _at(w: int, idx: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def _median(spool: Spool, n: int) -> float:
-    """The median of the n errors spooled (np.median's: the mean of the two middle ones)."""
-    block = 1 << 16
+    """The median of the n errors spooled (np.median's: the mean of the two middle ones), read
+    back a block of time at a time (its selection's arrays are of a block, not of the log)."""
+    block = time_block()
 
     def blocks() -> Iterator[np.ndarray]:
         for a in range(0, n, block):
