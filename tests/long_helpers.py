@@ -364,3 +364,22 @@ def per_message_recording(folder: Path, per_sensor: int, seed: int, name: str, a
         f"[estimate]\narchitectures = {json.dumps(list(archs))}\n"
     )  # fmt: skip
     return replay, {"t": ta, "z": za, "r": ra}
+
+
+def csv_replay_toml(name: str, tail: str = "") -> str:
+    """A replay of `log.csv` (time in ns): two position sensors a and b (R = 1) of a
+    constant-velocity model with a prior, the truth of the position p matched exactly; `tail`:
+    more tables (an `[estimate]`)."""
+    sensors = "".join(
+        f'[[sensors]]\nname = "{x}"\nsource = "log.csv"\nvalues = ["{x}"]\ntime_unit = "ns"\n'
+        "H = [[1.0, 0.0]]\nR = 1.0\n"
+        for x in "ab"
+    )
+    return (
+        f'[scenario]\nname = "{name}"\nstate_names = ["p", "v"]\n'
+        '[model]\nkind = "constant-velocity"\nn0 = 0.5\n'
+        "[prior]\nmean = [1.0, 0.0]\ncov = [[1.0, 0.0], [0.0, 1.0]]\n"
+        + sensors
+        + '[truth]\nsource = "log.csv"\nvalues = ["p"]\nstates = ["p"]\ntime_unit = "ns"\n'
+        'match = "exact"\n' + tail
+    )

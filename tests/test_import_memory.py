@@ -22,34 +22,12 @@ import tracemalloc
 
 import numpy as np
 import pytest
+from long_helpers import csv_replay_toml
 
 from fusionlog.scenario import load_scenario
 from fusionlog.stages.import_data import run_import
 
-_REPLAY = (
-    """[scenario]
-name = "long_csv"
-state_names = ["p", "v"]
-[model]
-kind = "constant-velocity"
-n0 = 0.5
-[prior]
-mean = [1.0, 0.0]
-cov = [[1.0, 0.0], [0.0, 1.0]]
-"""
-    + "".join(
-        f'[[sensors]]\nname = "{x}"\nsource = "log.csv"\nvalues = ["{x}"]\ntime_unit = "ns"\n'
-        "H = [[1.0, 0.0]]\nR = 1.0\n"
-        for x in "ab"
-    )
-    + """[truth]
-source = "log.csv"
-values = ["p"]
-states = ["p"]
-time_unit = "ns"
-match = "exact"
-"""
-)
+_REPLAY = csv_replay_toml("long_csv")
 
 
 _PAD = "x" * 130  # a column not read: the rows' width fills the blocks of text

@@ -23,6 +23,7 @@ import tracemalloc
 
 import numpy as np
 import pytest
+from long_helpers import csv_replay_toml
 
 from fusionlog.io.mcap import McapFile
 from fusionlog.scenario import load_scenario
@@ -31,32 +32,7 @@ from fusionlog.stages.run import run_pipeline
 
 BLOCK = 1024
 
-_REPLAY = (
-    """[scenario]
-name = "long_csv_flat"
-state_names = ["p", "v"]
-[model]
-kind = "constant-velocity"
-n0 = 0.5
-[prior]
-mean = [1.0, 0.0]
-cov = [[1.0, 0.0], [0.0, 1.0]]
-"""
-    + "".join(
-        f'[[sensors]]\nname = "{x}"\nsource = "log.csv"\nvalues = ["{x}"]\ntime_unit = "ns"\n'
-        "H = [[1.0, 0.0]]\nR = 1.0\n"
-        for x in "ab"
-    )
-    + """[truth]
-source = "log.csv"
-values = ["p"]
-states = ["p"]
-time_unit = "ns"
-match = "exact"
-[estimate]
-architectures = ["CKF", "FBS"]
-"""
-)
+_REPLAY = csv_replay_toml("long_csv_flat", '[estimate]\narchitectures = ["CKF", "FBS"]\n')
 
 
 def _replay(folder, rows: int):
