@@ -383,3 +383,26 @@ def csv_replay_toml(name: str, tail: str = "") -> str:
         + '[truth]\nsource = "log.csv"\nvalues = ["p"]\nstates = ["p"]\ntime_unit = "ns"\n'
         'match = "exact"\n' + tail
     )
+
+
+def irregular_csv_replay(folder: Path, rows: int, scenario: str, pad: str = ""):
+    """`folder`/log.csv of `rows` instants 5 ms +- 40 % apart (ns), sensors a and b reading the
+    position p with unit noise, each missing at 5 % of the rows, and `pad` as one more column
+    not read (wider rows); `folder`/replay.toml of `scenario`; the scenario loaded."""
+    from fusionlog.scenario import load_scenario
+
+    rng = np.random.default_rng(34)
+    t = np.cumsum(np.round(5_000_000 * (1 + 0.4 * rng.uniform(-1, 1, rows)))).astype(np.int64)
+    p = 1.0 + np.cumsum(0.01 * np.cumsum(rng.normal(size=rows))) * 0.005
+    a, b = p + rng.normal(size=rows), p + rng.normal(size=rows)
+    a[rng.random(rows) < 0.05] = np.nan
+    b[rng.random(rows) < 0.05] = np.nan
+    extra = f",{pad}" if pad else ""
+    with open(folder / "log.csv", "w") as f:
+        f.write("time,a,b,p" + (",pad" if pad else "") + "\n")
+        f.writelines(
+            f"{u},{x:.6f},{y:.6f},{z:.9f}{extra}\n".replace("nan", "")
+            for u, x, y, z in zip(t, a, b, p, strict=True)
+        )
+    (folder / "replay.toml").write_text(scenario)
+    return load_scenario(folder / "replay.toml")

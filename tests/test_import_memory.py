@@ -20,11 +20,9 @@ between the two sizes, so the constant costs (a block, imports) cancel.
 
 import tracemalloc
 
-import numpy as np
 import pytest
-from long_helpers import csv_replay_toml
+from long_helpers import csv_replay_toml, irregular_csv_replay
 
-from fusionlog.scenario import load_scenario
 from fusionlog.stages.import_data import run_import
 
 _REPLAY = csv_replay_toml("long_csv")
@@ -35,20 +33,7 @@ _PAD = "x" * 130  # a column not read: the rows' width fills the blocks of text
 
 def _replay(folder, rows: int):
     """An irregular log (5 ms +- 40 %), each sensor's reading missing at 5 % of the rows."""
-    rng = np.random.default_rng(34)
-    t = np.cumsum(np.round(5_000_000 * (1 + 0.4 * rng.uniform(-1, 1, rows)))).astype(np.int64)
-    p = 1.0 + np.cumsum(0.01 * np.cumsum(rng.normal(size=rows))) * 0.005
-    a, b = p + rng.normal(size=rows), p + rng.normal(size=rows)
-    a[rng.random(rows) < 0.05] = np.nan
-    b[rng.random(rows) < 0.05] = np.nan
-    with open(folder / "log.csv", "w") as f:
-        f.write("time,a,b,p,pad\n")
-        f.writelines(
-            f"{u},{x:.6f},{y:.6f},{z:.9f},{_PAD}\n".replace("nan", "")
-            for u, x, y, z in zip(t, a, b, p, strict=True)
-        )
-    (folder / "replay.toml").write_text(_REPLAY)
-    return load_scenario(folder / "replay.toml")
+    return irregular_csv_replay(folder, rows, _REPLAY, pad=_PAD)
 
 
 def _peak(scenario, out) -> int:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_helpers import cli, ok, one_line_error
-from mcap.writer import Writer
+from long_helpers import stamped_mcap
 
 import fusionlog as fl
 
@@ -39,18 +39,7 @@ def write_log(path: Path, seed: int = 3) -> dict[str, list[tuple[int, int, float
             for i, d in enumerate(B_DELAYS)
         ],
     }  # fmt: skip
-    schema = {"type": "object", "properties": {"header": {"type": "object"},
-                                               "v": {"type": "number"}}}  # fmt: skip
-    with open(path, "wb") as f:
-        w = Writer(f)
-        w.start()
-        sid = w.register_schema("Reading", "jsonschema", json.dumps(schema).encode())
-        ch = {t: w.register_channel(t, "json", sid) for t in msgs}
-        events = sorted((log, t, stamp, v) for t, ms in msgs.items() for stamp, log, v in ms)
-        for log, t, stamp, v in events:
-            body = {"header": {"stamp": {"sec": stamp // NS, "nanosec": stamp % NS}}, "v": v}
-            w.add_message(ch[t], log_time=log, data=json.dumps(body).encode(), publish_time=log)
-        w.finish()
+    stamped_mcap(path, list(msgs), [(lg, t, st, v) for t, ms in msgs.items() for st, lg, v in ms])
     return msgs
 
 

@@ -21,12 +21,10 @@ number of buckets. ~50 s of CPU.
 import statistics
 import tracemalloc
 
-import numpy as np
 import pytest
-from long_helpers import csv_replay_toml
+from long_helpers import csv_replay_toml, irregular_csv_replay
 
 from fusionlog.io.mcap import McapFile
-from fusionlog.scenario import load_scenario
 from fusionlog.stages.evaluate import run_evaluate
 from fusionlog.stages.run import run_pipeline
 
@@ -36,20 +34,7 @@ _REPLAY = csv_replay_toml("long_csv_flat", '[estimate]\narchitectures = ["CKF", 
 
 
 def _replay(folder, rows: int):
-    rng = np.random.default_rng(34)
-    t = np.cumsum(np.round(5_000_000 * (1 + 0.4 * rng.uniform(-1, 1, rows)))).astype(np.int64)
-    p = 1.0 + np.cumsum(0.01 * np.cumsum(rng.normal(size=rows))) * 0.005
-    a, b = p + rng.normal(size=rows), p + rng.normal(size=rows)
-    a[rng.random(rows) < 0.05] = np.nan
-    b[rng.random(rows) < 0.05] = np.nan
-    with open(folder / "log.csv", "w") as f:
-        f.write("time,a,b,p\n")
-        f.writelines(
-            f"{u},{x:.6f},{y:.6f},{z:.9f}\n".replace("nan", "")
-            for u, x, y, z in zip(t, a, b, p, strict=True)
-        )
-    (folder / "replay.toml").write_text(_REPLAY)
-    return load_scenario(folder / "replay.toml")
+    return irregular_csv_replay(folder, rows, _REPLAY)
 
 
 def _held_while_blocks(folder, monkeypatch) -> float:
