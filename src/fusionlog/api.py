@@ -41,6 +41,7 @@ from .core import evaluation
 from .core.architectures import Estimate as BlockEstimate
 from .core.model import System
 from .core.names import check_architectures
+from .driver.plans import PATTERN
 from .errors import FusionlogError, ValidationError  # noqa: F401 (fl.api.FusionlogError)
 from .io.mcap import estimates_topic, sensor_topic
 from .scenario import Scenario, load_scenario
@@ -232,7 +233,7 @@ def evaluate(
     prov = (
         estimates.provenance
         if isinstance(estimates, Estimates) and hasattr(estimates, "provenance")
-        else {"measurement_pattern": "per-run"}
+        else {PATTERN: "per-run"}
     )
     # the sensors' availability, where it says something (their own timing, a recording)
     timed = sc.replay is not None or any(not s.timing.default for s in sc.system.sensors)

@@ -222,19 +222,23 @@ class JobPlans:
         return c
 
 
+#: The estimates' provenance field of their measurement mask (DESIGN.md "MCAP files").
+PATTERN = "measurement_pattern"
+
+
 def pattern_record(patterns: Sequence[bytes | None], shape: tuple[int, int]) -> dict[str, str]:
     """``measurement_pattern`` from blocks' shared patterns (`np.packbits` of each (K+1, m)
     mask of `shape`, None where a block's runs differed): "per-run" when any block's runs
     differed, two blocks differed or there was none; else "complete" or the mask as JSON."""
     if not patterns or any(p is None for p in patterns) or len(set(patterns)) > 1:
-        return {"measurement_pattern": "per-run"}
+        return {PATTERN: "per-run"}
     first = patterns[0]
     assert first is not None
     mask = np.unpackbits(np.frombuffer(first, dtype=np.uint8))[: shape[0] * shape[1]]
     mask = mask.reshape(shape).astype(bool)
     if mask.all():
-        return {"measurement_pattern": "complete"}
-    return {"measurement_pattern": _mask_json(mask)}
+        return {PATTERN: "complete"}
+    return {PATTERN: _mask_json(mask)}
 
 
 #: Rows of a mask's JSON checked at a time (`pattern_mask`): ~0.1 MB of temporaries.

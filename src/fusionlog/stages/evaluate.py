@@ -11,6 +11,7 @@ import numpy as np
 from fusionlog.core.linalg import not_a_covariance
 from fusionlog.driver import KeptPlans
 from fusionlog.driver.long_log import time_block
+from fusionlog.driver.plans import PATTERN
 from fusionlog.errors import FusionlogError
 from fusionlog.io.atomic import Outputs
 from fusionlog.io.mcap import TRUTH, McapFile, read_metadata
@@ -22,9 +23,6 @@ from fusionlog.scenario.trajectory import with_align
 
 from .common import PROVENANCE_META, open_evaluation_inputs, progress
 from .kinds import kind_of
-
-#: the estimates' provenance field of their measurement mask (DESIGN.md "MCAP files")
-PATTERN = "measurement_pattern"
 
 
 @dataclass

@@ -14,7 +14,7 @@ import numpy as np
 from fusionlog.core.model import System
 from fusionlog.core.routes import exact_route, shared_expected
 from fusionlog.driver import PlanCache, conditional_sums
-from fusionlog.driver.plans import pattern_mask
+from fusionlog.driver.plans import PATTERN, pattern_mask
 
 from .parts import Block, Elsewhere, Finished, Part
 
@@ -32,7 +32,7 @@ def exact_setup(prov: dict[str, str], filter_sys: System, truth_sys: System):
     """
     if truth_sys.initial is None and truth_sys.prior is None:
         return None  # a replay without [prior]: no initial distribution to propagate
-    pattern = prov.get("measurement_pattern", "complete")
+    pattern = prov.get(PATTERN, "complete")
     names = [s.name for s in truth_sys.sensors]
     if any(s.name not in names for s in filter_sys.sensors):
         return None
